@@ -1,0 +1,46 @@
+# cobgs: the two commands a fresh machine needs are `make demo` and `make test`.
+# Everything is installed into a private virtual environment ($(VENV)).
+
+PYTHON ?= python3
+VENV   ?= .venv
+PY     := $(VENV)/bin/python
+PIP    := $(PY) -m pip --quiet
+STAMP  := $(VENV)/.cobgs-installed
+# The local CPU wheel of PyTorch; installed before the package so that pip sees the
+# torch requirement as satisfied and never downloads the CUDA build.
+TORCH_SPEC ?= torch==2.13.0
+PYTEST_ARGS ?=
+
+.PHONY: install build test demo bench report clean help
+
+help:
+	@echo "make demo    run the embedded demo workflow (installs and builds first)"
+	@echo "make test    install, build the native extension, run the test suite"
+	@echo "make bench   run the benchmark workflow and tests/benchmarks"
+	@echo "make report  regenerate the HTML report of the demo workflow"
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -c "import torch" 2>/dev/null || $(PIP) install "$(TORCH_SPEC)"
+	$(PIP) install -e ".[dev,ray]"
+	touch $(STAMP)
+
+install: $(STAMP)
+
+build: install
+	$(VENV)/bin/cobgs build
+
+test: build
+	$(PY) -m pytest -m "not slow and not gpu" $(PYTEST_ARGS)
+
+demo: build
+	$(VENV)/bin/cobgs run workflows/demo.toml
+
+bench: build
+	$(VENV)/bin/cobgs run workflows/synthetic_bench.toml
+
+report: build
+	$(VENV)/bin/cobgs report workflows/demo.toml
+
+clean:
+	rm -rf $(VENV) build *.egg-info .pytest_cache

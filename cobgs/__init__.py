@@ -1,0 +1,19 @@
+"""cobgs: COB-GS segmentation of 3D Gaussian Splatting scenes, CPU first.
+
+Importing the package is cheap and never compiles anything; the native rasterizer is
+built on first use of :func:`cobgs.rasterize` (or ahead of time with ``cobgs build``).
+"""
+
+from __future__ import annotations
+
+__version__ = "0.1.0"
+
+from .errors import BuildError, CobgsError, DataError, InputError, ModelError  # noqa: F401
+
+
+def __getattr__(name):  # lazy entry points keep `import cobgs` light
+    if name in ("rasterize", "RasterOutput"):
+        from . import rasterize as _r
+
+        return getattr(_r, name)
+    raise AttributeError(f"module 'cobgs' has no attribute {name!r}")

@@ -1,0 +1,1 @@
+"""Mask generation through ONNX exports of SAM2 and Grounding DINO."""

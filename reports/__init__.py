@@ -1,0 +1,1 @@
+"""HTML result reports built from pipeline cache manifests."""

@@ -1,0 +1,57 @@
+"""The ``cobgs`` command line.
+
+Commands are contributed by provider modules, each exposing ``register(subparsers)``
+that adds its sub-commands with ``set_defaults(func=callable(args) -> int)``. Providers
+must keep their module-level imports light (torch and friends are imported inside the
+command functions) so that ``cobgs --help`` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from typing import Optional, Sequence
+
+# Order here is the order of `cobgs --help`.
+PROVIDERS = (
+    "stages.build_cmd",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from cobgs import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="cobgs",
+        description="COB-GS segmentation of 3D Gaussian Splatting scenes, and the "
+        "cached benchmark pipeline around it.",
+    )
+    parser.add_argument("--version", action="version", version=f"cobgs {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in PROVIDERS:
+        importlib.import_module(name).register(sub)
+    return parser
+
+
+def main(argv: Optional[Sequence[str]] = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    func = getattr(args, "func", None)
+    if func is None:
+        parser.print_help()
+        return 2
+    from cobgs.errors import CobgsError
+
+    try:
+        return int(func(args) or 0)
+    except CobgsError as exc:  # expected failures: one clear line, no traceback
+        print(f"cobgs {args.command}: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
