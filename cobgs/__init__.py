@@ -13,7 +13,12 @@ from .errors import BuildError, CobgsError, DataError, InputError, ModelError  #
 
 def __getattr__(name):  # lazy entry points keep `import cobgs` light
     if name in ("rasterize", "RasterOutput"):
-        from . import rasterize as _r
+        # importlib, not `from . import rasterize`: the latter looks the name up on this
+        # package first and would re-enter __getattr__ forever. Importing the submodule
+        # binds `cobgs.rasterize` to the module; rebind it to the function.
+        import importlib
 
-        return getattr(_r, name)
+        value = getattr(importlib.import_module(".rasterize", __name__), name)
+        globals()[name] = value
+        return value
     raise AttributeError(f"module 'cobgs' has no attribute {name!r}")
