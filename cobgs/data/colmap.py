@@ -1,0 +1,190 @@
+"""COLMAP scenes (binary or text models) read through pycolmap.
+
+Layout: ``<scene>/images/`` and a model in ``<scene>/sparse/0/``, ``<scene>/sparse/`` or
+``<scene>/`` itself (cameras/images/points3D as ``.bin`` or ``.txt``). Views are the
+registered images sorted by name. Cameras with a distorted model are undistorted to
+PINHOLE at load time (see :mod:`cobgs.data.undistort`); PINHOLE and SIMPLE_PINHOLE
+images are used as they are. Optional masks: ``<scene>/masks/<object>/<stem>.png``.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+import torch
+
+from ..camera import Camera
+from ..errors import DataError
+from .scene import (
+    Scene,
+    View,
+    find_object_files,
+    finish_rgb,
+    make_scene,
+    read_image_array,
+    read_mask_array,
+    resize_mask,
+    target_size,
+)
+from .undistort import PINHOLE_MODELS, pinhole_params, undistort_view_arrays
+
+_MODEL_FILES = ("cameras", "images", "points3D")
+
+
+def find_model_dir(root: os.PathLike | str) -> Path:
+    """The folder holding the COLMAP model under ``root`` (sparse/0, sparse, or root)."""
+    root = Path(root)
+    for cand in (root / "sparse" / "0", root / "sparse", root):
+        for ext in (".bin", ".txt"):
+            if all((cand / f"{n}{ext}").is_file() for n in _MODEL_FILES):
+                return cand
+    raise DataError(
+        "no COLMAP model found (expected cameras, images, points3D as .bin or .txt in "
+        "sparse/0/, sparse/ or the scene folder)",
+        root,
+    )
+
+
+def read_colmap(
+    path: os.PathLike | str,
+    *,
+    images_dir: Optional[os.PathLike | str] = None,
+    model_dir: Optional[os.PathLike | str] = None,
+    downscale: float = 1.0,
+    test_every: int = 8,
+    test_names: Optional[Sequence[str]] = None,
+) -> Scene:
+    """Read a COLMAP scene.
+
+    Args:
+        path: scene folder.
+        images_dir: image folder (default ``<path>/images``); image names in the model
+            are relative to it.
+        model_dir: model folder (default: found by :func:`find_model_dir`).
+        downscale: divide the image size by this. When ``<path>/images_<k>/`` exists for
+            an integer ``downscale == k`` and ``images_dir`` is not given, those
+            pre-shrunk images are used (the LLFF / Mip-NeRF 360 convention).
+        test_every: hold out views 0, k, 2k, ... of the name-sorted registered images.
+        test_names: explicit held-out views (stems or file names).
+
+    Returns:
+        Scene with SfM ``points`` / ``points_rgb`` from the model.
+    """
+    import pycolmap
+
+    root = Path(path)
+    mdir = Path(model_dir) if model_dir is not None else find_model_dir(root)
+    try:
+        rec = pycolmap.Reconstruction(mdir)
+    except Exception as e:  # pycolmap reports parse errors as generic exceptions
+        raise DataError(f"unreadable COLMAP model: {e}", mdir) from e
+
+    pre_shrunk = False
+    if images_dir is not None:
+        idir = Path(images_dir)
+    else:
+        idir = root / "images"
+        k = int(round(downscale))
+        if downscale != 1 and abs(downscale - k) < 1e-9 and (root / f"images_{k}").is_dir():
+            idir, pre_shrunk = root / f"images_{k}", True
+    if not idir.is_dir():
+        raise DataError("image folder not found", idir)
+
+    images = sorted(rec.images.values(), key=lambda im: im.name)
+    images = [im for im in images if _has_pose(im)]
+    if not images:
+        raise DataError("the model has no registered images", mdir)
+    views = [_read_view(root, rec, im, idir, downscale, pre_shrunk) for im in images]
+
+    pts = rec.points3D
+    points = points_rgb = None
+    if len(pts) > 0:
+        ids = sorted(pts.keys())
+        points = torch.tensor(np.stack([pts[i].xyz for i in ids]), dtype=torch.float32)
+        points_rgb = torch.tensor(np.stack([pts[i].color for i in ids]), dtype=torch.float32) / 255.0
+    return make_scene(
+        views,
+        test_every=test_every,
+        test_names=test_names,
+        source=root,
+        kind="colmap",
+        points=points,
+        points_rgb=points_rgb,
+    )
+
+
+def _has_pose(im) -> bool:
+    has = getattr(im, "has_pose", None)
+    if has is None:
+        return True
+    return bool(has() if callable(has) else has)
+
+
+def _read_view(root: Path, rec, im, idir: Path, downscale: float, pre_shrunk: bool) -> View:
+    cam = rec.cameras[im.camera_id]
+    model = cam.model.name
+    img_path = idir / im.name
+    if not img_path.is_file():
+        raise DataError(f"image {im.name!r} of the COLMAP model not found", img_path)
+    arr = read_image_array(img_path)
+    got = (arr.shape[1], arr.shape[0])
+    cam_size = (int(cam.width), int(cam.height))
+    params = [float(p) for p in cam.params]
+    stem = Path(im.name).stem
+    mask_files = find_object_files(root, stem, "masks")
+
+    if pre_shrunk:
+        # images_<k>/ holds the images already shrunk; rescale the camera to them.
+        expect = target_size(*cam_size, downscale)
+        if abs(got[0] - expect[0]) > 1 or abs(got[1] - expect[1]) > 1:
+            raise DataError(
+                f"image is {got[0]}x{got[1]}, expected about {expect[0]}x{expect[1]} "
+                f"(camera {cam_size[0]}x{cam_size[1]} / {downscale})",
+                img_path,
+            )
+    elif got != cam_size:
+        raise DataError(
+            f"image is {got[0]}x{got[1]} but camera {im.camera_id} ({model}) is "
+            f"{cam_size[0]}x{cam_size[1]}",
+            img_path,
+        )
+
+    if model in PINHOLE_MODELS:
+        fx, fy, cx, cy = pinhole_params(model, params)
+        native = got
+        sx, sy = got[0] / cam_size[0], got[1] / cam_size[1]
+        fx, fy, cx, cy = fx * sx, fy * sy, cx * sx, cy * sy
+        size = native if pre_shrunk else target_size(*native, downscale)
+        masks_native = {k: read_mask_array(f, [native, size]) for k, f in mask_files.items()}
+    else:
+        if pre_shrunk:
+            raise DataError(
+                f"camera model {model} is distorted; undistortion needs the full-size images, "
+                "not a pre-shrunk images_<k>/ folder (pass images_dir)",
+                img_path,
+            )
+        masks_native = {k: read_mask_array(f, [got]) for k, f in mask_files.items()}
+        arr, masks_native, (fx, fy, cx, cy, w, h) = undistort_view_arrays(
+            arr, masks_native, model, params, cam_size[0], cam_size[1], img_path
+        )
+        native = (w, h)
+        size = target_size(*native, downscale)
+    image, _ = finish_rgb(arr, size)
+    R_t = _cam_from_world(im)
+    c2w = np.linalg.inv(R_t)
+    camera = Camera.from_c2w(c2w, fx, fy, cx, cy, native[0], native[1], stem).resized(*size)
+    masks = {k: resize_mask(m, size)[0] for k, m in masks_native.items()}
+    return View(camera, image, stem, masks, {}, os.fspath(img_path))
+
+
+def _cam_from_world(im) -> np.ndarray:
+    """[4, 4] world→camera of a pycolmap image (COLMAP uses OpenCV axes already)."""
+    pose = im.cam_from_world
+    if callable(pose):
+        pose = pose()
+    m = np.eye(4)
+    m[:3, :4] = np.asarray(pose.matrix(), np.float64)
+    return m
