@@ -16,6 +16,7 @@ from typing import Optional, Sequence
 # Order here is the order of `cobgs --help`.
 PROVIDERS = (
     "stages.build_cmd",
+    "stages.synth_cmd",
 )
 
 

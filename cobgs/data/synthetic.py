@@ -1,0 +1,189 @@
+"""Synthetic multi-object scenes with exact ground-truth masks (the embedded data set).
+
+:func:`generate_scene` ray-casts a preset (see :data:`PRESETS`) and writes it in the
+NeRF-style layout of ``docs/data_formats.md``: ``transforms.json`` (camera->world in OpenGL
+axes, per-frame intrinsics, ``test_filenames``), ``images/``, ``masks/<object>/`` (a pixel
+is in an object's mask when a strict majority of its subsamples see that object first),
+``coverage/<object>/`` (round(255 x fraction of subsamples)) and ``scene.json``.
+
+The output is deterministic: the same preset, seed and overrides give bit-identical files.
+It is written to a temporary sibling folder and renamed into place at the end, so an
+interrupted run never leaves a folder that looks finished.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Dict, List, Optional, Tuple
+
+import numpy as np
+
+from ..errors import DataError, InputError
+from .synth_cameras import PinholeCamera, intrinsics_from_fov, opencv_to_opengl
+from .synth_presets import BUILDERS, PRESETS, SynthPreset
+from .synth_render import RenderedView, Scene, make_caster, render_view
+
+GENERATOR = "cobgs.data.synthetic"
+FORMAT_VERSION = 1
+
+__all__ = ["PRESETS", "SynthPreset", "build_scene", "generate_scene", "render_scene_view",
+           "GENERATOR", "FORMAT_VERSION"]
+
+
+def resolve_preset(preset: str | SynthPreset, **overrides) -> SynthPreset:
+    """The preset named ``preset`` (or given), with non-None ``overrides`` of its fields."""
+    if isinstance(preset, str):
+        if preset not in PRESETS:
+            raise InputError(f"unknown synthetic preset {preset!r}; expected one of {sorted(PRESETS)}")
+        preset = PRESETS[preset]
+    fields = {f.name for f in dataclasses.fields(SynthPreset)}
+    bad = sorted(set(overrides) - fields)
+    if bad:
+        raise InputError(f"unknown preset field(s) {bad}; expected some of {sorted(fields)}")
+    changes = {k: v for k, v in overrides.items() if v is not None}
+    return dataclasses.replace(preset, **changes) if changes else preset
+
+
+def build_scene(preset: str | SynthPreset, seed: int = 0, **overrides
+                ) -> Tuple[SynthPreset, Scene, List[PinholeCamera]]:
+    """The resolved preset, its scene and its cameras for ``seed`` (nothing is rendered).
+
+    ``overrides`` replace preset fields (``width_px``, ``height_px``, ``num_views``,
+    ``supersampling``, ``hfov_deg``, ``test_every``); the layout is the preset's.
+    """
+    p = resolve_preset(preset, **overrides)
+    if p.name not in BUILDERS:
+        raise InputError(f"no scene builder for preset {p.name!r}; expected one of {sorted(BUILDERS)}")
+    if not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise InputError(f"seed must be an int >= 0, got {seed!r}")
+    rng = np.random.default_rng([0x5EED, int(seed)])
+    scene, poses = BUILDERS[p.name](rng, p)
+    fx, fy, cx, cy = intrinsics_from_fov(p.width_px, p.height_px, p.hfov_deg)
+    cams = [PinholeCamera(p.width_px, p.height_px, fx, fy, cx, cy,
+                          tuple(tuple(float(v) for v in row) for row in c2w)) for c2w in poses]
+    return p, scene, cams
+
+
+def render_scene_view(scene: Scene, camera: PinholeCamera, supersampling: int) -> RenderedView:
+    """Render one view (colour and per-object subsample hit counts)."""
+    return render_view(scene, camera, supersampling)
+
+
+def _render_all(scene: Scene, cams: List[PinholeCamera], s: int, progress: bool):
+    from tqdm import tqdm
+
+    caster = make_caster(scene)
+    for cam in tqdm(cams, desc="synth: rendering views", unit="view", disable=not progress):
+        yield render_view(scene, cam, s, caster=caster)
+
+
+def _frame_json(cam: PinholeCamera, file_path: str) -> dict:
+    gl = opencv_to_opengl(cam.c2w_array)
+    return {"file_path": file_path,
+            "transform_matrix": [[float(v) for v in row] for row in gl],
+            "fl_x": cam.fx, "fl_y": cam.fy, "cx": cam.cx, "cy": cam.cy,
+            "w": cam.width, "h": cam.height}
+
+
+def _write_png(path: Path, array: np.ndarray) -> None:
+    import cv2
+
+    img = array[:, :, ::-1] if array.ndim == 3 else array  # OpenCV writes BGR
+    if not cv2.imwrite(str(path), np.ascontiguousarray(img)):
+        raise DataError("could not write PNG", path)
+
+
+def generate_scene(out_dir: os.PathLike | str, preset: str | SynthPreset = "demo", seed: int = 0,
+                   *, overwrite: bool = False, progress: bool = True,
+                   width_px: Optional[int] = None, height_px: Optional[int] = None,
+                   num_views: Optional[int] = None, supersampling: Optional[int] = None
+                   ) -> Path:
+    """Render a synthetic scene and write it to ``out_dir``.
+
+    Args:
+        out_dir: destination folder; must not exist (or be empty) unless ``overwrite``.
+        preset: "demo", "forward", "orbit" or a :class:`SynthPreset` with one of those names.
+        seed: changes colours, texture lattices, box yaws and camera jitter.
+        overwrite: replace an existing ``out_dir``.
+        progress: show a tqdm bar.
+        width_px, height_px, num_views, supersampling: override the preset's values.
+    Returns:
+        ``out_dir`` as a Path.
+    """
+    out = Path(out_dir)
+    if out.exists() and not overwrite and (not out.is_dir() or any(out.iterdir())):
+        raise InputError(f"output folder {out} exists and is not empty (pass overwrite=True "
+                         "or --overwrite to replace it)")
+    p, scene, cams = build_scene(preset, seed, width_px=width_px, height_px=height_px,
+                                 num_views=num_views, supersampling=supersampling)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    try:
+        _write(tmp, p, scene, cams, seed, progress)
+        if out.exists():
+            trash = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+            os.replace(out, trash / "old")
+            os.replace(tmp, out)
+            shutil.rmtree(trash, ignore_errors=True)
+        else:
+            os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
+
+
+def _write(root: Path, p: SynthPreset, scene: Scene, cams: List[PinholeCamera], seed: int,
+           progress: bool) -> None:
+    names = [o.name for o in scene.objects]
+    (root / "images").mkdir()
+    for sub in ("masks", "coverage"):
+        for n in names:
+            (root / sub / n).mkdir(parents=True)
+    frames, test = [], []
+    s = p.supersampling
+    for i, view in enumerate(_render_all(scene, cams, s, progress)):
+        stem = f"{i:04d}"
+        rel = f"images/{stem}.png"
+        _write_png(root / rel, view.rgb)
+        for k, n in enumerate(names):
+            hits = view.hits[k].astype(np.int64)
+            # Strict majority of subsamples: a pixel split evenly between two surfaces
+            # belongs to neither mask.
+            _write_png(root / "masks" / n / f"{stem}.png",
+                       np.where(2 * hits > view.subsamples, 255, 0).astype(np.uint8))
+            cov = np.rint(255.0 * hits / view.subsamples).astype(np.uint8)
+            _write_png(root / "coverage" / n / f"{stem}.png", cov)
+        frames.append(_frame_json(cams[i], rel))
+        if i % p.test_every == 0:
+            test.append(rel)
+    c0 = cams[0]
+    transforms = {"camera_model": "PINHOLE", "fl_x": c0.fx, "fl_y": c0.fy, "cx": c0.cx,
+                  "cy": c0.cy, "w": c0.width, "h": c0.height, "frames": frames,
+                  "test_filenames": test}
+    _dump(root / "transforms.json", transforms)
+    light = np.asarray(scene.light_dir, dtype=np.float64)
+    meta = {
+        "generator": GENERATOR, "version": FORMAT_VERSION, "preset": p.name, "seed": int(seed),
+        "trajectory": p.trajectory, "image_size": [p.width_px, p.height_px],
+        "supersampling": s, "subsamples_per_pixel": s * s, "num_views": len(cams),
+        "test_every": p.test_every, "hfov_deg": p.hfov_deg, "world_up": [0.0, 0.0, 1.0],
+        "mask_rule": "2 * hits > subsamples_per_pixel",
+        "objects": [o.to_json() for o in scene.objects],
+        "background": [b.to_json() for b in scene.background],
+        "light": {"direction": (light / np.linalg.norm(light)).tolist(), "ambient": scene.ambient,
+                  "sky": list(scene.sky)},
+    }
+    # scene.json last: its presence marks a complete scene even inside the temp folder.
+    _dump(root / "scene.json", meta)
+
+
+def _dump(path: Path, obj: Dict) -> None:
+    with open(path, "w", encoding="utf-8") as f:
+        json.dump(obj, f, indent=1)
+        f.write("\n")

@@ -1,0 +1,325 @@
+"""Structure from motion with pycolmap (4.x): images in, COLMAP model + undistorted images out.
+
+:func:`run_sfm` runs SIFT extraction, exhaustive or sequential matching, incremental
+mapping, keeps the largest model and undistorts it to PINHOLE. It writes the layout the
+3DGS tools use (COLMAP's ``image_undistorter`` output plus the distorted model)::
+
+    <out>/images/<name>            undistorted images (PINHOLE camera)
+    <out>/sparse/0/{cameras,images,points3D}.bin   undistorted model (binary)
+    <out>/distorted/sparse/0/*.bin the model before undistortion
+    <out>/distorted/database.db    features and matches
+    <out>/sfm.json                 summary: registered / unregistered images, timings
+
+The folder is built under a temporary sibling name and renamed into place last, so an
+interrupted run never leaves a folder that looks finished. Reading the model into library
+cameras is :mod:`cobgs.data.colmap`'s job.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence, Tuple
+
+from .errors import DataError, InputError
+
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
+MATCHERS = ("auto", "exhaustive", "sequential")
+_MAX_NAMES_IN_ERROR = 30
+
+
+@dataclass(frozen=True)
+class SfmOptions:
+    """Options of :func:`run_sfm`.
+
+    Attributes:
+        matcher: "exhaustive" (every pair), "sequential" (each image with the next
+            ``sequential_overlap`` in name order; for ordered captures) or "auto"
+            (exhaustive up to ``exhaustive_max_images`` images, sequential above).
+        exhaustive_max_images: the "auto" threshold.
+        sequential_overlap: neighbours matched per image by the sequential matcher.
+        camera_model: COLMAP model fitted during mapping (SIMPLE_RADIAL is COLMAP's default
+            for unknown lenses; undistortion turns any model into PINHOLE).
+        single_camera: all images share one camera (one capture device).
+        camera_params: known intrinsics in ``camera_model``'s parameter order, or None to
+            estimate them (from EXIF or a default focal of 1.2 x max(width, height)).
+        max_image_size_px: images are downscaled to this longest side for extraction.
+        max_num_features: SIFT features kept per image.
+        min_num_matches: verified matches a pair needs to join the view graph.
+        min_registered_fraction: :class:`DataError` when fewer images register.
+        num_threads: CPU threads for every step; 0 = all cores of this machine.
+        device: "cpu" or "cuda" (SIFT extraction and matching; mapping is CPU).
+        seed: seeds COLMAP's random generator (RANSAC, mapper) for repeatable runs.
+        verbose: let COLMAP log INFO lines (otherwise warnings and errors only).
+    """
+
+    matcher: str = "auto"
+    exhaustive_max_images: int = 150
+    sequential_overlap: int = 10
+    camera_model: str = "SIMPLE_RADIAL"
+    single_camera: bool = True
+    camera_params: Optional[Tuple[float, ...]] = None
+    max_image_size_px: int = 3200
+    max_num_features: int = 8192
+    min_num_matches: int = 15
+    min_registered_fraction: float = 1.0
+    num_threads: int = 0
+    device: str = "cpu"
+    seed: int = 0
+    verbose: bool = False
+
+    def __post_init__(self) -> None:
+        if self.matcher not in MATCHERS:
+            raise InputError(f"SfmOptions.matcher must be one of {MATCHERS}, got {self.matcher!r}")
+        if self.device not in ("cpu", "cuda"):
+            raise InputError(f"SfmOptions.device must be 'cpu' or 'cuda', got {self.device!r}")
+        if not 0.0 <= self.min_registered_fraction <= 1.0:
+            raise InputError("SfmOptions.min_registered_fraction must be in [0, 1], got "
+                             f"{self.min_registered_fraction}")
+        for name in ("exhaustive_max_images", "sequential_overlap", "max_image_size_px",
+                     "max_num_features", "min_num_matches"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < 1:
+                raise InputError(f"SfmOptions.{name} must be a positive int, got {v!r}")
+        if not isinstance(self.num_threads, int) or self.num_threads < 0:
+            raise InputError(f"SfmOptions.num_threads must be an int >= 0, got {self.num_threads!r}")
+
+    def threads(self) -> int:
+        """The thread count actually passed to COLMAP."""
+        return self.num_threads or (os.cpu_count() or 1)
+
+
+@dataclass(frozen=True)
+class SfmResult:
+    """What :func:`run_sfm` produced.
+
+    Attributes:
+        root: the output folder.
+        model_dir: ``root/sparse/0``, the undistorted PINHOLE model (binary).
+        image_dir: ``root/images``, the undistorted images.
+        registered: names of the images with a pose, sorted.
+        unregistered: names of the input images without one, sorted.
+        num_models: reconstructions the mapper produced (the largest is kept).
+        num_points3d: 3D points of the kept model.
+        mean_reprojection_error_px: mean reprojection error of the kept model.
+        matcher: the matcher actually used ("exhaustive" or "sequential").
+        timings_s: seconds per step: extract, match, map, undistort, total.
+    """
+
+    root: Path
+    model_dir: Path
+    image_dir: Path
+    registered: Tuple[str, ...]
+    unregistered: Tuple[str, ...]
+    num_models: int
+    num_points3d: int
+    mean_reprojection_error_px: float
+    matcher: str
+    timings_s: Dict[str, float] = field(default_factory=dict)
+
+    @property
+    def registered_fraction(self) -> float:
+        n = len(self.registered) + len(self.unregistered)
+        return len(self.registered) / n if n else 0.0
+
+    def to_json(self) -> dict:
+        d = dataclasses.asdict(self)
+        for k in ("root", "model_dir", "image_dir"):
+            d[k] = str(d[k])
+        d["registered"], d["unregistered"] = list(self.registered), list(self.unregistered)
+        return d
+
+
+def list_images(image_dir: Path) -> List[str]:
+    """Image file names (relative, sorted) directly inside ``image_dir``."""
+    if not image_dir.is_dir():
+        raise InputError(f"image folder {image_dir} does not exist")
+    names = sorted(p.name for p in image_dir.iterdir()
+                   if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS)
+    if not names:
+        raise DataError(f"no images ({', '.join(IMAGE_EXTENSIONS)}) found", image_dir)
+    return names
+
+
+def _name_list(names: Sequence[str]) -> str:
+    shown = ", ".join(names[:_MAX_NAMES_IN_ERROR])
+    more = len(names) - _MAX_NAMES_IN_ERROR
+    return shown + (f" ... and {more} more" if more > 0 else "")
+
+
+def _prepare_out(out: Path) -> None:
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise InputError(f"SfM output folder {out} exists and is not empty")
+    out.parent.mkdir(parents=True, exist_ok=True)
+
+
+def _to_pinhole(rec) -> None:
+    """Turn SIMPLE_PINHOLE cameras of ``rec`` into the equivalent PINHOLE, in place."""
+    import pycolmap
+
+    for cam in rec.cameras.values():
+        if cam.model == pycolmap.CameraModelId.SIMPLE_PINHOLE:
+            f, cx, cy = (float(v) for v in cam.params)
+            cam.model = pycolmap.CameraModelId.PINHOLE
+            cam.params = [f, f, cx, cy]
+        elif cam.model != pycolmap.CameraModelId.PINHOLE:
+            raise DataError(f"undistorted camera {cam.camera_id} has model {cam.model.name}, "
+                            "expected PINHOLE")
+
+
+def run_sfm(image_dir: os.PathLike | str, out_dir: os.PathLike | str,
+            options: SfmOptions = SfmOptions(),
+            image_names: Optional[Sequence[str]] = None) -> SfmResult:
+    """Reconstruct cameras and sparse points from the images in ``image_dir``.
+
+    Args:
+        image_dir: folder of images (read only).
+        out_dir: new (or empty) folder for the result, see the module docstring.
+        options: see :class:`SfmOptions`.
+        image_names: the images to use (names inside ``image_dir``); all images if None.
+    Returns:
+        A :class:`SfmResult`.
+    Raises:
+        DataError: no model could be built, or fewer than
+            ``options.min_registered_fraction`` of the images registered; the message
+            names the unregistered images.
+    """
+    import pycolmap
+
+    image_dir = Path(image_dir)
+    out = Path(out_dir)
+    all_names = list_images(image_dir)
+    if image_names is not None:
+        missing = sorted(set(image_names) - set(all_names))
+        if missing:
+            raise InputError(f"image_names not found in {image_dir}: {_name_list(missing)}")
+        names = sorted(set(image_names))
+    else:
+        names = all_names
+    if len(names) < 2:
+        raise DataError(f"SfM needs at least 2 images, got {len(names)}", image_dir)
+    _prepare_out(out)
+    threads = options.threads()
+    device = pycolmap.Device.cuda if options.device == "cuda" else pycolmap.Device.cpu
+    if options.device == "cuda" and not pycolmap.has_cuda:
+        raise InputError("SfmOptions.device='cuda' but this pycolmap build has no CUDA")
+    matcher = options.matcher
+    if matcher == "auto":
+        matcher = "exhaustive" if len(names) <= options.exhaustive_max_images else "sequential"
+
+    level = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = 0 if options.verbose else 1
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    timings: Dict[str, float] = {}
+    t_start = time.perf_counter()
+    try:
+        pycolmap.set_random_seed(options.seed)
+        dist = tmp / "distorted"
+        dist.mkdir()
+        db = dist / "database.db"
+
+        t0 = time.perf_counter()
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = options.camera_model
+        if options.camera_params is not None:
+            reader.camera_params = ",".join(repr(float(v)) for v in options.camera_params)
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.num_threads = threads
+        extraction.use_gpu = options.device == "cuda"
+        extraction.max_image_size = options.max_image_size_px
+        extraction.sift.max_num_features = options.max_num_features
+        pycolmap.extract_features(
+            db, image_dir, image_names=names,
+            camera_mode=pycolmap.CameraMode.SINGLE if options.single_camera else pycolmap.CameraMode.AUTO,
+            reader_options=reader, extraction_options=extraction, device=device)
+        timings["extract"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        matching = pycolmap.FeatureMatchingOptions()
+        matching.num_threads = threads
+        matching.use_gpu = options.device == "cuda"
+        if matcher == "exhaustive":
+            pycolmap.match_exhaustive(db, matching_options=matching, device=device)
+        else:
+            pairing = pycolmap.SequentialPairingOptions()
+            pairing.overlap = options.sequential_overlap
+            pairing.num_threads = threads
+            # Loop detection needs a vocabulary tree file, which is not shipped offline.
+            pairing.loop_detection = False
+            pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
+                                      device=device)
+        timings["match"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        mapper = pycolmap.IncrementalPipelineOptions()
+        mapper.num_threads = threads
+        mapper.random_seed = options.seed
+        mapper.min_num_matches = options.min_num_matches
+        mapper.ba_use_gpu = False
+        mapper_dir = tmp / "mapper"
+        mapper_dir.mkdir()
+        models = pycolmap.incremental_mapping(db, image_dir, mapper_dir, options=mapper)
+        timings["map"] = time.perf_counter() - t0
+        if not models:
+            raise DataError(f"pycolmap built no model; none of the {len(names)} images registered: "
+                            f"{_name_list(names)}", image_dir)
+        rec = max(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()))
+        registered = sorted(rec.images[i].name for i in rec.reg_image_ids())
+        unregistered = sorted(set(names) - set(registered))
+        frac = len(registered) / len(names)
+        if frac < options.min_registered_fraction:
+            raise DataError(
+                f"SfM registered {len(registered)} of {len(names)} images ({frac:.0%}), fewer "
+                f"than the required {options.min_registered_fraction:.0%}; unregistered: "
+                f"{_name_list(unregistered)}", image_dir)
+        (dist / "sparse" / "0").mkdir(parents=True)
+        rec.write_binary(str(dist / "sparse" / "0"))
+        num_points = rec.num_points3D()
+        reproj = float(rec.compute_mean_reprojection_error())
+        shutil.rmtree(mapper_dir)
+
+        t0 = time.perf_counter()
+        und = tmp / "undistorted"
+        pycolmap.undistort_images(und, dist / "sparse" / "0", image_dir, num_threads=threads)
+        os.replace(und / "images", tmp / "images")
+        (tmp / "sparse").mkdir()
+        model0 = tmp / "sparse" / "0"
+        os.replace(und / "sparse", model0)
+        # Re-write the undistorted model so the folder is binary whatever the undistorter
+        # chose and every camera is PINHOLE: the undistorter leaves SIMPLE_PINHOLE cameras
+        # as they are, and readers downstream get one model to handle.
+        und_rec = pycolmap.Reconstruction(str(model0))
+        _to_pinhole(und_rec)
+        shutil.rmtree(model0)
+        model0.mkdir()
+        und_rec.write_binary(str(model0))
+        shutil.rmtree(und)
+        timings["undistort"] = time.perf_counter() - t0
+        timings["total"] = time.perf_counter() - t_start
+
+        result = SfmResult(root=out, model_dir=out / "sparse" / "0", image_dir=out / "images",
+                           registered=tuple(registered), unregistered=tuple(unregistered),
+                           num_models=len(models), num_points3d=int(num_points),
+                           mean_reprojection_error_px=reproj, matcher=matcher,
+                           timings_s={k: round(v, 3) for k, v in timings.items()})
+        summary = result.to_json()
+        summary["options"] = dataclasses.asdict(options)
+        summary["num_threads_used"] = threads
+        summary["pycolmap_version"] = pycolmap.__version__
+        with open(tmp / "sfm.json", "w", encoding="utf-8") as f:
+            json.dump(summary, f, indent=1)
+        if out.exists():
+            out.rmdir()  # empty, checked by _prepare_out
+        os.replace(tmp, out)
+        return result
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    finally:
+        pycolmap.logging.minloglevel = level
