@@ -1,0 +1,245 @@
+"""Entry points the pipeline's masks stage calls.
+
+* :func:`generate_masks` — text prompt, two-stage (Grounding DINO + SAM2 video);
+* :func:`generate_masks_from_scribbles` — NVOS scribbles -> points -> SAM2 video;
+* :func:`generate_masks_from_points` — points and/or a box on one frame -> SAM2 video.
+
+Each writes ``<out_dir>/<image stem>.png`` (8-bit 0/255, each image's own size) for every
+frame, then a JSON log (default ``<out_dir>.json`` beside the folder), atomically.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Dict, List, Optional, Sequence, Union
+
+import numpy as np
+
+from cobgs.errors import InputError, ModelError
+
+from .encoder_cache import EncoderCache
+from .manifest import ModelsNotConfiguredError, load_manifest
+from .scribbles import ScribbleConfig, scribble_points
+from .session import RunOptions
+from .two_stage import TwoStageConfig, run_two_stage
+from .video import VideoPredictor
+from .writer import write_json, write_mask_png
+
+log = logging.getLogger("cobgs.masks")
+PathLike = Union[str, os.PathLike]
+LOG_VERSION = 1
+
+
+@dataclass(frozen=True)
+class MaskGenerationResult:
+    """Where the masks went and what happened per frame.
+
+    Attributes:
+        out_dir: folder of ``<stem>.png`` masks.
+        log_path: the JSON log.
+        sources: per frame, in input order: "prompt", "stage1", "stage2_prompt",
+            "stage2", "propagated" or "empty".
+        empty: stems whose mask has no foreground pixel.
+    """
+
+    out_dir: Path
+    log_path: Path
+    sources: List[str]
+    empty: List[str]
+
+
+def _paths(image_paths: Sequence[PathLike]) -> List[Path]:
+    paths = [Path(p) for p in image_paths]
+    if not paths:
+        raise InputError("image_paths is empty")
+    stems = [p.stem for p in paths]
+    dup = sorted({s for s in stems if stems.count(s) > 1})
+    if dup:
+        raise InputError(f"image stems must be unique (masks are named by stem); repeated: {dup}")
+    missing = [str(p) for p in paths if not p.is_file()]
+    if missing:
+        raise InputError(f"image file(s) not found: {missing[:5]}")
+    return paths
+
+
+def _sam2(models_dir: PathLike, options: Optional[RunOptions]):
+    from .sam2_models import Sam2Models
+
+    manifest = load_manifest(models_dir)
+    if manifest.sam2 is None:
+        raise ModelsNotConfiguredError("the manifest has no 'sam2' model", manifest.root)
+    return manifest, Sam2Models(manifest.sam2, options)
+
+
+def _finish(paths, masks, sources, out_dir, log_path, log_data, models, cache, t0):
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    for p, m in zip(paths, masks):
+        write_mask_png(out_dir / f"{p.stem}.png", m)
+    frames = [
+        {"index": i, "stem": p.stem, "source": s, "empty": s == "empty",
+         "area_px": int(np.count_nonzero(m)), "size_hw": list(m.shape)}
+        for i, (p, m, s) in enumerate(zip(paths, masks, sources))
+    ]
+    counts: Dict[str, int] = {}
+    for s in sources:
+        counts[s] = counts.get(s, 0) + 1
+    log_data.update({
+        "format": "cobgs-mask-generation", "version": LOG_VERSION,
+        "frames": frames,
+        "summary": counts,
+        "graph_calls": models.call_counts(),
+        "encoder_runs_max_per_frame": cache.max_encodes_per_frame(),
+        "encoder_cache_hits": cache.hits,
+        "providers": {k: s.providers for k, s in models.sessions.items()},
+        "seconds": round(time.perf_counter() - t0, 3),
+    })
+    log_path = Path(log_path) if log_path is not None else out_dir.with_name(out_dir.name + ".json")
+    write_json(log_path, log_data)  # last: its presence means the masks are complete
+    empty = [f["stem"] for f in frames if f["empty"]]
+    if empty:
+        log.warning("%d of %d frames have an empty mask: %s", len(empty), len(frames), empty[:10])
+    return MaskGenerationResult(out_dir, log_path, list(sources), empty)
+
+
+def generate_masks(
+    image_paths: Sequence[PathLike],
+    prompt: str,
+    models_dir: PathLike,
+    out_dir: PathLike,
+    *,
+    config: TwoStageConfig = TwoStageConfig(),
+    log_path: Optional[PathLike] = None,
+    options: Optional[RunOptions] = None,
+) -> MaskGenerationResult:
+    """Two-stage text-prompted masks for an ordered image sequence.
+
+    Args:
+        image_paths: the training images in sequence order (the masks take their size
+            and stem).
+        prompt: the object's text, e.g. "red apple".
+        models_dir: folder with ``manifest.json`` and both exports.
+        out_dir: the object's mask folder, e.g. ``<scene>/masks/<object>``.
+        config: thresholds and the prompt frame index.
+
+    Raises:
+        ModelsNotConfiguredError: no model folder / manifest, or a model is missing.
+        ModelError: an export breaks the contract (named file, tensor, expected, found).
+        NoDetectionError: nothing detected on the prompt frame.
+    """
+    from .gdino import GroundingDino
+
+    t0 = time.perf_counter()
+    paths = _paths(image_paths)
+    manifest, models = _sam2(models_dir, options)
+    if manifest.gdino is None:
+        raise ModelsNotConfiguredError(
+            "text prompts need Grounding DINO, but the manifest has no 'groundingdino' model "
+            "(run `cobgs export-onnx gdino ...`)", manifest.root)
+    models.require_video()
+    detector = GroundingDino(manifest.gdino, options)
+    cache = EncoderCache(models, paths)
+    try:
+        predictor = VideoPredictor(models, cache)
+        result = run_two_stage(detector, predictor, prompt, config)
+        data = dict(result.log)
+        data["detector_calls"] = detector.session.stats.calls
+        data["images"] = [str(p) for p in paths]
+        return _finish(paths, result.masks, result.source, out_dir, log_path, data, models,
+                       cache, t0)
+    finally:
+        cache.close()
+
+
+def generate_masks_from_points(
+    image_paths: Sequence[PathLike],
+    frame: int,
+    models_dir: PathLike,
+    out_dir: PathLike,
+    *,
+    points: Optional[np.ndarray] = None,
+    labels: Optional[np.ndarray] = None,
+    box: Optional[Sequence[float]] = None,
+    log_path: Optional[PathLike] = None,
+    options: Optional[RunOptions] = None,
+    extra_log: Optional[dict] = None,
+) -> MaskGenerationResult:
+    """Prompt ``frame`` with points (x, y in that image's pixels; labels 1/0) and/or a
+    box, propagate forward and backward to every frame, and write the masks.
+
+    With a single image an image-only SAM2 export is enough; longer sequences need the
+    video export (a clear :class:`~cobgs.errors.ModelError` otherwise).
+    """
+    t0 = time.perf_counter()
+    paths = _paths(image_paths)
+    if not 0 <= frame < len(paths):
+        raise InputError(f"frame must be in [0, {len(paths)}), got {frame}")
+    _, models = _sam2(models_dir, options)
+    if len(paths) > 1:
+        models.require_video()
+    cache = EncoderCache(models, paths)
+    try:
+        predictor = VideoPredictor(models, cache)
+        predictor.add_prompt(frame, 1, points=points, labels=labels, box=box)
+        masks: List[Optional[np.ndarray]] = [None] * len(paths)
+        masks[frame] = predictor.mask(frame, 1)
+        if len(paths) > 1:
+            for f, per_obj in predictor.propagate(frame, len(paths) - 1):
+                masks[f] = per_obj[1]
+            if frame > 0:
+                for f, per_obj in predictor.propagate(frame, 0, reverse=True):
+                    masks[f] = per_obj[1]
+        sources = ["prompt" if i == frame else "propagated" for i in range(len(paths))]
+        sources = [s if m.any() else "empty" for s, m in zip(sources, masks)]
+        data = {
+            "prompt_frame": frame,
+            "points": None if points is None else np.asarray(points).round(3).tolist(),
+            "labels": None if labels is None else np.asarray(labels).astype(int).tolist(),
+            "box_xyxy": None if box is None else [float(v) for v in box],
+            "images": [str(p) for p in paths],
+            **(extra_log or {}),
+        }
+        return _finish(paths, masks, sources, out_dir, log_path, data, models, cache, t0)
+    finally:
+        cache.close()
+
+
+def generate_masks_from_scribbles(
+    image_paths: Sequence[PathLike],
+    reference_frame: int,
+    positive_scribbles: Sequence[PathLike],
+    negative_scribbles: Sequence[PathLike],
+    models_dir: PathLike,
+    out_dir: PathLike,
+    *,
+    config: ScribbleConfig = ScribbleConfig(),
+    log_path: Optional[PathLike] = None,
+    options: Optional[RunOptions] = None,
+) -> MaskGenerationResult:
+    """NVOS protocol: scribbles on the reference view -> sampled points -> SAM2 on that
+    view -> propagation to all views (SPEC section 5)."""
+    paths = _paths(image_paths)
+    if not 0 <= reference_frame < len(paths):
+        raise InputError(f"reference_frame must be in [0, {len(paths)}), got {reference_frame}")
+    from .images import image_size
+
+    pts, labs = scribble_points(positive_scribbles, negative_scribbles,
+                                image_size(paths[reference_frame]), config)
+    extra = {"scribbles": {"positive": [str(p) for p in positive_scribbles],
+                           "negative": [str(p) for p in negative_scribbles],
+                           "config": asdict(config),
+                           "num_positive": int((labs == 1).sum()),
+                           "num_negative": int((labs == 0).sum())}}
+    return generate_masks_from_points(paths, reference_frame, models_dir, out_dir, points=pts,
+                                      labels=labs, log_path=log_path, options=options,
+                                      extra_log=extra)
+
+
+__all__ = [
+    "MaskGenerationResult", "ModelError", "ModelsNotConfiguredError", "generate_masks",
+    "generate_masks_from_points", "generate_masks_from_scribbles",
+]

@@ -1,0 +1,61 @@
+"""Frame loading and the two models' preprocessing (stretch resize + ImageNet normalisation)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Tuple, Union
+
+import numpy as np
+
+from cobgs.errors import DataError
+
+from .manifest import Preprocess
+
+
+def load_rgb(path: Union[str, os.PathLike]) -> np.ndarray:
+    """Read an image as RGB uint8 [H, W, 3] (alpha dropped, greyscale expanded)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return np.asarray(im.convert("RGB")).copy()
+    except (OSError, ValueError) as exc:
+        raise DataError(f"cannot read image: {exc}", path) from exc
+
+
+def to_model_input(rgb: np.ndarray, pre: Preprocess) -> np.ndarray:
+    """Stretch-resize and normalise one frame.
+
+    Args:
+        rgb: uint8 [H, W, 3] RGB.
+        pre: size, interpolation, mean/std, channel order.
+
+    Returns:
+        float32 [1, 3, h, w] with (h, w) = ``pre.size_hw``.
+    """
+    from PIL import Image
+
+    if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
+        raise DataError(f"frame must be uint8 [H, W, 3], got {rgb.dtype} {list(rgb.shape)}")
+    h, w = (int(v) for v in pre.size_hw)
+    if rgb.shape[:2] != (h, w):
+        # PIL's bicubic matches SAM2's own frame loader (PIL .resize default filter)
+        resample = Image.BICUBIC if pre.interpolation == "bicubic" else Image.BILINEAR
+        rgb = np.asarray(Image.fromarray(rgb).resize((w, h), resample=resample))
+    x = (rgb / 255.0).astype(np.float32)  # float64 divide then cast, as upstream
+    x = (x - np.asarray(pre.mean, np.float32)) / np.asarray(pre.std, np.float32)
+    if not pre.rgb:
+        x = x[..., ::-1]
+    return np.ascontiguousarray(x.transpose(2, 0, 1)[None], dtype=np.float32)
+
+
+def image_size(path: Union[str, os.PathLike]) -> Tuple[int, int]:
+    """(height, width) of an image file without decoding the pixels."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return im.size[1], im.size[0]
+    except (OSError, ValueError) as exc:
+        raise DataError(f"cannot read image: {exc}", Path(path)) from exc

@@ -1,0 +1,283 @@
+"""SAM2 video propagation around the four ONNX graphs (host side of the contract).
+
+One :class:`VideoPredictor` tracks any number of objects over one frame sequence. Each
+object has its own :class:`~cobgs.masks.memory_bank.MemoryBank`; the encoder cache is
+shared, so a frame is encoded once however many objects, passes or stages visit it.
+
+Prompted frames become conditioning frames: decoded on the raw features plus
+``no_mem_embed`` without memory attention, their memory encoded from the binarised mask.
+Tracked frames go through memory attention, a prompt-free multimask decode, object-score
+gating and the memory encoder on the sigmoid of the high-resolution logits.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Dict, Iterator, List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from cobgs.errors import InputError, ModelError
+
+from .encoder_cache import EncoderCache
+from .memory_bank import FrameMemory, MemoryBank
+from .postprocess import (NO_OBJ_SCORE, choose_mask, fill_holes, resize_logits,
+                          round_bfloat16)
+from .sam2_models import EncodedFrame, Sam2Models
+
+
+@dataclass
+class StepTiming:
+    """Seconds spent in one tracking step: in graphs and on the host around them."""
+
+    frame: int
+    graph_s: float
+    host_s: float
+
+
+@dataclass
+class VideoPredictor:
+    """Prompt frames, propagate, and read masks back at each frame's own resolution.
+
+    Args:
+        models: the SAM2 sessions and constants.
+        cache: encoder outputs per frame (also knows each frame's size).
+    """
+
+    models: Sam2Models
+    cache: EncoderCache
+    banks: Dict[int, MemoryBank] = field(default_factory=dict)
+    # image-only exports: prompted-frame logits without a memory bank
+    _image_only: Dict[Tuple[int, int], np.ndarray] = field(default_factory=dict)
+    timings: List[StepTiming] = field(default_factory=list)
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.cache)
+
+    # ------------------------------------------------------------------ prompts
+    def _bank(self, obj_id: int) -> MemoryBank:
+        if obj_id not in self.banks:
+            m = self.models
+            self.banks[obj_id] = MemoryBank(m.config, self.num_frames, m.tpos_enc, m.tpos_proj)
+        return self.banks[obj_id]
+
+    def _check_frame(self, frame: int) -> None:
+        if not 0 <= frame < self.num_frames:
+            raise InputError(f"frame index must be in [0, {self.num_frames}), got {frame}")
+
+    def _prompt_embed(self, enc: EncodedFrame) -> np.ndarray:
+        if self.models.no_mem_embed is None:
+            raise ModelError("SAM2 constants lack no_mem_embed", self.models.manifest.constants_path)
+        return enc.feats + self.models.no_mem_embed
+
+    def add_prompt(
+        self,
+        frame: int,
+        obj_id: int,
+        points: Optional[np.ndarray] = None,
+        labels: Optional[np.ndarray] = None,
+        box: Optional[Sequence[float]] = None,
+    ) -> np.ndarray:
+        """Make ``frame`` a conditioning frame of ``obj_id`` from points and/or a box.
+
+        Args:
+            points: float [n, 2] (x, y) in the frame's own pixels; labels: [n] 1/0.
+            box: (x0, y0, x1, y1) in the frame's own pixels; it goes first, as corners
+                labelled 2 and 3 (how SAM2 was trained).
+
+        Returns:
+            bool [H, W] mask of the object on that frame.
+        """
+        self._check_frame(frame)
+        cfg = self.models.config
+        h, w = self.cache.size_hw(frame)
+        coords: List[np.ndarray] = []
+        labs: List[np.ndarray] = []
+        if box is not None:
+            b = np.asarray(box, np.float32).reshape(-1)
+            if b.shape != (4,) or not np.all(np.isfinite(b)):
+                raise InputError(f"box must be 4 finite numbers (x0, y0, x1, y1), got {box!r}")
+            coords.append(b.reshape(2, 2))
+            labs.append(np.array([2, 3], np.float32))
+        if points is not None:
+            p = np.asarray(points, np.float32).reshape(-1, 2)
+            lab = np.asarray(labels if labels is not None else np.ones(len(p)), np.float32)
+            if lab.shape != (p.shape[0],):
+                raise InputError(f"labels must be [{p.shape[0]}], got {list(lab.shape)}")
+            if not np.isin(lab, (0, 1)).all():
+                raise InputError("point labels must be 1 (positive) or 0 (negative)")
+            coords.append(p)
+            labs.append(lab)
+        if not coords or sum(len(c) for c in coords) == 0:
+            raise InputError("a prompt needs a box or at least one point")
+        xy = np.concatenate(coords) * np.array([cfg.image_size / w, cfg.image_size / h],
+                                                np.float32)
+        lab = np.concatenate(labs)
+        enc = self.cache.get(frame)
+        multimask = cfg.multimask_min_pt_num <= len(lab) <= cfg.multimask_max_pt_num
+        dec = self.models.decode(self._prompt_embed(enc), enc, xy, lab)
+        plane, ptr_plane = choose_mask(dec.masks, dec.ious, multimask, cfg.stability_delta,
+                                       cfg.stability_thresh, cfg.use_multimask_token_for_obj_ptr)
+        low = dec.masks[plane] if dec.object_score > 0 else np.full_like(dec.masks[plane],
+                                                                         NO_OBJ_SCORE)
+        filled = fill_holes(low, cfg.fill_hole_area)
+        self._store_conditioning(frame, obj_id, enc, filled, dec.obj_ptr, ptr_plane,
+                                 dec.object_score)
+        return resize_logits(filled, (h, w)) > 0
+
+    def add_mask(self, frame: int, obj_id: int, mask: np.ndarray) -> np.ndarray:
+        """Make ``frame`` a conditioning frame from a binary mask [H, W] (used as output).
+
+        Needs ``mask_downsample_weight/bias`` in the constants (the export script writes
+        them) to derive the object pointer as SAM2 does.
+        """
+        import cv2
+
+        self._check_frame(frame)
+        c = self.models.constants
+        if "mask_downsample_weight" not in c:
+            raise ModelError(
+                "mask prompts need 'mask_downsample_weight' and 'mask_downsample_bias' in "
+                "sam2_constants.npz (re-export with `cobgs export-onnx sam2`)",
+                self.models.manifest.constants_path,
+            )
+        cfg = self.models.config
+        h, w = self.cache.size_hw(frame)
+        m = np.asarray(mask)
+        if m.shape != (h, w):
+            raise InputError(f"mask must be [{h}, {w}] (frame size), got {list(m.shape)}")
+        s = cfg.image_size
+        m1024 = cv2.resize(m.astype(np.float32), (s, s), interpolation=cv2.INTER_LINEAR) >= 0.5
+        high = m1024.astype(np.float32) * 20.0 - 10.0  # mask logits used as the output
+        low = cv2.resize(high, (s // 4, s // 4), interpolation=cv2.INTER_AREA)
+        # SAM2 derives the pointer by decoding the mask through a learned 4x4 conv
+        k = c["mask_downsample_weight"].reshape(4, 4)
+        blocks = m1024.astype(np.float32).reshape(s // 4, 4, s // 4, 4)
+        dense = np.einsum("iajb,ab->ij", blocks, k) + c["mask_downsample_bias"][0]
+        enc = self.cache.get(frame)
+        dec = self.models.decode(self._prompt_embed(enc), enc, np.zeros((0, 2), np.float32),
+                                 np.zeros((0,), np.float32), mask_input=dense)
+        _, ptr_plane = choose_mask(dec.masks, dec.ious, True, cfg.stability_delta,
+                                   cfg.stability_thresh, cfg.use_multimask_token_for_obj_ptr)
+        score = 10.0 if m1024.any() else -10.0
+        self._store_conditioning(frame, obj_id, enc, low, dec.obj_ptr, ptr_plane, score)
+        return m.astype(bool)
+
+    def _store_conditioning(self, frame, obj_id, enc, filled, obj_ptr, ptr_plane, score):
+        cfg = self.models.config
+        if not self.models.has_video:
+            self._image_only[(frame, obj_id)] = filled
+            return
+        high = resize_logits(filled, (cfg.image_size, cfg.image_size))
+        if cfg.binarize_mask_from_pts:
+            mask_for_mem = (high > 0).astype(np.float32) * cfg.sigmoid_scale + cfg.sigmoid_bias
+        else:
+            mask_for_mem = _scaled_sigmoid(high, cfg.sigmoid_scale, cfg.sigmoid_bias)
+        feats, pos = self.models.encode_memory(enc, mask_for_mem, score)
+        bank = self._bank(obj_id)
+        if bank.maskmem_pos is None:
+            bank.maskmem_pos = pos
+        ptr = obj_ptr[ptr_plane] if obj_ptr is not None else np.zeros(cfg.hidden_dim, np.float32)
+        if cfg.memory_bfloat16:
+            feats = round_bfloat16(feats)
+        bank.add_conditioning(frame, FrameMemory(feats, ptr.copy(), score, filled))
+
+    # ------------------------------------------------------------------ tracking
+    def track(self, frame: int, obj_id: int, reverse: bool) -> FrameMemory:
+        """One propagation step of one object onto ``frame``."""
+        self.models.require_video()
+        bank = self.banks.get(obj_id)
+        if bank is None or not bank.cond:
+            raise InputError(f"object {obj_id} has no prompted frame; add a prompt first")
+        cfg = self.models.config
+        sessions = self.models.sessions
+        t0 = time.perf_counter()
+        g0 = sum(s.stats.seconds for s in sessions.values())
+        enc = self.cache.get(frame)
+        rec = bank.select(frame, reverse)
+        mem = bank.build(rec, use_pointers=self.models.layout.ptr_mode != "none")
+        pix = self.models.attend(enc, mem)
+        dec = self.models.decode(pix, enc, np.zeros((0, 2), np.float32),
+                                 np.zeros((0,), np.float32))
+        multimask = cfg.multimask_min_pt_num <= 0 <= cfg.multimask_max_pt_num
+        plane, ptr_plane = choose_mask(dec.masks, dec.ious, multimask, cfg.stability_delta,
+                                       cfg.stability_thresh, cfg.use_multimask_token_for_obj_ptr)
+        low = dec.masks[plane] if dec.object_score > 0 else np.full_like(dec.masks[plane],
+                                                                         NO_OBJ_SCORE)
+        high = resize_logits(low, (cfg.image_size, cfg.image_size))
+        mask_for_mem = _scaled_sigmoid(high, cfg.sigmoid_scale, cfg.sigmoid_bias)
+        feats, _ = self.models.encode_memory(enc, mask_for_mem, dec.object_score)
+        if cfg.memory_bfloat16:
+            feats = round_bfloat16(feats)
+        ptr = (dec.obj_ptr[ptr_plane].copy() if dec.obj_ptr is not None
+               else np.zeros(cfg.hidden_dim, np.float32))
+        out = FrameMemory(feats, ptr, dec.object_score, fill_holes(low, cfg.fill_hole_area))
+        bank.add_tracked(frame, out)
+        total = time.perf_counter() - t0
+        graphs = sum(s.stats.seconds for s in sessions.values()) - g0
+        self.timings.append(StepTiming(frame, graphs, total - graphs))
+        return out
+
+    def propagate(
+        self,
+        start: int,
+        end: Optional[int] = None,
+        reverse: bool = False,
+        obj_ids: Optional[Sequence[int]] = None,
+    ) -> Iterator[Tuple[int, Dict[int, np.ndarray]]]:
+        """Track from ``start`` to ``end`` (inclusive) and yield ``(frame, {obj: mask})``.
+
+        Conditioning frames on the way yield their stored masks without running a graph.
+        ``end`` defaults to the last frame (first when ``reverse``).
+        """
+        self.models.require_video()
+        self._check_frame(start)
+        end = (0 if reverse else self.num_frames - 1) if end is None else end
+        self._check_frame(end)
+        ids = list(self.banks) if obj_ids is None else list(obj_ids)
+        order = range(start, end - 1, -1) if reverse else range(start, end + 1)
+        for frame in order:
+            masks = {}
+            for obj in ids:
+                bank = self.banks[obj]
+                out = bank.cond.get(frame)
+                if out is None:
+                    out = self.track(frame, obj, reverse)
+                masks[obj] = self._to_frame(frame, out.low_res)
+            yield frame, masks
+
+    # ------------------------------------------------------------------ reading
+    def _to_frame(self, frame: int, low_res: np.ndarray) -> np.ndarray:
+        return resize_logits(low_res, self.cache.size_hw(frame)) > 0
+
+    def mask(self, frame: int, obj_id: int) -> Optional[np.ndarray]:
+        """bool [H, W] current mask of ``obj_id`` on ``frame``, or None if never reached."""
+        if (frame, obj_id) in self._image_only:
+            return self._to_frame(frame, self._image_only[(frame, obj_id)])
+        bank = self.banks.get(obj_id)
+        out = bank.output(frame) if bank is not None else None
+        return None if out is None else self._to_frame(frame, out.low_res)
+
+    def union_mask(self, frame: int) -> Optional[np.ndarray]:
+        """Union over objects of their masks on ``frame`` (None if no object reached it)."""
+        masks = [m for m in (self.mask(frame, o) for o in self.object_ids()) if m is not None]
+        if not masks:
+            return None
+        return np.logical_or.reduce(masks)
+
+    def object_ids(self) -> List[int]:
+        ids = list(self.banks)
+        ids += [o for (_, o) in self._image_only if o not in ids]
+        return ids
+
+
+def _scaled_sigmoid(x: np.ndarray, scale: float, bias: float) -> np.ndarray:
+    """sigmoid(x) * scale + bias; with scale 20, bias -10 this is 10 * tanh(x / 2)."""
+    if scale == 20.0 and bias == -10.0:
+        out = np.multiply(x, np.float32(0.5), dtype=np.float32)
+        np.tanh(out, out=out)
+        out *= np.float32(10.0)
+        return out
+    return (scale / (1.0 + np.exp(-x)) + bias).astype(np.float32)
