@@ -17,6 +17,7 @@ from typing import Optional, Sequence
 PROVIDERS = (
     "stages.build_cmd",
     "stages.synth_cmd",
+    "stages.workflow_cmd",
 )
 
 

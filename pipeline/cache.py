@@ -1,0 +1,246 @@
+"""The content-addressed cache folder.
+
+Layout (``ROOT`` is ``--cache-dir``)::
+
+    ROOT/entries/<stage>/<key>/manifest.json   written last; present = entry complete
+                              /log.txt         the stage's log
+                              /out/...         the outputs the stage returned
+    ROOT/failed/<stage>/<key>/                 the last failure of that key: manifest + log
+    ROOT/tmp/<stage>.<key>.<host>.<pid>.<n>/   entries being written (never read)
+    ROOT/locks/<stage>/<key>                   one lock file per key (see locks.py)
+    ROOT/refs/<workflow id>/<stage>/<item>.json  what each workflow slot last ran (for
+                                               "why would it rerun" and stale status)
+
+An entry is written in ``tmp/`` with its manifest last, then renamed into ``entries/``
+(one atomic rename on the same filesystem). A folder in ``entries/`` without a valid
+manifest, or whose outputs are missing or changed size, is *corrupt*: reported, moved
+away and recomputed. Nothing in ``tmp/`` is ever mistaken for a finished entry.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import socket
+import time
+from dataclasses import dataclass
+from itertools import count
+from pathlib import Path
+from typing import Any, Iterator, Optional
+
+from .errors import CacheError
+from .hashing import canonical_json, sha256_text
+from .locks import EntryLock
+
+MANIFEST = "manifest.json"
+LOG = "log.txt"
+OUT = "out"
+SCRATCH = "scratch"
+_serial = count()
+
+
+@dataclass(frozen=True)
+class EntryCheck:
+    """Result of the cheap check of one key: ``state`` is done | absent | corrupt."""
+
+    state: str
+    manifest: Optional[dict] = None
+    reason: str = ""
+
+
+def write_json_atomic(path: Path, data: Any) -> None:
+    """Write JSON to ``path`` through a temporary file and a rename (never half-written)."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{next(_serial)}.tmp")
+    with open(tmp, "w", encoding="utf-8") as f:
+        json.dump(data, f, indent=1, sort_keys=True, ensure_ascii=False)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def read_json(path: Path) -> Any:
+    with open(path, "rb") as f:
+        return json.loads(f.read())
+
+
+class Cache:
+    """A cache folder; every method is safe to call from several processes and hosts."""
+
+    def __init__(self, root: os.PathLike | str):
+        self.root = Path(os.path.abspath(os.fspath(root)))
+
+    def ensure(self) -> None:
+        try:
+            for sub in ("entries", "failed", "tmp", "locks", "refs"):
+                (self.root / sub).mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise CacheError(f"{self.root}: cannot create the cache folder: {exc}") from None
+        if not os.access(self.root, os.W_OK):
+            raise CacheError(f"{self.root}: the cache folder is not writable")
+
+    # -- entries -----------------------------------------------------------------------
+    def entry_dir(self, stage: str, key: str) -> Path:
+        return self.root / "entries" / stage / key
+
+    def failed_dir(self, stage: str, key: str) -> Path:
+        return self.root / "failed" / stage / key
+
+    def lock(self, stage: str, key: str) -> EntryLock:
+        return EntryLock(self.root / "locks" / stage / key)
+
+    def check(self, stage: str, key: str) -> EntryCheck:
+        """Cheap validity check of an entry: its manifest and a stat of each output.
+
+        Outputs are not re-hashed (their hash was taken when the entry was committed); a
+        missing output or a file whose size changed makes the entry corrupt.
+        """
+        folder = self.entry_dir(stage, key)
+        try:
+            raw = (folder / MANIFEST).read_bytes()
+        except FileNotFoundError:
+            if folder.exists():
+                return EntryCheck("corrupt", reason="folder without manifest (interrupted "
+                                                    "commit or manual edit)")
+            return EntryCheck("absent")
+        except OSError as exc:
+            return EntryCheck("corrupt", reason=f"manifest unreadable: {exc}")
+        try:
+            manifest = json.loads(raw)
+        except ValueError as exc:
+            return EntryCheck("corrupt", reason=f"manifest is not valid JSON: {exc}")
+        if not isinstance(manifest, dict) or manifest.get("key") != key \
+                or manifest.get("status") != "ok" or not isinstance(manifest.get("outputs"), dict):
+            return EntryCheck("corrupt", reason="manifest does not describe a finished entry "
+                                                "with this key")
+        for name, out in manifest["outputs"].items():
+            try:
+                st = os.stat(folder / out["path"])
+            except (OSError, KeyError, TypeError):
+                return EntryCheck("corrupt", manifest, f"output {name!r} is missing")
+            if out.get("kind") == "file" and st.st_size != out.get("bytes"):
+                return EntryCheck("corrupt", manifest,
+                                  f"output {name!r} changed size ({out.get('bytes')} -> "
+                                  f"{st.st_size} bytes)")
+            if out.get("kind") == "dir" and not os.path.isdir(folder / out["path"]):
+                return EntryCheck("corrupt", manifest, f"output {name!r} is not a folder")
+        return EntryCheck("done", manifest)
+
+    def load_failed(self, stage: str, key: str) -> Optional[dict]:
+        try:
+            return read_json(self.failed_dir(stage, key) / MANIFEST)
+        except (OSError, ValueError):
+            return None
+
+    # -- writing (callers hold the entry's lock) ---------------------------------------
+    def new_tmp(self, stage: str, key: str) -> Path:
+        name = f"{stage}.{key}.{socket.gethostname()}.{os.getpid()}.{next(_serial)}"
+        path = self.root / "tmp" / name
+        path.mkdir(parents=True)
+        return path
+
+    def clean_tmp(self, stage: str, key: str) -> int:
+        """Remove leftovers of killed writers of this key; only call under its lock."""
+        removed = 0
+        tmp_root = self.root / "tmp"
+        if tmp_root.is_dir():
+            for path in tmp_root.glob(f"{stage}.{key}.*"):
+                shutil.rmtree(path, ignore_errors=True)
+                removed += 1
+        return removed
+
+    def _move_aside(self, path: Path) -> None:
+        trash = self.root / "tmp" / f"trash.{path.name}.{os.getpid()}.{next(_serial)}"
+        os.rename(path, trash)
+        shutil.rmtree(trash, ignore_errors=True)
+
+    def commit(self, tmp: Path, stage: str, key: str) -> Path:
+        """Rename a finished ``tmp`` folder (manifest already written) into place."""
+        final = self.entry_dir(stage, key)
+        final.parent.mkdir(parents=True, exist_ok=True)
+        if final.exists():  # corrupt leftover or a forced recompute
+            self._move_aside(final)
+        os.rename(tmp, final)
+        return final
+
+    def remove_entry(self, stage: str, key: str) -> None:
+        folder = self.entry_dir(stage, key)
+        if folder.exists():
+            self._move_aside(folder)
+
+    def record_failure(self, tmp: Path, stage: str, key: str, manifest: dict) -> Path:
+        """Keep the log and a failure manifest of ``tmp`` in ``failed/``; drop outputs."""
+        keep = self.new_tmp(stage, key)
+        if (tmp / LOG).exists():
+            os.replace(tmp / LOG, keep / LOG)
+        write_json_atomic(keep / MANIFEST, manifest)
+        final = self.failed_dir(stage, key)
+        final.parent.mkdir(parents=True, exist_ok=True)
+        if final.exists():
+            self._move_aside(final)
+        os.rename(keep, final)
+        shutil.rmtree(tmp, ignore_errors=True)
+        return final
+
+    def clear_failure(self, stage: str, key: str) -> None:
+        folder = self.failed_dir(stage, key)
+        if folder.exists():
+            self._move_aside(folder)
+
+    # -- per-workflow history ------------------------------------------------------------
+    def ref_path(self, workflow_id: str, stage: str, item_id: str) -> Path:
+        return (self.root / "refs" / workflow_id / stage
+                / f"{sha256_text(item_id)[:20]}.json")
+
+    def read_ref(self, workflow_id: str, stage: str, item_id: str) -> Optional[dict]:
+        try:
+            return read_json(self.ref_path(workflow_id, stage, item_id))
+        except (OSError, ValueError):
+            return None
+
+    def write_ref(self, workflow_id: str, stage: str, item_id: str, ref: dict) -> None:
+        path = self.ref_path(workflow_id, stage, item_id)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(path, ref)
+
+    def note_workflow(self, workflow_id: str, path: Path, name: str) -> None:
+        folder = self.root / "refs" / workflow_id
+        folder.mkdir(parents=True, exist_ok=True)
+        info = {"path": os.fspath(path), "name": name}
+        target = folder / "workflow.json"
+        try:
+            if read_json(target) == info:
+                return
+        except (OSError, ValueError):
+            pass
+        write_json_atomic(target, info)
+
+    # -- listing -------------------------------------------------------------------------
+    def iter_entries(self, kind: str = "entries") -> Iterator[tuple[str, str, Path]]:
+        """``(stage, key, folder)`` of every folder under ``entries/`` (or ``failed/``)."""
+        base = self.root / kind
+        if not base.is_dir():
+            return
+        for stage_dir in sorted(base.iterdir()):
+            if stage_dir.is_dir():
+                for entry in sorted(stage_dir.iterdir()):
+                    yield stage_dir.name, entry.name, entry
+
+
+def ref_record(key: str, status: str, version: Any, params: Any, inputs: Any, device: str,
+               item: str) -> dict:
+    """What ``refs/`` remembers of a slot's last run (compared by ``--dry-run``)."""
+    return {"key": key, "status": status, "version": version, "params": params,
+            "inputs": inputs, "device": device, "item": item, "time": time.time(),
+            "params_sha": sha256_text(canonical_json(params))}
+
+
+def dir_size(path: Path) -> int:
+    total = 0
+    for root, _, files in os.walk(path):
+        for name in files:
+            try:
+                total += os.lstat(os.path.join(root, name)).st_size
+            except OSError:
+                pass
+    return total

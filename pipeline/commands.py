@@ -1,0 +1,304 @@
+"""Command-line plumbing for workflow commands: ``run``, ``status``, ``cache ...``,
+``stages``. A program registers them with :func:`register`, giving a function that builds
+its stage registry and its version string (the engine never imports the program).
+
+Cache folder: ``--cache-dir``, else ``$COBGS_CACHE_DIR``, else ``./runs/cache`` (relative
+to the current directory).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable, Optional, Sequence, TextIO
+
+from .errors import PipelineError
+
+CACHE_ENV = "COBGS_CACHE_DIR"
+DEFAULT_CACHE = Path("runs") / "cache"
+
+RegistryFactory = Callable[[], Any]
+
+
+def default_cache_dir(explicit: Optional[str] = None) -> Path:
+    if explicit:
+        return Path(explicit)
+    env = os.environ.get(CACHE_ENV)
+    return Path(env) if env else DEFAULT_CACHE
+
+
+def _fmt_time(ts: Optional[float]) -> str:
+    return time.strftime("%Y-%m-%d %H:%M", time.localtime(ts)) if ts else ""
+
+
+def _fmt_bytes(n: Optional[float]) -> str:
+    if n is None:
+        return ""
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if abs(n) < 1024 or unit == "GiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1024
+    return ""
+
+
+def _guard(name: str, fn: Callable[[argparse.Namespace], int]) -> Callable[..., int]:
+    def wrapped(args: argparse.Namespace) -> int:
+        try:
+            return fn(args)
+        except PipelineError as exc:
+            print(f"cobgs {name}: error: {exc}", file=sys.stderr)
+            return 2
+    return wrapped
+
+
+def _csv(text: Optional[str]) -> tuple[str, ...]:
+    return tuple(s.strip() for s in (text or "").split(",") if s.strip())
+
+
+def register(sub: Any, registry_factory: RegistryFactory, package_version: Callable[[], str]
+             ) -> None:
+    """Add ``run``, ``status``, ``cache`` and ``stages`` to an argparse sub-parser set."""
+    cache_help = (f"cache folder (default: ${CACHE_ENV}, else ./{DEFAULT_CACHE} in the "
+                  "current directory)")
+    set_help = ("override: STAGE.PARAM=VALUE, device=cuda, or axes.AXIS.VALUE.KEY=VALUE "
+                "(repeatable)")
+
+    p = sub.add_parser("run", help="run a workflow: compute what is missing or stale",
+                       description="Run a workflow. Cached tasks are reused; the rest run "
+                       "in dependency order. Exit code 1 names failed or blocked tasks.")
+    p.add_argument("workflow", help="workflow TOML file")
+    p.add_argument("--only", metavar="STAGES", help="run only these stages (comma list); "
+                   "their upstream must already be done")
+    p.add_argument("--from", dest="from_", metavar="STAGES",
+                   help="recompute these stages and every stage downstream of them")
+    p.add_argument("--items", metavar="ITEMS", help="only these items: comma list of "
+                   "patterns like lego, scene=lego, lego/no_*")
+    p.add_argument("--force", metavar="STAGES", help="recompute these stages even if "
+                   "cached (comma list, or 'all')")
+    p.add_argument("--dry-run", action="store_true", help="print what would run and why")
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+                   help=set_help)
+    p.add_argument("-j", "--jobs", type=int, default=1,
+                   help="local executor: tasks at once, each in its own process (default 1: "
+                        "in this process)")
+    p.add_argument("--executor", choices=("local", "ray"), default="local")
+    p.add_argument("--address", help="Ray cluster address (default: start a local instance)")
+    p.add_argument("--cache-dir", help=cache_help)
+    p.add_argument("-q", "--quiet", action="store_true", help="no line for cached tasks")
+    p.set_defaults(func=_guard("run", lambda a: cmd_run(a, registry_factory,
+                                                         package_version())))
+
+    p = sub.add_parser("status", help="show every item x stage of a workflow: done / stale "
+                       "/ missing / failed, with timings")
+    p.add_argument("workflow")
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+                   help=set_help)
+    p.add_argument("--items", metavar="ITEMS", help="only tasks of these items")
+    p.add_argument("--logs", action="store_true", help="print the full log of each failure")
+    p.add_argument("--cache-dir", help=cache_help)
+    p.set_defaults(func=_guard("status", lambda a: cmd_status(a, registry_factory)))
+
+    p = sub.add_parser("cache", help="inspect and clean the cache folder")
+    csub = p.add_subparsers(dest="cache_command", metavar="SUBCOMMAND", required=True)
+    q = csub.add_parser("gc", help="remove entries that none of the given workflows uses")
+    q.add_argument("workflows", nargs="+", help="every workflow whose results to keep")
+    q.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE")
+    q.add_argument("--dry-run", action="store_true", help="list what would be removed")
+    q.add_argument("--cache-dir", help=cache_help)
+    q.set_defaults(func=_guard("cache gc", lambda a: cmd_gc(a, registry_factory)))
+    q = csub.add_parser("ls", help="list cache entries")
+    q.add_argument("--stage", help="only this stage")
+    q.add_argument("--failed", action="store_true", help="list failure records instead")
+    q.add_argument("--cache-dir", help=cache_help)
+    q.set_defaults(func=_guard("cache ls", cmd_ls))
+    q = csub.add_parser("verify", help="re-hash every entry's outputs against its manifest")
+    q.add_argument("--fix", action="store_true", help="remove entries that do not match")
+    q.add_argument("--cache-dir", help=cache_help)
+    q.set_defaults(func=_guard("cache verify", cmd_verify))
+
+    p = sub.add_parser("stages", help="list the registered stages (or their params as TOML)")
+    p.add_argument("--toml", action="store_true",
+                   help="print every stage's default params as a [params.STAGE] table")
+    p.set_defaults(func=_guard("stages", lambda a: cmd_stages(a, registry_factory)))
+
+
+def cmd_run(args: argparse.Namespace, registry_factory: RegistryFactory,
+            version: str, stream: TextIO = sys.stdout) -> int:
+    from .run import RunOptions, run_workflow
+    from .workflow import load_workflow
+
+    wf = load_workflow(args.workflow, registry_factory(), args.sets)
+    options = RunOptions(cache_dir=default_cache_dir(args.cache_dir), package_version=version,
+                         executor=args.executor, jobs=args.jobs, address=args.address,
+                         only=_csv(args.only), from_stages=_csv(args.from_),
+                         force=_csv(args.force), items=args.items, dry_run=args.dry_run,
+                         quiet=args.quiet)
+    print(f"workflow {wf.name} ({wf.path}); cache {options.cache_dir.resolve()}; "
+          f"device {wf.settings.device}; executor {options.executor}"
+          + (f" x{options.jobs}" if options.executor == "local" and options.jobs > 1 else ""),
+          file=stream, flush=True)
+    summary = run_workflow(wf, options, stream)
+    if summary.exit_code == 1:
+        failed = [t.id for t in summary.tasks_in("failed", "blocked", "unavailable")]
+        print(f"cobgs run: {len(failed)} task(s) not done: {', '.join(failed[:10])}"
+              + (" ..." if len(failed) > 10 else ""), file=sys.stderr)
+    return summary.exit_code
+
+
+def cmd_status(args: argparse.Namespace, registry_factory: RegistryFactory,
+               stream: TextIO = sys.stdout) -> int:
+    from .api import entries
+    from .items import ItemFilter
+    from .workflow import load_workflow
+
+    wf = load_workflow(args.workflow, registry_factory(), args.sets)
+    cache_dir = default_cache_dir(args.cache_dir)
+    records = entries(wf, cache_dir)
+    if args.items:
+        filt = ItemFilter.parse(args.items, wf.axes)
+        keep = {f for f in wf.axes.all_items() if filt.selects_full(f)}
+        records = [r for r in records
+                   if any(all(f.values.get(a) == v for a, v in r.item.pairs) for f in keep)]
+    print(f"workflow {wf.name} ({wf.path}); cache {Path(cache_dir).resolve()}", file=stream)
+    w_stage = max([len(r.stage) for r in records] + [5])
+    w_item = min(max([len(r.item.label) for r in records] + [4]), 40)
+    print(f"{'stage':<{w_stage}}  {'item':<{w_item}}  {'state':<8} {'wall':>9}  "
+          f"{'finished':<16}  {'peak RSS':>9}  key / notes", file=stream)
+    counts: dict[str, int] = {}
+    for r in records:
+        counts[r.state] = counts.get(r.state, 0) + 1
+        m = r.manifest or {}
+        wall = f"{m['wall_s']:.2f} s" if isinstance(m.get("wall_s"), (int, float)) else ""
+        notes = (r.key or "")[:12]
+        if r.reasons:
+            notes += ("  " if notes else "") + "; ".join(r.reasons)
+        print(f"{r.stage:<{w_stage}}  {r.item.label:<{w_item}}  {r.state:<8} {wall:>9}  "
+              f"{_fmt_time(m.get('finished')):<16}  {_fmt_bytes(m.get('peak_rss_bytes')):>9}  "
+              f"{notes}".rstrip(), file=stream)
+    print(", ".join(f"{n} {s}" for s, n in sorted(counts.items())) or "no tasks", file=stream)
+    for r in records:
+        if r.state == "failed":
+            print(f"FAILED {r.task.id}: {(r.manifest or {}).get('error', {}).get('summary')}\n"
+                  f"  log: {r.log_path}", file=stream)
+            if args.logs and r.log_path and r.log_path.exists():
+                print(r.log_path.read_text(errors="replace"), file=stream)
+    return 0
+
+
+def referenced_keys(workflows: Sequence[str], registry: Any, sets: Sequence[str],
+                    cache_dir: Path) -> set[tuple[str, str]]:
+    """``(stage, key)`` of every task of ``workflows`` whose key is known now, under the
+    workflow's device and every device its earlier runs used (read from ``refs/``)."""
+    from .cache import Cache, read_json
+    from .plan import Plan, inspect
+    from .workflow import load_workflow
+
+    cache = Cache(cache_dir)
+    keep: set[tuple[str, str]] = set()
+    for path in workflows:
+        wf = load_workflow(path, registry, sets)
+        devices = {wf.settings.device}
+        ref_dir = cache.root / "refs" / wf.id
+        if ref_dir.is_dir():
+            for ref in ref_dir.glob("*/*.json"):
+                try:
+                    devices.add(read_json(ref)["device"])
+                except (OSError, ValueError, KeyError, TypeError):
+                    pass
+        for device in sorted(devices):
+            variant = wf if device == wf.settings.device else \
+                load_workflow(path, registry, list(sets) + [f"device={device}"])
+            for st in inspect(Plan(variant), cache, with_reasons=False):
+                if st.key:
+                    keep.add((st.task.stage.name, st.key))
+    return keep
+
+
+def cmd_gc(args: argparse.Namespace, registry_factory: RegistryFactory,
+           stream: TextIO = sys.stdout) -> int:
+    from .gc import collect
+
+    cache_dir = default_cache_dir(args.cache_dir)
+    keep = referenced_keys(args.workflows, registry_factory(), args.sets, cache_dir)
+    report = collect(cache_dir, keep, dry_run=args.dry_run)
+    verb = "would remove" if args.dry_run else "removed"
+    for line in report.lines:
+        print(f"  {verb} {line}", file=stream)
+    print(f"cache gc: kept {report.kept} entries referenced by {len(args.workflows)} "
+          f"workflow(s); {verb} {report.removed} entries/records "
+          f"({_fmt_bytes(report.bytes)}) in {Path(cache_dir).resolve()}", file=stream)
+    return 0
+
+
+def cmd_ls(args: argparse.Namespace, stream: TextIO = sys.stdout) -> int:
+    from .cache import MANIFEST, Cache, read_json
+
+    cache = Cache(default_cache_dir(args.cache_dir))
+    n = 0
+    for stage, key, folder in cache.iter_entries("failed" if args.failed else "entries"):
+        if args.stage and stage != args.stage:
+            continue
+        try:
+            m = read_json(folder / MANIFEST)
+        except (OSError, ValueError):
+            m = {"status": "corrupt"}
+        size = sum(o.get("bytes", 0) for o in (m.get("outputs") or {}).values())
+        wall = m.get("wall_s")
+        print(f"{stage:<12} {key[:12]}  {(m.get('item') or {}).get('id') or '(workflow)':<24} "
+              f"{m.get('status', '?'):<7} {_fmt_bytes(size):>10} "
+              f"{(f'{wall:.2f} s' if isinstance(wall, (int, float)) else ''):>10}  "
+              f"{_fmt_time(m.get('finished'))}", file=stream)
+        n += 1
+    print(f"{n} {'failure records' if args.failed else 'entries'} in {cache.root}", file=stream)
+    return 0
+
+
+def cmd_verify(args: argparse.Namespace, stream: TextIO = sys.stdout) -> int:
+    from .cache import MANIFEST, Cache, read_json
+    from .hashing import tree_hash
+
+    cache = Cache(default_cache_dir(args.cache_dir))
+    bad = total = 0
+    for stage, key, folder in cache.iter_entries():
+        total += 1
+        problem = ""
+        try:
+            m = read_json(folder / MANIFEST)
+            for name, out in m["outputs"].items():
+                if tree_hash(folder / out["path"]).sha256 != out["sha256"]:
+                    problem = f"output {name!r} does not match its recorded hash"
+                    break
+        except (OSError, ValueError, KeyError, TypeError) as exc:
+            problem = f"unreadable: {exc}"
+        if problem:
+            bad += 1
+            print(f"  {stage} {key[:12]}: {problem}" + (" (removed)" if args.fix else ""),
+                  file=stream)
+            if args.fix:
+                cache.remove_entry(stage, key)
+    print(f"cache verify: {total - bad} of {total} entries match their manifests", file=stream)
+    return 1 if bad and not args.fix else 0
+
+
+def cmd_stages(args: argparse.Namespace, registry_factory: RegistryFactory,
+               stream: TextIO = sys.stdout) -> int:
+    from .params import defaults_toml
+
+    registry = registry_factory()
+    graph = registry.graph()
+    if not graph.order:
+        print("no stages are registered", file=stream)
+        return 0
+    for name in graph.order:
+        s = graph.stages[name]
+        if args.toml:
+            print(defaults_toml(s.params, f"params.{name}") + "\n", file=stream)
+            continue
+        level = " x ".join(s.level) or "workflow"
+        print(f"{name} v{s.version}  per {level}  {list(s.inputs)} -> {list(s.outputs)}"
+              f"{'  (uses device)' if s.uses_device else ''}"
+              + (f"\n    {s.description}" if s.description else ""), file=stream)
+    return 0

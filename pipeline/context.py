@@ -1,0 +1,107 @@
+"""What a stage's ``run(ctx, inputs)`` receives besides its inputs."""
+
+from __future__ import annotations
+
+import logging
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Iterator, Optional
+
+from .items import Item
+from .workflow import Settings
+
+
+@dataclass
+class StageContext:
+    """The run context of one task.
+
+    Attributes:
+        stage: the stage name.
+        item: the item this task runs for (``ctx.item["scene"]``, ``ctx.item.attrs``); the
+            root item for a per-workflow stage.
+        items: the workflow's full items (every axis) that this task's item covers:
+            all of them for a per-workflow stage, a scene's scene x method items for a
+            per-scene stage, ``[item]`` for a stage running over every axis.
+        params: the stage's params dataclass, resolved for this item.
+        settings: workflow-wide settings (``ctx.settings.device``, also ``ctx.device``).
+        out_dir: write outputs here (inside the entry's temporary folder); return their
+            paths. Nothing here is visible to anyone until the entry is committed.
+        scratch_dir: a private temporary folder, deleted before the entry is committed.
+        log: a logger writing to the entry's ``log.txt`` (kept for failures too).
+        key: the cache key of this task.
+    """
+
+    stage: str
+    item: Item
+    items: list[Item]
+    params: Any
+    settings: Settings
+    out_dir: Path
+    scratch_dir: Path
+    log: logging.Logger
+    key: str
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def device(self) -> str:
+        return self.settings.device
+
+    def note(self, **values: Any) -> None:
+        """Record JSON-able values (e.g. GPU peak memory, iteration counts) in the
+        manifest's ``extra`` section."""
+        self.extra.update(values)
+
+    def progress(self, iterable: Optional[Iterable] = None, total: Optional[int] = None,
+                 desc: Optional[str] = None, unit: str = "it") -> Any:
+        """Inner progress: a tqdm bar on an interactive terminal, else log lines every
+        ~10 % (or 30 s). Use as ``for x in ctx.progress(xs): ...`` or as a context
+        manager with ``.update(n)``."""
+        desc = desc or f"{self.stage}[{self.item.label}]"
+        if sys.stderr.isatty():
+            try:
+                from tqdm import tqdm
+
+                return tqdm(iterable, total=total, desc=desc, unit=unit, leave=False)
+            except ImportError:  # tqdm is optional for the engine
+                pass
+        return _LogProgress(iterable, total, desc, self.log)
+
+
+class _LogProgress:
+    """Progress for non-interactive runs: a log line at every ~10 % or 30 s."""
+
+    def __init__(self, iterable: Optional[Iterable], total: Optional[int], desc: str,
+                 log: logging.Logger):
+        self.iterable, self.desc, self.log = iterable, desc, log
+        if total is None and iterable is not None and hasattr(iterable, "__len__"):
+            total = len(iterable)  # type: ignore[arg-type]
+        self.total, self.n = total, 0
+        self._last_t, self._last_frac = time.monotonic(), 0.0
+
+    def update(self, n: int = 1) -> None:
+        self.n += n
+        now = time.monotonic()
+        frac = self.n / self.total if self.total else 0.0
+        if frac - self._last_frac >= 0.1 or now - self._last_t >= 30 or frac >= 1:
+            total = f"/{self.total}" if self.total else ""
+            self.log.info("%s: %d%s", self.desc, self.n, total)
+            self._last_t, self._last_frac = now, frac
+
+    def __iter__(self) -> Iterator:
+        for x in self.iterable or ():
+            yield x
+            self.update()
+
+    def __enter__(self) -> "_LogProgress":
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        pass
+
+    def close(self) -> None:
+        pass
+
+    def set_postfix(self, *args: Any, **kwargs: Any) -> None:
+        pass

@@ -1,0 +1,301 @@
+"""Running one task in whatever process an executor chose, and committing its entry.
+
+The same :func:`execute` runs in the driver (``--jobs 1``), in a forked worker
+(``--jobs N``) and in a Ray worker. It takes the entry's lock, re-checks the cache (another
+run may have finished the entry meanwhile), runs the stage into a temporary folder,
+validates and hashes the outputs, writes the manifest last and renames the folder into
+place. Any exception becomes a failure record with the log kept; Ctrl-C discards the
+temporary folder and reports ``interrupted``.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import platform
+import shutil
+import signal
+import socket
+import sys
+import threading
+import traceback
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator, Mapping, Optional
+
+from .cache import LOG, MANIFEST, OUT, SCRATCH, Cache, write_json_atomic
+from .context import StageContext
+from .errors import PipelineError
+from .hashing import tree_hash
+from .items import Item
+from .measure import Meter
+from .stage import Stage
+from .workflow import Settings
+
+MANIFEST_FORMAT = 1
+
+
+@dataclass(frozen=True)
+class Job:
+    """Everything a worker needs to run one task (picklable)."""
+
+    index: int
+    stage: Stage
+    item: Item
+    items: list[Item]
+    params: Any
+    params_json: Mapping[str, Any]
+    key: str
+    key_doc: Mapping[str, Any]
+    inputs: Mapping[str, Any]  # artifact -> Path, or {Item: Path} for a fan-in
+    input_records: Mapping[str, Any]  # artifact -> provenance for the manifest
+    settings: Settings
+    cache_root: str
+    force: bool
+    package_version: str
+    executor: str
+    workflow: str
+
+
+@dataclass
+class JobResult:
+    """What a worker reports back. ``status``: ok | cached | failed | interrupted."""
+
+    index: int
+    status: str
+    key: str
+    outputs: Optional[dict] = None
+    entry_dir: Optional[str] = None
+    wall_s: float = 0.0
+    error: str = ""
+    log_path: Optional[str] = None
+    note: str = ""
+    measures: dict = field(default_factory=dict)
+
+
+class OutputError(PipelineError):
+    """A stage returned outputs that do not match its declaration."""
+
+
+class _Tee:
+    """A text stream writing to the terminal stream and the entry's log file."""
+
+    def __init__(self, primary: Any, log_file: Any):
+        self._primary, self._log = primary, log_file
+
+    def write(self, text: str) -> int:
+        self._log.write(text)
+        return self._primary.write(text)
+
+    def flush(self) -> None:
+        self._log.flush()
+        self._primary.flush()
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._primary, name)
+
+
+@contextmanager
+def _sigint_shielded() -> Iterator[None]:
+    """Ignore a second Ctrl-C while cleaning up (main thread only)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
+def _validate_outputs(stage: Stage, result: Any, out_dir: Path) -> dict[str, Path]:
+    where = f"stage {stage.name!r}"
+    if not isinstance(result, Mapping):
+        raise OutputError(f"{where}: run() must return {{output name: path}} for "
+                          f"{list(stage.outputs)}, got {type(result).__name__}")
+    missing = [n for n in stage.outputs if n not in result]
+    extra = [n for n in result if n not in stage.outputs]
+    if missing or extra:
+        raise OutputError(f"{where}: run() returned outputs {sorted(result)}, declared "
+                          f"{list(stage.outputs)} (missing {missing}, undeclared {extra})")
+    root = out_dir.resolve()
+    paths = {}
+    for name in stage.outputs:
+        value = result[name]
+        if not isinstance(value, (str, os.PathLike)):
+            raise OutputError(f"{where}: output {name!r} must be a path, got {value!r}")
+        path = Path(value)
+        path = path if path.is_absolute() else out_dir / path
+        if not (path.exists() or path.is_symlink()):
+            raise OutputError(f"{where}: output {name!r} was returned as {path} but does "
+                              "not exist")
+        try:
+            path.resolve().relative_to(root) if not path.is_symlink() else \
+                path.parent.resolve().relative_to(root)
+        except ValueError:
+            raise OutputError(f"{where}: output {name!r} ({path}) is outside ctx.out_dir "
+                              f"({out_dir}); write outputs there") from None
+        paths[name] = path
+    return paths
+
+
+def _logger(key: str, log_path: Path) -> tuple[logging.Logger, logging.Handler]:
+    log = logging.getLogger(f"pipeline.task.{key[:16]}.{os.getpid()}")
+    log.setLevel(logging.DEBUG)
+    log.propagate = False
+    handler = logging.FileHandler(log_path, encoding="utf-8")
+    handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
+    log.addHandler(handler)
+    return log, handler
+
+
+def _base_manifest(job: Job, measures: dict) -> dict[str, Any]:
+    return {
+        "format": MANIFEST_FORMAT,
+        "key": job.key,
+        "stage": job.stage.name,
+        "version": job.stage.version,
+        "params": job.params_json,
+        "item": {"id": job.item.id, "values": job.item.to_json(),
+                 "attrs": job.key_doc.get("attrs", {})},
+        "inputs": job.input_records,
+        "device": job.settings.device,
+        "uses_device": job.stage.uses_device,
+        "host": socket.gethostname(),
+        "pid": os.getpid(),
+        "python": platform.python_version(),
+        "package_version": job.package_version,
+        "executor": job.executor,
+        "workflow": job.workflow,
+        "log": LOG,
+        **measures,
+    }
+
+
+def execute(job: Job) -> JobResult:
+    """Run ``job`` under its entry lock and commit the entry; never raises for stage
+    errors (they come back as ``failed``)."""
+    cache = Cache(job.cache_root)
+    stage = job.stage
+    lock = cache.lock(stage.name, job.key)
+    try:
+        lock.acquire(on_wait=lambda holder: print(
+            f"  {stage.name}[{job.item.label}]: waiting for another run ({holder})",
+            file=sys.stderr, flush=True))
+    except KeyboardInterrupt:
+        return JobResult(job.index, "interrupted", job.key)
+    try:
+        check = cache.check(stage.name, job.key)
+        if check.state == "done" and not job.force:
+            return JobResult(job.index, "cached", job.key, check.manifest["outputs"],
+                             os.fspath(cache.entry_dir(stage.name, job.key)),
+                             note="finished by another run")
+        return _run_locked(job, cache)
+    finally:
+        lock.release()
+
+
+def _run_locked(job: Job, cache: Cache) -> JobResult:
+    stage = job.stage
+    cache.clean_tmp(stage.name, job.key)
+    tmp = cache.new_tmp(stage.name, job.key)
+    out_dir, scratch = tmp / OUT, tmp / SCRATCH
+    out_dir.mkdir()
+    scratch.mkdir()
+    log, handler = _logger(job.key, tmp / LOG)
+    log.info("stage %s version %s item %s key %s", stage.name, stage.version,
+             job.item.label, job.key)
+    log.info("params %s", job.params_json)
+    ctx = StageContext(stage=stage.name, item=job.item, items=job.items, params=job.params,
+                       settings=job.settings, out_dir=out_dir, scratch_dir=scratch, log=log,
+                       key=job.key)
+    meter = Meter()
+    old_stdout = sys.stdout
+    error: Optional[BaseException] = None
+    try:
+        sys.stdout = _Tee(old_stdout, handler.stream)
+        try:
+            result = stage.run(ctx, job.inputs)
+        finally:
+            sys.stdout = old_stdout
+        paths = _validate_outputs(stage, result, out_dir)
+        shutil.rmtree(scratch, ignore_errors=True)
+        outputs = {}
+        for name, path in paths.items():
+            h = tree_hash(path)
+            outputs[name] = {"path": path.relative_to(tmp).as_posix() if path.is_absolute()
+                             else os.fspath(path), "sha256": h.sha256, "kind": h.kind,
+                             "bytes": h.bytes, "files": h.files}
+    except BaseException as exc:  # noqa: BLE001 - every failure is recorded, Ctrl-C included
+        error = exc
+    measures = meter.stop()
+    if error is not None:
+        with _sigint_shielded():
+            return _fail(job, cache, tmp, log, handler, error, measures)
+    manifest = _base_manifest(job, measures)
+    manifest.update(status="ok", outputs=outputs, extra=ctx.extra)
+    log.info("done in %.3f s", measures["wall_s"])
+    handler.close()
+    log.removeHandler(handler)
+    with _sigint_shielded():
+        try:
+            write_json_atomic(tmp / MANIFEST, manifest)  # last file written
+            final = cache.commit(tmp, stage.name, job.key)
+            cache.clear_failure(stage.name, job.key)
+        except OSError as exc:
+            shutil.rmtree(tmp, ignore_errors=True)
+            return JobResult(job.index, "failed", job.key, wall_s=measures["wall_s"],
+                             error=f"cannot commit the entry: {exc}")
+    return JobResult(job.index, "ok", job.key, outputs, os.fspath(final),
+                     wall_s=measures["wall_s"], measures=measures)
+
+
+def _fail(job: Job, cache: Cache, tmp: Path, log: logging.Logger, handler: logging.Handler,
+          exc: BaseException, measures: dict) -> JobResult:
+    wall = measures["wall_s"]
+    if isinstance(exc, KeyboardInterrupt):
+        log.warning("interrupted after %.3f s; the entry is discarded", wall)
+        handler.close()
+        log.removeHandler(handler)
+        shutil.rmtree(tmp, ignore_errors=True)
+        return JobResult(job.index, "interrupted", job.key, wall_s=wall)
+    summary = f"{type(exc).__name__}: {exc}".strip()
+    log.error("failed after %.3f s\n%s", wall,
+              "".join(traceback.format_exception(type(exc), exc, exc.__traceback__)))
+    handler.close()
+    log.removeHandler(handler)
+    manifest = _base_manifest(job, measures)
+    manifest.update(status="failed", outputs={}, error={
+        "type": type(exc).__name__, "summary": summary,
+        "traceback": "".join(traceback.format_exception(type(exc), exc, exc.__traceback__)),
+    })
+    try:
+        folder = cache.record_failure(tmp, job.stage.name, job.key, manifest)
+        log_path: Optional[str] = os.fspath(folder / LOG)
+    except OSError:
+        shutil.rmtree(tmp, ignore_errors=True)
+        log_path = None
+    return JobResult(job.index, "failed", job.key, wall_s=wall, error=summary,
+                     log_path=log_path, measures=measures)
+
+
+def record_crash(job: Job, reason: str) -> JobResult:
+    """Driver-side failure record for a worker that died without reporting (SIGKILL,
+    out of memory): keeps whatever log its temporary folder holds."""
+    cache = Cache(job.cache_root)
+    leftovers = sorted((cache.root / "tmp").glob(f"{job.stage.name}.{job.key}.*"))
+    manifest = _base_manifest(job, {})
+    manifest.update(status="failed", outputs={},
+                    error={"type": "WorkerDied", "summary": reason, "traceback": ""})
+    lock = cache.lock(job.stage.name, job.key)
+    if not lock.acquire(blocking=False):  # someone else is (re)computing it now
+        return JobResult(job.index, "failed", job.key, error=reason)
+    try:
+        tmp = leftovers[-1] if leftovers else cache.new_tmp(job.stage.name, job.key)
+        folder = cache.record_failure(tmp, job.stage.name, job.key, manifest)
+        cache.clean_tmp(job.stage.name, job.key)
+    finally:
+        lock.release()
+    return JobResult(job.index, "failed", job.key, error=reason,
+                     log_path=os.fspath(folder / LOG) if (folder / LOG).exists() else None)

@@ -1,0 +1,75 @@
+"""Content hashes: canonical JSON for keys, streamed sha256 for files and folders.
+
+Output hashes are computed once, when an entry is committed, and stored in its manifest;
+checking a cached entry later never re-reads the outputs (``cobgs cache verify`` does).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+_CHUNK = 1 << 20
+
+
+def canonical_json(value: Any) -> str:
+    """Deterministic JSON: sorted keys, no whitespace, UTF-8 kept as is."""
+    return json.dumps(value, sort_keys=True, separators=(",", ":"), ensure_ascii=False,
+                      allow_nan=False)
+
+
+def sha256_text(text: str) -> str:
+    return hashlib.sha256(text.encode("utf-8")).hexdigest()
+
+
+def file_sha256(path: Path) -> str:
+    with open(path, "rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
+
+
+@dataclass(frozen=True)
+class TreeHash:
+    """Hash, total size and file count of a file or a folder."""
+
+    sha256: str
+    kind: str  # "file" | "dir"
+    bytes: int
+    files: int
+
+
+def tree_hash(path: Path) -> TreeHash:
+    """sha256 of a file's bytes, or of a folder's sorted (relative path, kind, content) list.
+
+    Symbolic links are hashed by their target text (not followed), so a link leaving the
+    entry cannot make the hash depend on files outside it.
+    """
+    if path.is_symlink():
+        return TreeHash(sha256_text("link:" + os.readlink(path)), "file", 0, 1)
+    if path.is_file():
+        return TreeHash(file_sha256(path), "file", path.stat().st_size, 1)
+    if not path.is_dir():
+        raise FileNotFoundError(f"{path}: not a file or folder")
+    digest = hashlib.sha256(b"dir\n")
+    total = files = 0
+    for root, dirs, names in os.walk(path):
+        dirs.sort()
+        rel_root = os.path.relpath(root, path)
+        for name in sorted(names + [d for d in dirs if os.path.islink(os.path.join(root, d))]):
+            full = os.path.join(root, name)
+            rel = os.path.normpath(os.path.join(rel_root, name)).replace(os.sep, "/")
+            if os.path.islink(full):
+                line = f"L {rel} {os.readlink(full)}\n"
+            else:
+                line = f"F {rel} {file_sha256(Path(full))}\n"
+                total += os.path.getsize(full)
+            files += 1
+            digest.update(line.encode("utf-8", "surrogateescape"))
+        for d in dirs:
+            if not os.path.islink(os.path.join(root, d)):
+                rel = os.path.normpath(os.path.join(rel_root, d)).replace(os.sep, "/")
+                digest.update(f"D {rel}\n".encode("utf-8", "surrogateescape"))
+    return TreeHash(digest.hexdigest(), "dir", total, files)

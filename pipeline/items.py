@@ -1,0 +1,216 @@
+"""Axes and items: how one workflow fans out.
+
+A workflow declares ordered *axes* (``scene``, ``method``, optionally ``object``), each
+with named values. A stage's *level* is a subset of the axes; it runs once per *instance*
+of that level, an :class:`Item` holding one value per axis of the level (the empty item,
+``Item.root()``, is the single instance of the per-workflow level ``()``).
+
+An axis may be *nested* in an earlier one (``object`` within ``scene``): its values are
+then declared per parent value, and a level holding it must hold its parent too.
+
+A task at level ``L`` consumes an artifact produced at level ``P`` from every instance of
+``P`` that agrees with it on the shared axes ``L & P``. When ``P`` is a subset of ``L``
+that is exactly one instance (fan-out: a per-scene x method task reads its scene's
+artifact); otherwise it is several, and the task receives ``{Item: path}`` (fan-in: a
+per-workflow report reads every scene x method).
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import re
+from dataclasses import dataclass, field
+from typing import Any, Iterable, Mapping, Optional, Sequence
+
+from .errors import WorkflowError
+
+VALUE_RE = re.compile(r"^[^/,=\s][^/,=]*$")  # "/" "," "=" are item-id syntax
+
+
+@dataclass(frozen=True)
+class Axis:
+    """One axis: its values with their attributes, optionally nested in a parent axis.
+
+    ``values`` maps value name -> attributes (flat axes); for a nested axis it maps parent
+    value -> {value name -> attributes}.
+    """
+
+    name: str
+    values: Mapping[str, Any]
+    parent: Optional[str] = None
+
+    def names(self, parent_value: Optional[str] = None) -> list[str]:
+        if self.parent is None:
+            return list(self.values)
+        return list(self.values.get(parent_value, {}))
+
+    def attrs(self, value: str, parent_value: Optional[str] = None) -> Any:
+        table = self.values if self.parent is None else self.values[parent_value]
+        return table[value]
+
+
+@dataclass(frozen=True)
+class Item:
+    """One instance of a level: ``(axis, value)`` pairs in workflow axis order.
+
+    Equality and hashing use the pairs only; ``attrs`` maps each axis to the attributes of
+    its value (a dataclass when the axis has a registered schema, else a dict).
+    """
+
+    pairs: tuple[tuple[str, str], ...]
+    attrs: Mapping[str, Any] = field(default_factory=dict, compare=False, hash=False, repr=False)
+
+    @staticmethod
+    def root() -> "Item":
+        return Item(())
+
+    @property
+    def id(self) -> str:
+        """``"lego/no_bags"``; ``""`` for the per-workflow item."""
+        return "/".join(v for _, v in self.pairs)
+
+    @property
+    def label(self) -> str:
+        """The id, or ``(workflow)`` for the root item (for display)."""
+        return self.id or "(workflow)"
+
+    @property
+    def axes(self) -> tuple[str, ...]:
+        return tuple(a for a, _ in self.pairs)
+
+    @property
+    def values(self) -> dict[str, str]:
+        return dict(self.pairs)
+
+    def __getitem__(self, axis: str) -> str:
+        for a, v in self.pairs:
+            if a == axis:
+                return v
+        raise KeyError(f"item {self.label!r} has no axis {axis!r} (it has {list(self.axes)})")
+
+    def project(self, axes: Iterable[str]) -> "Item":
+        keep = set(axes)
+        return Item(tuple(p for p in self.pairs if p[0] in keep),
+                    {a: v for a, v in self.attrs.items() if a in keep})
+
+    def to_json(self) -> dict[str, str]:
+        return dict(self.pairs)
+
+    def __str__(self) -> str:
+        return self.label
+
+
+class Axes:
+    """The ordered axes of a workflow and the instances of any level."""
+
+    def __init__(self, axes: Sequence[Axis]):
+        self._axes = {a.name: a for a in axes}
+        self.order = tuple(a.name for a in axes)
+        self._instances: dict[tuple[str, ...], list[Item]] = {}
+
+    def __contains__(self, name: str) -> bool:
+        return name in self._axes
+
+    def __getitem__(self, name: str) -> Axis:
+        return self._axes[name]
+
+    def normalize_level(self, level: Sequence[str], owner: str,
+                        source: Optional[str] = None) -> tuple[str, ...]:
+        """``level`` in workflow order, checked: known axes, nested axes with their parent."""
+        for name in level:
+            if name not in self._axes:
+                raise WorkflowError(f"{owner} runs per {tuple(level)} but the workflow has no "
+                                    f"axis {name!r} (its axes: {list(self.order) or 'none'}); "
+                                    f"declare values as [axes.{name}.NAME]", source, "axes")
+            parent = self._axes[name].parent
+            if parent is not None and parent not in level:
+                raise WorkflowError(f"{owner} runs per {tuple(level)}: axis {name!r} is nested "
+                                    f"in {parent!r}, so the level must include {parent!r}",
+                                    source, "axes")
+        return tuple(a for a in self.order if a in level)
+
+    def instances(self, level: tuple[str, ...]) -> list[Item]:
+        """Every item of ``level`` (already normalised), in declaration order."""
+        cached = self._instances.get(level)
+        if cached is not None:
+            return cached
+        partial: list[tuple[tuple[tuple[str, str], ...], dict[str, Any]]] = [((), {})]
+        for name in level:
+            axis = self._axes[name]
+            grown = []
+            for pairs, attrs in partial:
+                parent_value = dict(pairs).get(axis.parent) if axis.parent else None
+                for value in axis.names(parent_value):
+                    grown.append((pairs + ((name, value),),
+                                  {**attrs, name: axis.attrs(value, parent_value)}))
+            partial = grown
+        items = [Item(pairs, attrs) for pairs, attrs in partial]
+        self._instances[level] = items
+        return items
+
+    def all_items(self) -> list[Item]:
+        return self.instances(self.order)
+
+
+@dataclass(frozen=True)
+class ItemFilter:
+    """``--items`` patterns: ``lego``, ``scene=lego``, ``lego/no_*`` (fnmatch globs).
+
+    A pattern is ``/``-separated parts; a part ``axis=glob`` constrains that axis, a bare
+    ``glob`` must match the value of some axis. An item is selected when every part of some
+    pattern holds.
+    """
+
+    patterns: tuple[tuple[tuple[Optional[str], str], ...], ...]
+
+    @staticmethod
+    def parse(text: str, axes: Axes) -> "ItemFilter":
+        patterns = []
+        for raw in (p.strip() for p in text.split(",")):
+            if not raw:
+                continue
+            parts = []
+            for part in raw.split("/"):
+                axis, _, glob = part.rpartition("=")
+                if axis and axis not in axes:
+                    raise WorkflowError(f"--items {raw!r}: unknown axis {axis!r} "
+                                        f"(axes: {list(axes.order)})")
+                parts.append((axis or None, glob))
+            patterns.append(tuple(parts))
+        if not patterns:
+            raise WorkflowError("--items: expected at least one item pattern")
+        return ItemFilter(tuple(patterns))
+
+    def _matches_part(self, item: Item, axis: Optional[str], glob: str) -> Optional[bool]:
+        """True/False, or None when the part names an axis the item does not have."""
+        if axis is not None:
+            if axis not in item.axes:
+                return None
+            return fnmatch.fnmatchcase(item[axis], glob)
+        return any(fnmatch.fnmatchcase(v, glob) for _, v in item.pairs)
+
+    def selects_full(self, item: Item) -> bool:
+        return any(all(self._matches_part(item, a, g) for a, g in pattern)
+                   for pattern in self.patterns)
+
+    def unmatched(self, full_items: Sequence[Item]) -> list[str]:
+        """Patterns that select nothing (a typo, most likely)."""
+        out = []
+        for pattern in self.patterns:
+            one = ItemFilter((pattern,))
+            if not any(one.selects_full(f) for f in full_items):
+                out.append("/".join(f"{a}={g}" if a else g for a, g in pattern))
+        return out
+
+
+def agrees(a: Item, b: Item) -> bool:
+    """Whether two items hold the same value on every axis they share."""
+    bv = b.values
+    return all(bv.get(axis, v) == v for axis, v in a.pairs)
+
+
+def check_value_name(name: str, axis: str, source: str) -> None:
+    if not isinstance(name, str) or not VALUE_RE.match(name):
+        raise WorkflowError(f"value name {name!r} may not be empty, start with a space or "
+                            "contain '/', ',' or '='", source, f"axes.{axis}")
+

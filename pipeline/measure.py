@@ -1,0 +1,66 @@
+"""Wall time, CPU time and peak memory of one task, measured in the process that runs it.
+
+Peak memory is the resident-set high-water mark (``VmHWM``) of that process. Before the
+task starts the mark is reset by writing ``5`` to ``/proc/self/clear_refs`` (Linux >= 4.0),
+so a long-lived worker (the driver with ``--jobs 1``, a Ray worker) reports the peak of
+this task rather than of its whole life; the baseline it already had resident is included.
+Where the reset is refused the lifetime ``ru_maxrss`` is reported and the manifest says so
+(``peak_rss_scope = "process"``). Subprocesses the stage starts are reported apart, as the
+largest peak among the children it waited for (``children_peak_rss_bytes``).
+"""
+
+from __future__ import annotations
+
+import resource
+import time
+from typing import Any, Optional
+
+
+def _vm_hwm_bytes() -> Optional[int]:
+    try:
+        with open("/proc/self/status", "rb") as f:
+            for line in f:
+                if line.startswith(b"VmHWM:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
+def _reset_hwm() -> bool:
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+        return True
+    except OSError:
+        return False
+
+
+class Meter:
+    """Start on construction; :meth:`stop` returns the manifest's measurement fields."""
+
+    def __init__(self) -> None:
+        self._scope = "task" if _reset_hwm() and _vm_hwm_bytes() is not None else "process"
+        self._self0 = resource.getrusage(resource.RUSAGE_SELF)
+        self._child0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        self._t0 = time.perf_counter()
+        self.started = time.time()
+
+    def stop(self) -> dict[str, Any]:
+        wall = time.perf_counter() - self._t0
+        ru = resource.getrusage(resource.RUSAGE_SELF)
+        ch = resource.getrusage(resource.RUSAGE_CHILDREN)
+        peak = _vm_hwm_bytes() if self._scope == "task" else ru.ru_maxrss * 1024
+        child_peak = ch.ru_maxrss * 1024 if ch.ru_maxrss > self._child0.ru_maxrss else None
+        return {
+            "started": self.started,
+            "finished": time.time(),
+            "wall_s": round(wall, 6),
+            "cpu_s": round((ru.ru_utime - self._self0.ru_utime)
+                           + (ru.ru_stime - self._self0.ru_stime), 6),
+            "cpu_children_s": round((ch.ru_utime - self._child0.ru_utime)
+                                    + (ch.ru_stime - self._child0.ru_stime), 6),
+            "peak_rss_bytes": peak,
+            "peak_rss_scope": self._scope,
+            "children_peak_rss_bytes": child_peak,
+        }

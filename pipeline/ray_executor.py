@@ -1,0 +1,108 @@
+"""The Ray executor: each task is a Ray task with the stage's declared CPU / GPU needs.
+
+The driver keeps scheduling (what is cached, what is ready, what failed) exactly as for
+the local executors and only hands ready tasks to Ray, so progress lines and failure
+records are the same. Workers read and write the cache folder directly: on a cluster it
+must be on a filesystem every node mounts at the same path, and every node needs the same
+``cobgs`` (and stage code) installed. Ray is optional: ``pip install 'cobgs[ray]'``.
+
+Peak memory of a Ray task is measured in the Ray worker process the same way as locally
+(VmHWM reset at task start), so it is that task's own peak even on a reused worker.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Optional
+
+from .errors import ExecutorError
+from .execute import Job, JobResult, execute, record_crash
+from .stage import Resources
+
+INSTALL_HINT = ("the Ray executor needs Ray, an optional extra: pip install 'cobgs[ray]' "
+                "(or pip install 'ray[default]')")
+
+
+def _ray_execute(job: Job) -> JobResult:
+    return execute(job)
+
+
+def import_ray() -> Any:
+    try:
+        import ray
+    except ImportError:
+        raise ExecutorError(INSTALL_HINT) from None
+    return ray
+
+
+class RayExecutor:
+    """Submits jobs as Ray tasks; starts a local Ray instance unless one is running or an
+    ``address`` (``auto``, ``ray://host:10001``, ``host:6379``) is given."""
+
+    name = "ray"
+
+    def __init__(self, address: Optional[str] = None):
+        ray = import_ray()
+        self._ray = ray
+        self._owned = False
+        if not ray.is_initialized():
+            try:
+                ray.init(address=address, include_dashboard=False, log_to_driver=True)
+            except Exception as exc:  # noqa: BLE001 - Ray raises many types here
+                where = f"the Ray cluster at {address}" if address else "a local Ray instance"
+                raise ExecutorError(f"cannot start or reach {where}: {exc}") from exc
+            self._owned = True
+        self._remote = ray.remote(max_retries=0)(_ray_execute)
+        self._running: dict[Any, Job] = {}
+
+    def capacity(self) -> Optional[int]:
+        return None
+
+    def submit(self, job: Job, resources: Resources) -> None:
+        options: dict[str, Any] = {"num_cpus": resources.cpus, "num_gpus": resources.gpus,
+                                   "name": f"{job.stage.name}[{job.item.label}]"}
+        if resources.memory_gb:
+            options["memory"] = int(resources.memory_gb * 2**30)
+        ref = self._remote.options(**options).remote(job)
+        self._running[ref] = job
+
+    def running(self) -> int:
+        return len(self._running)
+
+    def _collect(self, ref: Any, record: bool = True) -> JobResult:
+        ray = self._ray
+        job = self._running.pop(ref)
+        try:
+            return ray.get(ref)
+        except ray.exceptions.TaskCancelledError:
+            return JobResult(job.index, "interrupted", job.key)
+        except Exception as exc:  # noqa: BLE001 - worker crash, node loss, unpicklable job
+            if not record:
+                return JobResult(job.index, "interrupted", job.key)
+            reason = f"Ray task failed: {type(exc).__name__}: {str(exc).strip()[:500]}"
+            return record_crash(job, reason)
+
+    def wait(self) -> list[JobResult]:
+        ray = self._ray
+        refs = list(self._running)
+        ready, _ = ray.wait(refs, num_returns=1)
+        more, _ = ray.wait([r for r in refs if r not in ready], num_returns=len(refs) - 1,
+                           timeout=0) if len(refs) > 1 else ([], [])
+        return [self._collect(r) for r in list(ready) + list(more)]
+
+    def interrupt(self) -> list[JobResult]:
+        ray = self._ray
+        for ref in self._running:
+            ray.cancel(ref)  # raises KeyboardInterrupt in the task: it cleans up its entry
+        results = []
+        for ref in list(self._running):
+            result = self._collect(ref, record=False)
+            if result.status not in ("ok", "cached"):
+                result.status = "interrupted"
+            results.append(result)
+        return results
+
+    def close(self) -> None:
+        if self._running:
+            self.interrupt()
+        if self._owned:
+            self._ray.shutdown()

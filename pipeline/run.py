@@ -1,0 +1,416 @@
+"""Running a workflow: select tasks, reuse what is cached, execute the rest in dependency
+order on an executor, stream one progress line per task, summarise.
+
+Selection (all optional, combined):
+  ``items``   item patterns (see items.ItemFilter); a fan-in task runs only when every
+              item it gathers is selected.
+  ``only``    run only these stages; other stages' entries are used when done, and a
+              selected task whose upstream is not done is *blocked*.
+  ``force``   recompute these stages even when cached (``("all",)``: every stage).
+  ``from_stages``  recompute these stages and every stage downstream of them.
+A task whose upstream failed is *blocked*; other items carry on. The exit code is 0 when
+everything selected is done, 1 when some task failed or was blocked, 130 on Ctrl-C.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional, TextIO
+
+from .cache import Cache, ref_record
+from .errors import ExecutorError, WorkflowError
+from .execute import Job, JobResult
+from .executors import ForkExecutor, InlineExecutor
+from .items import ItemFilter, Item
+from .plan import OutputTable, Plan, Task, inspect, key_document
+from .hashing import canonical_json, sha256_text
+from .workflow import Workflow
+
+
+@dataclass(frozen=True)
+class RunOptions:
+    """How to run a workflow (the engine-level settings come from the caller)."""
+
+    cache_dir: Path
+    package_version: str = ""
+    executor: str = "local"  # "local" | "ray"
+    jobs: int = 1
+    address: Optional[str] = None
+    only: tuple[str, ...] = ()
+    from_stages: tuple[str, ...] = ()
+    force: tuple[str, ...] = ()
+    items: Optional[str] = None
+    dry_run: bool = False
+    quiet: bool = False  # no line for cached tasks
+    local_gpus: int = 1  # GPU tasks that may run at once with --jobs N
+
+    def __post_init__(self) -> None:
+        if self.executor not in ("local", "ray"):
+            raise ExecutorError(f"unknown executor {self.executor!r}; expected local or ray")
+        if not isinstance(self.jobs, int) or self.jobs < 1:
+            raise ExecutorError(f"--jobs must be an integer >= 1, got {self.jobs!r}")
+
+
+@dataclass
+class Outcome:
+    """What happened to one task in a run. ``state``: cached | done | failed | blocked |
+    interrupted | reused (not selected, used from the cache) | unavailable."""
+
+    state: str
+    wall_s: float = 0.0
+    note: str = ""
+    log_path: Optional[str] = None
+    key: Optional[str] = None
+
+
+@dataclass
+class RunSummary:
+    plan: Plan
+    outcomes: dict[int, Outcome] = field(default_factory=dict)
+    interrupted: bool = False
+    wall_s: float = 0.0
+
+    def tasks_in(self, *states: str) -> list[Task]:
+        return [self.plan.tasks[i] for i, o in sorted(self.outcomes.items()) if o.state in states]
+
+    @property
+    def exit_code(self) -> int:
+        if self.interrupted:
+            return 130
+        return 1 if self.tasks_in("failed", "blocked", "unavailable") else 0
+
+
+@dataclass(frozen=True)
+class Selection:
+    relevant: list[int]  # selected tasks and their upstream, in plan order
+    selected: frozenset[int]
+    forced: frozenset[int]
+    notes: tuple[str, ...] = ()
+
+
+def select(plan: Plan, options: RunOptions) -> Selection:
+    wf = plan.workflow
+    graph = wf.graph
+    only = set(graph.check_names(options.only, "--only"))
+    force_all = "all" in options.force
+    force = set(graph.check_names([f for f in options.force if f != "all"], "--force"))
+    from_ = graph.descendants(graph.check_names(options.from_stages, "--from"))
+    notes = []
+    by_items: Optional[set[int]] = None
+    if options.items:
+        filt = ItemFilter.parse(options.items, wf.axes)
+        full = [f for f in wf.axes.all_items() if filt.selects_full(f)]
+        bad = filt.unmatched(wf.axes.all_items())
+        if bad:
+            raise WorkflowError(f"--items: {', '.join(bad)} matches no item (items: "
+                                + ", ".join(i.id for i in wf.axes.all_items()[:10]) + ")")
+        projections: dict[tuple[str, ...], set[Item]] = {}
+        by_items = set()
+        for task in plan.tasks:
+            level = wf.levels[task.stage.name]
+            if level not in projections:
+                projections[level] = {f.project(level) for f in full}
+            if task.item in projections[level] and all(
+                    s in by_items for b in task.bindings if b.fan_in for s in b.sources):
+                by_items.add(task.index)
+            elif task.item in projections[level]:
+                notes.append(f"{task.id} skipped: it gathers items that --items leaves out")
+    selected = {t.index for t in plan.tasks
+                if (by_items is None or t.index in by_items)
+                and (not only or t.stage.name in only)}
+    relevant = set(selected)
+    todo = list(selected)
+    while todo:
+        for dep in plan.tasks[todo.pop()].deps:
+            if dep not in relevant:
+                relevant.add(dep)
+                todo.append(dep)
+    forced = {i for i in selected
+              if force_all or plan.tasks[i].stage.name in force
+              or plan.tasks[i].stage.name in from_}
+    return Selection(sorted(relevant), frozenset(selected), frozenset(forced), tuple(notes))
+
+
+class Progress:
+    """One line per task: ``[ k/N] stage  item  state  time  note``."""
+
+    def __init__(self, plan: Plan, total: int, stream: TextIO, quiet: bool):
+        self.stream, self.quiet, self.total, self.count = stream, quiet, total, 0
+        tasks = plan.tasks
+        self.w_stage = max([len(t.stage.name) for t in tasks] + [5])
+        self.w_item = min(max([len(t.item.label) for t in tasks] + [4]), 40)
+        self.w_num = len(str(total))
+
+    def line(self, task: Task, state: str, seconds: Optional[float] = None, note: str = "",
+             final: bool = True) -> None:
+        if final:
+            self.count += 1
+        if self.quiet and state in ("cached", "reused"):
+            return
+        num = f"[{self.count:>{self.w_num}}/{self.total}]" if final else " " * (2 * self.w_num + 3)
+        secs = f"{seconds:8.2f} s" if seconds is not None else " " * 10
+        text = (f"{num} {task.stage.name:<{self.w_stage}}  {task.item.label:<{self.w_item}}  "
+                f"{state:<11} {secs}  {note}").rstrip()
+        print(text, file=self.stream, flush=True)
+
+
+def _make_executor(options: RunOptions) -> Any:
+    if options.executor == "ray":
+        from .ray_executor import RayExecutor
+
+        return RayExecutor(options.address)
+    return InlineExecutor() if options.jobs == 1 else ForkExecutor(options.jobs)
+
+
+def run_workflow(workflow: Workflow, options: RunOptions, stream: TextIO = sys.stdout,
+                 executor: Any = None) -> RunSummary:
+    """Run (or with ``options.dry_run``, describe) ``workflow``; see the module docstring."""
+    t0 = time.perf_counter()
+    cache = Cache(options.cache_dir)
+    plan = Plan(workflow)
+    sel = select(plan, options)
+    if options.dry_run:
+        return dry_run(plan, sel, cache, stream, t0)
+    cache.ensure()
+    cache.note_workflow(workflow.id, workflow.path, workflow.name)
+    for note in sel.notes:
+        print(note, file=stream)
+    executor = executor or _make_executor(options)
+    try:
+        return _Scheduler(plan, sel, cache, options, executor, stream).run(t0)
+    finally:
+        executor.close()
+
+
+class _Scheduler:
+    def __init__(self, plan: Plan, sel: Selection, cache: Cache, options: RunOptions,
+                 executor: Any, stream: TextIO):
+        self.plan, self.sel, self.cache, self.options = plan, sel, cache, options
+        self.executor, self.stream = executor, stream
+        self.wf = plan.workflow
+        self.table = OutputTable(plan)
+        self.summary = RunSummary(plan)
+        self.relevant = set(sel.relevant)
+        self.progress = Progress(plan, len(sel.relevant), stream, options.quiet)
+        self.waiting = {i: sum(1 for d in plan.tasks[i].deps) for i in sel.relevant}
+        self.ready: list[int] = sorted(i for i, n in self.waiting.items() if n == 0)
+        self.gpu_free = options.local_gpus
+        self.jobs: dict[int, tuple[Job, float]] = {}  # running: job, gpus held
+        self.task_items = [t.item for t in plan.tasks]
+        self._full_by_level: dict[tuple[str, ...], dict[Item, list[Item]]] = {}
+
+    # -- bookkeeping ---------------------------------------------------------------------
+    def _settle(self, index: int, outcome: Outcome) -> None:
+        self.summary.outcomes[index] = outcome
+        ok = outcome.state in ("cached", "done", "reused")
+        for dep in self.plan.dependents[index]:
+            if dep not in self.relevant or dep in self.summary.outcomes:
+                continue
+            if ok:
+                self.waiting[dep] -= 1
+                if self.waiting[dep] == 0:
+                    self.ready.append(dep)
+            else:
+                self._block(dep, self.plan.tasks[index])
+
+    def _block(self, index: int, cause: Task) -> None:
+        why = {"failed": "failed", "blocked": "is blocked", "unavailable": "is not done",
+               "interrupted": "was interrupted"}
+        state = self.summary.outcomes[cause.index].state
+        outcome = Outcome("blocked", note=f"upstream {cause.id} {why.get(state, state)}")
+        if state == "interrupted":
+            outcome.state = "interrupted"
+        self._settle(index, outcome)
+        if outcome.state == "blocked":
+            self.progress.line(self.plan.tasks[index], "blocked", note=outcome.note)
+
+    def _write_ref(self, task: Task, key: str, status: str, hashes: Any) -> None:
+        self.cache.write_ref(self.wf.id, task.stage.name, task.item.id, ref_record(
+            key, status, task.stage.version, task.params.json, hashes,
+            self.wf.settings.device, task.item.id))
+
+    # -- one ready task ----------------------------------------------------------------------
+    def _start(self, index: int) -> bool:
+        """Handle a ready task; False if it must wait for a GPU slot."""
+        task = self.plan.tasks[index]
+        hashes = self.table.hashes(task)
+        doc = key_document(task, self.wf, hashes)  # type: ignore[arg-type]
+        key = sha256_text(canonical_json(doc))
+        stage = task.stage.name
+        check = self.cache.check(stage, key)
+        if index not in self.sel.selected:
+            if check.state == "done":
+                self.table.set(index, check.manifest["outputs"],  # type: ignore[index]
+                               self.cache.entry_dir(stage, key))
+                self._settle(index, Outcome("reused", key=key))
+            else:
+                outcome = Outcome("unavailable", key=key,
+                                  note="not done, and not selected by --only/--items")
+                self.progress.line(task, "not done", note=outcome.note)
+                self._settle(index, outcome)
+            return True
+        if check.state == "done" and index not in self.sel.forced:
+            self.table.set(index, check.manifest["outputs"],  # type: ignore[index]
+                           self.cache.entry_dir(stage, key))
+            ref = self.cache.read_ref(self.wf.id, stage, task.item.id)
+            if ref is None or ref.get("key") != key:
+                self._write_ref(task, key, "ok", hashes)
+            self.progress.line(task, "cached")
+            self._settle(index, Outcome("cached", key=key))
+            return True
+        resources = task.stage.resources_for(self.wf.settings)
+        if self.executor.capacity() is not None and resources.gpus > 0:
+            if self.gpu_free < resources.gpus and self.jobs:
+                return False
+            self.gpu_free -= resources.gpus
+        note = "forced" if index in self.sel.forced else ""
+        if check.state == "corrupt":
+            note = f"corrupt entry ({check.reason}), recomputing"
+            print(f"warning: {task.id}: {self.cache.entry_dir(stage, key)}: {check.reason}; "
+                  "recomputing", file=sys.stderr)
+        job = self._job(task, key, doc, hashes, force=index in self.sel.forced)
+        self.jobs[index] = (job, resources.gpus if self.executor.capacity() is not None else 0)
+        self.progress.line(task, "running", note=note, final=False)
+        self.executor.submit(job, resources)
+        return True
+
+    def _job(self, task: Task, key: str, doc: dict, hashes: Any, force: bool) -> Job:
+        records: dict[str, Any] = {}
+        for b in task.bindings:
+            def rec(s: int) -> dict:
+                out = self.table.outputs[s][b.name]  # type: ignore[index]
+                return {"sha256": out["sha256"], "key": self.table.entry_dirs[s].name}  # type: ignore
+            if b.fan_in:
+                records[b.name] = {"stage": b.producer, "items": {
+                    self.table.item_ids[s]: rec(s) for s in b.sources}}
+            else:
+                records[b.name] = {"stage": b.producer, **rec(b.sources[0])}
+        level = task.item.axes
+        if level not in self._full_by_level:
+            groups: dict[Item, list[Item]] = {}
+            for full in self.wf.axes.all_items():
+                groups.setdefault(full.project(level), []).append(full)
+            self._full_by_level[level] = groups
+        items = self._full_by_level[level].get(task.item, [])
+        return Job(index=task.index, stage=task.stage, item=task.item, items=items,
+                   params=task.params.value, params_json=task.params.json, key=key,
+                   key_doc=doc, inputs=self.table.input_paths(task, self.task_items),
+                   input_records=records, settings=self.wf.settings,
+                   cache_root=os.fspath(self.cache.root), force=force,
+                   package_version=self.options.package_version,
+                   executor=self.executor.name, workflow=os.fspath(self.wf.path))
+
+    def _finish(self, result: JobResult) -> None:
+        job, gpus = self.jobs.pop(result.index)
+        self.gpu_free += gpus
+        task = self.plan.tasks[result.index]
+        hashes = job.key_doc["inputs"]
+        if result.status in ("ok", "cached"):
+            self.table.set(result.index, result.outputs, Path(result.entry_dir))  # type: ignore
+            self._write_ref(task, result.key, "ok", hashes)
+            state = "done" if result.status == "ok" else "cached"
+            self.progress.line(task, state, result.wall_s, result.note)
+            self._settle(result.index, Outcome(state, result.wall_s, result.note, key=result.key))
+        elif result.status == "failed":
+            self._write_ref(task, result.key, "failed", hashes)
+            self.progress.line(task, "FAILED", result.wall_s, result.error)
+            if result.log_path:
+                self.progress.line(task, "", note=f"log: {result.log_path}", final=False)
+            self._settle(result.index, Outcome("failed", result.wall_s, result.error,
+                                               result.log_path, result.key))
+        else:
+            self.summary.interrupted = True
+            self._settle(result.index, Outcome("interrupted", result.wall_s, key=result.key))
+
+    def run(self, t0: float) -> RunSummary:
+        try:
+            while (self.ready or self.jobs) and not self.summary.interrupted:
+                self.ready.sort()
+                cap = self.executor.capacity()
+                deferred = []
+                while self.ready and (cap is None or len(self.jobs) < cap):
+                    index = self.ready.pop(0)
+                    if not self._start(index):
+                        deferred.append(index)
+                self.ready = deferred + self.ready
+                if self.jobs:
+                    for result in self.executor.wait():
+                        self._finish(result)
+        except KeyboardInterrupt:
+            self.summary.interrupted = True
+        if self.summary.interrupted and self.jobs:
+            for result in self.executor.interrupt():
+                if result.index in self.jobs:
+                    self._finish(result)
+            self.summary.interrupted = True
+        self.summary.wall_s = time.perf_counter() - t0
+        print_summary(self.summary, self.stream)
+        return self.summary
+
+
+def print_summary(summary: RunSummary, stream: TextIO) -> None:
+    counts: dict[str, int] = {}
+    for o in summary.outcomes.values():
+        counts[o.state] = counts.get(o.state, 0) + 1
+    order = ("done", "cached", "reused", "failed", "blocked", "unavailable", "interrupted")
+    parts = [f"{counts[s]} {s}" for s in order if counts.get(s)]
+    head = "interrupted" if summary.interrupted else "run finished"
+    print(f"{head}: {len(summary.outcomes)} tasks: {', '.join(parts) or 'nothing to do'} "
+          f"({summary.wall_s:.2f} s)", file=stream)
+    for task in summary.tasks_in("failed"):
+        o = summary.outcomes[task.index]
+        log = f"\n    log: {o.log_path}" if o.log_path else ""
+        print(f"  FAILED  {task.id}: {o.note}{log}", file=stream)
+    for task in summary.tasks_in("blocked", "unavailable"):
+        print(f"  {summary.outcomes[task.index].state.upper():<8}{task.id}: "
+              f"{summary.outcomes[task.index].note}", file=stream)
+    if summary.interrupted:
+        print("  interrupted: running tasks were discarded; finished ones are kept", file=stream)
+
+
+def dry_run(plan: Plan, sel: Selection, cache: Cache, stream: TextIO, t0: float) -> RunSummary:
+    """Print what a run would do and why, without running or writing anything."""
+    states = inspect(plan, cache)
+    will_run: set[int] = set()
+    summary = RunSummary(plan)
+    progress = Progress(plan, len(sel.relevant), stream, quiet=False)
+    for note in sel.notes:
+        print(note, file=stream)
+    for i in sel.relevant:
+        st, task = states[i], plan.tasks[i]
+        upstream = [plan.tasks[d] for d in task.deps if d in will_run]
+        if i not in sel.selected:
+            if st.state == "done":
+                outcome = Outcome("reused")
+            else:
+                outcome = Outcome("unavailable", note="not done, and not selected by "
+                                                      "--only/--items: dependents will block")
+                progress.line(task, "not done", note=outcome.note)
+            summary.outcomes[i] = outcome
+            continue
+        if i in sel.forced:
+            reasons = ["forced"]
+        elif st.state == "done" and not upstream:
+            progress.line(task, "cached")
+            summary.outcomes[i] = Outcome("cached")
+            continue
+        elif st.state == "done":
+            reasons = [f"may rerun: upstream {upstream[0].id} will run"]
+        else:
+            reasons = [r for r in st.reasons if not r.startswith("waits on")]
+            if upstream:
+                reasons.append(f"upstream {upstream[0].id} will run")
+            elif not reasons:
+                reasons = [r for r in st.reasons] or ["new"]
+        will_run.add(i)
+        progress.line(task, "would run", note="; ".join(reasons))
+        summary.outcomes[i] = Outcome("would run", note="; ".join(reasons))
+    n = sum(1 for o in summary.outcomes.values() if o.state == "would run")
+    print(f"dry run: {n} of {len(sel.relevant)} tasks would run; nothing was executed "
+          f"(cache: {cache.root})", file=stream)
+    summary.wall_s = time.perf_counter() - t0
+    return summary

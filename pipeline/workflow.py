@@ -1,0 +1,391 @@
+"""Workflow files: TOML (stdlib :mod:`tomllib`) naming items, params and settings.
+
+Schema (every table optional except ``[axes]`` when a stage runs per item)::
+
+    [workflow]
+    name = "demo"                     # default: the file's stem
+    description = "..."
+    stages = ["report"]               # targets; their upstream stages are included.
+                                      # Default: every registered stage.
+    nested = { object = "scene" }     # axis -> parent axis (values declared per parent)
+
+    [settings]                        # workflow-wide, readable as ctx.settings
+    device = "cpu"                    # "cpu" | "cuda" | "cuda:1"; --set device=cuda
+
+    [params.train]                    # per-stage params for every item
+    iterations = 7000
+
+    [axes.scene.lego]                 # axis "scene", value "lego"
+    path = "../data/lego"             # attributes (typed by an axis schema if registered)
+    train = { iterations = 3000 }     # a table named after a stage: overrides for this item
+
+    [axes.method.cobgs_full]
+    [axes.method.no_bags]
+    refine.split = false              # dotted keys are tables too
+
+Precedence, lowest first: stage defaults, ``[params.<stage>]``, item overrides (in axis
+order, so a method's override beats its scene's), ``--set stage.param=value``. A value may
+reference environment variables as ``${NAME}`` or ``${NAME:-default}``; an unset one fails
+the load with the key that needs it. Relative ``Path`` values resolve against the workflow
+file's folder (``--set`` values against the current directory).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import os
+import re
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Mapping, Optional, Sequence
+
+from . import params as P
+from .errors import PipelineError, WorkflowError, unknown_key_hint
+from .graph import Graph
+from .items import Axes, Axis, Item, check_value_name
+from .registry import Registry
+from .stage import NAME_RE, Stage
+
+TOP_KEYS = ("workflow", "settings", "params", "axes")
+WORKFLOW_KEYS = ("name", "description", "stages", "nested")
+_ENV_RE = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)(?::-([^}]*))?\}")
+
+
+@dataclass(frozen=True)
+class Settings:
+    """Workflow-wide settings every stage can read from ``ctx.settings``."""
+
+    device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        if not re.fullmatch(r"cpu|cuda(:\d+)?", self.device):
+            raise ValueError(f"device must be 'cpu', 'cuda' or 'cuda:N', got {self.device!r}")
+
+
+@dataclass(frozen=True)
+class ResolvedParams:
+    """A stage's params for one item, with their canonical JSON (part of the cache key)."""
+
+    value: Any
+    json: Mapping[str, Any]
+
+
+class Workflow:
+    """A loaded, validated workflow. Build it with :func:`load_workflow`."""
+
+    def __init__(self, *, path: Path, name: str, description: str, settings: Settings,
+                 axes: Axes, graph: Graph, targets: tuple[str, ...],
+                 levels: Mapping[str, tuple[str, ...]], stage_layers: Mapping[str, P.Layer],
+                 item_layers: Mapping[tuple[str, str], Mapping[str, P.Layer]],
+                 cli_layers: Mapping[str, P.Layer], key_attrs: Mapping[str, tuple[str, ...]],
+                 registry: Registry):
+        self.path, self.name, self.description = path, name, description
+        self.settings, self.axes, self.graph, self.targets = settings, axes, graph, targets
+        self.levels = dict(levels)  # stage -> level in workflow axis order
+        self._stage_layers, self._item_layers = stage_layers, item_layers
+        self._cli_layers, self._key_attrs = cli_layers, key_attrs
+        self.registry = registry
+        self._params_cache: dict[tuple, ResolvedParams] = {}
+
+    @property
+    def id(self) -> str:
+        """Stable id of this workflow file (its absolute path), for per-slot history."""
+        return hashlib.sha256(os.fspath(self.path).encode()).hexdigest()[:16]
+
+    @property
+    def stages(self) -> dict[str, Stage]:
+        return self.graph.stages
+
+    def params_for(self, stage: str, item: Item) -> ResolvedParams:
+        """The params of ``stage`` for ``item``, layered and typed (memoised)."""
+        layers: list[P.Layer] = []
+        if stage in self._stage_layers:
+            layers.append(self._stage_layers[stage])
+        for pair in item.pairs:
+            layer = self._item_layers.get(self._slot(item, pair), {}).get(stage)
+            if layer is not None:
+                layers.append(layer)
+        if stage in self._cli_layers:
+            layers.append(self._cli_layers[stage])
+        memo = tuple(id(layer) for layer in layers)
+        hit = self._params_cache.get((stage, memo))
+        if hit is None:
+            cls = self.stages[stage].params
+            value = P.build(cls, layers, owner=f"stage {stage!r}")
+            hit = ResolvedParams(value, P.to_json(value))
+            self._params_cache[(stage, memo)] = hit
+        return hit
+
+    def _slot(self, item: Item, pair: tuple[str, str]) -> tuple[str, str]:
+        """Key of an axis value in ``item_layers``; nested values are ``parent/value``."""
+        parent = self.axes[pair[0]].parent
+        return (pair[0], f"{item[parent]}/{pair[1]}") if parent else pair
+
+    def key_attrs(self, item: Item) -> dict[str, Any]:
+        """The attributes of ``item`` that enter cache keys, as JSON."""
+        out: dict[str, Any] = {}
+        for axis, attrs in item.attrs.items():
+            data = P.to_json(attrs)
+            keep = self._key_attrs.get(axis)
+            if keep is not None and isinstance(data, dict):
+                data = {k: v for k, v in data.items() if k in keep}
+            out[axis] = data
+        return out
+
+
+def expand_env(value: Any, source: str, key: str, environ: Mapping[str, str]) -> Any:
+    """``${NAME}`` / ``${NAME:-default}`` expanded in every string of ``value``."""
+    if isinstance(value, str):
+        def sub(match: re.Match) -> str:
+            name, default = match.group(1), match.group(2)
+            got = environ.get(name)
+            if got:
+                return got
+            if default is not None:
+                return default
+            raise WorkflowError(f"environment variable {name} is not set (the value "
+                                f"{value!r} needs it); set it, e.g. `export {name}=...`",
+                                source, key)
+        return _ENV_RE.sub(sub, value)
+    if isinstance(value, dict):
+        return {k: expand_env(v, source, f"{key}.{k}" if key else k, environ)
+                for k, v in value.items()}
+    if isinstance(value, list):
+        return [expand_env(v, source, f"{key}[{i}]", environ) for i, v in enumerate(value)]
+    return value
+
+
+def _table(value: Any, source: str, key: str) -> dict:
+    if not isinstance(value, dict):
+        raise WorkflowError(f"expected a table, got {value!r}", source, key)
+    return value
+
+
+def _check_keys(table: Mapping, allowed: Sequence[str], source: str, prefix: str) -> None:
+    for k in table:
+        if k not in allowed:
+            raise WorkflowError(f"unknown key {k!r}" + unknown_key_hint(k, allowed), source,
+                                f"{prefix}.{k}" if prefix else k)
+
+
+def _split_sets(sets: Sequence[str]) -> list[tuple[str, str]]:
+    out = []
+    for text in sets:
+        key, eq, value = text.partition("=")
+        if not eq or not key.strip():
+            raise WorkflowError(f"expected KEY=VALUE (e.g. train.iterations=100 or "
+                                f"device=cuda), got {text!r}", "--set")
+        out.append((key.strip(), value))
+    return out
+
+
+def _assign(raw: dict, dotted: str, value: Any) -> None:
+    parts = dotted.split(".")
+    node = raw
+    for part in parts[:-1]:
+        nxt = node.setdefault(part, {})
+        if not isinstance(nxt, dict):
+            raise WorkflowError(f"cannot set inside {part!r}, which is not a table", "--set",
+                                dotted)
+        node = nxt
+    node[parts[-1]] = value
+
+
+def load_workflow(path: os.PathLike | str, registry: Registry, sets: Sequence[str] = (),
+                  environ: Optional[Mapping[str, str]] = None,
+                  cwd: Optional[Path] = None) -> Workflow:
+    """Read, validate and type a workflow file.
+
+    Args:
+        path: the TOML file.
+        registry: the stages (and axis schemas) it may use.
+        sets: ``KEY=VALUE`` overrides: ``device=cuda`` / ``settings.device=cuda``,
+            ``STAGE.PARAM[.SUB]=V`` (or ``params.STAGE.PARAM=V``), and
+            ``axes.AXIS.VALUE.KEY=V`` for item attributes and overrides.
+        environ: environment for ``${NAME}`` (default :data:`os.environ`).
+        cwd: folder relative ``--set`` paths resolve against (default: current directory).
+
+    Raises:
+        WorkflowError: naming the file (or ``--set``) and the key at fault.
+    """
+    path = Path(os.path.abspath(os.fspath(path)))
+    source = os.fspath(path)
+    environ = os.environ if environ is None else environ
+    cwd = Path(os.path.abspath(cwd or os.getcwd()))
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise WorkflowError("workflow file not found", source) from None
+    except OSError as exc:
+        raise WorkflowError(f"cannot read the workflow file: {exc}", source) from None
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise WorkflowError(f"invalid TOML: {exc}", source) from None
+    _check_keys(raw, TOP_KEYS, source, "")
+    try:
+        graph_all = registry.graph()
+    except PipelineError as exc:
+        raise WorkflowError(f"the stage registry is invalid: {exc}", source) from None
+
+    # --set: settings and stage params become the top layer; axes.* edit the raw file.
+    cli_settings: dict[str, Any] = {}
+    cli_stage: dict[str, dict] = {}
+    for key, value in _split_sets(sets):
+        if key == "device" or key.startswith("settings."):
+            _assign(cli_settings, key.removeprefix("settings."), value)
+        elif key.startswith("axes."):
+            if key.count(".") < 3:
+                raise WorkflowError("expected axes.AXIS.VALUE.KEY=VALUE", "--set", key)
+            _assign(raw, key, P.parse_cli_value(value))
+        else:
+            stage_key = key.removeprefix("params.")
+            stage, dot, rest = stage_key.partition(".")
+            if not dot or not rest:
+                raise WorkflowError("expected STAGE.PARAM=VALUE, device=VALUE or "
+                                    "axes.AXIS.VALUE.KEY=VALUE", "--set", key)
+            if stage not in graph_all.stages:
+                raise WorkflowError(f"unknown stage {stage!r}"
+                                    + unknown_key_hint(stage, graph_all.stages), "--set", key)
+            _assign(cli_stage.setdefault(stage, {}), rest, value)
+
+    raw = expand_env(raw, source, "", environ)
+    base = path.parent
+
+    wf = _table(raw.get("workflow", {}), source, "workflow")
+    _check_keys(wf, WORKFLOW_KEYS, source, "workflow")
+    name = wf.get("name", path.stem)
+    description = wf.get("description", "")
+    for k, v in (("name", name), ("description", description)):
+        if not isinstance(v, str):
+            raise WorkflowError(f"expected a string, got {v!r}", source, f"workflow.{k}")
+
+    settings = P.build(Settings, [P.Layer(_table(raw.get("settings", {}), source, "settings"),
+                                          source, base, prefix="settings"),
+                                  P.Layer(cli_settings, "--set", cwd, cli=True)],
+                       owner=f"{source}: settings")
+
+    targets = wf.get("stages")
+    if targets is None:
+        targets = list(graph_all.stages)
+    if not isinstance(targets, list) or not all(isinstance(t, str) for t in targets):
+        raise WorkflowError(f"expected a list of stage names, got {targets!r}", source,
+                            "workflow.stages")
+    for t in targets:
+        if t not in graph_all.stages:
+            raise WorkflowError(f"unknown stage {t!r}" + unknown_key_hint(t, graph_all.stages),
+                                source, "workflow.stages")
+    graph = graph_all.subgraph(targets) if targets else Graph([])
+    for stage in cli_stage:
+        if stage not in graph.stages:
+            raise WorkflowError(f"stage {stage!r} is not part of this workflow (stages: "
+                                f"{list(graph.order)})", "--set", stage)
+
+    nested = _table(wf.get("nested", {}), source, "workflow.nested")
+    axes_raw = _table(raw.get("axes", {}), source, "axes")
+    axes, item_layers, key_attrs = _load_axes(axes_raw, nested, graph, registry, source, base)
+
+    levels = {}
+    for stage_name in graph.order:
+        levels[stage_name] = axes.normalize_level(graph.stages[stage_name].level,
+                                                  f"stage {stage_name!r}", source)
+    for (axis, value), overrides in item_layers.items():
+        for stage_name in overrides:
+            if axis not in levels[stage_name]:
+                raise WorkflowError(
+                    f"stage {stage_name!r} runs per {levels[stage_name] or 'workflow'}, not per "
+                    f"{axis!r}, so a {axis!r} value cannot override its params", source,
+                    f"axes.{axis}.{value}.{stage_name}")
+
+    params_raw = _table(raw.get("params", {}), source, "params")
+    stage_layers = {}
+    for stage_name, table in params_raw.items():
+        if stage_name not in graph.stages:
+            where = ("is not part of this workflow (its stages: " + ", ".join(graph.order) + ")"
+                     if stage_name in graph_all.stages else "is not a known stage"
+                     + unknown_key_hint(stage_name, graph.stages))
+            raise WorkflowError(f"stage {stage_name!r} {where}", source, f"params.{stage_name}")
+        stage_layers[stage_name] = P.Layer(_table(table, source, f"params.{stage_name}"),
+                                           source, base, prefix=f"params.{stage_name}")
+    cli_layers = {s: P.Layer(v, "--set", cwd, cli=True, prefix=s) for s, v in cli_stage.items()}
+
+    workflow = Workflow(path=path, name=name, description=description, settings=settings,
+                        axes=axes, graph=graph, targets=tuple(targets), levels=levels,
+                        stage_layers=stage_layers, item_layers=item_layers,
+                        cli_layers=cli_layers, key_attrs=key_attrs, registry=registry)
+    # Type every layer now, so a bad key fails the load rather than the 40th task.
+    for stage_name in graph.order:
+        layers = [stage_layers.get(stage_name), cli_layers.get(stage_name)]
+        layers += [ov[stage_name] for ov in item_layers.values() if stage_name in ov]
+        for layer in filter(None, layers):
+            P.check(graph.stages[stage_name].params, layer)
+    return workflow
+
+
+def _load_axes(axes_raw: dict, nested: dict, graph: Graph, registry: Registry, source: str,
+               base: Path) -> tuple[Axes, dict, dict]:
+    item_layers: dict[tuple[str, str], dict[str, P.Layer]] = {}
+    key_attrs: dict[str, tuple[str, ...]] = {}
+    axes: list[Axis] = []
+    for child, parent in nested.items():
+        if child not in axes_raw or not isinstance(parent, str) or parent not in axes_raw:
+            raise WorkflowError(f"expected an axis nested in a declared axis, got {child!r} in "
+                                f"{parent!r} (axes: {list(axes_raw)})", source,
+                                f"workflow.nested.{child}")
+        if list(axes_raw).index(parent) > list(axes_raw).index(child):
+            raise WorkflowError(f"axis {child!r} is nested in {parent!r}, so [axes.{parent}] "
+                                "must come first in the file", source, f"axes.{child}")
+    for axis_name, table in axes_raw.items():
+        if not NAME_RE.match(axis_name):
+            raise WorkflowError(f"axis names must match {NAME_RE.pattern}", source,
+                                f"axes.{axis_name}")
+        table = _table(table, source, f"axes.{axis_name}")
+        if not table:
+            raise WorkflowError("axis has no values", source, f"axes.{axis_name}")
+        schema = registry.axis_schemas.get(axis_name)
+        if schema is not None:
+            key_attrs[axis_name] = tuple(f.name for f in dataclasses.fields(schema)
+                                         if f.metadata.get("cache_key", True))
+        parent = nested.get(axis_name)
+        if parent is None:
+            values = {}
+            for value, vt in table.items():
+                values[value] = _load_value(axis_name, value, vt, f"axes.{axis_name}.{value}",
+                                            schema, graph, source, base, item_layers)
+            axes.append(Axis(axis_name, values))
+        else:
+            parent_values = next(a for a in axes if a.name == parent).values
+            per_parent: dict[str, dict[str, Any]] = {}
+            for pv, sub in table.items():
+                if pv not in parent_values:
+                    raise WorkflowError(f"{pv!r} is not a value of axis {parent!r} (values: "
+                                        f"{list(parent_values)})", source, f"axes.{axis_name}.{pv}")
+                sub = _table(sub, source, f"axes.{axis_name}.{pv}")
+                per_parent[pv] = {
+                    value: _load_value(axis_name, value, vt, f"axes.{axis_name}.{pv}.{value}",
+                                       schema, graph, source, base, item_layers, slot=pv)
+                    for value, vt in sub.items()}
+            axes.append(Axis(axis_name, per_parent, parent=parent))
+    return Axes(axes), item_layers, key_attrs
+
+
+def _load_value(axis: str, value: str, table: Any, key: str, schema: Optional[type],
+                graph: Graph, source: str, base: Path, item_layers: dict,
+                slot: Optional[str] = None) -> Any:
+    check_value_name(value, axis, source)
+    table = _table(table, source, key)
+    attrs, overrides = {}, {}
+    for k, v in table.items():
+        if k in graph.stages:
+            overrides[k] = P.Layer(_table(v, source, f"{key}.{k}"), source, base,
+                                   prefix=f"{key}.{k}")
+        else:
+            attrs[k] = v
+    if overrides:
+        item_layers[(axis, f"{slot}/{value}" if slot is not None else value)] = overrides
+    if schema is None:
+        return attrs
+    return P.build(schema, [P.Layer(attrs, source, base, prefix=key)],
+                   owner=f"{source}: {key}")

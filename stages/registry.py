@@ -1,0 +1,52 @@
+"""The stages the ``cobgs`` program offers, collected into one pipeline registry.
+
+To add a stage: write ``stages/<name>.py`` exposing ``STAGE = Stage(...)`` (or
+``STAGES = (...)`` for several) and add ``"stages.<name>"`` to :data:`STAGE_MODULES`.
+A module may also expose ``AXIS_SCHEMAS = {"scene": SceneAttrs}`` to type the attributes
+of an axis's values. Keep module-level imports light (import ``cobgs``/torch inside the
+stage's ``run``): every ``cobgs run`` / ``status`` imports all stage modules.
+
+Extra stage modules (experiments, test fixtures) can be added without editing this file
+by listing them, comma-separated, in the environment variable ``COBGS_STAGE_MODULES``.
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+from typing import Iterable, Optional
+
+from pipeline import PipelineError, Registry, Stage
+
+#: Modules holding the built-in stages, in the order `cobgs stages` lists them.
+STAGE_MODULES: tuple[str, ...] = ()
+
+EXTRA_MODULES_ENV = "COBGS_STAGE_MODULES"
+
+
+def stage_modules(extra: Optional[Iterable[str]] = None) -> list[str]:
+    env = [m.strip() for m in os.environ.get(EXTRA_MODULES_ENV, "").split(",") if m.strip()]
+    return list(STAGE_MODULES) + env + list(extra or ())
+
+
+def load_registry(extra: Optional[Iterable[str]] = None) -> Registry:
+    """A registry of every stage in :data:`STAGE_MODULES` (plus ``extra`` and the modules
+    named in ``$COBGS_STAGE_MODULES``)."""
+    registry = Registry()
+    for name in stage_modules(extra):
+        try:
+            module = importlib.import_module(name)
+        except ImportError as exc:
+            raise PipelineError(f"cannot import stage module {name!r}: {exc}") from exc
+        stages = list(getattr(module, "STAGES", ()))
+        if hasattr(module, "STAGE"):
+            stages.append(module.STAGE)
+        if not stages:
+            raise PipelineError(f"stage module {name!r} defines neither STAGE nor STAGES")
+        for stage in stages:
+            if not isinstance(stage, Stage):
+                raise PipelineError(f"stage module {name!r}: {stage!r} is not a pipeline Stage")
+            registry.add(stage)
+        for axis, schema in getattr(module, "AXIS_SCHEMAS", {}).items():
+            registry.add_axis_schema(axis, schema)
+    return registry
