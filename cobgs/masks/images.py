@@ -43,11 +43,15 @@ def to_model_input(rgb: np.ndarray, pre: Preprocess) -> np.ndarray:
         # PIL's bicubic matches SAM2's own frame loader (PIL .resize default filter)
         resample = Image.BICUBIC if pre.interpolation == "bicubic" else Image.BILINEAR
         rgb = np.asarray(Image.fromarray(rgb).resize((w, h), resample=resample))
-    x = (rgb / 255.0).astype(np.float32)  # float64 divide then cast, as upstream
-    x = (x - np.asarray(pre.mean, np.float32)) / np.asarray(pre.std, np.float32)
-    if not pre.rgb:
-        x = x[..., ::-1]
-    return np.ascontiguousarray(x.transpose(2, 0, 1)[None], dtype=np.float32)
+    # One lookup table per channel gives exactly upstream's arithmetic ((v / 255) cast to
+    # float32, then (x - mean) / std) at a fraction of the cost on 1024x1024 frames.
+    v = (np.arange(256) / 255.0).astype(np.float32)
+    order = (0, 1, 2) if pre.rgb else (2, 1, 0)
+    out = np.empty((1, 3, h, w), np.float32)
+    for dst, src in enumerate(order):
+        lut = (v - np.float32(pre.mean[src])) / np.float32(pre.std[src])
+        np.take(lut, rgb[..., src], out=out[0, dst])
+    return out
 
 
 def image_size(path: Union[str, os.PathLike]) -> Tuple[int, int]:

@@ -86,6 +86,8 @@ class MemoryBank:
     non_cond: Dict[int, FrameMemory] = field(default_factory=dict)
     maskmem_pos: Optional[np.ndarray] = None  # [4096, mem_dim], same for every frame
     steps: List[StepRecord] = field(default_factory=list)
+    _buffers: Dict[int, np.ndarray] = field(default_factory=dict, repr=False)
+    _pos_cache: Dict[Tuple[int, ...], np.ndarray] = field(default_factory=dict, repr=False)
 
     # ------------------------------------------------------------------ storing
     def add_conditioning(self, frame: int, out: FrameMemory) -> None:
@@ -129,19 +131,34 @@ class MemoryBank:
         return rec
 
     def build(self, rec: StepRecord, use_pointers: bool = True) -> MemoryInputs:
-        """Assemble the memory-attention inputs for a recorded selection."""
+        """Assemble the memory-attention inputs for a recorded selection.
+
+        The returned ``memory`` array is a buffer reused by the next call: feed it to the
+        graph before building again.
+        """
         cfg = self.config
         if self.maskmem_pos is None:
             raise RuntimeError("memory bank has no memory yet (no conditioning frame encoded)")
         d = cfg.mem_dim
         m = len(rec.memory)
-        memory = np.empty((HW * m, 1, d), np.float32)
-        memory_pos = np.empty((HW * m, 1, d), np.float32)
+        # Reused buffers: a fresh multi-MB array per frame costs page faults every step.
+        if m not in self._buffers:
+            self._buffers[m] = np.empty((HW * m, 1, d), np.float32)
+        memory = self._buffers[m]
         for i, (t, slot) in enumerate(rec.memory):
             src = self.cond[t] if slot == 0 else self.non_cond[t]
             memory[i * HW:(i + 1) * HW, 0] = src.maskmem
-            tpos = self.maskmem_tpos_enc[cfg.num_maskmem - slot - 1]
-            np.add(self.maskmem_pos, tpos, out=memory_pos[i * HW:(i + 1) * HW, 0])
+        # positions depend only on the slots: once the window is full they repeat
+        slots = tuple(slot for _, slot in rec.memory)
+        memory_pos = self._pos_cache.get(slots)
+        if memory_pos is None:
+            memory_pos = np.empty((HW * m, 1, d), np.float32)
+            for i, slot in enumerate(slots):
+                tpos = self.maskmem_tpos_enc[cfg.num_maskmem - slot - 1]
+                np.add(self.maskmem_pos, tpos, out=memory_pos[i * HW:(i + 1) * HW, 0])
+            if len(self._pos_cache) > 64:
+                self._pos_cache.clear()
+            self._pos_cache[slots] = memory_pos
         if not use_pointers or not rec.pointers:
             empty = np.zeros((0, 1, d), np.float32)
             return MemoryInputs(memory, memory_pos, empty, empty.copy())

@@ -7,7 +7,7 @@ this boundary so the video logic never sees them.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, Optional
+from typing import Dict, Optional, Tuple
 
 import numpy as np
 
@@ -38,10 +38,22 @@ class EncodedFrame:
     pos: np.ndarray
     hr0: np.ndarray
     hr1: np.ndarray
+    _tokens: Optional[Tuple[np.ndarray, np.ndarray]] = None
 
     @property
     def nbytes(self) -> int:
         return sum(a.nbytes for a in (self.feats, self.pos, self.hr0, self.hr1))
+
+    def tokens(self) -> Tuple[np.ndarray, np.ndarray]:
+        """(curr, curr_pos) as float32 [4096, 1, 256] token sequences (row-major h, w),
+        computed once per frame: every object and pass tracking the frame reuses them."""
+        if self._tokens is None:
+            c = self.feats.shape[1]
+            self._tokens = (
+                np.ascontiguousarray(self.feats.reshape(c, -1).T[:, None, :]),
+                np.ascontiguousarray(self.pos.reshape(c, -1).T[:, None, :]),
+            )
+        return self._tokens
 
 
 @dataclass
@@ -192,8 +204,7 @@ class Sam2Models:
     def attend(self, frame: EncodedFrame, mem) -> np.ndarray:
         """Memory attention: raw features + memories -> float32 [1, 256, 64, 64]."""
         if self.layout.curr_layout == "hw1c":
-            curr = np.ascontiguousarray(frame.feats.reshape(256, -1).T[:, None, :])
-            curr_pos = np.ascontiguousarray(frame.pos.reshape(256, -1).T[:, None, :])
+            curr, curr_pos = frame.tokens()
         else:
             curr, curr_pos = frame.feats, frame.pos
         feeds = {"curr": curr, "curr_pos": curr_pos}
