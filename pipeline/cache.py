@@ -93,7 +93,8 @@ class Cache:
         """Cheap validity check of an entry: its manifest and a stat of each output.
 
         Outputs are not re-hashed (their hash was taken when the entry was committed); a
-        missing output or a file whose size changed makes the entry corrupt.
+        missing output file (inside folders too) or one whose size changed makes the entry
+        corrupt. ``cache verify`` re-hashes everything.
         """
         folder = self.entry_dir(stage, key)
         try:
@@ -122,8 +123,18 @@ class Cache:
                 return EntryCheck("corrupt", manifest,
                                   f"output {name!r} changed size ({out.get('bytes')} -> "
                                   f"{st.st_size} bytes)")
-            if out.get("kind") == "dir" and not os.path.isdir(folder / out["path"]):
-                return EntryCheck("corrupt", manifest, f"output {name!r} is not a folder")
+            if out.get("kind") == "dir":
+                base = folder / out["path"]
+                if not os.path.isdir(base):
+                    return EntryCheck("corrupt", manifest, f"output {name!r} is not a folder")
+                for rel, size in (out.get("sizes") or {}).items():
+                    try:
+                        if os.stat(base / rel).st_size != size:
+                            return EntryCheck("corrupt", manifest,
+                                              f"output {name!r}: {rel} changed size")
+                    except OSError:
+                        return EntryCheck("corrupt", manifest,
+                                          f"output {name!r}: {rel} is missing")
         return EntryCheck("done", manifest)
 
     def load_failed(self, stage: str, key: str) -> Optional[dict]:

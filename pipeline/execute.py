@@ -141,8 +141,9 @@ def _validate_outputs(stage: Stage, result: Any, out_dir: Path) -> dict[str, Pat
 
 
 def _logger(key: str, log_path: Path) -> tuple[logging.Logger, logging.Handler]:
-    log = logging.getLogger(f"pipeline.task.{key[:16]}.{os.getpid()}")
-    log.setLevel(logging.DEBUG)
+    # A stand-alone logger (not registered with logging's manager): one per task would
+    # otherwise accumulate for the life of the process.
+    log = logging.Logger(f"pipeline.task.{key[:16]}", logging.DEBUG)
     log.propagate = False
     handler = logging.FileHandler(log_path, encoding="utf-8")
     handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
@@ -227,6 +228,8 @@ def _run_locked(job: Job, cache: Cache) -> JobResult:
             outputs[name] = {"path": path.relative_to(tmp).as_posix() if path.is_absolute()
                              else os.fspath(path), "sha256": h.sha256, "kind": h.kind,
                              "bytes": h.bytes, "files": h.files}
+            if h.sizes is not None:
+                outputs[name]["sizes"] = h.sizes
     except BaseException as exc:  # noqa: BLE001 - every failure is recorded, Ctrl-C included
         error = exc
     measures = meter.stop()

@@ -11,7 +11,7 @@ import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Optional
 
 _CHUNK = 1 << 20
 
@@ -39,6 +39,7 @@ class TreeHash:
     kind: str  # "file" | "dir"
     bytes: int
     files: int
+    sizes: Optional[dict[str, int]] = None  # folder: relative file path -> bytes
 
 
 def tree_hash(path: Path) -> TreeHash:
@@ -55,6 +56,7 @@ def tree_hash(path: Path) -> TreeHash:
         raise FileNotFoundError(f"{path}: not a file or folder")
     digest = hashlib.sha256(b"dir\n")
     total = files = 0
+    sizes: dict[str, int] = {}
     for root, dirs, names in os.walk(path):
         dirs.sort()
         rel_root = os.path.relpath(root, path)
@@ -65,11 +67,12 @@ def tree_hash(path: Path) -> TreeHash:
                 line = f"L {rel} {os.readlink(full)}\n"
             else:
                 line = f"F {rel} {file_sha256(Path(full))}\n"
-                total += os.path.getsize(full)
+                sizes[rel] = os.path.getsize(full)
+                total += sizes[rel]
             files += 1
             digest.update(line.encode("utf-8", "surrogateescape"))
         for d in dirs:
             if not os.path.islink(os.path.join(root, d)):
                 rel = os.path.normpath(os.path.join(rel_root, d)).replace(os.sep, "/")
                 digest.update(f"D {rel}\n".encode("utf-8", "surrogateescape"))
-    return TreeHash(digest.hexdigest(), "dir", total, files)
+    return TreeHash(digest.hexdigest(), "dir", total, files, sizes)

@@ -220,8 +220,10 @@ class _Scheduler:
     def _block(self, index: int, cause: Task) -> None:
         why = {"failed": "failed", "blocked": "is blocked", "unavailable": "is not done",
                "interrupted": "was interrupted"}
-        state = self.summary.outcomes[cause.index].state
-        outcome = Outcome("blocked", note=f"upstream {cause.id} {why.get(state, state)}")
+        cause_outcome = self.summary.outcomes[cause.index]
+        state = cause_outcome.state
+        outcome = Outcome("blocked", note=cause_outcome.note if state == "blocked"
+                          else f"upstream {cause.id} {why.get(state, state)}")
         if state == "interrupted":
             outcome.state = "interrupted"
         self._settle(index, outcome)

@@ -4,7 +4,11 @@
         -> evaluate (scene x method) -> summary (once: fan-in over every item)
 
 Every execution appends ``<stage> <item id>`` to the file named by ``$PIPELINE_TOYS_LOG``
-(when set), so tests can count what actually ran, across processes.
+(when set), so tests can count what actually ran, across processes. Behaviour that must
+not change cache keys comes from the environment too: ``$PIPELINE_TOYS_SLEEP`` (seconds
+every stage sleeps) and ``$PIPELINE_TOYS_HANG`` (a marker path: refine writes half its
+output, writes its pid to the marker, then sleeps, for kill tests; limited to the item
+``$PIPELINE_TOYS_HANG_ITEM`` when set).
 Importable as ``pipeline_toys`` (tests/pipeline on sys.path), also by subprocesses and Ray
 workers given ``PYTHONPATH``; ``COBGS_STAGE_MODULES=pipeline_toys`` plugs these stages into
 the ``cobgs`` command.
@@ -27,6 +31,7 @@ def record(stage: str, ctx: Any) -> None:
     if log:
         with open(log, "a") as f:
             f.write(f"{stage} {ctx.item.id}\n")
+    time.sleep(float(os.environ.get("PIPELINE_TOYS_SLEEP", "0")))
 
 
 @dataclass(frozen=True)
@@ -69,7 +74,6 @@ def run_train(ctx, inputs):
 class RefineParams:
     strength: float = 1.0
     split: bool = True
-    hang_marker: str = ""  # write half the output, touch this file, then sleep (SIGKILL tests)
     sleep_s: float = 0.0
 
 
@@ -78,11 +82,12 @@ def run_refine(ctx, inputs):
     weights = (Path(inputs["model"]) / "weights.txt").read_text()
     out = ctx.out_dir / "refined.txt"
     p = ctx.params
-    if p.hang_marker:
+    marker = os.environ.get("PIPELINE_TOYS_HANG")
+    if marker and os.environ.get("PIPELINE_TOYS_HANG_ITEM", ctx.item.id) == ctx.item.id:
         with open(out, "w") as f:
             f.write("partial")
             f.flush()
-            Path(p.hang_marker).write_text(str(os.getpid()))
+            Path(marker).write_text(str(os.getpid()))
             time.sleep(300)
     for _ in ctx.progress(range(3), desc="refining"):
         time.sleep(p.sleep_s / 3)

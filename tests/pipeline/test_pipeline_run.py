@@ -1,0 +1,350 @@
+"""Running workflows in-process: order, caching, invalidation, reruns, failures, API."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from dataclasses import dataclass, replace
+
+import pytest
+
+import pipeline_toys as toys
+from pipeline import Registry, Stage, entries, load_manifest
+from pipeline.cache import Cache
+from pipeline.commands import referenced_keys
+from pipeline.gc import collect
+from pipeline.hashing import tree_hash
+
+ALL = {"load": 2, "train": 2, "refine": 4, "evaluate": 4, "summary": 1}
+
+
+def states(toy, sets=(), registry=None):
+    return {(r.stage, r.item.id): r for r in entries(toy.load(sets, registry), toy.cache)}
+
+
+def test_first_run_orders_fans_out_and_gathers(toy, executions):
+    summary = toy.run()
+    assert summary.exit_code == 0, summary.output
+    assert executions.stages() == ALL
+    lines = executions.lines()
+    for scene in ("alpha", "beta"):
+        assert lines.index(f"load {scene}") < lines.index(f"train {scene}")
+        for method in ("full", "nosplit"):
+            item = f"{scene}/{method}"
+            assert lines.index(f"train {scene}") < lines.index(f"refine {item}") \
+                < lines.index(f"evaluate {item}") < lines.index("summary ")
+    recs = states(toy)
+    assert {r.state for r in recs.values()} == {"done"}
+    out = json.loads(recs[("summary", "")].output("summary").read_text())
+    assert sorted(out["rows"]) == ["alpha/full", "alpha/nosplit", "beta/full", "beta/nosplit"]
+    assert out["items"] == ["alpha/full", "alpha/nosplit", "beta/full", "beta/nosplit"]
+    # Each refine read its own scene's model: per-item params flowed through.
+    text = recs[("refine", "beta/nosplit")].output("refined").read_text()
+    assert "scene=beta" in text and "iterations=20" in text and "split=False" in text
+    assert "scene=alpha" in recs[("refine", "alpha/full")].output("refined").read_text()
+    assert "[ 1/13] load" in summary.output and "13 done" in summary.output
+
+
+def test_manifest_records_the_run(toy):
+    toy.run()
+    rec = states(toy)[("train", "beta")]
+    m = rec.manifest
+    assert m["key"] == rec.key and m["status"] == "ok" and m["stage"] == "train"
+    assert m["version"] == 1 and m["params"] == {"iterations": 20, "fail_on": ""}
+    assert m["item"]["id"] == "beta" and m["item"]["values"] == {"scene": "beta"}
+    assert m["item"]["attrs"] == {"scene": {"kind": "synthetic"}}
+    upstream = states(toy)[("load", "beta")]
+    assert m["inputs"]["data"] == {"stage": "load", "key": upstream.key,
+                                   "sha256": upstream.manifest["outputs"]["data"]["sha256"]}
+    assert m["device"] == "cpu" and m["package_version"] == "t" and m["host"]
+    assert m["started"] <= m["finished"] and m["wall_s"] >= 0 and m["cpu_s"] >= 0
+    assert m["peak_rss_bytes"] > 1 << 20 and m["peak_rss_scope"] == "task"
+    assert m["extra"] == {"iterations_done": 20}
+    out = m["outputs"]["model"]
+    assert out["kind"] == "dir" and out["files"] == 2 and out["bytes"] > 1024
+    assert out["sha256"] == tree_hash(rec.output("model")).sha256
+    log = rec.log_path.read_text()
+    assert "trained beta" in log and rec.key in log
+
+
+def test_second_run_is_a_full_cache_hit(toy, executions):
+    toy.run()
+    executions.reset()
+    summary = toy.run()
+    assert executions.lines() == [] and summary.exit_code == 0
+    assert "13 cached" in summary.output
+
+
+def test_params_change_reruns_that_stage_and_what_its_output_changes(toy, executions):
+    toy.run()
+    executions.reset()
+    toy.run(sets=["refine.strength=2"])
+    # evaluate's input changed; its metrics (a length) did not, so summary stays cached.
+    assert executions.stages() == {"refine": 4, "evaluate": 4}
+    executions.reset()
+    toy.run(sets=["axes.method.full.refine.strength=3"])  # only the 'full' method's rows
+    assert executions.count() == {"refine alpha/full": 1, "refine beta/full": 1,
+                                  "evaluate alpha/full": 1, "evaluate beta/full": 1}
+
+
+def test_upstream_content_change_propagates(toy, executions):
+    toy.run()
+    executions.reset()
+    toy.run(sets=["load.size=5"])
+    assert executions.stages() == {k: v for k, v in ALL.items() if k != "summary"}
+
+
+def test_version_bump_reruns_the_stage(toy, executions):
+    toy.run()
+    executions.reset()
+    toy.run(registry=toys.registry(refine=2))
+    # refine reruns; its output bytes are unchanged, so evaluate's key is too.
+    assert executions.stages() == {"refine": 4}
+    executions.reset()
+    toy.run(registry=toys.registry(load="2b", evaluate=3))
+    assert executions.stages() == {"load": 2, "evaluate": 4}
+
+
+def test_device_enters_keys_of_device_stages_only(toy, executions):
+    toy.run()
+    executions.reset()
+    toy.run(sets=["device=cuda"])
+    # load does not use the device; train does and writes it into its output, which
+    # changes every later output (the metrics hold the text length: "cuda" vs "cpu").
+    assert executions.stages() == {"train": 2, "refine": 4, "evaluate": 4, "summary": 1}
+
+
+def test_dry_run_gives_reasons_and_runs_nothing(toy, executions):
+    summary = toy.run(dry_run=True)
+    assert "new" in summary.output and "13 of 13 tasks would run" in summary.output
+    assert executions.lines() == [] and not (toy.cache / "entries").exists()
+    toy.run()
+    out = toy.run(sets=["refine.strength=2"], dry_run=True).output
+    assert "refine    alpha/full     would run" in out
+    assert "params changed (strength: 1.0 -> 2.0)" in out
+    assert "upstream refine[alpha/full] will run" in out
+    assert "load      alpha          cached" in out
+    out = toy.run(registry=toys.registry(evaluate=7), dry_run=True).output
+    assert "version changed (1 -> 7)" in out and "evaluate  beta/full" in out
+    # input changed: load reran with new params, train has not run on it yet.
+    toy.run(sets=["load.size=9"], only=("load",))
+    out = toy.run(sets=["load.size=9"], dry_run=True).output
+    assert "train     alpha          would run               input changed (data)" in out
+    out = toy.run(force=("train",), dry_run=True).output
+    assert "train     beta           would run               forced" in out
+    assert "may rerun: upstream train[alpha] will run" in out
+    assert executions.stages() == {**ALL, "load": 4}
+
+
+def test_failing_item_does_not_stop_the_others(toy, executions):
+    summary = toy.run(sets=["train.fail_on=beta"])
+    assert summary.exit_code == 1
+    assert executions.stages() == {"load": 2, "train": 2, "refine": 2, "evaluate": 2}
+    assert [t.id for t in summary.tasks_in("failed")] == ["train[beta]"]
+    blocked = {t.id for t in summary.tasks_in("blocked")}
+    assert blocked == {"refine[beta/full]", "refine[beta/nosplit]", "evaluate[beta/full]",
+                       "evaluate[beta/nosplit]", "summary[(workflow)]"}
+    assert "FAILED  train[beta]: RuntimeError: toy training diverged on beta" in summary.output
+    rec = states(toy, ["train.fail_on=beta"])[("train", "beta")]
+    assert rec.state == "failed"
+    assert rec.manifest["error"]["type"] == "RuntimeError"
+    log = rec.log_path.read_text()
+    assert str(rec.log_path) in summary.output
+    assert "Traceback" in log and "toy training diverged" in log
+    assert not (toy.cache / "entries" / "train" / rec.key).exists()
+    assert list((toy.cache / "tmp").iterdir()) == []
+    # A later run retries the failure; fixing it clears the failure record.
+    executions.reset()
+    assert toy.run(sets=["train.fail_on=beta"]).exit_code == 1
+    assert executions.stages() == {"train": 1}
+    assert toy.run().exit_code == 0
+
+
+@dataclass(frozen=True)
+class BadParams:
+    mode: str = "missing"
+
+
+def run_bad(ctx, inputs):
+    (ctx.out_dir / "partial.bin").write_bytes(b"x" * 100)
+    if ctx.params.mode == "missing":
+        return {}
+    if ctx.params.mode == "outside":
+        return {"thing": ctx.scratch_dir / ".." / ".." / "elsewhere"}
+    if ctx.params.mode == "notexist":
+        return {"thing": "nothere.txt"}
+    return {"thing": "partial.bin", "other": "partial.bin"}
+
+
+@pytest.mark.parametrize("mode, message", [
+    ("missing", "returned outputs [], declared ['thing']"),
+    ("outside", "does not exist"),
+    ("notexist", "output 'thing' was returned as"),
+    ("extra", "undeclared ['other']"),
+])
+def test_bad_outputs_fail_the_task_and_leave_nothing(tmp_path, mode, message):
+    reg = Registry([Stage(name="bad", version=1, run=run_bad, outputs=("thing",),
+                          params=BadParams)])
+    from pipeline import RunOptions, load_workflow, run_workflow
+    import io
+    wf_path = tmp_path / "wf.toml"
+    wf_path.write_text(f"[params.bad]\nmode = '{mode}'\n")
+    out = io.StringIO()
+    summary = run_workflow(load_workflow(wf_path, reg), RunOptions(cache_dir=tmp_path / "c"),
+                           stream=out)
+    assert summary.exit_code == 1 and message in out.getvalue()
+    assert not any((tmp_path / "c" / "entries").rglob("*"))
+    assert list((tmp_path / "c" / "tmp").iterdir()) == []
+
+
+def test_output_outside_the_entry_is_rejected(tmp_path):
+    def run(ctx, inputs):
+        target = tmp_path / "outside.txt"
+        target.write_text("x")
+        return {"thing": target}
+    from pipeline import RunOptions, load_workflow, run_workflow
+    import io
+    (tmp_path / "wf.toml").write_text("")
+    out = io.StringIO()
+    reg = Registry([Stage(name="leaky", version=1, run=run, outputs=("thing",))])
+    summary = run_workflow(load_workflow(tmp_path / "wf.toml", reg),
+                           RunOptions(cache_dir=tmp_path / "c"), stream=out)
+    assert summary.exit_code == 1 and "is outside ctx.out_dir" in out.getvalue()
+
+
+def test_only_from_force_and_items(toy, executions):
+    s = toy.run(only=("evaluate",))  # nothing upstream is done: blocked, nothing runs
+    assert s.exit_code == 1 and executions.lines() == []
+    assert "not done, and not selected" in s.output
+    assert "BLOCKED evaluate[alpha/full]: upstream load[alpha] is not done" in s.output
+    toy.run()
+    executions.reset()
+    toy.run(only=("refine",), force=("refine",))
+    assert executions.stages() == {"refine": 4}
+    executions.reset()
+    toy.run(from_stages=("refine",))
+    assert executions.stages() == {"refine": 4, "evaluate": 4, "summary": 1}
+    executions.reset()
+    toy.run(force=("all",), items="alpha")
+    assert executions.stages() == {"load": 1, "train": 1, "refine": 2, "evaluate": 2}
+    executions.reset()
+    s = toy.run(force=("all",), items="method=nosplit")
+    assert executions.stages() == {"load": 2, "train": 2, "refine": 2, "evaluate": 2}
+    assert "summary[(workflow)] skipped: it gathers items that --items leaves out" in s.output
+    executions.reset()
+    toy.run(force=("refine",), items="beta/n*,alpha/full")
+    assert executions.count() == {"refine beta/nosplit": 1, "refine alpha/full": 1}
+    from pipeline import WorkflowError, MissingInputError
+    with pytest.raises(WorkflowError, match="gamma matches no item"):
+        toy.run(items="gamma")
+    with pytest.raises(MissingInputError, match="--only: unknown stage 'refin'"):
+        toy.run(only=("refin",))
+
+
+def test_corrupt_entries_are_reported_and_recomputed(toy, executions, capsys):
+    toy.run()
+    recs = states(toy)
+    (recs[("train", "alpha")].output("model") / "weights.txt").unlink()
+    recs[("evaluate", "beta/full")].output("metrics").write_text("{}")  # size changed
+    recs = states(toy)
+    assert recs[("train", "alpha")].state == "corrupt"
+    assert "output 'model': weights.txt is missing" in recs[("train", "alpha")].reasons[0]
+    assert recs[("evaluate", "beta/full")].state == "corrupt"
+    # Downstream of a corrupt entry the key is unknown until it is recomputed.
+    assert recs[("refine", "alpha/full")].state == "stale"
+    executions.reset()
+    s = toy.run()
+    assert s.exit_code == 0
+    # Recomputed outputs are byte-identical, so nothing downstream of them reruns.
+    assert executions.count() == {"train alpha": 1, "evaluate beta/full": 1}
+    assert "corrupt entry" in s.output and "recomputing" in capsys.readouterr().err
+
+    manifest = recs[("load", "beta")].entry_dir / "manifest.json"
+    manifest.write_text(manifest.read_text()[:50])  # truncated
+    assert states(toy)[("load", "beta")].state == "corrupt"
+    shutil.rmtree(recs[("load", "alpha")].entry_dir / "out")
+    (recs[("load", "alpha")].entry_dir / "manifest.json").unlink()  # a folder, no manifest
+    assert "folder without manifest" in states(toy)[("load", "alpha")].reasons[0]
+    executions.reset()
+    assert toy.run().exit_code == 0
+    assert executions.count() == {"load beta": 1, "load alpha": 1}
+    assert {r.state for r in states(toy).values()} == {"done"}
+
+
+def test_process_pool_matches_inline_and_records_failures(toy, executions):
+    s = toy.run(jobs=2, sets=["train.fail_on=alpha"])
+    assert s.exit_code == 1 and [t.id for t in s.tasks_in("failed")] == ["train[alpha]"]
+    assert executions.stages() == {"load": 2, "train": 2, "refine": 2, "evaluate": 2}
+    rec = states(toy, ["train.fail_on=alpha"])[("train", "alpha")]
+    assert rec.state == "failed" and "diverged" in rec.log_path.read_text()
+    assert rec.manifest["executor"] == "local-pool"
+    executions.reset()
+    assert toy.run(jobs=2).exit_code == 0
+    executions.reset()
+    assert toy.run().exit_code == 0 and executions.lines() == []  # same keys as inline
+
+
+def test_peak_memory_is_per_task(tmp_path):
+    def big(ctx, inputs):
+        block = bytearray(96 << 20)
+        block[:: 4096] = b"x" * len(block[:: 4096])  # touch every page
+        (ctx.out_dir / "a").write_text("a")
+        return {"a": ctx.out_dir / "a"}
+
+    def small(ctx, inputs):
+        (ctx.out_dir / "b").write_text("b")
+        return {"b": ctx.out_dir / "b"}
+
+    reg = Registry([Stage(name="big", version=1, run=big, outputs=("a",)),
+                    Stage(name="small", version=1, run=small, inputs=("a",), outputs=("b",))])
+    from pipeline import RunOptions, load_workflow, run_workflow
+    import io
+    (tmp_path / "wf.toml").write_text("")
+    wf = load_workflow(tmp_path / "wf.toml", reg)
+    run_workflow(wf, RunOptions(cache_dir=tmp_path / "c"), stream=io.StringIO())
+    recs = {r.stage: r.manifest for r in entries(wf, tmp_path / "c")}
+    assert recs["big"]["peak_rss_bytes"] >= 96 << 20
+    # The same process ran 'small' next: its peak must not include big's 96 MiB.
+    assert recs["small"]["peak_rss_bytes"] < recs["big"]["peak_rss_bytes"] - (64 << 20)
+
+
+def test_gc_keeps_what_workflows_reference(toy, executions):
+    toy.run()
+    toy.run(sets=["refine.strength=2"])
+    toy.run(sets=["device=cuda"])
+    toy.run(sets=["train.fail_on=beta"])
+    cache = Cache(toy.cache)
+    before = {(s, k) for s, k, _ in cache.iter_entries()}
+    keep = referenced_keys([str(toy.path)], toys.registry(), [], toy.cache)
+    # Entries of the default settings, and of device=cuda (a device this workflow ran on).
+    default = {(r.stage, r.key) for r in entries(toy.load(), toy.cache)}
+    cuda = {(r.stage, r.key) for r in entries(toy.load(["device=cuda"]), toy.cache)}
+    assert keep == default | cuda and keep < before
+    report = collect(toy.cache, keep, dry_run=True)
+    assert {(s, k) for s, k, _ in cache.iter_entries()} == before
+    report = collect(toy.cache, keep)
+    after = {(s, k) for s, k, _ in cache.iter_entries()}
+    assert after == keep and report.removed == len(before - keep) + 1  # + the failure record
+    assert list(cache.iter_entries("failed")) == []
+    executions.reset()
+    assert toy.run().exit_code == 0 and executions.lines() == []
+
+
+def test_read_api_for_reports(toy):
+    toy.run(sets=["train.fail_on=beta"])
+    recs = entries(toy.load(["train.fail_on=beta"]), toy.cache)
+    by = {(r.stage, r.item.id): r for r in recs}
+    assert [r.stage for r in recs][:4] == ["load", "load", "train", "train"]
+    assert by[("evaluate", "alpha/full")].state == "done"
+    assert load_manifest(by[("evaluate", "alpha/full")].entry_dir)["stage"] == "evaluate"
+    assert by[("train", "beta")].state == "failed"
+    assert by[("refine", "beta/full")].state == "missing"
+    assert by[("refine", "beta/full")].reasons == ["waits on train[beta]"]
+    with pytest.raises(KeyError, match="is missing"):
+        by[("refine", "beta/full")].output("refined")
+    # Stale: this slot ran before with other params.
+    recs = {(r.stage, r.item.id): r for r in entries(
+        toy.load(["train.fail_on=beta", "evaluate.threshold=0.1"]), toy.cache)}
+    st = recs[("evaluate", "alpha/full")]
+    assert st.state == "stale" and st.reasons == ["params changed (threshold: 0.5 -> 0.1)"]
