@@ -1,11 +1,168 @@
-"""Native rasterizer ops (interim: the C++ kernels are being written; until they land,
-the native path computes with the PyTorch reference so callers can code against the
-final API)."""
+"""Thin wrappers over ``torch.ops.cobgs.*``: loading, autograd and fake registration.
+
+The C++ library (``csrc/``, built by :mod:`cobgs._build` on first use) defines the op
+schemas and CPU kernels; this module adds what is registered from Python:
+
+* autograd for ``project`` and ``blend`` via ``torch.library.register_autograd``, whose
+  backward calls the separate ``project_bwd`` / ``blend_bwd`` ops (no double backward);
+* shape-only fake kernels for all five ops via ``torch.library.register_fake``, so the
+  ops work under FakeTensor / ``torch.compile`` (``bin_tiles`` has a data-dependent size).
+"""
 
 from __future__ import annotations
 
-from .reference import rasterize_reference
+import threading
+from typing import Optional, Tuple
+
+import torch
+from torch import Tensor
+
+from . import _build
+from .reference import NEAR_PLANE, TILE_SIZE, RasterOutput
+
+_lock = threading.Lock()
+_ready = False
 
 
-def rasterize_native(*args):
-    return rasterize_reference(*args)
+def ensure_loaded() -> None:
+    """Build/load the extension and register the Python side once per process."""
+    global _ready
+    if _ready:
+        return
+    with _lock:
+        if _ready:
+            return
+        _build.load_extension()
+        _register()
+        _ready = True
+
+
+def _tiles(width: int, height: int) -> int:
+    return ((width + TILE_SIZE - 1) // TILE_SIZE) * ((height + TILE_SIZE - 1) // TILE_SIZE)
+
+
+def _register() -> None:
+    lib = torch.library
+
+    @lib.register_fake("cobgs::project")
+    def _project_fake(means, quats, scales, viewmat, K, width, height, near_plane):
+        n = means.shape[0]
+        return (means.new_empty(n, 2), means.new_empty(n, 3), means.new_empty(n),
+                means.new_empty(n, dtype=torch.int32))
+
+    @lib.register_fake("cobgs::project_bwd")
+    def _project_bwd_fake(means, quats, scales, viewmat, K, width, height, radii,
+                          v_means2d, v_conics, v_depths):
+        return torch.empty_like(means), torch.empty_like(quats), torch.empty_like(scales)
+
+    @lib.register_fake("cobgs::bin_tiles")
+    def _bin_tiles_fake(means2d, radii, depths, width, height):
+        m = lib.get_ctx().new_dynamic_size()
+        return (means2d.new_empty(_tiles(width, height) + 1, dtype=torch.int64),
+                means2d.new_empty(m, dtype=torch.int32))
+
+    @lib.register_fake("cobgs::blend")
+    def _blend_fake(means2d, conics, opacities, features, background, tile_offsets,
+                    flat_ids, width, height, pixel_labels, num_labels):
+        rows = means2d.shape[0] if pixel_labels is not None else 0
+        return (features.new_empty(height, width, features.shape[1]),
+                features.new_empty(height, width),
+                features.new_empty(height, width, dtype=torch.int32),
+                features.new_empty(rows, num_labels, dtype=torch.int32),
+                features.new_empty(rows, num_labels, dtype=torch.float32))
+
+    @lib.register_fake("cobgs::blend_bwd")
+    def _blend_bwd_fake(means2d, conics, opacities, features, background, tile_offsets,
+                        flat_ids, transmittance, n_contrib, v_image, v_transmittance):
+        return (torch.empty_like(means2d), torch.empty_like(conics),
+                torch.empty_like(opacities), torch.empty_like(features),
+                torch.empty_like(background))
+
+    def project_setup(ctx, inputs, output):
+        means, quats, scales, viewmat, K, width, height, _near = inputs
+        ctx.save_for_backward(means, quats, scales, viewmat, K, output[3])
+        ctx.size = (width, height)
+
+    def project_backward(ctx, v_means2d, v_conics, v_depths, _v_radii):
+        means, quats, scales, viewmat, K, radii = ctx.saved_tensors
+        v_means2d = _or_zeros(v_means2d, (means.shape[0], 2), means)
+        v_conics = _or_zeros(v_conics, (means.shape[0], 3), means)
+        v_depths = _or_zeros(v_depths, (means.shape[0],), means)
+        v_means, v_quats, v_scales = torch.ops.cobgs.project_bwd(
+            means, quats, scales, viewmat, K, *ctx.size, radii, v_means2d, v_conics, v_depths)
+        return v_means, v_quats, v_scales, None, None, None, None, None
+
+    lib.register_autograd("cobgs::project", project_backward, setup_context=project_setup)
+
+    def blend_setup(ctx, inputs, output):
+        (means2d, conics, opacities, features, background, tile_offsets, flat_ids,
+         _w, _h, _labels, _k) = inputs
+        ctx.save_for_backward(means2d, conics, opacities, features, background, tile_offsets,
+                              flat_ids, output[1], output[2])
+
+    def blend_backward(ctx, v_image, v_trans, _v_nc, _v_counts, _v_weights):
+        (means2d, conics, opacities, features, background, tile_offsets, flat_ids, trans,
+         n_contrib) = ctx.saved_tensors
+        h, w = trans.shape
+        v_image = _or_zeros(v_image, (h, w, features.shape[1]), features)
+        v_trans = _or_zeros(v_trans, (h, w), features)
+        grads = torch.ops.cobgs.blend_bwd(means2d, conics, opacities, features, background,
+                                          tile_offsets, flat_ids, trans, n_contrib, v_image,
+                                          v_trans)
+        return (*grads, None, None, None, None, None, None)
+
+    lib.register_autograd("cobgs::blend", blend_backward, setup_context=blend_setup)
+
+
+def _or_zeros(grad: Optional[Tensor], shape, like: Tensor) -> Tensor:
+    if grad is None:
+        return like.new_zeros(shape)
+    return grad.contiguous()
+
+
+def project(means, quats, scales, viewmat, K, width: int, height: int,
+            near_plane: float = NEAR_PLANE) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Native ``cobgs::project`` (see :func:`cobgs.reference.project_reference`)."""
+    ensure_loaded()
+    return torch.ops.cobgs.project(means.contiguous(), quats.contiguous(), scales.contiguous(),
+                                   viewmat.contiguous(), K.contiguous(), width, height,
+                                   near_plane)
+
+
+def bin_tiles(means2d, radii, depths, width: int, height: int) -> Tuple[Tensor, Tensor]:
+    """Native ``cobgs::bin_tiles`` (see :func:`cobgs.reference.bin_tiles_reference`)."""
+    ensure_loaded()
+    return torch.ops.cobgs.bin_tiles(means2d.detach().contiguous(), radii.contiguous(),
+                                     depths.detach().contiguous(), width, height)
+
+
+def blend(means2d, conics, opacities, features, background, tile_offsets, flat_ids,
+          width: int, height: int, pixel_labels: Optional[Tensor] = None,
+          num_labels: int = 2):
+    """Native ``cobgs::blend`` (see :func:`cobgs.reference.blend_reference`).
+
+    Returns image [H, W, C], transmittance [H, W], n_contrib [H, W] int32, label_counts
+    [N, K] int32 and label_weights [N, K] float32 (both [0, K] without pixel_labels).
+    """
+    ensure_loaded()
+    if pixel_labels is not None:
+        pixel_labels = pixel_labels.to(torch.int32).contiguous()
+    return torch.ops.cobgs.blend(means2d.contiguous(), conics.contiguous(),
+                                 opacities.contiguous(), features.contiguous(),
+                                 background.contiguous(), tile_offsets, flat_ids, width, height,
+                                 pixel_labels, num_labels)
+
+
+def rasterize_native(means, quats, scales, opacities, features, viewmat, K, width, height,
+                     background, pixel_labels, num_labels) -> RasterOutput:
+    """:func:`cobgs.rasterize` on the native ops (inputs already validated)."""
+    means2d, conics, depths, radii = project(means, quats, scales, viewmat, K, width, height)
+    tile_offsets, flat_ids = bin_tiles(means2d, radii, depths, width, height)
+    image, trans, _n_contrib, counts, weights = blend(
+        means2d, conics, opacities, features, background, tile_offsets, flat_ids, width,
+        height, pixel_labels, num_labels)
+    has_labels = pixel_labels is not None
+    return RasterOutput(image=image, alpha=1 - trans, transmittance=trans, radii=radii,
+                        means2d=means2d, conics=conics, depths=depths,
+                        label_counts=counts if has_labels else None,
+                        label_weights=weights if has_labels else None)

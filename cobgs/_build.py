@@ -1,0 +1,192 @@
+"""Just-in-time build of the native rasterizer (``csrc/``) into a per-user cache.
+
+``load_extension()`` compiles the C++ sources with ``torch.utils.cpp_extension`` on
+first use and loads the library, which registers the ``torch.ops.cobgs.*`` ops.
+
+* **Cache folder:** ``$COBGS_EXT_DIR`` if set, else ``$XDG_CACHE_HOME/cobgs/ext`` (default
+  ``~/.cache/cobgs/ext``). One sub-folder per build key.
+* **Build key:** sha256 of every source and header under ``csrc/`` (path and content),
+  the compiler flags, the torch version, the Python version, the machine architecture and
+  ``$CXX``. Any source change therefore builds afresh. No ``-march=native`` is used, so
+  a cached build runs on any CPU of the same architecture (which is why the CPU model
+  is not part of the key).
+* **Concurrency:** several processes may call this at once (pytest workers, other
+  sessions). The build runs under an exclusive ``flock`` on ``<key>.lock`` (released by
+  the OS if a process dies), in a private temporary folder that is renamed into place
+  only when complete, so nobody ever loads a half-written library.
+* **Failures:** the compiler runs in a child process; its complete output is attached to
+  the :class:`~cobgs.errors.BuildError`. ``import cobgs`` never needs the extension;
+  ``cobgs.rasterize(..., backend="reference")`` works without one.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import json
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+from contextlib import contextmanager
+from pathlib import Path
+from typing import List, Optional
+
+from .errors import BuildError
+
+CSRC = Path(__file__).resolve().parents[1] / "csrc"
+# -O3 plus auto-vectorisation; -ffp-contract=off keeps a*b+c unfused so the forward and
+# backward kernels (and the reference) round the per-pixel exponent identically;
+# -fno-math-errno lets sqrt/floor inline. No -march=native (see the module docstring).
+CFLAGS = ["-O3", "-fopenmp", "-ffp-contract=off", "-fno-math-errno"]
+LDFLAGS = ["-fopenmp"]
+
+_lock = threading.Lock()
+_loaded: Optional[str] = None
+
+
+def cache_root() -> Path:
+    """The folder holding every cached build."""
+    env = os.environ.get("COBGS_EXT_DIR")
+    if env:
+        return Path(env).expanduser()
+    xdg = os.environ.get("XDG_CACHE_HOME")
+    base = Path(xdg).expanduser() if xdg else Path.home() / ".cache"
+    return base / "cobgs" / "ext"
+
+
+def _source_files() -> List[Path]:
+    if not CSRC.is_dir():
+        raise BuildError(f"the C++ sources of the native rasterizer were not found at {CSRC} "
+                         f"(cobgs must run from a source checkout or an editable install); "
+                         f"use backend=\"reference\" to render without them")
+    return sorted(p for p in CSRC.rglob("*") if p.suffix in (".cpp", ".h", ".cu", ".cuh"))
+
+
+def build_key() -> str:
+    """Hex digest identifying one build of the current sources and toolchain."""
+    import torch
+
+    h = hashlib.sha256()
+    for path in _source_files():
+        h.update(str(path.relative_to(CSRC)).encode() + b"\0" + path.read_bytes() + b"\0")
+    h.update(json.dumps({
+        "cflags": CFLAGS, "ldflags": LDFLAGS, "torch": torch.__version__,
+        "python": list(sys.version_info[:2]), "machine": platform.machine(),
+        "cxx": os.environ.get("CXX", ""),
+    }, sort_keys=True).encode())
+    return h.hexdigest()
+
+
+def extension_name() -> str:
+    return f"cobgs_ext_{build_key()[:16]}"
+
+
+@contextmanager
+def _file_lock(path: Path, verbose: bool):
+    with open(path, "a+") as fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            print(f"cobgs: waiting for another process building the native extension "
+                  f"(lock {path})", file=sys.stderr, flush=True)
+            fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def _check_toolchain() -> None:
+    cxx = os.environ.get("CXX") or "c++"
+    if shutil.which(cxx) is None:
+        raise BuildError(f"no C++ compiler found (looked for {cxx!r}; set $CXX or install "
+                         f"g++) — needed to build the native rasterizer; "
+                         f"backend=\"reference\" works without it")
+    if shutil.which("ninja") is None and not _ninja_in_env():
+        raise BuildError("the 'ninja' build tool was not found (pip install ninja) — needed "
+                         "to build the native rasterizer")
+
+
+def _ninja_in_env() -> bool:
+    return Path(sys.executable).with_name("ninja").exists()
+
+
+_CHILD = """
+import sys, json
+from torch.utils.cpp_extension import load
+a = json.loads(sys.argv[1])
+load(name=a["name"], sources=a["sources"], build_directory=a["build_dir"],
+     extra_cflags=a["cflags"], extra_ldflags=a["ldflags"], verbose=True,
+     is_python_module=False)
+"""
+
+
+def _compile(name: str, root: Path, final: Path, verbose: bool) -> None:
+    _check_toolchain()
+    for stale in root.glob(f"{name}.build-*"):  # left by a crashed build (we hold the lock)
+        shutil.rmtree(stale, ignore_errors=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f"{name}.build-", dir=root))
+    sources = [str(p) for p in _source_files() if p.suffix == ".cpp"]
+    args = json.dumps({"name": name, "sources": sources, "build_dir": str(tmp),
+                       "cflags": CFLAGS, "ldflags": LDFLAGS})
+    env = dict(os.environ)
+    env["PATH"] = str(Path(sys.executable).parent) + os.pathsep + env.get("PATH", "")
+    if verbose:
+        print(f"cobgs: building {name} in {tmp}", file=sys.stderr, flush=True)
+    proc = subprocess.run([sys.executable, "-c", _CHILD, args], stdout=subprocess.PIPE,
+                          stderr=subprocess.STDOUT, env=env, text=True)
+    if verbose:
+        print(proc.stdout, file=sys.stderr, flush=True)
+    so = tmp / f"{name}.so"
+    if proc.returncode != 0 or not so.is_file():
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise BuildError(f"building the native rasterizer failed (exit code "
+                         f"{proc.returncode}); full compiler log follows. "
+                         f"backend=\"reference\" renders without the extension.\n"
+                         f"{proc.stdout}")
+    if final.exists():
+        shutil.rmtree(final)
+    os.replace(tmp, final)
+
+
+def load_extension(verbose: bool = False, force: bool = False) -> str:
+    """Build (if needed) and load the native ops; returns the library path.
+
+    Args:
+        verbose: print the build folder and the full compiler output.
+        force: rebuild even if a cached build exists. (A library already loaded in this
+            process stays loaded; the rebuilt one is used by new processes.)
+
+    Raises:
+        BuildError: no compiler/ninja, or compilation failed (message holds the full log).
+    """
+    global _loaded
+    with _lock:
+        if _loaded is not None and not force:
+            return _loaded
+        name = extension_name()
+        root = cache_root()
+        try:
+            root.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise BuildError(f"cannot create the extension cache folder {root}: {exc} "
+                             f"(set COBGS_EXT_DIR to a writable folder)") from exc
+        final = root / name
+        so = final / f"{name}.so"
+        with _file_lock(root / f"{name}.lock", verbose):
+            if force or not so.is_file():
+                _compile(name, root, final, verbose)
+        if _loaded is None:
+            import torch
+
+            try:
+                torch.ops.load_library(str(so))
+            except OSError as exc:
+                raise BuildError(f"the cached native extension {so} could not be loaded: "
+                                 f"{exc}; delete {final} to rebuild it") from exc
+            _loaded = str(so)
+        return str(so)

@@ -1,0 +1,152 @@
+// CPU implementation of `bin_tiles` (see bin_tiles.h).
+//
+// Gaussians are first put in global depth order with a stable LSD radix sort on the
+// bit patterns of their (positive) depths, then appended tile by tile in that order
+// (a counting sort by tile, which is stable too), so each tile's run comes out sorted
+// by depth with ties broken by index — the order the reference gets from stable sorts.
+#include "bin_tiles.h"
+
+#include <torch/library.h>
+
+#include <cmath>
+#include <cstring>
+#include <vector>
+
+#include "../common/checks.h"
+#include "../common/gs_math.h"
+#include "../common/parallel_cpu.h"
+
+namespace cobgs {
+namespace {
+
+struct Rect {
+  int32_t x0, y0, x1, y1;
+};
+
+template <typename T>
+Rect tile_rect(T mx, T my, int32_t radius, int tiles_x, int tiles_y) {
+  const T r = static_cast<T>(radius);
+  const T ts = static_cast<T>(math::kTileSize);
+  auto clampi = [](T v, int hi) {
+    return static_cast<int32_t>(v < T(0) ? T(0) : (v > T(hi) ? T(hi) : v));
+  };
+  return {clampi(std::floor((mx - r) / ts), tiles_x), clampi(std::floor((my - r) / ts), tiles_y),
+          clampi(std::ceil((mx + r) / ts), tiles_x), clampi(std::ceil((my + r) / ts), tiles_y)};
+}
+
+// Unsigned keys whose order is the order of the (positive, finite) depths.
+inline uint32_t depth_key(float d) {
+  uint32_t k;
+  std::memcpy(&k, &d, sizeof(k));
+  return k;
+}
+inline uint64_t depth_key(double d) {
+  uint64_t k;
+  std::memcpy(&k, &d, sizeof(k));
+  return k;
+}
+
+// Stable LSD radix sort of `ids` by `keys` (parallel arrays), 8 bits per pass.
+template <typename K>
+void radix_sort(std::vector<K>& keys, std::vector<int32_t>& ids) {
+  const size_t n = keys.size();
+  std::vector<K> k2(n);
+  std::vector<int32_t> i2(n);
+  for (int shift = 0; shift < static_cast<int>(8 * sizeof(K)); shift += 8) {
+    size_t count[257] = {0};
+    for (size_t i = 0; i < n; ++i) ++count[((keys[i] >> shift) & 0xFF) + 1];
+    if (count[1 + ((keys.empty() ? 0 : (keys[0] >> shift)) & 0xFF)] == n) continue;
+    for (int b = 0; b < 256; ++b) count[b + 1] += count[b];
+    for (size_t i = 0; i < n; ++i) {
+      const size_t dst = count[(keys[i] >> shift) & 0xFF]++;
+      k2[dst] = keys[i];
+      i2[dst] = ids[i];
+    }
+    keys.swap(k2);
+    ids.swap(i2);
+  }
+}
+
+template <typename T>
+void bin_tiles_kernel(const at::Tensor& means2d, const at::Tensor& radii,
+                      const at::Tensor& depths, int tiles_x, int tiles_y,
+                      at::Tensor& tile_offsets, at::Tensor& flat_ids) {
+  const int64_t n = means2d.size(0);
+  const int64_t n_tiles = int64_t(tiles_x) * tiles_y;
+  using Key = decltype(depth_key(T(0)));
+  const T* m2 = means2d.data_ptr<T>();
+  const T* d = depths.data_ptr<T>();
+  const int32_t* r = radii.data_ptr<int32_t>();
+
+  std::vector<Key> keys;
+  std::vector<int32_t> order;
+  keys.reserve(n);
+  order.reserve(n);
+  for (int64_t i = 0; i < n; ++i) {
+    if (r[i] <= 0) continue;
+    TORCH_CHECK(d[i] > T(0) && std::isfinite(d[i]), "depths[", i,
+                "] of a visible Gaussian must be positive and finite, got ", d[i]);
+    keys.push_back(depth_key(d[i]));
+    order.push_back(static_cast<int32_t>(i));
+  }
+  radix_sort(keys, order);
+
+  const size_t nv = order.size();
+  std::vector<Rect> rects(nv);
+#pragma omp parallel for schedule(static) num_threads(cpu_threads())
+  for (int64_t k = 0; k < static_cast<int64_t>(nv); ++k) {
+    const int32_t i = order[k];
+    rects[k] = tile_rect<T>(m2[2 * i], m2[2 * i + 1], r[i], tiles_x, tiles_y);
+  }
+  int64_t* off = tile_offsets.data_ptr<int64_t>();
+  for (size_t k = 0; k < nv; ++k) {
+    const Rect& rc = rects[k];
+    for (int ty = rc.y0; ty < rc.y1; ++ty)
+      for (int tx = rc.x0; tx < rc.x1; ++tx) ++off[int64_t(ty) * tiles_x + tx + 1];
+  }
+  for (int64_t t = 0; t < n_tiles; ++t) off[t + 1] += off[t];
+  flat_ids = at::empty({off[n_tiles]}, means2d.options().dtype(at::kInt));
+  int32_t* ids = flat_ids.data_ptr<int32_t>();
+  std::vector<int64_t> cursor(off, off + n_tiles);
+  for (size_t k = 0; k < nv; ++k) {
+    const Rect& rc = rects[k];
+    for (int ty = rc.y0; ty < rc.y1; ++ty)
+      for (int tx = rc.x0; tx < rc.x1; ++tx) ids[cursor[int64_t(ty) * tiles_x + tx]++] = order[k];
+  }
+}
+
+}  // namespace
+
+std::tuple<at::Tensor, at::Tensor> bin_tiles_cpu(const at::Tensor& means2d,
+                                                 const at::Tensor& radii,
+                                                 const at::Tensor& depths, int64_t width,
+                                                 int64_t height) {
+  COBGS_CHECK_INPUT(means2d);
+  COBGS_CHECK_INPUT(radii);
+  COBGS_CHECK_INPUT(depths);
+  TORCH_CHECK(means2d.dim() == 2, "means2d must have shape [N, 2], got ", means2d.sizes());
+  const int64_t n = means2d.size(0);
+  TORCH_CHECK(n < (int64_t(1) << 31), "at most 2^31 - 1 Gaussians are supported, got ", n);
+  COBGS_CHECK_SHAPE(means2d, n, 2);
+  COBGS_CHECK_SHAPE(radii, n);
+  COBGS_CHECK_SHAPE(depths, n);
+  COBGS_CHECK_DTYPE(radii, at::kInt);
+  COBGS_CHECK_DTYPE(depths, means2d.scalar_type());
+  TORCH_CHECK(width > 0 && height > 0, "width and height must be positive, got ", width,
+              " x ", height);
+  const int tiles_x = static_cast<int>((width + math::kTileSize - 1) / math::kTileSize);
+  const int tiles_y = static_cast<int>((height + math::kTileSize - 1) / math::kTileSize);
+  const int64_t n_tiles = int64_t(tiles_x) * tiles_y;
+  at::Tensor tile_offsets = at::zeros({n_tiles + 1}, means2d.options().dtype(at::kLong));
+  at::Tensor flat_ids;
+
+  AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "cobgs::bin_tiles", [&] {
+    bin_tiles_kernel<scalar_t>(means2d, radii, depths, tiles_x, tiles_y, tile_offsets,
+                               flat_ids);
+  });
+  return {tile_offsets, flat_ids};
+}
+
+TORCH_LIBRARY_IMPL(cobgs, CPU, m) { m.impl("bin_tiles", &bin_tiles_cpu); }
+
+}  // namespace cobgs

@@ -1,0 +1,195 @@
+// CPU backward of the `blend` op (see blend.h and blend_tile_cpu.h).
+//
+// Per pixel, walking its contributors back to front from T_final (3DGS): the
+// transmittance in front of Gaussian g is recovered as T_g = T_after / (1 - α_g), and
+//   dC/dα_g = T_g (f_g - R_g),   R_g = colour behind g per unit transmittance, updated
+//   R ← α_g f_g + (1 - α_g) R (starting from the background);
+//   dT_final/dα_g = -T_final / (1 - α_g);
+//   α = min(0.99, o G), G = exp(power): no gradient where the clamp is active.
+#include <torch/library.h>
+
+#include "blend.h"
+#include "blend_tile_cpu.h"
+
+namespace cobgs {
+namespace {
+
+using namespace blend_detail;
+
+// Gradient slot layout of one tile-list entry.
+constexpr int kMx = 0, kMy = 1, kCa = 2, kCb = 3, kCc = 4, kOp = 5, kFeat = 6;
+
+template <typename T>
+void blend_backward(const at::Tensor& means2d, const at::Tensor& conics,
+                    const at::Tensor& opacities, const at::Tensor& features,
+                    const at::Tensor& background, const at::Tensor& tile_offsets,
+                    const at::Tensor& flat_ids, const at::Tensor& transmittance,
+                    const at::Tensor& n_contrib, const at::Tensor& v_image,
+                    const at::Tensor& v_trans, at::Tensor& v_means2d, at::Tensor& v_conics,
+                    at::Tensor& v_opacities, at::Tensor& v_features, at::Tensor& v_background) {
+  const int64_t n = means2d.size(0);
+  const int C = static_cast<int>(features.size(1));
+  const int S = kFeat + C;  // gradient slots per tile-list entry
+  const int width = static_cast<int>(transmittance.size(1));
+  const int height = static_cast<int>(transmittance.size(0));
+  const int tiles_x = (width + kTileSize - 1) / kTileSize;
+  const int tiles_y = (height + kTileSize - 1) / kTileSize;
+  const int64_t n_tiles = int64_t(tiles_x) * tiles_y;
+  const int64_t* off = tile_offsets.data_ptr<int64_t>();
+  const int32_t* ids = flat_ids.data_ptr<int32_t>();
+  const int64_t m = flat_ids.numel();
+  const T* feat = features.data_ptr<T>();
+  const T* bg = background.data_ptr<T>();
+  const T* tr = transmittance.data_ptr<T>();
+  const int32_t* nc = n_contrib.data_ptr<int32_t>();
+  const T* vimg = v_image.data_ptr<T>();
+  const T* vtr = v_trans.data_ptr<T>();
+  const auto prep = prepare<T>(means2d.data_ptr<T>(), conics.data_ptr<T>(),
+                               opacities.data_ptr<T>(), n);
+  std::vector<T> pair_grad(size_t(m) * S);
+
+  const T alpha_min = T(math::kAlphaMin), alpha_max = T(math::kAlphaMax);
+
+#pragma omp parallel num_threads(cpu_threads())
+  {
+    T Tp[math::kTilePixels];       // transmittance behind the current Gaussian
+    T vtt[math::kTilePixels];      // dL/dT_final · T_final
+    int32_t last[math::kTilePixels];
+    std::vector<T> rest(size_t(math::kTilePixels) * C);  // R per pixel and channel
+    std::vector<T> vcol(size_t(math::kTilePixels) * C);  // dL/dimage per pixel
+    std::vector<T> acc(S);
+
+#pragma omp for schedule(dynamic, 1)
+    for (int64_t tile = 0; tile < n_tiles; ++tile) {
+      const int64_t lo = off[tile], hi = off[tile + 1];
+      if (lo == hi) continue;
+      std::fill(pair_grad.begin() + lo * S, pair_grad.begin() + hi * S, T(0));
+      const int x0 = int(tile % tiles_x) * kTileSize, y0 = int(tile / tiles_x) * kTileSize;
+      const int x1 = std::min(x0 + kTileSize, width), y1 = std::min(y0 + kTileSize, height);
+      int max_last = 0;
+      for (int p = 0; p < math::kTilePixels; ++p) last[p] = 0;
+      for (int py = y0; py < y1; ++py)
+        for (int px = x0; px < x1; ++px) {
+          const int p = (py - y0) * kTileSize + (px - x0);
+          const int64_t pix = int64_t(py) * width + px;
+          Tp[p] = tr[pix];
+          vtt[p] = vtr[pix] * tr[pix];
+          last[p] = nc[pix];
+          max_last = std::max(max_last, last[p]);
+          for (int c = 0; c < C; ++c) {
+            rest[size_t(p) * C + c] = bg[c];
+            vcol[size_t(p) * C + c] = vimg[pix * C + c];
+          }
+        }
+      for (int64_t rank = max_last - 1; rank >= 0; --rank) {
+        const int64_t j = lo + rank;
+        const int32_t gi = ids[j];
+        const GaussPrep<T>& g = prep[gi];
+        if (g.bound.never) continue;
+        const T* f = feat + int64_t(gi) * C;
+        std::fill(acc.begin(), acc.end(), T(0));
+        for_each_pixel(g, x0, y0, x1, y1, [&](int px, int py, int p) {
+          if (rank >= last[p]) return;
+          const T dx = (T(px) + T(0.5)) - g.mx;
+          const T dy = (T(py) + T(0.5)) - g.my;
+          const T power = math::pixel_power(g.ca, g.cb, g.cc, dx, dy);
+          if (power > T(0) || power < g.power_reject) return;
+          const T gauss = std::exp(power);
+          const T o_g = g.o * gauss;
+          const T alpha = std::min(alpha_max, o_g);
+          if (alpha < alpha_min) return;
+          // Blended in the forward pass (rank < n_contrib and α >= 1/255).
+          const T one_minus = T(1) - alpha;
+          const T t_front = Tp[p] / one_minus;
+          const T w = alpha * t_front;
+          T* r = rest.data() + size_t(p) * C;
+          const T* vc = vcol.data() + size_t(p) * C;
+          T dot = T(0);
+          for (int c = 0; c < C; ++c) {
+            acc[kFeat + c] += w * vc[c];
+            dot += (f[c] - r[c]) * vc[c];
+            r[c] = alpha * f[c] + one_minus * r[c];
+          }
+          const T v_alpha = t_front * dot - vtt[p] / one_minus;
+          Tp[p] = t_front;
+          if (o_g > alpha_max) return;  // clamped: α does not depend on o or the power
+          acc[kOp] += gauss * v_alpha;
+          const T v_power = o_g * v_alpha;
+          acc[kCa] += T(-0.5) * dx * dx * v_power;
+          acc[kCb] += -dx * dy * v_power;
+          acc[kCc] += T(-0.5) * dy * dy * v_power;
+          // d = pixel - mean, so d(power)/d(mean) = -d(power)/d(d).
+          acc[kMx] += (g.ca * dx + g.cb * dy) * v_power;
+          acc[kMy] += (g.cb * dx + g.cc * dy) * v_power;
+        });
+        std::copy(acc.begin(), acc.end(), pair_grad.begin() + j * S);
+      }
+    }
+  }
+
+  // Fixed-order reduction of the per-entry gradients into per-Gaussian gradients.
+  T* vm = v_means2d.data_ptr<T>();
+  T* vco = v_conics.data_ptr<T>();
+  T* vo = v_opacities.data_ptr<T>();
+  T* vf = v_features.data_ptr<T>();
+  for (int64_t j = 0; j < m; ++j) {
+    const int64_t g = ids[j];
+    const T* src = pair_grad.data() + j * S;
+    vm[2 * g] += src[kMx];
+    vm[2 * g + 1] += src[kMy];
+    vco[3 * g] += src[kCa];
+    vco[3 * g + 1] += src[kCb];
+    vco[3 * g + 2] += src[kCc];
+    vo[g] += src[kOp];
+    for (int c = 0; c < C; ++c) vf[g * C + c] += src[kFeat + c];
+  }
+  // image = ... + T_final · background.
+  T* vb = v_background.data_ptr<T>();
+  const int64_t pixels = int64_t(width) * height;
+  for (int c = 0; c < C; ++c) {
+    double s = 0.0;
+    for (int64_t pix = 0; pix < pixels; ++pix) s += double(tr[pix]) * double(vimg[pix * C + c]);
+    vb[c] = static_cast<T>(s);
+  }
+}
+
+}  // namespace
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> blend_bwd_cpu(
+    const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
+    const at::Tensor& features, const at::Tensor& background, const at::Tensor& tile_offsets,
+    const at::Tensor& flat_ids, const at::Tensor& transmittance, const at::Tensor& n_contrib,
+    const at::Tensor& v_image, const at::Tensor& v_transmittance) {
+  TORCH_CHECK(transmittance.dim() == 2, "transmittance must have shape [H, W], got ",
+              transmittance.sizes());
+  const int64_t height = transmittance.size(0), width = transmittance.size(1);
+  check_blend_inputs(means2d, conics, opacities, features, background, tile_offsets,
+                     flat_ids, width, height);
+  const int64_t c = features.size(1);
+  COBGS_CHECK_INPUT(transmittance);
+  COBGS_CHECK_INPUT(n_contrib);
+  COBGS_CHECK_INPUT(v_image);
+  COBGS_CHECK_INPUT(v_transmittance);
+  COBGS_CHECK_DTYPE(transmittance, means2d.scalar_type());
+  COBGS_CHECK_DTYPE(v_image, means2d.scalar_type());
+  COBGS_CHECK_DTYPE(v_transmittance, means2d.scalar_type());
+  COBGS_CHECK_DTYPE(n_contrib, at::kInt);
+  COBGS_CHECK_SHAPE(n_contrib, height, width);
+  COBGS_CHECK_SHAPE(v_image, height, width, c);
+  COBGS_CHECK_SHAPE(v_transmittance, height, width);
+  at::Tensor v_means2d = at::zeros_like(means2d);
+  at::Tensor v_conics = at::zeros_like(conics);
+  at::Tensor v_opacities = at::zeros_like(opacities);
+  at::Tensor v_features = at::zeros_like(features);
+  at::Tensor v_background = at::zeros_like(background);
+  AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "cobgs::blend_bwd", [&] {
+    blend_backward<scalar_t>(means2d, conics, opacities, features, background, tile_offsets,
+                             flat_ids, transmittance, n_contrib, v_image, v_transmittance,
+                             v_means2d, v_conics, v_opacities, v_features, v_background);
+  });
+  return {v_means2d, v_conics, v_opacities, v_features, v_background};
+}
+
+TORCH_LIBRARY_IMPL(cobgs, CPU, m) { m.impl("blend_bwd", &blend_bwd_cpu); }
+
+}  // namespace cobgs

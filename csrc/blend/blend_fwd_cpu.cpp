@@ -1,0 +1,169 @@
+// CPU forward of the `blend` op (see blend.h and blend_tile_cpu.h).
+#include <torch/library.h>
+
+#include <cstring>
+
+#include "blend.h"
+#include "blend_tile_cpu.h"
+
+namespace cobgs {
+namespace {
+
+using namespace blend_detail;
+
+template <typename T>
+void blend_forward(const at::Tensor& means2d, const at::Tensor& conics,
+                   const at::Tensor& opacities, const at::Tensor& features,
+                   const at::Tensor& background, const at::Tensor& tile_offsets,
+                   const at::Tensor& flat_ids, int width, int height, const int32_t* labels,
+                   int num_labels, at::Tensor& image, at::Tensor& trans, at::Tensor& n_contrib,
+                   at::Tensor& label_counts, at::Tensor& label_weights) {
+  const int64_t n = means2d.size(0);
+  const int C = static_cast<int>(features.size(1));
+  const int K = num_labels;
+  const int tiles_x = (width + kTileSize - 1) / kTileSize;
+  const int tiles_y = (height + kTileSize - 1) / kTileSize;
+  const int64_t n_tiles = int64_t(tiles_x) * tiles_y;
+  const int64_t* off = tile_offsets.data_ptr<int64_t>();
+  const int32_t* ids = flat_ids.data_ptr<int32_t>();
+  const int64_t m = flat_ids.numel();
+  const T* feat = features.data_ptr<T>();
+  const T* bg = background.data_ptr<T>();
+  T* img = image.data_ptr<T>();
+  T* tr = trans.data_ptr<T>();
+  int32_t* nc = n_contrib.data_ptr<int32_t>();
+  const auto prep = prepare<T>(means2d.data_ptr<T>(), conics.data_ptr<T>(),
+                               opacities.data_ptr<T>(), n);
+
+  // Label statistics per tile-list entry (each written by the one thread owning the
+  // tile), summed per Gaussian afterwards in list order.
+  std::vector<int32_t> pair_counts(labels ? m * K : 0);
+  std::vector<T> pair_weights(labels ? m * K : 0);
+
+  const T alpha_min = T(math::kAlphaMin), alpha_max = T(math::kAlphaMax);
+  const T t_min = T(math::kTransmittanceMin);
+
+#pragma omp parallel num_threads(cpu_threads())
+  {
+    T Tp[math::kTilePixels];
+    int32_t last[math::kTilePixels];
+    unsigned char done[math::kTilePixels];
+    std::vector<T> colour(size_t(math::kTilePixels) * C);
+
+#pragma omp for schedule(dynamic, 1)
+    for (int64_t tile = 0; tile < n_tiles; ++tile) {
+      const int x0 = int(tile % tiles_x) * kTileSize, y0 = int(tile / tiles_x) * kTileSize;
+      const int x1 = std::min(x0 + kTileSize, width), y1 = std::min(y0 + kTileSize, height);
+      std::fill(Tp, Tp + math::kTilePixels, T(1));
+      std::fill(last, last + math::kTilePixels, 0);
+      std::fill(colour.begin(), colour.end(), T(0));
+      // Pixels outside the image (edge tiles) start "done" so they never count as active.
+      int active = 0;
+      for (int p = 0; p < math::kTilePixels; ++p) {
+        const bool inside = x0 + p % kTileSize < x1 && y0 + p / kTileSize < y1;
+        done[p] = !inside;
+        active += inside;
+      }
+      const int64_t lo = off[tile], hi = off[tile + 1];
+      for (int64_t j = lo; j < hi && active > 0; ++j) {
+        const int32_t gi = ids[j];
+        const GaussPrep<T>& g = prep[gi];
+        if (g.bound.never) continue;
+        const T* f = feat + int64_t(gi) * C;
+        const int32_t rank = static_cast<int32_t>(j - lo + 1);
+        for_each_pixel(g, x0, y0, x1, y1, [&](int px, int py, int p) {
+          if (done[p]) return;
+          const T dx = (T(px) + T(0.5)) - g.mx;
+          const T dy = (T(py) + T(0.5)) - g.my;
+          const T power = math::pixel_power(g.ca, g.cb, g.cc, dx, dy);
+          if (power > T(0) || power < g.power_reject) return;
+          const T alpha = std::min(alpha_max, g.o * std::exp(power));
+          if (alpha < alpha_min) return;
+          const T test_t = Tp[p] * (T(1) - alpha);
+          if (test_t < t_min) {  // 3DGS: this Gaussian is not blended; the pixel stops
+            done[p] = 1;
+            --active;
+            return;
+          }
+          const T w = alpha * Tp[p];
+          T* col = colour.data() + size_t(p) * C;
+          for (int c = 0; c < C; ++c) col[c] += f[c] * w;
+          Tp[p] = test_t;
+          last[p] = rank;
+          if (labels) {
+            const int32_t lab = labels[int64_t(py) * width + px];
+            if (lab >= 0) {
+              pair_counts[j * K + lab] += 1;
+              pair_weights[j * K + lab] += w;
+            }
+          }
+        });
+      }
+      for (int py = y0; py < y1; ++py)
+        for (int px = x0; px < x1; ++px) {
+          const int p = (py - y0) * kTileSize + (px - x0);
+          const int64_t pix = int64_t(py) * width + px;
+          for (int c = 0; c < C; ++c)
+            img[pix * C + c] = colour[size_t(p) * C + c] + Tp[p] * bg[c];
+          tr[pix] = Tp[p];
+          nc[pix] = last[p];
+        }
+    }
+  }
+
+  if (labels) {
+    int32_t* cnt = label_counts.data_ptr<int32_t>();
+    float* wts = label_weights.data_ptr<float>();
+    std::vector<T> wsum(size_t(n) * K, T(0));
+    for (int64_t j = 0; j < m; ++j) {
+      const int64_t g = ids[j];
+      for (int k = 0; k < K; ++k) {
+        cnt[g * K + k] += pair_counts[j * K + k];
+        wsum[g * K + k] += pair_weights[j * K + k];
+      }
+    }
+    for (size_t i = 0; i < wsum.size(); ++i) wts[i] = static_cast<float>(wsum[i]);
+  }
+}
+
+}  // namespace
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> blend_cpu(
+    const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
+    const at::Tensor& features, const at::Tensor& background, const at::Tensor& tile_offsets,
+    const at::Tensor& flat_ids, int64_t width, int64_t height,
+    const std::optional<at::Tensor>& pixel_labels, int64_t num_labels) {
+  check_blend_inputs(means2d, conics, opacities, features, background, tile_offsets,
+                     flat_ids, width, height);
+  TORCH_CHECK(num_labels >= 1, "num_labels must be >= 1, got ", num_labels);
+  const int64_t n = means2d.size(0), c = features.size(1);
+  const int32_t* labels = nullptr;
+  if (pixel_labels.has_value()) {
+    const at::Tensor& pl = *pixel_labels;
+    COBGS_CHECK_INPUT(pl);
+    COBGS_CHECK_DTYPE(pl, at::kInt);
+    COBGS_CHECK_SHAPE(pl, height, width);
+    labels = pl.data_ptr<int32_t>();
+    bool ok = true;
+    for (int64_t i = 0; i < pl.numel(); ++i) ok &= (labels[i] >= -1) & (labels[i] < num_labels);
+    TORCH_CHECK(ok, "pixel_labels must lie in -1..", num_labels - 1);
+  }
+  const auto opts = means2d.options();
+  at::Tensor image = at::empty({height, width, c}, opts);
+  at::Tensor trans = at::empty({height, width}, opts);
+  at::Tensor n_contrib = at::empty({height, width}, opts.dtype(at::kInt));
+  const int64_t rows = labels ? n : 0;
+  at::Tensor label_counts = at::zeros({rows, num_labels}, opts.dtype(at::kInt));
+  at::Tensor label_weights = at::zeros({rows, num_labels}, opts.dtype(at::kFloat));
+  AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "cobgs::blend", [&] {
+    blend_forward<scalar_t>(means2d, conics, opacities, features, background, tile_offsets,
+                            flat_ids, static_cast<int>(width), static_cast<int>(height),
+                            labels, static_cast<int>(num_labels), image, trans, n_contrib,
+                            label_counts, label_weights);
+  });
+  return {image, trans, n_contrib, label_counts, label_weights};
+}
+
+TORCH_LIBRARY_IMPL(cobgs, CPU, m) { m.impl("blend", &blend_cpu); }
+
+}  // namespace cobgs

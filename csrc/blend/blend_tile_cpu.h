@@ -1,0 +1,132 @@
+// Helpers shared by the CPU forward and backward blending kernels: input checks, the
+// per-Gaussian data both passes precompute, and the loop over the pixels of a tile that
+// a Gaussian can reach.
+//
+// Loop order: a tile is processed Gaussian by Gaussian (front to back in the forward,
+// back to front in the backward), each updating the per-pixel state of the tile's 256
+// pixels held in small structure-of-arrays buffers. That lets a Gaussian visit only the
+// pixel rows/columns inside its α >= 1/255 ellipse, and lets the backward pass sum a
+// Gaussian's gradient over the tile in registers and write it once, to a slot of its own
+// (one slot per tile-list entry, reduced afterwards in a fixed order): no atomics, and
+// the result does not depend on the thread schedule.
+#pragma once
+
+#include <torch/types.h>
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <vector>
+
+#include "../common/checks.h"
+#include "../common/gs_math.h"
+#include "../common/parallel_cpu.h"
+
+namespace cobgs {
+namespace blend_detail {
+
+using math::kTileSize;
+
+template <typename T>
+struct GaussPrep {
+  T mx, my, ca, cb, cc, o;
+  T power_reject;  // power < this ⇒ α < 1/255 for sure (checked before exp)
+  math::BlendBound bound;
+};
+
+template <typename T>
+std::vector<GaussPrep<T>> prepare(const T* m2, const T* co, const T* op, int64_t n) {
+  std::vector<GaussPrep<T>> prep(n);
+  const double eps = std::numeric_limits<T>::epsilon() * 0.5;
+#pragma omp parallel for schedule(static) num_threads(cpu_threads())
+  for (int64_t i = 0; i < n; ++i) {
+    GaussPrep<T>& g = prep[i];
+    g.mx = m2[2 * i];
+    g.my = m2[2 * i + 1];
+    g.ca = co[3 * i];
+    g.cb = co[3 * i + 1];
+    g.cc = co[3 * i + 2];
+    g.o = op[i];
+    g.bound = math::make_blend_bound(g.ca, g.cb, g.cc, g.o, eps);
+    // -log(255 o) is the exact threshold; 1e-3 of slack keeps the decision to the exact
+    // α test whenever rounding could matter (α then differs from 1/255 by ~0.1%).
+    g.power_reject = g.bound.never ? T(0) : T(-std::log(255.0 * double(g.o)) - 1e-3);
+  }
+  return prep;
+}
+
+// Calls f(px, py, p) for every pixel (px, py) of the tile [x0, x1) x [y0, y1) whose centre
+// may get α >= 1/255 from Gaussian g; p is the pixel's index inside the 16x16 tile.
+template <typename T, typename F>
+inline void for_each_pixel(const GaussPrep<T>& g, int x0, int y0, int x1, int y1, F&& f) {
+  const math::BlendBound& bb = g.bound;
+  int ry0 = y0, ry1 = y1;
+  if (bb.use_ellipse) {
+    // Pixel centre py + 0.5 = my + dy with |dy| <= dy_max; one spare row either side.
+    const double ylo = std::floor(double(g.my) - 0.5 - bb.dy_max) - 1.0;
+    const double yhi = std::ceil(double(g.my) - 0.5 + bb.dy_max) + 1.0;
+    ry0 = std::max(y0, static_cast<int>(std::max(ylo, -1e9)));
+    ry1 = std::min(y1, static_cast<int>(std::min(yhi, 1e9)) + 1);
+  }
+  for (int py = ry0; py < ry1; ++py) {
+    int cx0 = x0, cx1 = x1;
+    if (bb.use_ellipse) {
+      int xl, xh;
+      if (!math::ellipse_row(bb, double(g.mx), double(py) + 0.5 - double(g.my), xl, xh))
+        continue;
+      cx0 = std::max(x0, xl);
+      cx1 = std::min(x1, xh + 1);
+    }
+    const int base = (py - y0) * kTileSize - x0;
+    for (int px = cx0; px < cx1; ++px) f(px, py, base + px);
+  }
+}
+
+// Shapes, dtypes and the consistency of the tile lists shared by both passes.
+inline void check_blend_inputs(const at::Tensor& means2d, const at::Tensor& conics,
+                               const at::Tensor& opacities, const at::Tensor& features,
+                               const at::Tensor& background, const at::Tensor& tile_offsets,
+                               const at::Tensor& flat_ids, int64_t width, int64_t height) {
+  COBGS_CHECK_INPUT(means2d);
+  COBGS_CHECK_INPUT(conics);
+  COBGS_CHECK_INPUT(opacities);
+  COBGS_CHECK_INPUT(features);
+  COBGS_CHECK_INPUT(background);
+  COBGS_CHECK_INPUT(tile_offsets);
+  COBGS_CHECK_INPUT(flat_ids);
+  TORCH_CHECK(means2d.scalar_type() == at::kFloat || means2d.scalar_type() == at::kDouble,
+              "means2d must be float32 or float64, got ", means2d.scalar_type());
+  TORCH_CHECK(means2d.dim() == 2, "means2d must have shape [N, 2], got ", means2d.sizes());
+  TORCH_CHECK(features.dim() == 2, "features must have shape [N, C], got ", features.sizes());
+  const int64_t n = means2d.size(0), c = features.size(1);
+  TORCH_CHECK(c >= 1, "features must have at least one channel, got ", features.sizes());
+  COBGS_CHECK_SHAPE(means2d, n, 2);
+  COBGS_CHECK_SHAPE(conics, n, 3);
+  COBGS_CHECK_SHAPE(opacities, n);
+  COBGS_CHECK_SHAPE(features, n, c);
+  COBGS_CHECK_SHAPE(background, c);
+  for (const auto* t : {&conics, &opacities, &features, &background})
+    COBGS_CHECK_DTYPE((*t), means2d.scalar_type());
+  TORCH_CHECK(width > 0 && height > 0, "width and height must be positive, got ", width,
+              " x ", height);
+  const int64_t tiles = ((width + kTileSize - 1) / kTileSize) *
+                        ((height + kTileSize - 1) / kTileSize);
+  COBGS_CHECK_DTYPE(tile_offsets, at::kLong);
+  COBGS_CHECK_DTYPE(flat_ids, at::kInt);
+  COBGS_CHECK_SHAPE(tile_offsets, tiles + 1);
+  TORCH_CHECK(flat_ids.dim() == 1, "flat_ids must be 1-D, got ", flat_ids.sizes());
+  const int64_t* off = tile_offsets.data_ptr<int64_t>();
+  TORCH_CHECK(off[0] == 0 && off[tiles] == flat_ids.numel(),
+              "tile_offsets must run from 0 to len(flat_ids) = ", flat_ids.numel(), ", got ",
+              off[0], " .. ", off[tiles]);
+  for (int64_t t = 0; t < tiles; ++t)
+    TORCH_CHECK(off[t] <= off[t + 1], "tile_offsets must be non-decreasing (tile ", t, ")");
+  const int32_t* ids = flat_ids.data_ptr<int32_t>();
+  const int64_t m = flat_ids.numel();
+  bool ok = true;
+  for (int64_t k = 0; k < m; ++k) ok &= (ids[k] >= 0) & (ids[k] < n);
+  TORCH_CHECK(ok, "flat_ids must index Gaussians 0..", n - 1);
+}
+
+}  // namespace blend_detail
+}  // namespace cobgs

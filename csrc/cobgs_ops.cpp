@@ -1,0 +1,32 @@
+// Schemas of every op in the `cobgs` namespace (one place, as torchvision does). Kernels
+// register their implementations per backend with TORCH_LIBRARY_IMPL in their own files;
+// autograd formulas and shape-only fake kernels are registered from Python
+// (cobgs/_ops.py). Tensor shapes are documented in each op family's header.
+#include <torch/library.h>
+
+TORCH_LIBRARY(cobgs, m) {
+  // csrc/project/project.h
+  m.def(
+      "project(Tensor means, Tensor quats, Tensor scales, Tensor viewmat, Tensor K, "
+      "int width, int height, float near_plane) "
+      "-> (Tensor means2d, Tensor conics, Tensor depths, Tensor radii)");
+  m.def(
+      "project_bwd(Tensor means, Tensor quats, Tensor scales, Tensor viewmat, Tensor K, "
+      "int width, int height, Tensor radii, Tensor v_means2d, Tensor v_conics, "
+      "Tensor v_depths) -> (Tensor v_means, Tensor v_quats, Tensor v_scales)");
+  // csrc/bin_tiles/bin_tiles.h
+  m.def(
+      "bin_tiles(Tensor means2d, Tensor radii, Tensor depths, int width, int height) "
+      "-> (Tensor tile_offsets, Tensor flat_ids)");
+  // csrc/blend/blend.h
+  m.def(
+      "blend(Tensor means2d, Tensor conics, Tensor opacities, Tensor features, "
+      "Tensor background, Tensor tile_offsets, Tensor flat_ids, int width, int height, "
+      "Tensor? pixel_labels, int num_labels) -> (Tensor image, Tensor transmittance, "
+      "Tensor n_contrib, Tensor label_counts, Tensor label_weights)");
+  m.def(
+      "blend_bwd(Tensor means2d, Tensor conics, Tensor opacities, Tensor features, "
+      "Tensor background, Tensor tile_offsets, Tensor flat_ids, Tensor transmittance, "
+      "Tensor n_contrib, Tensor v_image, Tensor v_transmittance) -> (Tensor v_means2d, "
+      "Tensor v_conics, Tensor v_opacities, Tensor v_features, Tensor v_background)");
+}

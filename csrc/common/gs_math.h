@@ -1,0 +1,409 @@
+// Device-agnostic math of the Gaussian rasterizer: one definition of every formula,
+// shared by the CPU kernels (*_cpu.cpp) and, later, CUDA kernels (*_cuda.cu). Only plain
+// scalars and fixed-size structs; no ATen, no allocation, no OpenMP. Every function is
+// HOST_DEVICE inline and templated on the scalar type (float or double).
+//
+// The contract these formulas implement is written out in cobgs/reference.py (the
+// pure-PyTorch oracle); keep the two in step. Expressions that decide whether a
+// (Gaussian, pixel) pair contributes (`pixel_power`, `pixel_alpha`) are written with the
+// same operation order as the reference, and the extension is compiled with
+// -ffp-contract=off, so float decisions agree bit for bit between forward and backward.
+#pragma once
+
+#include <cmath>
+#include <cstdint>
+
+#if defined(__CUDACC__) || defined(__HIPCC__)
+#define HOST_DEVICE __host__ __device__
+#else
+#define HOST_DEVICE
+#endif
+
+namespace cobgs {
+namespace math {
+
+constexpr int kTileSize = 16;
+constexpr int kTilePixels = kTileSize * kTileSize;
+constexpr double kLowpass = 0.3;        // px², added to the 2D covariance diagonal (EWA)
+constexpr double kFrustumSlack = 0.3;   // Jacobian clamp: FoV widened by 0.3 tan(FoV/2)
+constexpr double kAlphaMin = 1.0 / 255.0;
+constexpr double kAlphaMax = 0.99;
+constexpr double kTransmittanceMin = 1e-4;
+constexpr double kMinEigenGap = 0.1;    // 3DGS: λmax = mid + sqrt(max(0.1, mid² - det))
+constexpr double kMaxRadius = 1073741824.0;  // 2^30: keeps radii representable in int32
+
+template <typename T>
+struct Vec3 {
+  T x, y, z;
+};
+
+// Row-major 3x3 matrix.
+template <typename T>
+struct Mat3 {
+  T m[3][3];
+};
+
+template <typename T>
+HOST_DEVICE inline Mat3<T> transpose(const Mat3<T>& a) {
+  Mat3<T> r;
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) r.m[i][j] = a.m[j][i];
+  return r;
+}
+
+template <typename T>
+HOST_DEVICE inline Mat3<T> matmul(const Mat3<T>& a, const Mat3<T>& b) {
+  Mat3<T> r;
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) {
+      T s = T(0);
+      for (int k = 0; k < 3; ++k) s += a.m[i][k] * b.m[k][j];
+      r.m[i][j] = s;
+    }
+  return r;
+}
+
+template <typename T>
+HOST_DEVICE inline Vec3<T> matvec(const Mat3<T>& a, const Vec3<T>& v) {
+  return {a.m[0][0] * v.x + a.m[0][1] * v.y + a.m[0][2] * v.z,
+          a.m[1][0] * v.x + a.m[1][1] * v.y + a.m[1][2] * v.z,
+          a.m[2][0] * v.x + a.m[2][1] * v.y + a.m[2][2] * v.z};
+}
+
+// Rotation matrix of a unit quaternion (w, x, y, z).
+template <typename T>
+HOST_DEVICE inline Mat3<T> quat_to_rotmat(T w, T x, T y, T z) {
+  Mat3<T> r;
+  r.m[0][0] = T(1) - T(2) * (y * y + z * z);
+  r.m[0][1] = T(2) * (x * y - w * z);
+  r.m[0][2] = T(2) * (x * z + w * y);
+  r.m[1][0] = T(2) * (x * y + w * z);
+  r.m[1][1] = T(1) - T(2) * (x * x + z * z);
+  r.m[1][2] = T(2) * (y * z - w * x);
+  r.m[2][0] = T(2) * (x * z - w * y);
+  r.m[2][1] = T(2) * (y * z + w * x);
+  r.m[2][2] = T(1) - T(2) * (x * x + y * y);
+  return r;
+}
+
+// Vector-Jacobian product of quat_to_rotmat: dL/d(w, x, y, z) from dL/dR.
+template <typename T>
+HOST_DEVICE inline void quat_to_rotmat_vjp(T w, T x, T y, T z, const Mat3<T>& v, T out[4]) {
+  const T(*g)[3] = v.m;
+  out[0] = T(2) * (-z * g[0][1] + y * g[0][2] + z * g[1][0] - x * g[1][2] - y * g[2][0] +
+                   x * g[2][1]);
+  out[1] = T(2) * (y * g[0][1] + z * g[0][2] + y * g[1][0] - T(2) * x * g[1][1] -
+                   w * g[1][2] + z * g[2][0] + w * g[2][1] - T(2) * x * g[2][2]);
+  out[2] = T(2) * (-T(2) * y * g[0][0] + x * g[0][1] + w * g[0][2] + x * g[1][0] +
+                   z * g[1][2] - w * g[2][0] + z * g[2][1] - T(2) * y * g[2][2]);
+  out[3] = T(2) * (-T(2) * z * g[0][0] - w * g[0][1] + x * g[0][2] + w * g[1][0] -
+                   T(2) * z * g[1][1] + y * g[1][2] + x * g[2][0] + y * g[2][1]);
+}
+
+// Camera of one view: rotation/translation of the world->camera transform and the
+// pinhole intrinsics, plus the clamp limits of tx/tz and ty/tz used for the Jacobian.
+template <typename T>
+struct Camera {
+  Mat3<T> R;
+  Vec3<T> t;
+  T fx, fy, cx, cy;
+  T lim_xp, lim_xn, lim_yp, lim_yn;
+  int width, height;
+};
+
+template <typename T>
+HOST_DEVICE inline Camera<T> make_camera(const T* viewmat, const T* K, int width, int height) {
+  Camera<T> c;
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) c.R.m[i][j] = viewmat[i * 4 + j];
+  c.t = {viewmat[3], viewmat[7], viewmat[11]};
+  c.fx = K[0];
+  c.fy = K[4];
+  c.cx = K[2];
+  c.cy = K[5];
+  const T slack = T(kFrustumSlack);
+  c.lim_xp = (T(width) - c.cx) / c.fx + slack * (T(0.5) * T(width) / c.fx);
+  c.lim_xn = c.cx / c.fx + slack * (T(0.5) * T(width) / c.fx);
+  c.lim_yp = (T(height) - c.cy) / c.fy + slack * (T(0.5) * T(height) / c.fy);
+  c.lim_yn = c.cy / c.fy + slack * (T(0.5) * T(height) / c.fy);
+  c.width = width;
+  c.height = height;
+  return c;
+}
+
+template <typename T>
+HOST_DEVICE inline bool is_finite(T v) {
+  return std::isfinite(v);
+}
+
+template <typename T>
+HOST_DEVICE inline T clamp_val(T v, T lo, T hi) {
+  return v < lo ? lo : (v > hi ? hi : v);
+}
+
+// Result of projecting one Gaussian.
+template <typename T>
+struct Projection {
+  bool visible;
+  T mx, my;      // pixel coordinates of the projected mean
+  T ca, cb, cc;  // conic: inverse 2D covariance [[ca, cb], [cb, cc]]
+  T depth;       // camera-space z
+  int radius;    // ceil(3 sqrt(λmax)), 0 when culled
+};
+
+// Camera-space covariance W Σ Wᵀ of a Gaussian, Σ = R_q diag(s²) R_qᵀ.
+// Also returns M = R_q diag(s) and the normalised quaternion (for the backward pass).
+template <typename T>
+HOST_DEVICE inline Mat3<T> camera_covariance(const Camera<T>& cam, const T* q, const T* s,
+                                             Mat3<T>& M, T qn[4], T& qnorm) {
+  qnorm = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+  for (int i = 0; i < 4; ++i) qn[i] = q[i] / qnorm;
+  const Mat3<T> Rq = quat_to_rotmat(qn[0], qn[1], qn[2], qn[3]);
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) M.m[i][j] = Rq.m[i][j] * s[j];
+  const Mat3<T> sigma = matmul(M, transpose(M));
+  return matmul(matmul(cam.R, sigma), transpose(cam.R));
+}
+
+// Jacobian entries of the pinhole projection at the clamped tx/tz, ty/tz (3DGS).
+template <typename T>
+struct Jacobian {
+  T j00, j02, j11, j12;
+  bool clamp_x, clamp_y;  // whether tx/tz (ty/tz) hit a limit
+  T txc, tyc;             // tz · clamped ratio
+};
+
+template <typename T>
+HOST_DEVICE inline Jacobian<T> projection_jacobian(const Camera<T>& cam, const Vec3<T>& p) {
+  Jacobian<T> J;
+  const T rx = p.x / p.z, ry = p.y / p.z;
+  J.clamp_x = rx < -cam.lim_xn || rx > cam.lim_xp;
+  J.clamp_y = ry < -cam.lim_yn || ry > cam.lim_yp;
+  J.txc = p.z * clamp_val(rx, -cam.lim_xn, cam.lim_xp);
+  J.tyc = p.z * clamp_val(ry, -cam.lim_yn, cam.lim_yp);
+  J.j00 = cam.fx / p.z;
+  J.j02 = -cam.fx * J.txc / (p.z * p.z);
+  J.j11 = cam.fy / p.z;
+  J.j12 = -cam.fy * J.tyc / (p.z * p.z);
+  return J;
+}
+
+// 2D covariance entries (a, b, c) = J Σc Jᵀ + 0.3 I.
+template <typename T>
+HOST_DEVICE inline void covariance_2d(const Jacobian<T>& J, const Mat3<T>& S, T& a, T& b,
+                                      T& c) {
+  // Rows of J·Σc (J row 0 = (j00, 0, j02), row 1 = (0, j11, j12)).
+  T r0[3], r1[3];
+  for (int k = 0; k < 3; ++k) {
+    r0[k] = J.j00 * S.m[0][k] + J.j02 * S.m[2][k];
+    r1[k] = J.j11 * S.m[1][k] + J.j12 * S.m[2][k];
+  }
+  a = r0[0] * J.j00 + r0[2] * J.j02 + T(kLowpass);
+  b = r0[1] * J.j11 + r0[2] * J.j12;
+  c = r1[1] * J.j11 + r1[2] * J.j12 + T(kLowpass);
+}
+
+// Forward projection and culling of one Gaussian.
+template <typename T>
+HOST_DEVICE inline Projection<T> project_gaussian(const Camera<T>& cam, const T* mean,
+                                                  const T* quat, const T* scale,
+                                                  T near_plane) {
+  Projection<T> out{};
+  out.visible = false;
+  const Vec3<T> p = matvec(cam.R, Vec3<T>{mean[0], mean[1], mean[2]});
+  const Vec3<T> pc{p.x + cam.t.x, p.y + cam.t.y, p.z + cam.t.z};
+  if (!(pc.z > near_plane)) return out;
+  Mat3<T> M;
+  T qn[4], qnorm;
+  const Mat3<T> S = camera_covariance(cam, quat, scale, M, qn, qnorm);
+  if (!(qnorm > T(0))) return out;
+  const Jacobian<T> J = projection_jacobian(cam, pc);
+  T a, b, c;
+  covariance_2d(J, S, a, b, c);
+  const T det = a * c - b * b;
+  if (!(is_finite(a) && is_finite(b) && is_finite(c) && is_finite(det)) || !(det > T(0)))
+    return out;
+  const T ca = c / det, cb = -b / det, cc = a / det;
+  const T mx = cam.fx * pc.x / pc.z + cam.cx;
+  const T my = cam.fy * pc.y / pc.z + cam.cy;
+  if (!(is_finite(ca) && is_finite(cb) && is_finite(cc) && is_finite(mx) && is_finite(my)))
+    return out;
+  const T mid = T(0.5) * (a + c);
+  const T gap = mid * mid - det;
+  const T lam = mid + std::sqrt(gap > T(kMinEigenGap) ? gap : T(kMinEigenGap));
+  T r = std::ceil(T(3) * std::sqrt(lam));
+  if (r > T(kMaxRadius)) r = T(kMaxRadius);
+  if (mx + r <= T(0) || mx - r >= T(cam.width) || my + r <= T(0) || my - r >= T(cam.height))
+    return out;
+  out.visible = true;
+  out.mx = mx;
+  out.my = my;
+  out.ca = ca;
+  out.cb = cb;
+  out.cc = cc;
+  out.depth = pc.z;
+  out.radius = static_cast<int>(r);
+  return out;
+}
+
+// Backward of project_gaussian for a visible Gaussian: accumulates dL/dmean [3],
+// dL/dquat [4] and dL/dscale [3] from dL/dmeans2d (vmx, vmy), dL/dconic (vca, vcb, vcc)
+// and dL/ddepth.
+template <typename T>
+HOST_DEVICE inline void project_gaussian_vjp(const Camera<T>& cam, const T* mean,
+                                             const T* quat, const T* scale, T vmx, T vmy,
+                                             T vca, T vcb, T vcc, T vdepth, T* v_mean,
+                                             T* v_quat, T* v_scale) {
+  const Vec3<T> p = matvec(cam.R, Vec3<T>{mean[0], mean[1], mean[2]});
+  const Vec3<T> pc{p.x + cam.t.x, p.y + cam.t.y, p.z + cam.t.z};
+  Mat3<T> M;
+  T qn[4], qnorm;
+  const Mat3<T> S = camera_covariance(cam, quat, scale, M, qn, qnorm);
+  const Jacobian<T> J = projection_jacobian(cam, pc);
+  T a, b, c;
+  covariance_2d(J, S, a, b, c);
+  const T det = a * c - b * b;
+  const T ca = c / det, cb = -b / det, cc = a / det;
+
+  // Projected mean and depth.
+  const T iz = T(1) / pc.z;
+  T vtx = cam.fx * iz * vmx;
+  T vty = cam.fy * iz * vmy;
+  T vtz = -cam.fx * pc.x * iz * iz * vmx - cam.fy * pc.y * iz * iz * vmy + vdepth;
+
+  // conic = inverse of [[a, b], [b, c]]: closed-form partial derivatives.
+  const T va = -(ca * ca * vca + ca * cb * vcb + cb * cb * vcc);
+  const T vb = -(T(2) * ca * cb * vca + (ca * cc + cb * cb) * vcb + T(2) * cb * cc * vcc);
+  const T vc = -(cb * cb * vca + cb * cc * vcb + cc * cc * vcc);
+  // Symmetric gradient V of the 2x2 covariance (b appears twice in the matrix).
+  const T V00 = va, V01 = T(0.5) * vb, V11 = vc;
+
+  // cov2d = J Σc Jᵀ:  dL/dΣc = Jᵀ V J,  dL/dJ = 2 V J Σc.
+  // J as 2x3: [[j00, 0, j02], [0, j11, j12]].
+  const T Jm[2][3] = {{J.j00, T(0), J.j02}, {T(0), J.j11, J.j12}};
+  const T Vm[2][2] = {{V00, V01}, {V01, V11}};
+  T VJ[2][3];
+  for (int i = 0; i < 2; ++i)
+    for (int k = 0; k < 3; ++k) VJ[i][k] = Vm[i][0] * Jm[0][k] + Vm[i][1] * Jm[1][k];
+  Mat3<T> vS;
+  for (int i = 0; i < 3; ++i)
+    for (int k = 0; k < 3; ++k) vS.m[i][k] = Jm[0][i] * VJ[0][k] + Jm[1][i] * VJ[1][k];
+  T vJ[2][3];
+  for (int i = 0; i < 2; ++i)
+    for (int k = 0; k < 3; ++k) {
+      T s = T(0);
+      for (int l = 0; l < 3; ++l) s += VJ[i][l] * S.m[l][k];
+      vJ[i][k] = T(2) * s;
+    }
+  // J entries as functions of the camera-space mean (with the 3DGS clamp).
+  vtz += -cam.fx * iz * iz * vJ[0][0] - cam.fy * iz * iz * vJ[1][1];
+  if (J.clamp_x) {
+    vtz += cam.fx * J.txc * iz * iz * iz * vJ[0][2];
+  } else {
+    vtx += -cam.fx * iz * iz * vJ[0][2];
+    vtz += T(2) * cam.fx * pc.x * iz * iz * iz * vJ[0][2];
+  }
+  if (J.clamp_y) {
+    vtz += cam.fy * J.tyc * iz * iz * iz * vJ[1][2];
+  } else {
+    vty += -cam.fy * iz * iz * vJ[1][2];
+    vtz += T(2) * cam.fy * pc.y * iz * iz * iz * vJ[1][2];
+  }
+  // Camera-space mean = R m + t.
+  const Mat3<T> Rt = transpose(cam.R);
+  const Vec3<T> vm = matvec(Rt, Vec3<T>{vtx, vty, vtz});
+  v_mean[0] += vm.x;
+  v_mean[1] += vm.y;
+  v_mean[2] += vm.z;
+
+  // Σc = R Σ Rᵀ → dL/dΣ = Rᵀ vS R;  Σ = M Mᵀ → dL/dM = 2 dL/dΣ M.
+  const Mat3<T> vSigma = matmul(matmul(Rt, vS), cam.R);
+  const Mat3<T> vMhalf = matmul(vSigma, M);  // dL/dM = 2 · vMhalf
+  // M = R_q diag(s):  dL/dR_q[i][j] = dL/dM[i][j] s[j],  dL/ds[j] = Σ_i dL/dM[i][j] R_q[i][j].
+  const Mat3<T> Rq = quat_to_rotmat(qn[0], qn[1], qn[2], qn[3]);
+  Mat3<T> vRq;
+  for (int j = 0; j < 3; ++j) {
+    T vs = T(0);
+    for (int i = 0; i < 3; ++i) {
+      const T g = T(2) * vMhalf.m[i][j];
+      vRq.m[i][j] = g * scale[j];
+      vs += g * Rq.m[i][j];
+    }
+    v_scale[j] += vs;
+  }
+  T vqn[4];
+  quat_to_rotmat_vjp(qn[0], qn[1], qn[2], qn[3], vRq, vqn);
+  // qn = q / |q|: project out the radial component.
+  const T dot = qn[0] * vqn[0] + qn[1] * vqn[1] + qn[2] * vqn[2] + qn[3] * vqn[3];
+  for (int i = 0; i < 4; ++i) v_quat[i] += (vqn[i] - qn[i] * dot) / qnorm;
+}
+
+// ---------------------------------------------------------------------------------------
+// Per-pixel blending.
+
+// The Gaussian exponent at pixel offset (dx, dy) = pixel centre - mean.
+template <typename T>
+HOST_DEVICE inline T pixel_power(T ca, T cb, T cc, T dx, T dy) {
+  return T(-0.5) * (ca * dx * dx + cc * dy * dy) - cb * dx * dy;
+}
+
+// Per-Gaussian data the blending loops need besides mean, conic and opacity: a power
+// threshold below which α < 1/255 is certain (so exp is skipped), and an ellipse that
+// contains every pixel centre whose α can reach 1/255 (so those pixels are never
+// visited). Both are conservative; the exact per-pair test always follows.
+struct BlendBound {
+  bool never;       // opacity < 1/255 (or NaN): α < 1/255 at every pixel
+  bool use_ellipse; // false: visit every pixel of the tile
+  double a, b, c;   // conic in double
+  double det;       // a c - b²
+  double two_l;     // ellipse: a dx² + 2 b dx dy + c dy² <= two_l
+  double dy_max;    // half height of that ellipse
+};
+
+// `eps` is the unit roundoff of the scalar type that evaluates pixel_power.
+HOST_DEVICE inline BlendBound make_blend_bound(double ca, double cb, double cc, double opacity,
+                                               double eps) {
+  BlendBound bb{};
+  bb.never = !(opacity >= kAlphaMin);
+  bb.use_ellipse = false;
+  if (bb.never) return bb;
+  // α >= 1/255 needs power >= -log(255 o) =: -L.
+  const double L = std::log(255.0 * opacity);
+  const double det = ca * cc - cb * cb;
+  const double tr_half = 0.5 * (ca + cc);
+  const double lam_max = tr_half + std::sqrt(0.25 * (ca - cc) * (ca - cc) + cb * cb);
+  if (!(ca > 0.0) || !(det > 0.0) || !std::isfinite(L) || !std::isfinite(lam_max)) return bb;
+  const double cond = lam_max * lam_max / det;  // λmax / λmin
+  // Rounding of pixel_power in the kernel's precision is below ~6 eps·cond·q (the
+  // cross term can cancel the others); accept the ellipse only where that is < 1%,
+  // then widen it by 5% so the float decision can never fall outside it.
+  if (!(12.0 * eps * cond < 0.01)) return bb;
+  bb.use_ellipse = true;
+  bb.a = ca;
+  bb.b = cb;
+  bb.c = cc;
+  bb.det = det;
+  bb.two_l = 2.0 * L * 1.05 + 1e-4;
+  bb.dy_max = std::sqrt(bb.two_l * ca / det);
+  return bb;
+}
+
+// Pixel columns [x_lo, x_hi] (inclusive, unclamped) whose centres may lie in the ellipse
+// on the row with offset dy; false if the row misses it.
+HOST_DEVICE inline bool ellipse_row(const BlendBound& bb, double mx, double dy, int& x_lo,
+                                    int& x_hi) {
+  const double disc = bb.a * bb.two_l - bb.det * dy * dy;
+  if (disc < 0.0) return false;
+  const double root = std::sqrt(disc);
+  const double lo = (-bb.b * dy - root) / bb.a;
+  const double hi = (-bb.b * dy + root) / bb.a;
+  // Pixel centre x + 0.5 = mx + dx  →  x = mx + dx - 0.5; one extra pixel either side.
+  const double xl = std::floor(mx + lo - 0.5) - 1.0;
+  const double xh = std::ceil(mx + hi - 0.5) + 1.0;
+  x_lo = xl < -1e9 ? -1000000000 : static_cast<int>(xl);
+  x_hi = xh > 1e9 ? 1000000000 : static_cast<int>(xh);
+  return true;
+}
+
+}  // namespace math
+}  // namespace cobgs
