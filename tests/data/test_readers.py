@@ -1,0 +1,283 @@
+"""Scene readers on the shared real data (fern, lego) and on fixtures written here."""
+
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from cobgs.camera import Camera
+from cobgs.data.colmap import read_colmap
+from cobgs.data.llff import read_llff
+from cobgs.data.readers import detect_format, read_scene
+from cobgs.data.scene import load_rgb
+from cobgs.data.transforms import read_transforms
+from cobgs.errors import DataError
+
+
+# -- helpers ----------------------------------------------------------------------------------
+def _fundamental(c1: Camera, c2: Camera) -> np.ndarray:
+    T = (c2.viewmat.double() @ torch.linalg.inv(c1.viewmat.double())).numpy()
+    R, t = T[:3, :3], T[:3, 3]
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    K1, K2 = c1.K.double().numpy(), c2.K.double().numpy()
+    return np.linalg.inv(K2).T @ (tx @ R) @ np.linalg.inv(K1)
+
+
+def _median_epipolar_px(v1, v2, F) -> float:
+    sift = cv2.SIFT_create()
+    grey = lambda v: cv2.cvtColor((v.image.numpy() * 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
+    k1, d1 = sift.detectAndCompute(grey(v1), None)
+    k2, d2 = sift.detectAndCompute(grey(v2), None)
+    matches = [a for a, b in cv2.BFMatcher().knnMatch(d1, d2, k=2) if a.distance < 0.7 * b.distance]
+    assert len(matches) > 30
+    # OpenCV keypoints have pixel centres at integers; our K puts them at +0.5.
+    p1 = np.array([k1[m.queryIdx].pt for m in matches]) + 0.5
+    p2 = np.array([k2[m.trainIdx].pt for m in matches]) + 0.5
+    h1, h2 = np.c_[p1, np.ones(len(p1))], np.c_[p2, np.ones(len(p2))]
+    lines = h1 @ F.T
+    return float(np.median(np.abs((h2 * lines).sum(1)) / np.linalg.norm(lines[:, :2], axis=1)))
+
+
+def _write_png(path, arr):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    arr = np.asarray(arr)
+    if arr.ndim == 3 and arr.shape[2] == 3:
+        arr = arr[:, :, ::-1]
+    cv2.imwrite(str(path), arr)
+
+
+# -- shared data ----------------------------------------------------------------------------
+def test_fern_llff_poses_are_consistent_with_images(shared_data):
+    scene = read_llff(shared_data / "llff_fern", downscale=8)
+    assert len(scene.train) == 17 and len(scene.test) == 3
+    assert [v.name for v in scene.test] == ["IMG_4026", "IMG_4034", "IMG_4042"]
+    v0 = scene.train[0]
+    assert v0.image.shape == (378, 504, 3) and v0.image.dtype == torch.float32
+    assert v0.camera.fx == pytest.approx(3260.5 * 504 / 4032, rel=1e-3)
+    assert scene.points is None and scene.kind == "llff"
+    # The poses must explain the images: SIFT matches lie on the epipolar lines.
+    views = scene.train
+    for i, j in [(0, 1), (2, 9)]:
+        err = _median_epipolar_px(views[i], views[j], _fundamental(views[i].camera, views[j].camera))
+        assert err < 1.0, (i, j, err)
+    # Negative control: reading LLFF's (down, right, back) columns as OpenCV axes is wrong.
+    raw = np.load(shared_data / "llff_fern" / "poses_bounds.npy")[:, :15].reshape(-1, 3, 5)
+    names = sorted(v.name for v in scene.views)
+    bad = []
+    for v in (views[0], views[1]):
+        k = names.index(v.name)
+        c2w = np.eye(4)
+        c2w[:3, :4] = raw[k][:, :4]
+        bad.append(Camera.from_c2w(c2w, v.camera.fx, v.camera.fy, v.camera.cx, v.camera.cy, 504, 378))
+    assert _median_epipolar_px(views[0], views[1], _fundamental(bad[0], bad[1])) > 3.0
+
+
+def test_fern_explicit_holdout_and_images_4(shared_data):
+    scene = read_llff(shared_data / "llff_fern", downscale=4, test_names=["IMG_4027"])
+    assert [v.name for v in scene.test] == ["IMG_4027"] and len(scene.train) == 19
+    assert scene.train[0].image.shape == (756, 1008, 3)
+    with pytest.raises(DataError, match="IMG_9999"):
+        read_llff(shared_data / "llff_fern", downscale=8, test_names=["IMG_9999"])
+    assert detect_format(shared_data / "llff_fern") == "llff"
+
+
+def test_lego_blender_alpha_masks(shared_data):
+    scene = read_scene(shared_data / "nerf_synthetic_lego", downscale=4)
+    assert scene.kind == "blender" and len(scene.train) == 80 and len(scene.test) == 20
+    assert scene.train[0].name == "r_0" and scene.test[0].name == "r_80"
+    v = scene.train[0]
+    assert v.image.shape == (200, 200, 3) and (v.camera.width, v.camera.height) == (200, 200)
+    assert v.camera.fx == pytest.approx(0.5 * 200 / math.tan(0.5 * 0.6911112070083618), rel=1e-6)
+    assert scene.background == (1.0, 1.0, 1.0)
+    m = v.masks["object"]
+    assert m.dtype == torch.bool and 0.05 < m.float().mean() < 0.6
+    assert torch.equal(m, v.coverage["object"] > 0.5)
+    # Background pixels are composited on white; the object sits at the world origin.
+    assert torch.allclose(v.image[~m].mean(0), torch.ones(3), atol=0.02)
+    for view in scene.train[:10] + scene.test[:5]:
+        uv, z = view.camera.project(torch.zeros(1, 3))
+        assert z.item() > 0 and torch.allclose(uv, torch.tensor([[100.0, 100.0]]), atol=2.0)
+        # The object mask is roughly centred too (the origin projects into the lego).
+        assert view.masks["object"][95:105, 95:105].float().mean() > 0.3
+    assert scene.init_bounds == ([-1.3] * 3, [1.3] * 3)
+    # Compositing is C_premultiplied + bg (1 - alpha), computed after area resizing.
+    black, alpha = load_rgb(v.path, (200, 200), background=(0.0, 0.0, 0.0))
+    assert torch.allclose(alpha, v.coverage["object"])
+    assert torch.allclose(v.image - black, (1 - alpha)[:, :, None].expand(-1, -1, 3), atol=1e-5)
+
+
+# -- COLMAP fixture ---------------------------------------------------------------------------
+def _colmap_fixture(root, binary=False):
+    """Two cameras (PINHOLE, OPENCV with distortion), images with a blob where a 3D point lands."""
+    import pycolmap
+
+    W, H = 80, 60
+    point = np.array([0.8, -0.5, 0.1])  # far off-centre, where distortion is strong
+    cams = {
+        1: ("PINHOLE", [70.0, 72.0, 40.0, 30.0]),
+        2: ("OPENCV", [75.0, 75.0, 41.0, 29.0, -0.25, 0.05, 0.001, -0.002]),
+    }
+    # (qw, qx, qy, qz, tx, ty, tz, camera, name)
+    poses = [
+        (1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 3.0, 1, "a.png"),
+        (0.9659258, 0.0, 0.258819, 0.0, -0.5, 0.2, 3.2, 2, "b.png"),
+        (0.9848078, 0.1736482, 0.0, 0.0, 0.4, 0.0, 2.5, 2, "c.png"),
+    ]
+    sparse = root / "sparse" / "0"
+    sparse.mkdir(parents=True)
+    (sparse / "cameras.txt").write_text("".join(f"{i} {m} {W} {H} {' '.join(map(str, p))}\n" for i, (m, p) in cams.items()))
+    lines = []
+    for k, (qw, qx, qy, qz, tx, ty, tz, cid, name) in enumerate(poses, 1):
+        lines.append(f"{k} {qw} {qx} {qy} {qz} {tx} {ty} {tz} {cid} {name}\n\n")
+        R = _quat_rot(qw, qx, qy, qz)
+        pc = R @ point + np.array([tx, ty, tz])
+        cam = pycolmap.Camera.create_from_model_name(cid, cams[cid][0], 1.0, W, H)
+        cam.params = cams[cid][1]
+        u, v = cam.img_from_cam(pc[None])[0]
+        yy, xx = np.mgrid[0:H, 0:W] + 0.5
+        blob = np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * 1.2**2))
+        img = np.stack([blob, 0.5 * blob, np.full_like(blob, 0.2)], 2)
+        _write_png(root / "images" / name, np.round(img * 255).astype(np.uint8))
+    (sparse / "images.txt").write_text("".join(lines))
+    (sparse / "points3D.txt").write_text("1 0.8 -0.5 0.1 200 100 50 0.5\n2 1 1 1 10 20 30 0.5\n")
+    if binary:
+        rec = pycolmap.Reconstruction(sparse)
+        for f in sparse.iterdir():
+            f.unlink()
+        rec.write_binary(str(sparse))
+    return point
+
+
+def _quat_rot(w, x, y, z):
+    n = math.sqrt(w * w + x * x + y * y + z * z)
+    w, x, y, z = w / n, x / n, y / n, z / n
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def _blob_centre(img: torch.Tensor) -> np.ndarray:
+    w = img[:, :, 0].double().numpy()
+    w = np.where(w > 0.3 * w.max(), w, 0)
+    yy, xx = np.mgrid[0 : w.shape[0], 0 : w.shape[1]] + 0.5
+    return np.array([(w * xx).sum() / w.sum(), (w * yy).sum() / w.sum()])
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_colmap_model_with_undistortion(tmp_path, binary):
+    point = _colmap_fixture(tmp_path, binary)
+    assert detect_format(tmp_path) == "colmap"
+    scene = read_colmap(tmp_path, test_every=0)
+    assert [v.name for v in scene.train] == ["a", "b", "c"]
+    assert torch.allclose(scene.points, torch.tensor([[0.8, -0.5, 0.1], [1.0, 1.0, 1.0]]))
+    assert torch.allclose(scene.points_rgb[0], torch.tensor([200, 100, 50]) / 255.0)
+    a = scene.train[0]
+    assert torch.allclose(a.camera.viewmat[:3, 3], torch.tensor([0.0, 0.0, 3.0]))
+    assert a.camera.fx == pytest.approx(70.0) and a.camera.fy == pytest.approx(72.0)
+    for v in scene.train:  # PINHOLE as is; OPENCV undistorted: the blob lands where we project
+        uv, _ = v.camera.project(torch.from_numpy(point[None]).float())
+        assert np.allclose(_blob_centre(v.image), uv[0].numpy(), atol=0.3), v.name
+    assert scene.train[1].camera.width != 80 or scene.train[1].camera.fx != 75.0  # really undistorted
+
+
+def test_colmap_errors(tmp_path):
+    _colmap_fixture(tmp_path)
+    (tmp_path / "images" / "b.png").unlink()
+    with pytest.raises(DataError, match="b.png"):
+        read_colmap(tmp_path)
+    bad = tmp_path / "bad"
+    (bad / "sparse" / "0").mkdir(parents=True)
+    (bad / "sparse" / "0" / "cameras.txt").write_text("1 NOT_A_MODEL 80 60 1 2 3\n")
+    (bad / "sparse" / "0" / "images.txt").write_text("")
+    (bad / "sparse" / "0" / "points3D.txt").write_text("")
+    with pytest.raises(DataError, match="COLMAP model"):
+        read_colmap(bad)
+    with pytest.raises(DataError, match="no COLMAP model"):
+        read_colmap(tmp_path / "images")
+
+
+# -- transforms.json fixture --------------------------------------------------------------------
+def _transforms_fixture(root, n=5, W=32, H=24):
+    frames = []
+    for i in range(n):
+        img = np.zeros((H, W, 3), np.uint8)
+        img[:, :, 0] = 10 * i
+        img[4:12, 8:20] = 255
+        _write_png(root / "images" / f"{i:04d}.png", img)
+        mask = np.zeros((H, W), np.uint8)
+        mask[4:12, 8:20] = 255
+        if i != 2:  # frame 2 has no annotation for "box"
+            _write_png(root / "masks" / "box" / f"{i:04d}.png", mask)
+        c2w = np.eye(4)
+        c2w[:3, 3] = [0.5 * i, 0.0, 4.0]
+        frames.append({
+            "file_path": f"images/{i:04d}.png",
+            "transform_matrix": c2w.tolist(),
+            "fl_x": 30.0 + i, "fl_y": 31.0 + i, "cx": 16.0, "cy": 12.0, "w": W, "h": H,
+        })
+    meta = {"camera_model": "PINHOLE", "fl_x": 1.0, "fl_y": 1.0, "cx": 0, "cy": 0, "w": W, "h": H,
+            "frames": frames, "test_filenames": ["images/0003.png"]}
+    (root / "transforms.json").write_text(json.dumps(meta))
+    return meta
+
+
+def test_transforms_with_masks(tmp_path):
+    _transforms_fixture(tmp_path)
+    scene = read_scene(tmp_path, downscale=2)
+    assert scene.kind == "transforms" and scene.object_names == ["box"]
+    assert [v.name for v in scene.test] == ["0003"]
+    assert [v.name for v in scene.train] == ["0000", "0001", "0002", "0004"]
+    v = scene.train[1]
+    assert v.image.shape == (12, 16, 3)
+    assert v.camera.fx == pytest.approx(31.0 / 2) and v.camera.fy == pytest.approx(32.0 / 2)  # per-frame wins
+    assert v.camera.cx == pytest.approx(8.0)
+    m = v.masks["box"]
+    assert m.shape == (12, 16) and m.sum() == 4 * 6 and m[2:6, 4:10].all()
+    assert "box" not in scene.train[2].masks  # missing file = no annotation
+    # OpenGL pose: camera at z = 4 looking down -z sees the origin in front of it.
+    uv, z = scene.train[0].camera.project(torch.zeros(1, 3))
+    assert z.item() == pytest.approx(4.0) and torch.allclose(uv, torch.tensor([[8.0, 6.0]]))
+    # Explicit held-out names override the file's list.
+    s2 = read_transforms(tmp_path, test_names=["0000", "0001.png"])
+    assert [v.name for v in s2.test] == ["0000", "0001"]
+
+
+def test_transforms_errors(tmp_path):
+    meta = _transforms_fixture(tmp_path)
+    _write_png(tmp_path / "masks" / "box" / "0001.png", np.zeros((10, 10), np.uint8))
+    with pytest.raises(DataError, match=r"0001\.png.*mask is 10x10"):
+        read_transforms(tmp_path)
+    _write_png(tmp_path / "masks" / "box" / "0001.png", np.zeros((24, 32), np.uint8))
+    meta["frames"][0]["camera_model"] = "FISHEYE"
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(DataError, match="FISHEYE"):
+        read_transforms(tmp_path)
+    meta["frames"][0].pop("camera_model")
+    meta["frames"][4]["file_path"] = "images/missing.png"
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(DataError, match="missing.png"):
+        read_transforms(tmp_path)
+    (tmp_path / "transforms.json").write_text("{not json")
+    with pytest.raises(DataError, match="transforms.json"):
+        read_transforms(tmp_path)
+    (tmp_path / "images" / "0000.png").write_bytes(b"garbage")
+    with pytest.raises(DataError, match="unreadable image"):
+        from cobgs.data.scene import read_image_array
+
+        read_image_array(tmp_path / "images" / "0000.png")
+
+
+def test_llff_count_mismatch(tmp_path):
+    pb = np.zeros((3, 17))
+    np.save(tmp_path / "poses_bounds.npy", pb)
+    for i in range(2):
+        _write_png(tmp_path / "images_8" / f"{i}.png", np.zeros((4, 4, 3), np.uint8))
+    with pytest.raises(DataError, match="2 images but poses_bounds.npy has 3 poses"):
+        read_llff(tmp_path, downscale=8)
+    with pytest.raises(DataError, match="unrecognised"):
+        detect_format(tmp_path / "images_8")
