@@ -261,6 +261,9 @@ def run_sfm(image_dir: os.PathLike | str, out_dir: os.PathLike | str,
         mapper.num_threads = threads
         mapper.random_seed = options.seed
         mapper.min_num_matches = options.min_num_matches
+        # COLMAP discards sub-models under 10 images; a smaller input must still be able
+        # to produce a model.
+        mapper.min_model_size = min(mapper.min_model_size, len(names))
         mapper.ba_use_gpu = False
         mapper_dir = tmp / "mapper"
         mapper_dir.mkdir()

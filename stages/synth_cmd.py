@@ -44,7 +44,8 @@ def _synth(args) -> int:
     t0 = time.perf_counter()
     out = generate_scene(args.out, args.preset, args.seed, overwrite=args.overwrite,
                          progress=not args.quiet, width_px=w, height_px=h,
-                         num_views=args.views, supersampling=args.supersampling)
+                         num_views=args.views, supersampling=args.supersampling,
+                         workers=args.workers)
     print(f"synthetic scene {args.preset!r} (seed {args.seed}) written to {out} "
           f"in {time.perf_counter() - t0:.1f} s")
     return 0
@@ -82,6 +83,9 @@ def register(sub) -> None:
     p.add_argument("--views", type=int, default=None, help="override the number of views")
     p.add_argument("--supersampling", type=int, default=None, metavar="S",
                    help="override the S x S subsamples per pixel")
+    p.add_argument("--workers", type=int, default=1,
+                   help="processes rendering views in parallel, 0 = one per core (default: 1); "
+                   "the output does not depend on it")
     p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_synth)

@@ -57,7 +57,7 @@ class SynthPreset:
 
 
 PRESETS: Dict[str, SynthPreset] = {
-    "demo": SynthPreset("demo", "forward", 160, 120, 24, 4, 55.0),
+    "demo": SynthPreset("demo", "forward", 160, 120, 24, 3, 55.0),
     "forward": SynthPreset("forward", "forward", 400, 300, 30, 3, 55.0),
     "orbit": SynthPreset("orbit", "orbit", 400, 300, 48, 3, 60.0),
 }

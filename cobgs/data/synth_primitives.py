@@ -64,7 +64,18 @@ def rotation_from_euler_deg(yaw: float, pitch: float = 0.0, roll: float = 0.0) -
     return tuple(tuple(float(v) for v in row) for row in r)  # type: ignore[return-value]
 
 
+def rowdot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise dot product of [N, 3] / [3] arrays (either may be a single shared [3]
+    vector: primary rays share their origin, shadow rays their direction)."""
+    if a.ndim == 1:
+        return b @ a
+    if b.ndim == 1:
+        return a @ b
+    return np.einsum("ij,ij->i", a, b)
+
+
 def _nearest_positive(*ts: np.ndarray) -> np.ndarray:
+    ts = np.broadcast_arrays(*ts)
     out = np.full(ts[0].shape, np.inf)
     for t in ts:
         ok = (t > T_MIN) & (t < out)
@@ -87,10 +98,11 @@ class Sphere:
         return np.asarray(self.center, dtype=np.float64), float(self.radius)
 
     def intersect(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
-        """[N] nearest hit distance of rays o [N, 3] + t d [N, 3] (d unit), inf on a miss."""
+        """[N] nearest hit distance of rays o + t d (d unit), inf on a miss. o and d are
+        [N, 3], or one of them a shared [3] (as for every ``intersect``)."""
         oc = o - np.asarray(self.center)
-        b = np.einsum("ij,ij->i", oc, d)
-        c = np.einsum("ij,ij->i", oc, oc) - self.radius**2
+        b = rowdot(oc, d)
+        c = rowdot(oc, oc) - self.radius**2
         disc = b * b - c
         hit = disc >= 0
         sq = np.sqrt(np.where(hit, disc, 0.0))
@@ -137,7 +149,7 @@ class Box:
         h = np.asarray(self.half_extents)
         with np.errstate(divide="ignore", invalid="ignore"):
             inv = 1.0 / dl
-            t1 = (-h - ol) * inv
+            t1 = (-h - ol) * inv  # [N, 3] whichever of o, d is shared
             t2 = (h - ol) * inv
         # A ray parallel to a slab gives +-inf, or nan when it lies in a face plane;
         # fmin/fmax skip the nan so such a slab does not constrain the interval.
@@ -200,8 +212,8 @@ class Cylinder:
         r = self._frame()
         ol = (o - np.asarray(self.base)) @ r
         dl = d @ r
-        ox, oy, oz = ol[:, 0], ol[:, 1], ol[:, 2]
-        dx, dy, dz = dl[:, 0], dl[:, 1], dl[:, 2]
+        ox, oy, oz = ol[..., 0], ol[..., 1], ol[..., 2]
+        dx, dy, dz = dl[..., 0], dl[..., 1], dl[..., 2]
         a = dx * dx + dy * dy
         b = ox * dx + oy * dy
         c = ox * ox + oy * oy - self.radius**2
@@ -272,7 +284,7 @@ class Plane:
         den = d @ n
         num = (np.asarray(self.point) - o) @ n
         with np.errstate(divide="ignore", invalid="ignore"):
-            t = num / den
+            t = np.atleast_1d(num / den)
         return np.where(np.isfinite(t) & (t > T_MIN), t, np.inf)
 
     def surface(self, p: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:

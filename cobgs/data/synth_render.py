@@ -15,7 +15,7 @@ import numpy as np
 
 from ..errors import InputError
 from .synth_cameras import PinholeCamera
-from .synth_primitives import T_MIN, Primitive
+from .synth_primitives import T_MIN, Primitive, rowdot
 from .synth_textures import Texture, _lattice, evaluate
 
 RGB = Tuple[float, float, float]
@@ -106,29 +106,36 @@ class _Caster:
         light = np.asarray(scene.light_dir, dtype=np.float64)
         self.light = light / np.linalg.norm(light)
 
+    @staticmethod
+    def _rows(a: np.ndarray, idx: np.ndarray) -> np.ndarray:
+        return a if a.ndim == 1 else a[idx]
+
     def _candidates(self, i: int, o: np.ndarray, d: np.ndarray, t_best: np.ndarray) -> np.ndarray:
-        """Indices of rays that may hit surface i before t_best (bounding-sphere cull)."""
+        """Indices of rays that may hit surface i before t_best (bounding-sphere cull).
+
+        o and d are [N, 3] or a shared [3] (see :func:`rowdot`)."""
         bnd = self.bounds[i]
         if bnd is None:
-            return np.arange(len(d))
+            return np.arange(len(t_best))
         c, r = bnd
         oc = o - c
-        b = np.einsum("ij,ij->i", oc, d)
-        cc = np.einsum("ij,ij->i", oc, oc) - r * r
+        b = rowdot(oc, d)
+        cc = rowdot(oc, oc) - r * r
         disc = b * b - cc
         sq = np.sqrt(np.maximum(disc, 0.0))
         keep = (disc >= 0) & (-b + sq > T_MIN) & (-b - sq < t_best)
         return np.flatnonzero(keep)
 
     def first_hit(self, o: np.ndarray, d: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-        """Nearest hit distance [N] (inf on a miss) and surface index [N] (-1 on a miss)."""
+        """Nearest hit distance [N] (inf on a miss) and surface index [N] (-1 on a miss)
+        of rays o + t d; o is a shared [3] eye or [N, 3], d is [N, 3]."""
         t_best = np.full(len(d), np.inf)
         which = np.full(len(d), -1, dtype=np.int64)
         for i, s in enumerate(self.surfaces):
             idx = self._candidates(i, o, d, t_best)
             if len(idx) == 0:
                 continue
-            t = s.shape.intersect(o[idx], d[idx])
+            t = s.shape.intersect(self._rows(o, idx), d[idx])
             closer = t < t_best[idx]
             sel = idx[closer]
             t_best[sel] = t[closer]
@@ -136,27 +143,30 @@ class _Caster:
         return t_best, which
 
     def occluded(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
-        """[N] bool: does anything lie along the shadow rays o + t d, t > 0."""
-        blocked = np.zeros(len(d), dtype=bool)
+        """[N] bool: does anything lie along the shadow rays o [N, 3] + t d, t > 0, with a
+        shared direction d [3] (directional light)."""
+        blocked = np.zeros(len(o), dtype=bool)
+        no_limit = np.full(len(o), np.inf)
         for i, s in enumerate(self.surfaces):
             open_idx = np.flatnonzero(~blocked)
             if len(open_idx) == 0:
                 break
-            sub = self._candidates(i, o[open_idx], d[open_idx], np.full(len(open_idx), np.inf))
+            oo = o[open_idx]
+            sub = self._candidates(i, oo, d, no_limit[: len(open_idx)])
             if len(sub) == 0:
                 continue
-            idx = open_idx[sub]
-            t = s.shape.intersect(o[idx], d[idx])
-            blocked[idx[np.isfinite(t)]] = True
+            t = s.shape.intersect(oo[sub], d)
+            blocked[open_idx[sub[np.isfinite(t)]]] = True
         return blocked
 
     def shade(self, o: np.ndarray, d: np.ndarray) -> Tuple[np.ndarray, np.ndarray]:
-        """RGB [N, 3] and surface index [N] (-1: sky) of rays o [N, 3] + t d [N, 3]."""
+        """RGB [N, 3] and surface index [N] (-1: sky) of rays o + t d [N, 3] from a
+        shared eye o [3]."""
         t, which = self.first_hit(o, d)
         rgb = np.empty((len(d), 3))
         rgb[:] = np.asarray(self.scene.sky)
         hit = np.flatnonzero(which >= 0)
-        p = o[hit] + t[hit, None] * d[hit]
+        p = o + t[hit, None] * d[hit]
         normal = np.empty((len(hit), 3))
         albedo = np.empty((len(hit), 3))
         w_hit = which[hit]
@@ -174,8 +184,7 @@ class _Caster:
         lit = np.flatnonzero(lambert > 0)
         if len(lit):
             so = p[lit] + _SHADOW_OFFSET * normal[lit]
-            sd = np.broadcast_to(self.light, so.shape)
-            lambert[lit[self.occluded(so, sd)]] = 0.0
+            lambert[lit[self.occluded(so, self.light)]] = 0.0
         amb = self.scene.ambient
         rgb[hit] = albedo * (amb + (1.0 - amb) * lambert)[:, None]
         return rgb, which
@@ -225,12 +234,15 @@ def render_view(scene: Scene, camera: PinholeCamera, supersampling: int,
                        np.ones_like(u)], axis=1)
         d = dc @ rot.T
         d /= np.linalg.norm(d, axis=1, keepdims=True)
-        o = np.broadcast_to(eye, d.shape)
-        col, which = caster.shade(o, d)
+        col, which = caster.shade(eye, d)
         rgb[pix] = col.reshape(len(pix), s2, 3).mean(axis=1)
-        ch = chan[which].reshape(len(pix), s2)  # which == -1 indexes the trailing -1
-        for j in range(k):
-            hits[j, pix] = np.count_nonzero(ch == j, axis=1)
+        # Count, per pixel, the subsamples of each object in one bincount; channel k
+        # collects background and sky (which == -1 indexes the trailing entry of chan).
+        ch = chan[which]
+        ch[ch < 0] = k
+        key = np.repeat(np.arange(len(pix)), s2) * (k + 1) + ch
+        counts = np.bincount(key, minlength=len(pix) * (k + 1)).reshape(len(pix), k + 1)
+        hits[:, pix] = counts[:, :k].T
     img = np.clip(np.rint(rgb * 255.0), 0, 255).astype(np.uint8).reshape(h, w, 3)
     return RenderedView(rgb=img, hits=hits.reshape(k, h, w), subsamples=s2)
 

@@ -74,12 +74,44 @@ def render_scene_view(scene: Scene, camera: PinholeCamera, supersampling: int) -
     return render_view(scene, camera, supersampling)
 
 
-def _render_all(scene: Scene, cams: List[PinholeCamera], s: int, progress: bool):
+# Per-process state of the worker pool (set once per worker by _init_worker).
+_WORKER: dict = {}
+
+
+def _init_worker(scene: Scene, cams: List[PinholeCamera], s: int) -> None:
+    _WORKER.update(scene=scene, cams=cams, s=s, caster=make_caster(scene))
+
+
+def _render_index(i: int) -> RenderedView:
+    w = _WORKER
+    return render_view(w["scene"], w["cams"][i], w["s"], caster=w["caster"])
+
+
+def _render_all(scene: Scene, cams: List[PinholeCamera], s: int, progress: bool, workers: int):
+    """Yield the rendered views in order; views are independent, so ``workers``
+    processes render them in parallel with identical results."""
     from tqdm import tqdm
 
-    caster = make_caster(scene)
-    for cam in tqdm(cams, desc="synth: rendering views", unit="view", disable=not progress):
-        yield render_view(scene, cam, s, caster=caster)
+    bar = tqdm(total=len(cams), desc="synth: rendering views", unit="view", disable=not progress)
+    try:
+        if workers <= 1:
+            caster = make_caster(scene)
+            for cam in cams:
+                yield render_view(scene, cam, s, caster=caster)
+                bar.update()
+            return
+        import multiprocessing as mp
+        from concurrent.futures import ProcessPoolExecutor
+
+        methods = mp.get_all_start_methods()
+        ctx = mp.get_context("fork" if "fork" in methods else "spawn")
+        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
+                                 initargs=(scene, cams, s)) as pool:
+            for view in pool.map(_render_index, range(len(cams))):
+                yield view
+                bar.update()
+    finally:
+        bar.close()
 
 
 def _frame_json(cam: PinholeCamera, file_path: str) -> dict:
@@ -101,8 +133,8 @@ def _write_png(path: Path, array: np.ndarray) -> None:
 def generate_scene(out_dir: os.PathLike | str, preset: str | SynthPreset = "demo", seed: int = 0,
                    *, overwrite: bool = False, progress: bool = True,
                    width_px: Optional[int] = None, height_px: Optional[int] = None,
-                   num_views: Optional[int] = None, supersampling: Optional[int] = None
-                   ) -> Path:
+                   num_views: Optional[int] = None, supersampling: Optional[int] = None,
+                   workers: int = 1) -> Path:
     """Render a synthetic scene and write it to ``out_dir``.
 
     Args:
@@ -112,6 +144,8 @@ def generate_scene(out_dir: os.PathLike | str, preset: str | SynthPreset = "demo
         overwrite: replace an existing ``out_dir``.
         progress: show a tqdm bar.
         width_px, height_px, num_views, supersampling: override the preset's values.
+        workers: processes rendering views in parallel (0: one per CPU core); the output
+            does not depend on it.
     Returns:
         ``out_dir`` as a Path.
     """
@@ -119,12 +153,15 @@ def generate_scene(out_dir: os.PathLike | str, preset: str | SynthPreset = "demo
     if out.exists() and not overwrite and (not out.is_dir() or any(out.iterdir())):
         raise InputError(f"output folder {out} exists and is not empty (pass overwrite=True "
                          "or --overwrite to replace it)")
+    if not isinstance(workers, int) or workers < 0:
+        raise InputError(f"workers must be an int >= 0, got {workers!r}")
+    workers = workers or (os.cpu_count() or 1)
     p, scene, cams = build_scene(preset, seed, width_px=width_px, height_px=height_px,
                                  num_views=num_views, supersampling=supersampling)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
     try:
-        _write(tmp, p, scene, cams, seed, progress)
+        _write(tmp, p, scene, cams, seed, progress, workers)
         if out.exists():
             trash = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
             os.replace(out, trash / "old")
@@ -139,7 +176,7 @@ def generate_scene(out_dir: os.PathLike | str, preset: str | SynthPreset = "demo
 
 
 def _write(root: Path, p: SynthPreset, scene: Scene, cams: List[PinholeCamera], seed: int,
-           progress: bool) -> None:
+           progress: bool, workers: int) -> None:
     names = [o.name for o in scene.objects]
     (root / "images").mkdir()
     for sub in ("masks", "coverage"):
@@ -147,7 +184,7 @@ def _write(root: Path, p: SynthPreset, scene: Scene, cams: List[PinholeCamera], 
             (root / sub / n).mkdir(parents=True)
     frames, test = [], []
     s = p.supersampling
-    for i, view in enumerate(_render_all(scene, cams, s, progress)):
+    for i, view in enumerate(_render_all(scene, cams, s, progress, workers)):
         stem = f"{i:04d}"
         rel = f"images/{stem}.png"
         _write_png(root / rel, view.rgb)
