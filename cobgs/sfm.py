@@ -159,6 +159,19 @@ def _prepare_out(out: Path) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
 
 
+def _check_camera(pycolmap, options: SfmOptions) -> None:
+    """Raise InputError for an unknown camera model or a wrong number of its parameters."""
+    try:
+        probe = pycolmap.Camera.create_from_model_name(1, options.camera_model, 1.0, 2, 2)
+    except (ValueError, RuntimeError):
+        raise InputError(f"SfmOptions.camera_model {options.camera_model!r} is not a COLMAP "
+                         "camera model (e.g. SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, OPENCV)") from None
+    if options.camera_params is not None and len(options.camera_params) != len(probe.params):
+        raise InputError(f"SfmOptions.camera_params must have {len(probe.params)} values for "
+                         f"{options.camera_model} ({probe.params_info}), got "
+                         f"{len(options.camera_params)}")
+
+
 def _to_pinhole(rec) -> None:
     """Turn SIMPLE_PINHOLE cameras of ``rec`` into the equivalent PINHOLE, in place."""
     import pycolmap
@@ -204,6 +217,7 @@ def run_sfm(image_dir: os.PathLike | str, out_dir: os.PathLike | str,
         names = all_names
     if len(names) < 2:
         raise DataError(f"SfM needs at least 2 images, got {len(names)}", image_dir)
+    _check_camera(pycolmap, options)
     _prepare_out(out)
     threads = options.threads()
     device = pycolmap.Device.cuda if options.device == "cuda" else pycolmap.Device.cpu

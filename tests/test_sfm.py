@@ -101,12 +101,16 @@ def test_unregistered_images_are_named(demo, tmp_path):
         run_sfm(images, tmp_path / "out", OPTS)
     assert not (tmp_path / "out").exists()
     assert [p.name for p in tmp_path.iterdir()] == ["images"]  # no temp folder left
-    # With a lower bar the same input succeeds and reports the missing image.
+    # With a lower bar the same input succeeds and reports the missing image (and known
+    # intrinsics and the sequential matcher work).
+    fl = json.loads((demo / "transforms.json").read_text())["fl_x"]
     res = run_sfm(images, tmp_path / "out", SfmOptions(
-        camera_model="SIMPLE_PINHOLE", num_threads=2, min_registered_fraction=0.9,
-        matcher="sequential", sequential_overlap=5))
+        camera_model="SIMPLE_PINHOLE", camera_params=(fl, 80.0, 60.0), num_threads=2,
+        min_registered_fraction=0.9, matcher="sequential", sequential_overlap=5))
     assert res.unregistered == ("zz_blank.png",) and len(res.registered) == 12
     assert res.matcher == "sequential"
+    (cam,) = pycolmap.Reconstruction(str(res.model_dir)).cameras.values()
+    assert cam.params[0] == pytest.approx(fl, rel=0.03)
 
 
 def test_bad_inputs(tmp_path, demo):
@@ -116,6 +120,11 @@ def test_bad_inputs(tmp_path, demo):
         SfmOptions(min_registered_fraction=1.5)
     with pytest.raises(InputError, match="does not exist"):
         run_sfm(tmp_path / "nope", tmp_path / "out")
+    with pytest.raises(InputError, match="camera_model 'FISHY'"):
+        run_sfm(demo / "images", tmp_path / "out", SfmOptions(camera_model="FISHY"))
+    with pytest.raises(InputError, match="camera_params must have 3 values"):
+        run_sfm(demo / "images", tmp_path / "out",
+                SfmOptions(camera_model="SIMPLE_PINHOLE", camera_params=(150.0, 80.0)))
     (tmp_path / "empty").mkdir()
     with pytest.raises(DataError, match="no images"):
         run_sfm(tmp_path / "empty", tmp_path / "out")
