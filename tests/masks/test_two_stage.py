@@ -1,0 +1,99 @@
+"""Two-stage generation (Alg. 1): which frames are prompted, propagated, left empty."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from cobgs.masks.api import generate_masks
+from cobgs.masks.two_stage import NoDetectionError, TwoStageConfig
+
+from . import scenes
+
+
+def _read(out_dir, paths):
+    return [np.asarray(Image.open(out_dir / f"{p.stem}.png")) for p in paths]
+
+
+def test_red_gone_green(models_dir, red_green, tmp_path):
+    paths, gts = red_green
+    out = tmp_path / "masks" / "square"
+    res = generate_masks(paths, "red square", models_dir, out)
+    assert res.sources == (["prompt"] + ["stage1"] * 4 + ["empty"] * 5 + ["stage2_prompt"]
+                           + ["stage2"] * 4)
+    assert res.empty == [f"{i:04d}" for i in range(5, 10)]
+    masks = _read(out, paths)
+    for m, gt in zip(masks, gts):
+        assert m.dtype == np.uint8 and m.shape == gt.shape and set(np.unique(m)) <= {0, 255}
+        assert scenes.iou(m > 0, gt) > 0.9
+    log = json.loads(res.log_path.read_text())
+    assert res.log_path == tmp_path / "masks" / "square.json"
+    assert log["stage1"]["best_confidence"] == pytest.approx(0.9)
+    assert log["stage1"]["kept"] == 1  # the 0.35 distractor is below 0.7 x 0.9
+    assert log["stage1"]["empty_after"] == list(range(5, 15))
+    assert log["stage2"]["box_threshold"] == pytest.approx(0.765)
+    att = log["stage2"]["attempts"]
+    assert [a["frame"] for a in att] == [5, 6, 7, 8, 9, 10]
+    assert att[-1]["run"] == [5, 14] and all(not a["detections"] for a in att[:-1])
+    assert [f["source"] for f in log["frames"]] == res.sources
+    # encoder at most once per frame; stage 2 reads frames 10..14 and 5..9 from the cache
+    assert log["encoder_runs_max_per_frame"] == 1 and log["graph_calls"]["image_encoder"] == 15
+    assert log["encoder_cache_hits"] == 10
+    # decoder / memory encoder: 15 in stage 1, then prompt 10 + 4 forward + 5 backward
+    assert log["graph_calls"]["mask_decoder"] == 25
+    assert log["graph_calls"]["memory_encoder"] == 25
+    assert log["graph_calls"]["memory_attention"] == 23
+    assert log["detector_calls"] == 1 + 6
+
+
+def test_prompt_frame_in_the_middle_tracks_backwards(models_dir, red_green, tmp_path):
+    paths, gts = red_green
+    res = generate_masks(paths, "square", models_dir, tmp_path / "o",
+                         config=TwoStageConfig(prompt_frame=2))
+    assert res.sources[:5] == ["stage1", "stage1", "prompt", "stage1", "stage1"]
+    assert res.sources[10] == "stage2_prompt"
+
+
+def test_without_stage2_the_reappearing_object_stays_empty(models_dir, red_green, tmp_path):
+    paths, _ = red_green
+    res = generate_masks(paths, "square", models_dir, tmp_path / "o",
+                         config=TwoStageConfig(run_stage2=False))
+    assert res.sources[10:] == ["empty"] * 5
+
+
+def test_stage2_threshold_and_backward_over_the_run(models_dir, tmp_path):
+    # green returns half hidden (confidence 0.45 < 0.765) at frames 3-4, fully at 5-6
+    seq = ([scenes.Frame("red", x=10), scenes.Frame(None), scenes.Frame(None)]
+           + [scenes.Frame("green", visible_rows=6)] * 2 + [scenes.Frame("green")] * 2)
+    paths, gts = scenes.write_sequence(tmp_path / "seq", seq)
+    res = generate_masks(paths, "square", models_dir, tmp_path / "a")
+    assert res.sources == ["prompt", "empty", "empty", "stage2", "stage2", "stage2_prompt",
+                           "stage2"]
+    log = json.loads(res.log_path.read_text())
+    assert [a["frame"] for a in log["stage2"]["attempts"]] == [1, 2, 3, 4, 5]
+    assert log["stage2"]["attempts"][-1]["run"] == [1, 6]
+    masks = _read(tmp_path / "a", paths)
+    assert scenes.iou(masks[3] > 0, gts[3]) > 0.9
+    # upstream's forward-only stage 2 leaves the half-hidden frames empty
+    res = generate_masks(paths, "square", models_dir, tmp_path / "b",
+                         config=TwoStageConfig(stage2_backward=False))
+    assert res.sources[1:5] == ["empty"] * 4 and res.sources[5:] == ["stage2_prompt", "stage2"]
+
+
+def test_nothing_on_prompt_frame_is_a_clear_error(models_dir, red_green, tmp_path):
+    paths, _ = red_green
+    # the stand-in detector knows only "square": an apple is found nowhere
+    with pytest.raises(NoDetectionError, match="no 'apple' on the prompt frame 6"):
+        generate_masks(paths, "apple", models_dir, tmp_path / "o",
+                       config=TwoStageConfig(prompt_frame=6))
+    assert not (tmp_path / "o").exists()  # nothing half-written
+
+
+def test_text_path_needs_grounding_dino(models_v20, red_green, tmp_path):
+    from cobgs.masks import ModelsNotConfiguredError
+
+    with pytest.raises(ModelsNotConfiguredError, match="no 'groundingdino' model"):
+        generate_masks(red_green[0], "square", models_v20, tmp_path / "o")
