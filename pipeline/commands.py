@@ -190,9 +190,11 @@ def cmd_status(args: argparse.Namespace, registry_factory: RegistryFactory,
 
 def referenced_keys(workflows: Sequence[str], registry: Any, sets: Sequence[str],
                     cache_dir: Path) -> set[tuple[str, str]]:
-    """``(stage, key)`` of every task of ``workflows`` whose key is known now, under the
-    workflow's device and every device its earlier runs used (read from ``refs/``)."""
-    from .cache import Cache, read_json
+    """``(stage, key)`` a set of workflows references: every task key known under the
+    current configuration (with ``sets``), plus the entry each task slot last produced
+    (from ``refs/``), so stale results and results of earlier ``--set`` runs that are still
+    a slot's latest survive until the slot runs again."""
+    from .cache import Cache
     from .plan import Plan, inspect
     from .workflow import load_workflow
 
@@ -200,20 +202,12 @@ def referenced_keys(workflows: Sequence[str], registry: Any, sets: Sequence[str]
     keep: set[tuple[str, str]] = set()
     for path in workflows:
         wf = load_workflow(path, registry, sets)
-        devices = {wf.settings.device}
-        ref_dir = cache.root / "refs" / wf.id
-        if ref_dir.is_dir():
-            for ref in ref_dir.glob("*/*.json"):
-                try:
-                    devices.add(read_json(ref)["device"])
-                except (OSError, ValueError, KeyError, TypeError):
-                    pass
-        for device in sorted(devices):
-            variant = wf if device == wf.settings.device else \
-                load_workflow(path, registry, list(sets) + [f"device={device}"])
-            for st in inspect(Plan(variant), cache, with_reasons=False):
-                if st.key:
-                    keep.add((st.task.stage.name, st.key))
+        for st in inspect(Plan(wf), cache, with_reasons=False):
+            if st.key:
+                keep.add((st.stage, st.key))
+            ref = cache.read_ref(wf.id, st.stage, st.item.id)
+            if ref is not None and ref.get("status") == "ok" and isinstance(ref.get("key"), str):
+                keep.add((st.stage, ref["key"]))
     return keep
 
 

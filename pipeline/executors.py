@@ -77,6 +77,9 @@ class InlineExecutor:
 
 def _child_main(job: Job, conn: Any) -> None:
     try:
+        # SIGINT was blocked across fork (see ForkExecutor.submit); one that arrived
+        # meanwhile is delivered here and becomes an ordinary interruption.
+        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
         result = execute(job)
     except KeyboardInterrupt:
         result = JobResult(job.index, "interrupted", job.key)
@@ -108,9 +111,16 @@ class ForkExecutor:
         recv, send = self._mp.Pipe(duplex=False)
         proc = self._mp.Process(target=_child_main, args=(job, send), daemon=False,
                                 name=f"cobgs-{job.stage.name}")
-        proc.start()
-        send.close()
-        self._running[recv] = (job, proc)
+        # A Ctrl-C landing inside fork() would interrupt the child's at-fork handlers
+        # (logging's lock re-initialisation) and print a stray traceback; hold it until
+        # the child is running and registered here.
+        signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+        try:
+            proc.start()
+            send.close()
+            self._running[recv] = (job, proc)
+        finally:
+            signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
     def running(self) -> int:
         return len(self._running)

@@ -53,11 +53,23 @@ class RayExecutor:
             self._owned = True
         self._remote = ray.remote(max_retries=0)(_ray_execute)
         self._running: dict[Any, Job] = {}
+        self._rejected: list[JobResult] = []
+        self._cluster = ray.cluster_resources()
 
     def capacity(self) -> Optional[int]:
         return None
 
     def submit(self, job: Job, resources: Resources) -> None:
+        # A task asking for more than the whole cluster has would wait forever in Ray's
+        # queue; fail it now with the reason instead.
+        for what, need in (("GPU", resources.gpus), ("CPU", resources.cpus)):
+            have = self._cluster.get(what, 0.0)
+            if need > have:
+                self._rejected.append(JobResult(
+                    job.index, "failed", job.key,
+                    error=f"needs {need:g} {what}(s) (device={job.settings.device}) but the "
+                          f"Ray cluster has {have:g}"))
+                return
         options: dict[str, Any] = {"num_cpus": resources.cpus, "num_gpus": resources.gpus,
                                    "name": f"{job.stage.name}[{job.item.label}]"}
         if resources.memory_gb:
@@ -66,7 +78,7 @@ class RayExecutor:
         self._running[ref] = job
 
     def running(self) -> int:
-        return len(self._running)
+        return len(self._running) + len(self._rejected)
 
     def _collect(self, ref: Any, record: bool = True) -> JobResult:
         ray = self._ray
@@ -82,6 +94,9 @@ class RayExecutor:
             return record_crash(job, reason)
 
     def wait(self) -> list[JobResult]:
+        if self._rejected:
+            out, self._rejected = self._rejected, []
+            return out
         ray = self._ray
         refs = list(self._running)
         ready, _ = ray.wait(refs, num_returns=1)

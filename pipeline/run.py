@@ -315,7 +315,8 @@ class _Scheduler:
             self.table.set(result.index, result.outputs, Path(result.entry_dir))  # type: ignore
             self._write_ref(task, result.key, "ok", hashes)
             state = "done" if result.status == "ok" else "cached"
-            self.progress.line(task, state, result.wall_s, result.note)
+            self.progress.line(task, state, result.wall_s if state == "done" else None,
+                               result.note)
             self._settle(result.index, Outcome(state, result.wall_s, result.note, key=result.key))
         elif result.status == "failed":
             self._write_ref(task, result.key, "failed", hashes)

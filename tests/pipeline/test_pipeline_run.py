@@ -310,25 +310,32 @@ def test_peak_memory_is_per_task(tmp_path):
 
 
 def test_gc_keeps_what_workflows_reference(toy, executions):
-    toy.run()
     toy.run(sets=["refine.strength=2"])
+    strength2 = {(r.stage, r.key) for r in entries(toy.load(["refine.strength=2"]), toy.cache)
+                 if r.stage == "refine"}
+    toy.run()
     toy.run(sets=["device=cuda"])
     toy.run(sets=["train.fail_on=beta"])
+    fail_on = {(r.stage, r.item.id): r.key for r in entries(toy.load(["train.fail_on=beta"]),
+                                                             toy.cache)}
     cache = Cache(toy.cache)
     before = {(s, k) for s, k, _ in cache.iter_entries()}
     keep = referenced_keys([str(toy.path)], toys.registry(), [], toy.cache)
-    # Entries of the default settings, and of device=cuda (a device this workflow ran on).
-    default = {(r.stage, r.key) for r in entries(toy.load(), toy.cache)}
-    cuda = {(r.stage, r.key) for r in entries(toy.load(["device=cuda"]), toy.cache)}
-    assert keep == default | cuda and keep < before
-    report = collect(toy.cache, keep, dry_run=True)
-    assert {(s, k) for s, k, _ in cache.iter_entries()} == before
+    assert strength2 <= before and not strength2 & keep  # no slot's latest any more
+    collect(toy.cache, keep, dry_run=True)
+    assert {(s, k) for s, k, _ in cache.iter_entries()} == before  # dry run: untouched
     report = collect(toy.cache, keep)
     after = {(s, k) for s, k, _ in cache.iter_entries()}
-    assert after == keep and report.removed == len(before - keep) + 1  # + the failure record
+    assert after == before & keep and not strength2 & after
+    assert report.removed == len(before - after) + 1  # + train[beta]'s failure record
     assert list(cache.iter_entries("failed")) == []
+    # The latest run of a slot survives even though the workflow's own params differ.
+    assert ("train", fail_on[("train", "alpha")]) in after
     executions.reset()
-    assert toy.run().exit_code == 0 and executions.lines() == []
+    assert toy.run().exit_code == 0 and executions.lines() == []  # default: all cached
+    assert toy.run(sets=["device=cuda"]).exit_code == 0
+    # refine[beta/*] last ran on cuda (the fail_on run blocked them): kept and reused.
+    assert "refine beta/full" not in executions.count()
 
 
 def test_read_api_for_reports(toy):

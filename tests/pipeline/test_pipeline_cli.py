@@ -1,0 +1,118 @@
+"""The workflow commands through a real ``cobgs`` process (toy stages plugged in)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+from conftest import REPO, cli_env
+
+
+def cobgs(*args, cwd=REPO, check=None, **env):
+    proc = subprocess.run([sys.executable, "-m", "stages.cli", *map(str, args)], cwd=cwd,
+                          env=cli_env(**env), capture_output=True, text=True, timeout=120)
+    if check is not None:
+        assert proc.returncode == check, proc.stdout + proc.stderr
+    return proc
+
+
+def test_run_status_and_rerun(toy, executions):
+    wf, cache = toy.path, toy.cache
+    out = cobgs("run", wf, "--cache-dir", cache, check=0).stdout
+    assert f"cache {cache}" in out and "13 done" in out
+    assert "[ 3/13] train     alpha          done" in out
+    out = cobgs("run", wf, "--cache-dir", cache, "-q", check=0).stdout
+    assert "cached" not in out.split("run finished")[0] and "13 cached" in out
+    out = cobgs("status", wf, "--cache-dir", cache, check=0).stdout
+    assert out.count(" done ") == 13 and "13 done" in out
+    line = next(l for l in out.splitlines() if l.startswith("train     beta"))
+    assert " s " in line and "MiB" in line  # wall time and peak memory columns
+    out = cobgs("run", wf, "--cache-dir", cache, "--dry-run", "--set", "refine.split=false",
+                check=0).stdout
+    assert "params changed (split: true -> false)" in out
+    assert "refine    alpha/nosplit  cached" in out  # nosplit already had split = false
+    out = cobgs("status", wf, "--cache-dir", cache, "--set", "refine.split=false",
+                check=0).stdout
+    assert "refine    alpha/full     stale" in out
+    assert executions.stages()["summary"] == 1
+
+
+def test_failures_exit_non_zero_and_status_shows_the_log(toy):
+    wf, cache = toy.path, toy.cache
+    proc = cobgs("run", wf, "--cache-dir", cache, "--set", "train.fail_on=alpha", check=1)
+    assert "FAILED  train[alpha]: RuntimeError: toy training diverged on alpha" in proc.stdout
+    assert "cobgs run: 6 task(s) not done: train[alpha], refine[alpha/full]" in proc.stderr
+    out = cobgs("status", wf, "--cache-dir", cache, "--set", "train.fail_on=alpha",
+                "--logs", check=0).stdout
+    assert "train     alpha          failed" in out
+    assert "FAILED train[alpha]: RuntimeError: toy training diverged" in out
+    assert "/failed/train/" in out and "Traceback (most recent call last)" in out
+
+
+@pytest.mark.parametrize("text, args, env, message", [
+    ("[params.evaluate]\nthreshhold = 1\n", (), {}, "params.evaluate.threshhold: unknown "
+                                                    "param 'threshhold'"),
+    ("[axes.scene.gamma]\npath = '${TOY_MISSING_DIR}/a'\n", (), {},
+     "environment variable TOY_MISSING_DIR is not set"),
+    (None, ("--set", "train.iterations=x"), {}, "--set: train.iterations: expected an integer"),
+    (None, ("--only", "nope"), {}, "--only: unknown stage 'nope'"),
+    (None, ("--executor", "ray"), {"PYTHONWARNINGS": "ignore"}, "pip install 'cobgs[ray]'"),
+])
+def test_errors_are_one_clear_line(toy, text, args, env, message):
+    if text is not None:
+        toy.path.write_text(toy.path.read_text() + text)
+    if "--executor" in args:  # hide an installed Ray from this process
+        code = ("import sys; sys.modules['ray'] = None; from stages.cli import main; "
+                f"sys.exit(main({['run', str(toy.path), '--cache-dir', str(toy.cache), *args]!r}))")
+        proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=cli_env(**env),
+                              capture_output=True, text=True, timeout=120)
+    else:
+        proc = cobgs("run", toy.path, "--cache-dir", toy.cache, *args)
+    assert proc.returncode == 2, proc.stdout + proc.stderr
+    assert message in proc.stderr and "Traceback" not in proc.stderr
+    assert proc.stderr.startswith("cobgs run: error: ")
+
+
+def test_cache_commands(toy, tmp_path):
+    wf, cache = toy.path, toy.cache
+    cobgs("run", wf, "--cache-dir", cache, check=0)
+    cobgs("run", wf, "--cache-dir", cache, "--set", "evaluate.threshold=0.1", check=0)
+    out = cobgs("cache", "ls", "--cache-dir", cache, check=0).stdout
+    # 13 + four evaluate entries and a summary (the metrics hold the threshold).
+    assert "18 entries" in out and "evaluate" in out and "alpha/full" in out
+    # The threshold=0.1 entries are each slot's latest run: gc keeps them...
+    out = cobgs("cache", "gc", wf, "--cache-dir", cache, "--dry-run", check=0).stdout
+    assert "would remove 0 entries" in out
+    cobgs("run", wf, "--cache-dir", cache, check=0)
+    # ...until the workflow runs again with its own settings.
+    out = cobgs("cache", "gc", wf, "--cache-dir", cache, "--dry-run", check=0).stdout
+    assert "would remove 5 entries" in out and "entries/evaluate/" in out
+    out = cobgs("cache", "gc", wf, "--cache-dir", cache, check=0).stdout
+    assert "removed 5 entries" in out and "kept 13 entries" in out
+    assert "13 entries" in cobgs("cache", "ls", "--cache-dir", cache, check=0).stdout
+    # Same size, different bytes: only a re-hash can tell.
+    entry = next((cache / "entries" / "load").iterdir())
+    data = entry / "out" / "data.txt"
+    data.write_text(data.read_text().replace("alpha", "ALPHA").replace("beta", "BETA"))
+    out = cobgs("cache", "verify", "--cache-dir", cache, check=1).stdout
+    assert "does not match its recorded hash" in out and "12 of 13" in out
+    cobgs("cache", "verify", "--cache-dir", cache, "--fix", check=0)
+    out = cobgs("run", wf, "--cache-dir", cache, check=0).stdout
+    assert "1 done, 12 cached" in out  # the load entry verify removed is recomputed
+
+
+def test_cache_dir_defaults(toy, tmp_path):
+    cobgs("run", toy.path, cwd=tmp_path, check=0)
+    assert (tmp_path / "runs" / "cache" / "entries" / "summary").is_dir()
+    other = tmp_path / "from_env"
+    cobgs("run", toy.path, cwd=tmp_path, COBGS_CACHE_DIR=str(other), check=0)
+    assert (other / "entries" / "summary").is_dir()
+
+
+def test_stages_listing(toy):
+    out = cobgs("stages", check=0).stdout
+    assert "refine v1  per scene x method  ['model'] -> ['refined']  (uses device)" in out
+    out = cobgs("stages", "--toml", check=0).stdout
+    assert "[params.train]\niterations = 10\nfail_on = \"\"" in out
