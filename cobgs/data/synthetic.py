@@ -105,11 +105,15 @@ def _render_all(scene: Scene, cams: List[PinholeCamera], s: int, progress: bool,
 
         methods = mp.get_all_start_methods()
         ctx = mp.get_context("fork" if "fork" in methods else "spawn")
-        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
-                                 initargs=(scene, cams, s)) as pool:
+        pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
+                                   initargs=(scene, cams, s))
+        try:
             for view in pool.map(_render_index, range(len(cams))):
                 yield view
                 bar.update()
+        finally:
+            # On an error or Ctrl-C, drop the views not started yet instead of waiting.
+            pool.shutdown(wait=True, cancel_futures=True)
     finally:
         bar.close()
 
