@@ -50,12 +50,15 @@ class EntryCheck:
 
 
 def write_json_atomic(path: Path, data: Any) -> None:
-    """Write JSON to ``path`` through a temporary file and a rename (never half-written)."""
+    """Write JSON to ``path`` through a temporary file and a rename (never half-written).
+
+    No fsync: the guarantee is against the writer dying (SIGKILL, OOM, Ctrl-C), which the
+    rename covers. After a power loss, ``cobgs cache verify --fix`` re-hashes everything
+    (the cheap check already catches the usual symptom, truncated files).
+    """
     tmp = path.with_name(f".{path.name}.{os.getpid()}.{next(_serial)}.tmp")
     with open(tmp, "w", encoding="utf-8") as f:
         json.dump(data, f, indent=1, sort_keys=True, ensure_ascii=False)
-        f.flush()
-        os.fsync(f.fileno())
     os.replace(tmp, path)
 
 
@@ -152,13 +155,18 @@ class Cache:
 
     def clean_tmp(self, stage: str, key: str) -> int:
         """Remove leftovers of killed writers of this key; only call under its lock."""
-        removed = 0
-        tmp_root = self.root / "tmp"
-        if tmp_root.is_dir():
-            for path in tmp_root.glob(f"{stage}.{key}.*"):
-                shutil.rmtree(path, ignore_errors=True)
-                removed += 1
-        return removed
+        return sum(1 for path in self.tmp_leftovers(stage, key)
+                   if shutil.rmtree(path, ignore_errors=True) is None)
+
+    def tmp_leftovers(self, stage: str, key: str) -> list[Path]:
+        """Temporary folders of ``stage``/``key`` (a plain listing: glob would compile a
+        pattern per key)."""
+        prefix = f"{stage}.{key}."
+        try:
+            names = os.listdir(self.root / "tmp")
+        except FileNotFoundError:
+            return []
+        return sorted(self.root / "tmp" / n for n in names if n.startswith(prefix))
 
     def _move_aside(self, path: Path) -> None:
         trash = self.root / "tmp" / f"trash.{path.name}.{os.getpid()}.{next(_serial)}"

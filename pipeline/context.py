@@ -39,10 +39,16 @@ class StageContext:
     params: Any
     settings: Settings
     out_dir: Path
-    scratch_dir: Path
+    scratch_path: Path
     log: logging.Logger
     key: str
     extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def scratch_dir(self) -> Path:
+        """A private temporary folder (created on first use), deleted before commit."""
+        self.scratch_path.mkdir(exist_ok=True)
+        return self.scratch_path
 
     @property
     def device(self) -> str:

@@ -203,13 +203,12 @@ def _run_locked(job: Job, cache: Cache) -> JobResult:
     tmp = cache.new_tmp(stage.name, job.key)
     out_dir, scratch = tmp / OUT, tmp / SCRATCH
     out_dir.mkdir()
-    scratch.mkdir()
     log, handler = _logger(job.key, tmp / LOG)
     log.info("stage %s version %s item %s key %s", stage.name, stage.version,
              job.item.label, job.key)
     log.info("params %s", job.params_json)
     ctx = StageContext(stage=stage.name, item=job.item, items=job.items, params=job.params,
-                       settings=job.settings, out_dir=out_dir, scratch_dir=scratch, log=log,
+                       settings=job.settings, out_dir=out_dir, scratch_path=scratch, log=log,
                        key=job.key)
     meter = Meter()
     old_stdout = sys.stdout
@@ -221,7 +220,8 @@ def _run_locked(job: Job, cache: Cache) -> JobResult:
         finally:
             sys.stdout = old_stdout
         paths = _validate_outputs(stage, result, out_dir)
-        shutil.rmtree(scratch, ignore_errors=True)
+        if scratch.exists():
+            shutil.rmtree(scratch, ignore_errors=True)
         outputs = {}
         for name, path in paths.items():
             h = tree_hash(path)
@@ -287,7 +287,7 @@ def record_crash(job: Job, reason: str) -> JobResult:
     """Driver-side failure record for a worker that died without reporting (SIGKILL,
     out of memory): keeps whatever log its temporary folder holds."""
     cache = Cache(job.cache_root)
-    leftovers = sorted((cache.root / "tmp").glob(f"{job.stage.name}.{job.key}.*"))
+    leftovers = cache.tmp_leftovers(job.stage.name, job.key)
     manifest = _base_manifest(job, {})
     manifest.update(status="failed", outputs={},
                     error={"type": "WorkerDied", "summary": reason, "traceback": ""})
