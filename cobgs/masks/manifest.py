@@ -180,6 +180,8 @@ class Sam2Config:
     fill_hole_area: int = 8
     mem_dim: int = 64
     hidden_dim: int = 256
+    multimask_output_in_sam: bool = True
+    multimask_output_for_tracking: bool = True
     multimask_min_pt_num: int = 0
     multimask_max_pt_num: int = 1
     use_multimask_token_for_obj_ptr: bool = True

@@ -123,7 +123,8 @@ class VideoPredictor:
                                                 np.float32)
         lab = np.concatenate(labs)
         enc = self.cache.get(frame)
-        multimask = cfg.multimask_min_pt_num <= len(lab) <= cfg.multimask_max_pt_num
+        multimask = cfg.multimask_output_in_sam and (
+            cfg.multimask_min_pt_num <= len(lab) <= cfg.multimask_max_pt_num)
         dec = self.models.decode(self._prompt_embed(enc), enc, xy, lab)
         plane, ptr_plane = choose_mask(dec.masks, dec.ious, multimask, cfg.stability_delta,
                                        cfg.stability_thresh, cfg.use_multimask_token_for_obj_ptr)
@@ -209,7 +210,8 @@ class VideoPredictor:
         pix = self.models.attend(enc, mem)
         dec = self.models.decode(pix, enc, np.zeros((0, 2), np.float32),
                                  np.zeros((0,), np.float32))
-        multimask = cfg.multimask_min_pt_num <= 0 <= cfg.multimask_max_pt_num
+        multimask = (cfg.multimask_output_in_sam and cfg.multimask_output_for_tracking
+                     and cfg.multimask_min_pt_num <= 0 <= cfg.multimask_max_pt_num)
         plane, ptr_plane = choose_mask(dec.masks, dec.ious, multimask, cfg.stability_delta,
                                        cfg.stability_thresh, cfg.use_multimask_token_for_obj_ptr)
         low = dec.masks[plane] if dec.object_score > 0 else np.full_like(dec.masks[plane],
