@@ -1,0 +1,209 @@
+"""``cobgs export-onnx gdino``: a Grounding DINO checkpoint -> one graph + ``vocab.txt``.
+
+Run where ``torch``, the ``groundingdino`` package (IDEA-Research/GroundingDINO) and its
+BERT tokenizer files are available::
+
+    cobgs export-onnx gdino --config GroundingDINO_SwinB_cfg.py \\
+        --checkpoint groundingdino_swinb_cogcoor.pth --out models/ --size 800 1200
+
+The graph takes the caption already tokenised (the host does it with the ``tokenizers``
+package on the written ``vocab.txt``) and is traced at one fixed image size. Export on
+CPU: the multi-scale deformable attention then takes its pure-PyTorch path (grid
+sampling), which ONNX can express, instead of the CUDA kernel.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+from pathlib import Path
+from typing import List, Optional, Sequence, Tuple
+
+import numpy as np
+
+from ..manifest import GDINO_FILES, GdinoConfig, gdino_manifest_dict, write_manifest
+from .common import ExportError, Parity, export_graph, remove_partial, require, verify_graph
+
+log = logging.getLogger("cobgs.masks.export")
+
+GDINO_HINT = ("Install PyTorch and the Grounding DINO code (IDEA-Research/GroundingDINO, "
+              "`pip install groundingdino-py` or from source) with its BERT tokenizer files "
+              "on the machine that holds the checkpoint.")
+INPUTS = ["img", "input_ids", "attention_mask", "position_ids", "token_type_ids",
+          "text_token_mask"]
+OUTPUTS = ["logits", "boxes"]
+
+
+def _wrapper_class():
+    import torch
+    from torch import nn
+
+    misc = require("groundingdino.util.misc", "Grounding DINO", GDINO_HINT)
+
+    class GroundingDinoGraph(nn.Module):
+        """Tokenised caption + image -> (logits [1,900,256], boxes [1,900,4]).
+
+        Follows ``GroundingDINO.forward`` with the text tensors as inputs instead of a
+        caption string (the module structure used: ``bert``, ``feat_map``, ``backbone``,
+        ``input_proj``, ``transformer``, ``bbox_embed``, ``class_embed``,
+        ``num_feature_levels``, ``sub_sentence_present``).
+        """
+
+        def __init__(self, model):
+            super().__init__()
+            self.m = model
+
+        def forward(self, img, input_ids, attention_mask, position_ids, token_type_ids,
+                    text_token_mask):
+            m = self.m
+            if m.sub_sentence_present:
+                bert = m.bert(input_ids=input_ids, attention_mask=text_token_mask,
+                              token_type_ids=token_type_ids, position_ids=position_ids)
+            else:
+                bert = m.bert(input_ids=input_ids, attention_mask=attention_mask,
+                              token_type_ids=token_type_ids)
+            text = {
+                "encoded_text": m.feat_map(bert["last_hidden_state"]),
+                "text_token_mask": attention_mask,
+                "position_ids": position_ids,
+                "text_self_attention_masks": text_token_mask,
+            }
+            no_pad = torch.zeros(img.shape[0], img.shape[2], img.shape[3], dtype=torch.bool)
+            samples = misc.NestedTensor(img, no_pad)
+            features, poss = m.backbone(samples)
+            srcs, masks = [], []
+            for level, feat in enumerate(features):
+                src, mask = feat.decompose()
+                srcs.append(m.input_proj[level](src))
+                masks.append(mask)
+            for level in range(len(srcs), m.num_feature_levels):
+                src = m.input_proj[level](features[-1].tensors if level == len(features)
+                                          else srcs[-1])
+                mask = torch.nn.functional.interpolate(no_pad[None].float(),
+                                                       size=src.shape[-2:]).to(torch.bool)[0]
+                poss.append(m.backbone[1](misc.NestedTensor(src, mask)).to(src.dtype))
+                srcs.append(src)
+                masks.append(mask)
+            hs, reference, _, _, _ = m.transformer(srcs, masks, None, poss, None, None, text)
+            last = len(hs) - 1
+            delta = m.bbox_embed[last](hs[last])
+            boxes = (delta + misc.inverse_sigmoid(reference[last])).sigmoid()
+            logits = m.class_embed[last](hs[last], text)
+            return logits, boxes
+
+    return GroundingDinoGraph
+
+
+def load_gdino(config: str, checkpoint: str):
+    require("torch", "Grounding DINO", GDINO_HINT)
+    inference = require("groundingdino.util.inference", "Grounding DINO", GDINO_HINT)
+    for p in (config, checkpoint):
+        if not Path(p).is_file():
+            raise ExportError(f"file not found: {p}")
+    try:
+        return inference.load_model(config, checkpoint, device="cpu").eval()
+    except Exception as exc:  # the loader raises many types
+        raise ExportError(f"cannot load Grounding DINO from {config} / {checkpoint}: {exc}") \
+            from exc
+
+
+def export_gdino(
+    out_dir: os.PathLike,
+    size_hw: Tuple[int, int] = (800, 1200),
+    config: Optional[str] = None,
+    checkpoint: Optional[str] = None,
+    caption: str = "a cat . a remote control .",
+    image: Optional[str] = None,
+    verify: bool = True,
+    model=None,
+    graph_module=None,
+    vocab_path: Optional[os.PathLike] = None,
+    num_queries: int = 900,
+    max_text_len: int = 256,
+) -> List[Parity]:
+    """Export, verify and register Grounding DINO in ``out_dir`` (manifest merged).
+
+    Args:
+        size_hw: the fixed (height, width) the graph is traced at.
+        caption: the caption used for tracing and verification (the caption length
+            stays a dynamic axis).
+        model: an already-loaded ``GroundingDINO`` (skips loading).
+        graph_module: a module with the contract's signature to export instead of the
+            wrapper around ``model`` (used to test this machinery without the weights).
+        vocab_path: the BERT ``vocab.txt`` (default: saved from the model's tokenizer).
+
+    Returns:
+        the max differences found between onnxruntime and PyTorch.
+    """
+    import torch
+
+    from ..gdino import Tokenizer
+    from ..images import load_rgb, to_model_input
+    from ..manifest import Preprocess
+
+    cfg = GdinoConfig(num_queries=num_queries, max_text_len=max_text_len)
+    out = Path(out_dir)
+    gdir = out / "groundingdino"
+    gdir.mkdir(parents=True, exist_ok=True)
+    graph_path = out / GDINO_FILES["model"]
+    vocab_out = out / GDINO_FILES["vocab"]
+    if graph_module is None:
+        if model is None:
+            if config is None or checkpoint is None:
+                raise ExportError("exporting Grounding DINO needs --config and --checkpoint")
+            model = load_gdino(config, checkpoint)
+        graph_module = _wrapper_class()(model).eval()
+        if vocab_path is None:
+            tok = getattr(model, "tokenizer", None)
+            if tok is None or not hasattr(tok, "save_vocabulary"):
+                raise ExportError("the model has no BERT tokenizer to take vocab.txt from; "
+                                  "pass --vocab")
+            saved = tok.save_vocabulary(str(gdir))
+            vocab_path = Path(saved[0])
+    if vocab_path is None or not Path(vocab_path).is_file():
+        raise ExportError(f"vocab.txt not found: {vocab_path}")
+    if Path(vocab_path).resolve() != vocab_out.resolve():
+        shutil.copyfile(vocab_path, vocab_out)
+
+    pre = Preprocess(size_hw=tuple(size_hw), interpolation="bilinear")
+    if image is None:
+        rng = np.random.default_rng(0)
+        rgb = rng.integers(0, 256, (size_hw[0], size_hw[1], 3), dtype=np.uint8)
+    else:
+        rgb = load_rgb(image)
+    text = Tokenizer(vocab_out, cfg.max_text_len, cfg.special_ids)(caption)
+    feeds = {"img": to_model_input(rgb, pre), "input_ids": text.input_ids,
+             "attention_mask": text.attention_mask, "position_ids": text.position_ids,
+             "token_type_ids": text.token_type_ids, "text_token_mask": text.text_token_mask}
+    dyn = {n: {1: "num_tokens"} for n in INPUTS[1:]}
+    dyn["text_token_mask"] = {1: "num_tokens", 2: "num_tokens"}
+    report: List[Parity] = []
+    try:
+        export_graph(graph_module, tuple(torch.from_numpy(v) for v in feeds.values()),
+                     graph_path, INPUTS, OUTPUTS, dyn)
+        if verify:
+            report = verify_graph(graph_path, graph_module, feeds, OUTPUTS, atol=1e-3,
+                                  rtol=1e-3)
+            # another caption length than the traced one
+            other = Tokenizer(vocab_out, cfg.max_text_len, cfg.special_ids)(
+                caption + " " + caption)
+            feeds2 = dict(feeds, input_ids=other.input_ids, attention_mask=other.attention_mask,
+                          position_ids=other.position_ids, token_type_ids=other.token_type_ids,
+                          text_token_mask=other.text_token_mask)
+            report += verify_graph(graph_path, graph_module, feeds2, OUTPUTS, atol=1e-3,
+                                   rtol=1e-3)
+    except BaseException:
+        remove_partial([graph_path])
+        raise
+    entry = gdino_manifest_dict(tuple(size_hw), cfg)
+    entry["note"] = (f"exported by cobgs from {checkpoint or 'a stand-in module'} "
+                     f"at {size_hw[0]}x{size_hw[1]}")
+    write_manifest(out, {"groundingdino": entry})
+    return report
+
+
+def parse_size(values: Sequence[int]) -> Tuple[int, int]:
+    if len(values) != 2 or any(int(v) <= 0 for v in values):
+        raise ExportError(f"--size takes HEIGHT WIDTH (positive), got {list(values)}")
+    return int(values[0]), int(values[1])
