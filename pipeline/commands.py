@@ -126,7 +126,8 @@ def register(sub: Any, registry_factory: RegistryFactory, package_version: Calla
 
 
 def cmd_run(args: argparse.Namespace, registry_factory: RegistryFactory,
-            version: str, stream: TextIO = sys.stdout) -> int:
+            version: str, stream: Optional[TextIO] = None) -> int:
+    stream = stream if stream is not None else sys.stdout
     from .run import RunOptions, run_workflow
     from .workflow import load_workflow
 
@@ -149,7 +150,8 @@ def cmd_run(args: argparse.Namespace, registry_factory: RegistryFactory,
 
 
 def cmd_status(args: argparse.Namespace, registry_factory: RegistryFactory,
-               stream: TextIO = sys.stdout) -> int:
+               stream: Optional[TextIO] = None) -> int:
+    stream = stream if stream is not None else sys.stdout
     from .api import entries
     from .items import ItemFilter
     from .workflow import load_workflow
@@ -212,7 +214,8 @@ def referenced_keys(workflows: Sequence[str], registry: Any, sets: Sequence[str]
 
 
 def cmd_gc(args: argparse.Namespace, registry_factory: RegistryFactory,
-           stream: TextIO = sys.stdout) -> int:
+           stream: Optional[TextIO] = None) -> int:
+    stream = stream if stream is not None else sys.stdout
     from .gc import collect
 
     cache_dir = default_cache_dir(args.cache_dir)
@@ -227,7 +230,8 @@ def cmd_gc(args: argparse.Namespace, registry_factory: RegistryFactory,
     return 0
 
 
-def cmd_ls(args: argparse.Namespace, stream: TextIO = sys.stdout) -> int:
+def cmd_ls(args: argparse.Namespace, stream: Optional[TextIO] = None) -> int:
+    stream = stream if stream is not None else sys.stdout
     from .cache import MANIFEST, Cache, read_json
 
     cache = Cache(default_cache_dir(args.cache_dir))
@@ -250,7 +254,8 @@ def cmd_ls(args: argparse.Namespace, stream: TextIO = sys.stdout) -> int:
     return 0
 
 
-def cmd_verify(args: argparse.Namespace, stream: TextIO = sys.stdout) -> int:
+def cmd_verify(args: argparse.Namespace, stream: Optional[TextIO] = None) -> int:
+    stream = stream if stream is not None else sys.stdout
     from .cache import MANIFEST, Cache, read_json
     from .hashing import tree_hash
 
@@ -278,7 +283,8 @@ def cmd_verify(args: argparse.Namespace, stream: TextIO = sys.stdout) -> int:
 
 
 def cmd_stages(args: argparse.Namespace, registry_factory: RegistryFactory,
-               stream: TextIO = sys.stdout) -> int:
+               stream: Optional[TextIO] = None) -> int:
+    stream = stream if stream is not None else sys.stdout
     from .params import defaults_toml
 
     registry = registry_factory()

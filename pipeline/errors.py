@@ -54,6 +54,10 @@ class WorkflowError(PipelineError, ValueError):
         super().__init__(f"{where}: {message}" if where else message)
 
 
+class OutputError(PipelineError):
+    """A stage returned outputs that do not match its declaration."""
+
+
 class CacheError(PipelineError):
     """The cache folder is unusable (not writable, wrong layout)."""
 

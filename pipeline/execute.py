@@ -26,7 +26,7 @@ from typing import Any, Iterator, Mapping, Optional
 
 from .cache import LOG, MANIFEST, OUT, SCRATCH, Cache, write_json_atomic
 from .context import StageContext
-from .errors import PipelineError
+from .errors import OutputError
 from .hashing import tree_hash
 from .items import Item
 from .measure import Meter
@@ -72,10 +72,6 @@ class JobResult:
     log_path: Optional[str] = None
     note: str = ""
     measures: dict = field(default_factory=dict)
-
-
-class OutputError(PipelineError):
-    """A stage returned outputs that do not match its declaration."""
 
 
 class _Tee:

@@ -257,8 +257,18 @@ def inspect(plan: Plan, cache: Cache, with_reasons: bool = True) -> list[TaskSta
     return states
 
 
+class _Unset:
+    def __repr__(self) -> str:
+        return "<unset>"
+
+
+_UNSET = _Unset()
+
+
 def _short(value: Any) -> str:
-    text = canonical_json(value) if not isinstance(value, str) else value
+    if value is _UNSET:
+        return "<unset>"
+    text = canonical_json(value)
     return text if len(text) <= 40 else text[:37] + "..."
 
 
@@ -287,7 +297,7 @@ def diff_reasons(task: Task, wf: Workflow, ref: Mapping[str, Any],
 def _dict_diff(old: Mapping[str, Any], new: Mapping[str, Any], prefix: str = "") -> list[str]:
     out = []
     for k in sorted(set(old) | set(new)):
-        a, b = old.get(k, "<unset>"), new.get(k, "<unset>")
+        a, b = old.get(k, _UNSET), new.get(k, _UNSET)
         if a == b:
             continue
         if isinstance(a, Mapping) and isinstance(b, Mapping):

@@ -166,10 +166,14 @@ def _make_executor(options: RunOptions) -> Any:
     return InlineExecutor() if options.jobs == 1 else ForkExecutor(options.jobs)
 
 
-def run_workflow(workflow: Workflow, options: RunOptions, stream: TextIO = sys.stdout,
+def run_workflow(workflow: Workflow, options: RunOptions, stream: Optional[TextIO] = None,
                  executor: Any = None) -> RunSummary:
-    """Run (or with ``options.dry_run``, describe) ``workflow``; see the module docstring."""
+    """Run (or with ``options.dry_run``, describe) ``workflow``; see the module docstring.
+
+    Progress lines and the summary go to ``stream`` (default: standard output).
+    """
     t0 = time.perf_counter()
+    stream = stream if stream is not None else sys.stdout
     cache = Cache(options.cache_dir)
     plan = Plan(workflow)
     sel = select(plan, options)
@@ -226,9 +230,9 @@ class _Scheduler:
                           else f"upstream {cause.id} {why.get(state, state)}")
         if state == "interrupted":
             outcome.state = "interrupted"
-        self._settle(index, outcome)
-        if outcome.state == "blocked":
+        else:  # before its dependents, so the lines read in dependency order
             self.progress.line(self.plan.tasks[index], "blocked", note=outcome.note)
+        self._settle(index, outcome)
 
     def _write_ref(self, task: Task, key: str, status: str, hashes: Any) -> None:
         self.cache.write_ref(self.wf.id, task.stage.name, task.item.id, ref_record(
@@ -280,17 +284,19 @@ class _Scheduler:
         self.executor.submit(job, resources)
         return True
 
+    def _provenance(self, source: int, artifact: str) -> dict[str, str]:
+        out = self.table.outputs[source][artifact]  # type: ignore[index]
+        return {"sha256": out["sha256"], "key": self.table.entry_dirs[source].name}  # type: ignore
+
     def _job(self, task: Task, key: str, doc: dict, hashes: Any, force: bool) -> Job:
         records: dict[str, Any] = {}
         for b in task.bindings:
-            def rec(s: int) -> dict:
-                out = self.table.outputs[s][b.name]  # type: ignore[index]
-                return {"sha256": out["sha256"], "key": self.table.entry_dirs[s].name}  # type: ignore
             if b.fan_in:
                 records[b.name] = {"stage": b.producer, "items": {
-                    self.table.item_ids[s]: rec(s) for s in b.sources}}
+                    self.table.item_ids[s]: self._provenance(s, b.name) for s in b.sources}}
             else:
-                records[b.name] = {"stage": b.producer, **rec(b.sources[0])}
+                records[b.name] = {"stage": b.producer,
+                                   **self._provenance(b.sources[0], b.name)}
         level = task.item.axes
         if level not in self._full_by_level:
             groups: dict[Item, list[Item]] = {}

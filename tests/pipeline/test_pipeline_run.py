@@ -2,15 +2,16 @@
 
 from __future__ import annotations
 
+import io
 import json
-import os
 import shutil
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import pytest
 
 import pipeline_toys as toys
-from pipeline import Registry, Stage, entries, load_manifest
+from pipeline import (MissingInputError, Registry, RunOptions, Stage, WorkflowError, entries,
+                      load_manifest, load_workflow, run_workflow)
 from pipeline.cache import Cache
 from pipeline.commands import referenced_keys
 from pipeline.gc import collect
@@ -186,8 +187,6 @@ def run_bad(ctx, inputs):
 def test_bad_outputs_fail_the_task_and_leave_nothing(tmp_path, mode, message):
     reg = Registry([Stage(name="bad", version=1, run=run_bad, outputs=("thing",),
                           params=BadParams)])
-    from pipeline import RunOptions, load_workflow, run_workflow
-    import io
     wf_path = tmp_path / "wf.toml"
     wf_path.write_text(f"[params.bad]\nmode = '{mode}'\n")
     out = io.StringIO()
@@ -203,8 +202,6 @@ def test_output_outside_the_entry_is_rejected(tmp_path):
         target = tmp_path / "outside.txt"
         target.write_text("x")
         return {"thing": target}
-    from pipeline import RunOptions, load_workflow, run_workflow
-    import io
     (tmp_path / "wf.toml").write_text("")
     out = io.StringIO()
     reg = Registry([Stage(name="leaky", version=1, run=run, outputs=("thing",))])
@@ -235,7 +232,6 @@ def test_only_from_force_and_items(toy, executions):
     executions.reset()
     toy.run(force=("refine",), items="beta/n*,alpha/full")
     assert executions.count() == {"refine beta/nosplit": 1, "refine alpha/full": 1}
-    from pipeline import WorkflowError, MissingInputError
     with pytest.raises(WorkflowError, match="gamma matches no item"):
         toy.run(items="gamma")
     with pytest.raises(MissingInputError, match="--only: unknown stage 'refin'"):
@@ -298,8 +294,6 @@ def test_peak_memory_is_per_task(tmp_path):
 
     reg = Registry([Stage(name="big", version=1, run=big, outputs=("a",)),
                     Stage(name="small", version=1, run=small, inputs=("a",), outputs=("b",))])
-    from pipeline import RunOptions, load_workflow, run_workflow
-    import io
     (tmp_path / "wf.toml").write_text("")
     wf = load_workflow(tmp_path / "wf.toml", reg)
     run_workflow(wf, RunOptions(cache_dir=tmp_path / "c"), stream=io.StringIO())
