@@ -9,7 +9,6 @@ colours, texture lattices, box yaws and camera jitter, never the contacts.
 from __future__ import annotations
 
 import colorsys
-import math
 from dataclasses import dataclass
 from typing import Callable, Dict, List, Tuple
 

@@ -9,7 +9,7 @@ coverage respects occlusion. Rays are processed in chunks of whole pixels to bou
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Dict, List, Tuple
+from typing import Dict, Tuple
 
 import numpy as np
 
@@ -252,6 +252,3 @@ def make_caster(scene: Scene) -> _Caster:
     """Per-scene constants to share between :func:`render_view` calls."""
     return _Caster(scene)
 
-
-def surfaces_json(surfaces: List[SceneObject]) -> List[dict]:
-    return [s.to_json() for s in surfaces]
