@@ -8,6 +8,8 @@
 //   α = min(0.99, o G), G = exp(power): no gradient where the clamp is active.
 #include <torch/library.h>
 
+#include <memory>
+
 #include "blend.h"
 #include "blend_tile_cpu.h"
 
@@ -46,7 +48,8 @@ void blend_backward(const at::Tensor& means2d, const at::Tensor& conics,
   const T* vtr = v_trans.data_ptr<T>();
   const auto prep = prepare<T>(means2d.data_ptr<T>(), conics.data_ptr<T>(),
                                opacities.data_ptr<T>(), n);
-  std::vector<T> pair_grad(size_t(m) * S);
+  // Every entry of a non-empty tile is written by the thread owning the tile.
+  std::unique_ptr<T[]> pair_grad(new T[size_t(m) * S]);
 
   const T alpha_min = T(math::kAlphaMin), alpha_max = T(math::kAlphaMax);
 
@@ -63,7 +66,7 @@ void blend_backward(const at::Tensor& means2d, const at::Tensor& conics,
     for (int64_t tile = 0; tile < n_tiles; ++tile) {
       const int64_t lo = off[tile], hi = off[tile + 1];
       if (lo == hi) continue;
-      std::fill(pair_grad.begin() + lo * S, pair_grad.begin() + hi * S, T(0));
+      std::fill(pair_grad.get() + lo * S, pair_grad.get() + hi * S, T(0));
       const int x0 = int(tile % tiles_x) * kTileSize, y0 = int(tile / tiles_x) * kTileSize;
       const int x1 = std::min(x0 + kTileSize, width), y1 = std::min(y0 + kTileSize, height);
       int max_last = 0;
@@ -83,46 +86,57 @@ void blend_backward(const at::Tensor& means2d, const at::Tensor& conics,
         }
       for (int64_t rank = max_last - 1; rank >= 0; --rank) {
         const int64_t j = lo + rank;
+        if (rank >= kPrefetchAhead) {
+          const int32_t ahead = ids[j - kPrefetchAhead];
+          COBGS_PREFETCH(&prep[ahead]);
+          COBGS_PREFETCH(feat + int64_t(ahead) * C);
+        }
         const int32_t gi = ids[j];
         const GaussPrep<T>& g = prep[gi];
-        if (g.bound.never) continue;
+        const int gx0 = std::max(x0, g.x0), gx1 = std::min(x1, g.x1);
+        const int gy0 = std::max(y0, g.y0), gy1 = std::min(y1, g.y1);
+        if (gx0 >= gx1 || gy0 >= gy1) continue;
         const T* f = feat + int64_t(gi) * C;
         std::fill(acc.begin(), acc.end(), T(0));
-        for_each_pixel(g, x0, y0, x1, y1, [&](int px, int py, int p) {
-          if (rank >= last[p]) return;
-          const T dx = (T(px) + T(0.5)) - g.mx;
+        for (int py = gy0; py < gy1; ++py) {
           const T dy = (T(py) + T(0.5)) - g.my;
-          const T power = math::pixel_power(g.ca, g.cb, g.cc, dx, dy);
-          if (power > T(0) || power < g.power_reject) return;
-          const T gauss = std::exp(power);
-          const T o_g = g.o * gauss;
-          const T alpha = std::min(alpha_max, o_g);
-          if (alpha < alpha_min) return;
-          // Blended in the forward pass (rank < n_contrib and α >= 1/255).
-          const T one_minus = T(1) - alpha;
-          const T t_front = Tp[p] / one_minus;
-          const T w = alpha * t_front;
-          T* r = rest.data() + size_t(p) * C;
-          const T* vc = vcol.data() + size_t(p) * C;
-          T dot = T(0);
-          for (int c = 0; c < C; ++c) {
-            acc[kFeat + c] += w * vc[c];
-            dot += (f[c] - r[c]) * vc[c];
-            r[c] = alpha * f[c] + one_minus * r[c];
+          const int row = (py - y0) * kTileSize - x0;
+          for (int px = gx0; px < gx1; ++px) {
+            const int p = row + px;
+            if (rank >= last[p]) continue;
+            const T dx = (T(px) + T(0.5)) - g.mx;
+            const T power = math::pixel_power(g.ca, g.cb, g.cc, dx, dy);
+            if (power > T(0) || power < g.power_reject) continue;
+            const T gauss = std::exp(power);
+            const T o_g = g.o * gauss;
+            const T alpha = std::min(alpha_max, o_g);
+            if (alpha < alpha_min) continue;
+            // Blended in the forward pass (rank < n_contrib and α >= 1/255).
+            const T one_minus = T(1) - alpha;
+            const T t_front = Tp[p] / one_minus;
+            const T w = alpha * t_front;
+            T* r = rest.data() + size_t(p) * C;
+            const T* vc = vcol.data() + size_t(p) * C;
+            T dot = T(0);
+            for (int c = 0; c < C; ++c) {
+              acc[kFeat + c] += w * vc[c];
+              dot += (f[c] - r[c]) * vc[c];
+              r[c] = alpha * f[c] + one_minus * r[c];
+            }
+            const T v_alpha = t_front * dot - vtt[p] / one_minus;
+            Tp[p] = t_front;
+            if (o_g > alpha_max) continue;  // clamped: α does not depend on o or the power
+            acc[kOp] += gauss * v_alpha;
+            const T v_power = o_g * v_alpha;
+            acc[kCa] += T(-0.5) * dx * dx * v_power;
+            acc[kCb] += -dx * dy * v_power;
+            acc[kCc] += T(-0.5) * dy * dy * v_power;
+            // d = pixel - mean, so d(power)/d(mean) = -d(power)/d(d).
+            acc[kMx] += (g.ca * dx + g.cb * dy) * v_power;
+            acc[kMy] += (g.cb * dx + g.cc * dy) * v_power;
           }
-          const T v_alpha = t_front * dot - vtt[p] / one_minus;
-          Tp[p] = t_front;
-          if (o_g > alpha_max) return;  // clamped: α does not depend on o or the power
-          acc[kOp] += gauss * v_alpha;
-          const T v_power = o_g * v_alpha;
-          acc[kCa] += T(-0.5) * dx * dx * v_power;
-          acc[kCb] += -dx * dy * v_power;
-          acc[kCc] += T(-0.5) * dy * dy * v_power;
-          // d = pixel - mean, so d(power)/d(mean) = -d(power)/d(d).
-          acc[kMx] += (g.ca * dx + g.cb * dy) * v_power;
-          acc[kMy] += (g.cb * dx + g.cc * dy) * v_power;
-        });
-        std::copy(acc.begin(), acc.end(), pair_grad.begin() + j * S);
+        }
+        std::copy(acc.begin(), acc.end(), pair_grad.get() + j * S);
       }
     }
   }
@@ -134,7 +148,7 @@ void blend_backward(const at::Tensor& means2d, const at::Tensor& conics,
   T* vf = v_features.data_ptr<T>();
   for (int64_t j = 0; j < m; ++j) {
     const int64_t g = ids[j];
-    const T* src = pair_grad.data() + j * S;
+    const T* src = pair_grad.get() + j * S;
     vm[2 * g] += src[kMx];
     vm[2 * g + 1] += src[kMy];
     vco[3 * g] += src[kCa];

@@ -66,38 +66,49 @@ void blend_forward(const at::Tensor& means2d, const at::Tensor& conics,
       }
       const int64_t lo = off[tile], hi = off[tile + 1];
       for (int64_t j = lo; j < hi && active > 0; ++j) {
+        if (j + kPrefetchAhead < hi) {
+          const int32_t ahead = ids[j + kPrefetchAhead];
+          COBGS_PREFETCH(&prep[ahead]);
+          COBGS_PREFETCH(feat + int64_t(ahead) * C);
+        }
         const int32_t gi = ids[j];
         const GaussPrep<T>& g = prep[gi];
-        if (g.bound.never) continue;
+        const int gx0 = std::max(x0, g.x0), gx1 = std::min(x1, g.x1);
+        const int gy0 = std::max(y0, g.y0), gy1 = std::min(y1, g.y1);
+        if (gx0 >= gx1 || gy0 >= gy1) continue;
         const T* f = feat + int64_t(gi) * C;
         const int32_t rank = static_cast<int32_t>(j - lo + 1);
-        for_each_pixel(g, x0, y0, x1, y1, [&](int px, int py, int p) {
-          if (done[p]) return;
-          const T dx = (T(px) + T(0.5)) - g.mx;
+        for (int py = gy0; py < gy1; ++py) {
           const T dy = (T(py) + T(0.5)) - g.my;
-          const T power = math::pixel_power(g.ca, g.cb, g.cc, dx, dy);
-          if (power > T(0) || power < g.power_reject) return;
-          const T alpha = std::min(alpha_max, g.o * std::exp(power));
-          if (alpha < alpha_min) return;
-          const T test_t = Tp[p] * (T(1) - alpha);
-          if (test_t < t_min) {  // 3DGS: this Gaussian is not blended; the pixel stops
-            done[p] = 1;
-            --active;
-            return;
-          }
-          const T w = alpha * Tp[p];
-          T* col = colour.data() + size_t(p) * C;
-          for (int c = 0; c < C; ++c) col[c] += f[c] * w;
-          Tp[p] = test_t;
-          last[p] = rank;
-          if (labels) {
-            const int32_t lab = labels[int64_t(py) * width + px];
-            if (lab >= 0) {
-              pair_counts[j * K + lab] += 1;
-              pair_weights[j * K + lab] += w;
+          const int row = (py - y0) * kTileSize - x0;
+          for (int px = gx0; px < gx1; ++px) {
+            const int p = row + px;
+            if (done[p]) continue;
+            const T dx = (T(px) + T(0.5)) - g.mx;
+            const T power = math::pixel_power(g.ca, g.cb, g.cc, dx, dy);
+            if (power > T(0) || power < g.power_reject) continue;
+            const T alpha = std::min(alpha_max, g.o * std::exp(power));
+            if (alpha < alpha_min) continue;
+            const T test_t = Tp[p] * (T(1) - alpha);
+            if (test_t < t_min) {  // 3DGS: this Gaussian is not blended; the pixel stops
+              done[p] = 1;
+              --active;
+              continue;
+            }
+            const T w = alpha * Tp[p];
+            T* col = colour.data() + size_t(p) * C;
+            for (int c = 0; c < C; ++c) col[c] += f[c] * w;
+            Tp[p] = test_t;
+            last[p] = rank;
+            if (labels) {
+              const int32_t lab = labels[int64_t(py) * width + px];
+              if (lab >= 0) {
+                pair_counts[j * K + lab] += 1;
+                pair_weights[j * K + lab] += w;
+              }
             }
           }
-        });
+        }
       }
       for (int py = y0; py < y1; ++py)
         for (int px = x0; px < x1; ++px) {

@@ -27,11 +27,13 @@ namespace blend_detail {
 
 using math::kTileSize;
 
+// Per-Gaussian data of both passes, compact so that a tile-list entry costs one cache
+// line (entries of a tile point to Gaussians all over memory).
 template <typename T>
 struct GaussPrep {
   T mx, my, ca, cb, cc, o;
-  T power_reject;  // power < this ⇒ α < 1/255 for sure (checked before exp)
-  math::BlendBound bound;
+  T power_reject;          // power < this ⇒ α < 1/255 for sure (checked before exp)
+  int32_t x0, x1, y0, y1;  // pixel box that can get α >= 1/255; empty if none can
 };
 
 template <typename T>
@@ -47,40 +49,24 @@ std::vector<GaussPrep<T>> prepare(const T* m2, const T* co, const T* op, int64_t
     g.cb = co[3 * i + 1];
     g.cc = co[3 * i + 2];
     g.o = op[i];
-    g.bound = math::make_blend_bound(g.ca, g.cb, g.cc, g.o, eps);
-    // -log(255 o) is the exact threshold; 1e-3 of slack keeps the decision to the exact
-    // α test whenever rounding could matter (α then differs from 1/255 by ~0.1%).
-    g.power_reject = g.bound.never ? T(0) : T(-std::log(255.0 * double(g.o)) - 1e-3);
+    const math::BlendBound bb = math::make_blend_bound(g.mx, g.my, g.ca, g.cb, g.cc, g.o, eps);
+    g.power_reject = static_cast<T>(bb.power_reject);
+    g.x0 = bb.x0;
+    g.x1 = bb.x1;
+    g.y0 = bb.y0;
+    g.y1 = bb.y1;
   }
   return prep;
 }
 
-// Calls f(px, py, p) for every pixel (px, py) of the tile [x0, x1) x [y0, y1) whose centre
-// may get α >= 1/255 from Gaussian g; p is the pixel's index inside the 16x16 tile.
-template <typename T, typename F>
-inline void for_each_pixel(const GaussPrep<T>& g, int x0, int y0, int x1, int y1, F&& f) {
-  const math::BlendBound& bb = g.bound;
-  int ry0 = y0, ry1 = y1;
-  if (bb.use_ellipse) {
-    // Pixel centre py + 0.5 = my + dy with |dy| <= dy_max; one spare row either side.
-    const double ylo = std::floor(double(g.my) - 0.5 - bb.dy_max) - 1.0;
-    const double yhi = std::ceil(double(g.my) - 0.5 + bb.dy_max) + 1.0;
-    ry0 = std::max(y0, static_cast<int>(std::max(ylo, -1e9)));
-    ry1 = std::min(y1, static_cast<int>(std::min(yhi, 1e9)) + 1);
-  }
-  for (int py = ry0; py < ry1; ++py) {
-    int cx0 = x0, cx1 = x1;
-    if (bb.use_ellipse) {
-      int xl, xh;
-      if (!math::ellipse_row(bb, double(g.mx), double(py) + 0.5 - double(g.my), xl, xh))
-        continue;
-      cx0 = std::max(x0, xl);
-      cx1 = std::min(x1, xh + 1);
-    }
-    const int base = (py - y0) * kTileSize - x0;
-    for (int px = cx0; px < cx1; ++px) f(px, py, base + px);
-  }
-}
+// Software prefetch of a Gaussian a few entries ahead in the tile list: the hardware
+// prefetcher cannot guess these scattered addresses.
+#if defined(__GNUC__) || defined(__clang__)
+#define COBGS_PREFETCH(ptr) __builtin_prefetch(ptr)
+#else
+#define COBGS_PREFETCH(ptr) ((void)0)
+#endif
+constexpr int kPrefetchAhead = 8;
 
 // Shapes, dtypes and the consistency of the tile lists shared by both passes.
 inline void check_blend_inputs(const at::Tensor& means2d, const at::Tensor& conics,

@@ -347,62 +347,57 @@ HOST_DEVICE inline T pixel_power(T ca, T cb, T cc, T dx, T dy) {
   return T(-0.5) * (ca * dx * dx + cc * dy * dy) - cb * dx * dy;
 }
 
-// Per-Gaussian data the blending loops need besides mean, conic and opacity: a power
-// threshold below which α < 1/255 is certain (so exp is skipped), and an ellipse that
-// contains every pixel centre whose α can reach 1/255 (so those pixels are never
-// visited). Both are conservative; the exact per-pair test always follows.
+// Pixels a Gaussian can reach: a conservative box around the ellipse of pixel centres
+// where α >= 1/255 is possible, plus a power threshold below which α < 1/255 is certain
+// (so exp is skipped). The exact per-pair test always follows; these only prune.
 struct BlendBound {
-  bool never;       // opacity < 1/255 (or NaN): α < 1/255 at every pixel
-  bool use_ellipse; // false: visit every pixel of the tile
-  double a, b, c;   // conic in double
-  double det;       // a c - b²
-  double two_l;     // ellipse: a dx² + 2 b dx dy + c dy² <= two_l
-  double dy_max;    // half height of that ellipse
+  bool never;           // opacity < 1/255 (or NaN): α < 1/255 at every pixel
+  double power_reject;  // power < this ⇒ α < 1/255
+  // Pixel index box [x0, x1) x [y0, y1); the whole plane when no tight bound is safe.
+  int x0, x1, y0, y1;
 };
 
 // `eps` is the unit roundoff of the scalar type that evaluates pixel_power.
-HOST_DEVICE inline BlendBound make_blend_bound(double ca, double cb, double cc, double opacity,
-                                               double eps) {
+HOST_DEVICE inline BlendBound make_blend_bound(double mx, double my, double ca, double cb,
+                                               double cc, double opacity, double eps) {
+  constexpr int kHuge = 1 << 30;
   BlendBound bb{};
   bb.never = !(opacity >= kAlphaMin);
-  bb.use_ellipse = false;
+  bb.power_reject = 0.0;
+  bb.x0 = bb.y0 = 0;
+  bb.x1 = bb.y1 = 0;
   if (bb.never) return bb;
-  // α >= 1/255 needs power >= -log(255 o) =: -L.
+  // α >= 1/255 needs power >= -L with L = log(255 o). The 1e-3 of slack leaves every
+  // case where rounding could matter (α within 0.1% of 1/255) to the exact α test.
   const double L = std::log(255.0 * opacity);
+  bb.power_reject = -L - 1e-3;
+  bb.x0 = bb.y0 = -kHuge;
+  bb.x1 = bb.y1 = kHuge;
   const double det = ca * cc - cb * cb;
-  const double tr_half = 0.5 * (ca + cc);
-  const double lam_max = tr_half + std::sqrt(0.25 * (ca - cc) * (ca - cc) + cb * cb);
+  const double lam_max = 0.5 * (ca + cc) + std::sqrt(0.25 * (ca - cc) * (ca - cc) + cb * cb);
   if (!(ca > 0.0) || !(det > 0.0) || !std::isfinite(L) || !std::isfinite(lam_max)) return bb;
-  const double cond = lam_max * lam_max / det;  // λmax / λmin
-  // Rounding of pixel_power in the kernel's precision is below ~6 eps·cond·q (the
-  // cross term can cancel the others); accept the ellipse only where that is < 1%,
-  // then widen it by 5% so the float decision can never fall outside it.
+  // In the kernel's precision pixel_power is off by at most ~6 eps·cond·q (its cross
+  // term can cancel the others), cond = λmax/λmin of the conic. Where that is below 1%,
+  // the ellipse q = dᵀ conic d <= 2L widened by 5% holds every pixel centre the exact
+  // test can accept; elsewhere no box is used.
+  const double cond = lam_max * lam_max / det;
   if (!(12.0 * eps * cond < 0.01)) return bb;
-  bb.use_ellipse = true;
-  bb.a = ca;
-  bb.b = cb;
-  bb.c = cc;
-  bb.det = det;
-  bb.two_l = 2.0 * L * 1.05 + 1e-4;
-  bb.dy_max = std::sqrt(bb.two_l * ca / det);
+  const double two_l = 2.0 * L * 1.05 + 1e-4;
+  const double hx = std::sqrt(two_l * cc / det), hy = std::sqrt(two_l * ca / det);
+  // Pixel centre i + 0.5 within [m - h, m + h]; one spare pixel either side.
+  const double xl = std::floor(mx - 0.5 - hx) - 1.0, xh = std::ceil(mx - 0.5 + hx) + 2.0;
+  const double yl = std::floor(my - 0.5 - hy) - 1.0, yh = std::ceil(my - 0.5 + hy) + 2.0;
+  auto clampi = [](double v) {
+    return static_cast<int>(v < -double(kHuge) ? -double(kHuge)
+                                               : (v > double(kHuge) ? double(kHuge) : v));
+  };
+  if (std::isfinite(xl) && std::isfinite(xh) && std::isfinite(yl) && std::isfinite(yh)) {
+    bb.x0 = clampi(xl);
+    bb.x1 = clampi(xh);
+    bb.y0 = clampi(yl);
+    bb.y1 = clampi(yh);
+  }
   return bb;
-}
-
-// Pixel columns [x_lo, x_hi] (inclusive, unclamped) whose centres may lie in the ellipse
-// on the row with offset dy; false if the row misses it.
-HOST_DEVICE inline bool ellipse_row(const BlendBound& bb, double mx, double dy, int& x_lo,
-                                    int& x_hi) {
-  const double disc = bb.a * bb.two_l - bb.det * dy * dy;
-  if (disc < 0.0) return false;
-  const double root = std::sqrt(disc);
-  const double lo = (-bb.b * dy - root) / bb.a;
-  const double hi = (-bb.b * dy + root) / bb.a;
-  // Pixel centre x + 0.5 = mx + dx  →  x = mx + dx - 0.5; one extra pixel either side.
-  const double xl = std::floor(mx + lo - 0.5) - 1.0;
-  const double xh = std::ceil(mx + hi - 0.5) + 1.0;
-  x_lo = xl < -1e9 ? -1000000000 : static_cast<int>(xl);
-  x_hi = xh > 1e9 ? 1000000000 : static_cast<int>(xh);
-  return true;
 }
 
 }  // namespace math

@@ -1,0 +1,113 @@
+"""Building and loading the native extension (cobgs/_build.py)."""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from cobgs import _build
+from cobgs.errors import BuildError
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def run_python(code: str, env_extra: dict, timeout=120) -> subprocess.CompletedProcess:
+    env = dict(os.environ, **env_extra)
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          env=env, cwd=REPO, timeout=timeout)
+
+
+def test_import_and_reference_work_without_a_compiler(tmp_path):
+    """No extension in the cache and no compiler: the package imports, the reference
+    backend renders, and the native backend says what is missing."""
+    code = """
+import sys, torch
+import cobgs
+assert "cobgs._ops" not in sys.modules, "import cobgs must not load the extension"
+args = (torch.zeros(1, 3) + torch.tensor([0., 0., 2.]), torch.tensor([[1., 0, 0, 0]]),
+        torch.full((1, 3), 0.1), torch.tensor([0.5]), torch.ones(1, 3), torch.eye(4),
+        torch.tensor([[10., 0, 4], [0, 10, 4], [0, 0, 1]]), 8, 8)
+out = cobgs.rasterize(*args, backend="reference")
+print("reference-ok", float(out.alpha.max()) > 0)
+try:
+    cobgs.rasterize(*args)
+except cobgs.BuildError as exc:
+    print("build-error:", exc)
+"""
+    proc = run_python(code, {"COBGS_EXT_DIR": str(tmp_path / "cache"),
+                             "CXX": "/nonexistent/c++"})
+    assert proc.returncode == 0, proc.stderr
+    assert "reference-ok True" in proc.stdout
+    assert "build-error: no C++ compiler found (looked for '/nonexistent/c++'" in proc.stdout
+    assert 'backend="reference" works without it' in proc.stdout
+
+
+def copy_sources(tmp_path: Path) -> Path:
+    dst = tmp_path / "csrc"
+    shutil.copytree(_build.CSRC, dst)
+    return dst
+
+
+def test_build_key_follows_the_sources(tmp_path, monkeypatch):
+    real = _build.build_key()
+    src = copy_sources(tmp_path)
+    monkeypatch.setattr(_build, "CSRC", src)
+    assert _build.build_key() == real  # depends on relative paths and contents only
+    header = src / "common" / "gs_math.h"
+    header.write_text(header.read_text() + "\n// changed\n")
+    changed = _build.build_key()
+    assert changed != real
+    (src / "extra_cpu.cpp").write_text("// new file\n")
+    assert _build.build_key() not in (real, changed)
+
+
+def test_failed_build_shows_the_full_compiler_log(tmp_path, monkeypatch):
+    src = tmp_path / "csrc"
+    src.mkdir()
+    (src / "broken_cpu.cpp").write_text('#error "cobgs-test: deliberately broken source"\n')
+    monkeypatch.setattr(_build, "CSRC", src)
+    monkeypatch.setenv("COBGS_EXT_DIR", str(tmp_path / "cache"))
+    with pytest.raises(BuildError) as info:
+        _build.load_extension(force=True)
+    msg = str(info.value)
+    assert "building the native rasterizer failed" in msg
+    assert "cobgs-test: deliberately broken source" in msg  # the compiler's own message
+    assert "broken_cpu.cpp" in msg and "-ffp-contract=off" in msg  # the command line
+    # Nothing half-built is left where a later run would load it.
+    assert not any(p.suffix == ".so" for p in (tmp_path / "cache").rglob("*"))
+
+
+def test_second_process_waits_for_the_builder(tmp_path):
+    """A process finding the build lock held waits (and says so), then loads."""
+    _build.load_extension()  # built and cached (make test builds it first)
+    lock = _build.cache_root() / f"{_build.extension_name()}.lock"
+    with open(lock, "a+") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        child = subprocess.Popen(
+            [sys.executable, "-c", "from cobgs import _build; print(_build.load_extension())"],
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO)
+        try:
+            deadline = time.time() + 60
+            # Wait until the child reports that it is blocked on the lock.
+            line = child.stderr.readline()
+            assert "waiting for another process building the native extension" in line
+            assert time.time() < deadline and child.poll() is None
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+    out, err = child.communicate(timeout=60)
+    assert child.returncode == 0, err
+    assert out.strip().endswith(".so")
+
+
+def test_cli_build_reports_the_library():
+    proc = subprocess.run([sys.executable, "-m", "stages.cli", "build"], capture_output=True,
+                          text=True, cwd=REPO, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    assert "cobgs native extension ready:" in proc.stdout and ".so" in proc.stdout
