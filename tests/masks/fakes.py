@@ -7,7 +7,7 @@ with behaviour the tests control:
 * encoder: average-pools the normalised frame; channels 0..2 of every feature map carry
   the pooled colour.
 * decoder: with a prompt, the mask is the saturated (coloured) pixels inside the box /
-  the positive points' bounding box grown by 96 units; without one, the pixels whose colour matches the
+  the positive points' bounding box grown by 160 units; without one, the pixels whose colour matches the
   colour signature that memory attention wrote into channels 3..5 of the embedding.
   Planes are logit + (-0.3, -0.2, 0, -0.1) with IoUs (0.5, 0.6, 0.9, 0.7), so the
   multimask choice (token 2) and the single-mask choice (token 0) differ measurably;
@@ -34,7 +34,7 @@ from torch import nn
 from cobgs.masks.manifest import (Sam2Config, Sam2Layout, gdino_manifest_dict,
                                   sam2_manifest_dict, write_manifest)
 
-POINT_MARGIN = 96.0  # in the 1024 frame
+POINT_MARGIN = 160.0  # in the 1024 frame: 10 px across, 7.5 px down a 64x48 frame
 SAT_THRESHOLD = 2.0  # normalised max-min channel spread: grey ~0.35, pure red/green ~4.4
 
 
@@ -67,7 +67,7 @@ class FakeDecoder(nn.Module):
         big = 1.0e4
         is_min = (lab == 1) | (lab == 2)
         is_max = (lab == 1) | (lab == 3)
-        # positive points claim a 96-unit margin (6 px of a 64-px frame) around them
+        # positive points claim a margin around them (the square is 12 px)
         margin = (lab == 1).float() * POINT_MARGIN
         x0 = torch.where(is_min, x - margin, torch.full_like(x, big)).amin(-1).reshape(1, 1, 1)
         y0 = torch.where(is_min, y - margin, torch.full_like(y, big)).amin(-1).reshape(1, 1, 1)
