@@ -12,6 +12,7 @@ Peak memory of a Ray task is measured in the Ray worker process the same way as 
 
 from __future__ import annotations
 
+import time
 from typing import Any, Optional
 
 from .errors import ExecutorError
@@ -23,7 +24,13 @@ INSTALL_HINT = ("the Ray executor needs Ray, an optional extra: pip install 'cob
 
 
 def _ray_execute(job: Job) -> JobResult:
-    return execute(job)
+    result = execute(job)
+    if result.status == "interrupted":
+        # ray.cancel raised KeyboardInterrupt in the task and execute() cleaned up; Ray
+        # expects the interruption to propagate (a task that returns instead is never
+        # marked finished).
+        raise KeyboardInterrupt
+    return result
 
 
 def import_ray() -> Any:
@@ -80,12 +87,13 @@ class RayExecutor:
     def running(self) -> int:
         return len(self._running) + len(self._rejected)
 
-    def _collect(self, ref: Any, record: bool = True) -> JobResult:
+    def _collect(self, ref: Any, record: bool = True, timeout: Optional[float] = None
+                 ) -> JobResult:
         ray = self._ray
         job = self._running.pop(ref)
         try:
-            return ray.get(ref)
-        except ray.exceptions.TaskCancelledError:
+            return ray.get(ref, timeout=timeout)
+        except (ray.exceptions.TaskCancelledError, ray.exceptions.GetTimeoutError):
             return JobResult(job.index, "interrupted", job.key)
         except Exception as exc:  # noqa: BLE001 - worker crash, node loss, unpicklable job
             if not record:
@@ -109,8 +117,12 @@ class RayExecutor:
         for ref in self._running:
             ray.cancel(ref)  # raises KeyboardInterrupt in the task: it cleans up its entry
         results = []
+        deadline = time.monotonic() + 30.0
         for ref in list(self._running):
-            result = self._collect(ref, record=False)
+            left = max(0.1, deadline - time.monotonic())
+            if left <= 0.1:
+                ray.cancel(ref, force=True)  # did not stop in time
+            result = self._collect(ref, record=False, timeout=left)
             if result.status not in ("ok", "cached"):
                 result.status = "interrupted"
             results.append(result)

@@ -6,8 +6,9 @@
 Every execution appends ``<stage> <item id>`` to the file named by ``$PIPELINE_TOYS_LOG``
 (when set), so tests can count what actually ran, across processes. Behaviour that must
 not change cache keys comes from the environment too: ``$PIPELINE_TOYS_SLEEP`` (seconds
-every stage sleeps) and ``$PIPELINE_TOYS_HANG`` (a marker path: refine writes half its
-output, writes its pid to the marker, then sleeps, for kill tests; limited to the item
+every stage sleeps) and ``$PIPELINE_TOYS_HANG`` (a marker path: while the file
+``<marker>.arm`` exists, refine writes half its output, writes its pid to the marker, then
+sleeps in short steps, for kill and interrupt tests; limited to the item
 ``$PIPELINE_TOYS_HANG_ITEM`` when set).
 Importable as ``pipeline_toys`` (tests/pipeline on sys.path), also by subprocesses and Ray
 workers given ``PYTHONPATH``; ``COBGS_STAGE_MODULES=pipeline_toys`` plugs these stages into
@@ -83,12 +84,14 @@ def run_refine(ctx, inputs):
     out = ctx.out_dir / "refined.txt"
     p = ctx.params
     marker = os.environ.get("PIPELINE_TOYS_HANG")
-    if marker and os.environ.get("PIPELINE_TOYS_HANG_ITEM", ctx.item.id) == ctx.item.id:
+    if marker and os.path.exists(marker + ".arm") and \
+            os.environ.get("PIPELINE_TOYS_HANG_ITEM", ctx.item.id) == ctx.item.id:
         with open(out, "w") as f:
             f.write("partial")
             f.flush()
             Path(marker).write_text(str(os.getpid()))
-            time.sleep(300)
+            for _ in range(3000):  # short steps: Ray's cancel lands between bytecodes
+                time.sleep(0.1)
     for _ in ctx.progress(range(3), desc="refining"):
         time.sleep(p.sleep_s / 3)
     out.write_text(f"{weights}method={ctx.item['method']} strength={p.strength} split={p.split}\n")

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import _thread
 import os
+import threading
+import time
 
 import pytest
 
@@ -21,9 +24,12 @@ def ray_log(tmp_path_factory):
 @pytest.fixture(scope="module")
 def local_ray(ray_log):
     # One instance for the module (starting Ray takes ~10 s). Workers unpickle the toy
-    # stages by module name and append to the executions log.
+    # stages by module name and append to the executions log; refine hangs only while
+    # the hang marker is armed (test_ctrl_c...).
     env = {"PYTHONPATH": os.pathsep.join([str(HERE), str(REPO)]),
-           "PIPELINE_TOYS_LOG": str(ray_log)}
+           "PIPELINE_TOYS_LOG": str(ray_log),
+           "PIPELINE_TOYS_HANG": str(ray_log.parent / "hang"),
+           "PIPELINE_TOYS_HANG_ITEM": "alpha/full"}
     ray.init(num_cpus=2, include_dashboard=False, runtime_env={"env_vars": env},
              log_to_driver=False)
     try:
@@ -72,3 +78,33 @@ def test_ray_rejects_gpu_tasks_on_a_cluster_without_gpus(toy, executions, local_
     assert "train[alpha]" in [t.id for t in s.tasks_in("failed")]
     assert "needs 1 GPU(s) (device=cuda) but the Ray cluster has 0" in s.output
     assert executions.stages() == {"load": 2}  # load does not use the device
+
+
+def test_ctrl_c_cancels_ray_tasks_and_discards_their_entries(toy, executions, local_ray,
+                                                             ray_log):
+    marker = ray_log.parent / "hang"
+    arm = marker.with_name("hang.arm")
+    arm.touch()
+
+    def interrupt_when_hanging():
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline and not (marker.exists() and marker.read_text()):
+            time.sleep(0.05)
+        _thread.interrupt_main()  # what Ctrl-C does to the driver
+
+    watcher = threading.Thread(target=interrupt_when_hanging, daemon=True)
+    watcher.start()
+    try:
+        s = toy.run(executor="ray")
+    finally:
+        arm.unlink()
+        marker.unlink(missing_ok=True)
+        watcher.join()
+    assert s.interrupted and s.exit_code == 130, s.output
+    recs = {(r.stage, r.item.id): r for r in entries(toy.load(), toy.cache)}
+    key = recs[("refine", "alpha/full")].key
+    assert recs[("refine", "alpha/full")].state == "missing"
+    assert not list((toy.cache / "tmp").glob(f"refine.{key}.*"))  # the task cleaned up
+    assert not (toy.cache / "failed" / "refine" / key).exists()
+    assert recs[("train", "alpha")].state == "done"
+    assert toy.run(executor="ray").exit_code == 0
