@@ -62,17 +62,21 @@ class RunOptions:
         providers: execution providers, best first; None picks CUDA when available, then CPU.
         intra_op_threads: threads per graph; 0 lets onnxruntime decide.
         trace_shapes: record the input shapes of every call (tests and benchmarks).
+        spin_wait: let onnxruntime's worker threads busy-wait between runs (lower latency
+            when cores are idle; steals them from the host work otherwise).
     """
 
     providers: Optional[Sequence[str]] = None
     intra_op_threads: int = 0
     trace_shapes: bool = False
+    spin_wait: bool = False
 
 
 @dataclass
 class CallStats:
     calls: int = 0
     seconds: float = 0.0
+    thread_cpu_seconds: float = 0.0  # CPU time of the calling thread inside the runs
     shapes: List[Dict[str, tuple]] = field(default_factory=list)
 
 
@@ -100,6 +104,11 @@ class GraphSession:
         providers = choose_providers(self.options.providers)
         so = ort.SessionOptions()
         so.log_severity_level = 3
+        if not self.options.spin_wait:
+            # onnxruntime's workers otherwise busy-wait after each run, taking the cores
+            # from the host work between graph calls (10x slower on a 2-core machine)
+            so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+            so.add_session_config_entry("session.inter_op.allow_spinning", "0")
         if self.options.intra_op_threads:
             so.intra_op_num_threads = int(self.options.intra_op_threads)
         try:
@@ -204,8 +213,9 @@ class GraphSession:
             theirs[t.theirs] = arr
         if self.options.trace_shapes:
             self.stats.shapes.append({k: tuple(v.shape) for k, v in feeds.items()})
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.thread_time()
         outs = self.session.run(self._out_theirs, theirs)
         self.stats.seconds += time.perf_counter() - t0
+        self.stats.thread_cpu_seconds += time.thread_time() - c0
         self.stats.calls += 1
         return dict(zip(self._out_ours, outs))
