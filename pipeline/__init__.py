@@ -15,7 +15,7 @@ The model (docs/pipeline.md has the long version):
 * :func:`entries` reads the state of every task back for reports and exports.
 """
 
-from .api import entries, load_manifest
+from .api import entries, entry_of, load_manifest, upstream_entries
 from .cache import Cache
 from .context import StageContext
 from .errors import (
@@ -42,5 +42,5 @@ __all__ = [
     "GraphError", "Item", "MissingInputError", "NoParams", "PipelineError", "Plan",
     "Registry", "Resources", "RunOptions", "RunSummary", "Settings", "Stage", "StageContext",
     "StageSpecError", "TaskState", "Workflow", "WorkflowError", "entries", "inspect",
-    "load_manifest", "load_workflow", "run_workflow",
+    "entry_of", "load_manifest", "load_workflow", "run_workflow", "upstream_entries",
 ]

@@ -18,6 +18,7 @@ import signal
 import socket
 import sys
 import threading
+import time
 import traceback
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -209,26 +210,30 @@ def _run_locked(job: Job, cache: Cache) -> JobResult:
     meter = Meter()
     old_stdout = sys.stdout
     error: Optional[BaseException] = None
+    measures: Optional[dict] = None
     try:
         sys.stdout = _Tee(old_stdout, handler.stream)
         try:
             result = stage.run(ctx, job.inputs)
         finally:
             sys.stdout = old_stdout
+            measures = meter.stop()  # the stage's own time; hashing is timed apart
+        t_hash = time.perf_counter()
         paths = _validate_outputs(stage, result, out_dir)
         if scratch.exists():
             shutil.rmtree(scratch, ignore_errors=True)
         outputs = {}
         for name, path in paths.items():
             h = tree_hash(path)
-            outputs[name] = {"path": path.relative_to(tmp).as_posix() if path.is_absolute()
-                             else os.fspath(path), "sha256": h.sha256, "kind": h.kind,
-                             "bytes": h.bytes, "files": h.files}
+            outputs[name] = {"path": path.relative_to(tmp).as_posix(), "sha256": h.sha256,
+                             "kind": h.kind, "bytes": h.bytes, "files": h.files}
             if h.sizes is not None:
                 outputs[name]["sizes"] = h.sizes
+        measures["hash_s"] = round(time.perf_counter() - t_hash, 6)
     except BaseException as exc:  # noqa: BLE001 - every failure is recorded, Ctrl-C included
         error = exc
-    measures = meter.stop()
+    if measures is None:  # interrupted inside meter.stop() itself
+        measures = meter.stop()
     if error is not None:
         with _sigint_shielded():
             return _fail(job, cache, tmp, log, handler, error, measures)

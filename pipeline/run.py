@@ -252,6 +252,7 @@ class _Scheduler:
             if check.state == "done":
                 self.table.set(index, check.manifest["outputs"],  # type: ignore[index]
                                self.cache.entry_dir(stage, key))
+                self.progress.line(task, "reused", note="not selected; its entry is used")
                 self._settle(index, Outcome("reused", key=key))
             else:
                 outcome = Outcome("unavailable", key=key,

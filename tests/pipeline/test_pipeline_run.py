@@ -11,7 +11,7 @@ import pytest
 
 import pipeline_toys as toys
 from pipeline import (MissingInputError, Registry, RunOptions, Stage, WorkflowError, entries,
-                      load_manifest, load_workflow, run_workflow)
+                      entry_of, load_manifest, load_workflow, run_workflow, upstream_entries)
 from pipeline.cache import Cache
 from pipeline.commands import referenced_keys
 from pipeline.gc import collect
@@ -40,6 +40,8 @@ def test_first_run_orders_fans_out_and_gathers(toy, executions):
     out = json.loads(recs[("summary", "")].output("summary").read_text())
     assert sorted(out["rows"]) == ["alpha/full", "alpha/nosplit", "beta/full", "beta/nosplit"]
     assert out["items"] == ["alpha/full", "alpha/nosplit", "beta/full", "beta/nosplit"]
+    gathered = upstream_entries(recs[("summary", "")].entry_dir)["metrics"]
+    assert gathered == {i: recs[("evaluate", i)].entry_dir for i in out["items"]}
     # Each refine read its own scene's model: per-item params flowed through.
     text = recs[("refine", "beta/nosplit")].output("refined").read_text()
     assert "scene=beta" in text and "iterations=20" in text and "split=False" in text
@@ -344,6 +346,12 @@ def test_read_api_for_reports(toy):
     assert by[("refine", "beta/full")].reasons == ["waits on train[beta]"]
     with pytest.raises(KeyError, match="is missing"):
         by[("refine", "beta/full")].output("refined")
+    # Provenance from an artifact path, as a report stage would walk it.
+    ev = by[("evaluate", "alpha/full")]
+    assert entry_of(ev.output("metrics")) == ev.entry_dir
+    assert upstream_entries(ev.entry_dir) == {"refined": by[("refine", "alpha/full")].entry_dir}
+    with pytest.raises(FileNotFoundError, match="not inside a pipeline cache entry"):
+        entry_of(toy.path)
     # Stale: this slot ran before with other params.
     recs = {(r.stage, r.item.id): r for r in entries(
         toy.load(["train.fail_on=beta", "evaluate.threshold=0.1"]), toy.cache)}
