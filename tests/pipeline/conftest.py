@@ -3,39 +3,18 @@
 from __future__ import annotations
 
 import io
-import os
 import sys
-from collections import Counter
 from pathlib import Path
 
 import pytest
 
 HERE = Path(__file__).resolve().parent
-REPO = HERE.parents[1]
 if str(HERE) not in sys.path:  # pipeline_toys must import the same way in every process
     sys.path.insert(0, str(HERE))
 
 import pipeline_toys as toys  # noqa: E402
 from pipeline import RunOptions, load_workflow, run_workflow  # noqa: E402
-
-
-class Executions:
-    """Reads the ``$PIPELINE_TOYS_LOG`` file the toy stages append to."""
-
-    def __init__(self, path: Path):
-        self.path = path
-
-    def lines(self) -> list[str]:
-        return self.path.read_text().splitlines() if self.path.exists() else []
-
-    def count(self) -> Counter:
-        return Counter(self.lines())
-
-    def stages(self) -> Counter:
-        return Counter(line.split(" ")[0] for line in self.lines())
-
-    def reset(self) -> None:
-        self.path.unlink(missing_ok=True)
+from pipeline_testutil import Executions  # noqa: E402
 
 
 @pytest.fixture
@@ -68,13 +47,3 @@ def toy(tmp_path, executions):
             return summary
 
     return Toy()
-
-
-def cli_env(**extra: str) -> dict[str, str]:
-    """Environment for running ``cobgs`` in a subprocess with the toy stages plugged in."""
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join([str(HERE), str(REPO), env.get("PYTHONPATH", "")])
-    env["COBGS_STAGE_MODULES"] = "pipeline_toys"
-    env.pop("COBGS_CACHE_DIR", None)
-    env.update(extra)
-    return env

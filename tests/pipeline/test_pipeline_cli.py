@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from conftest import REPO, cli_env
+from pipeline_testutil import REPO, cli_env
 
 
 def cobgs(*args, cwd=REPO, check=None, **env):

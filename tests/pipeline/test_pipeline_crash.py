@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from conftest import REPO, cli_env
+from pipeline_testutil import REPO, cli_env
 from pipeline import entries
 from pipeline.cache import Cache
 

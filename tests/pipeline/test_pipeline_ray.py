@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from conftest import HERE, REPO, Executions
+from pipeline_testutil import HERE, REPO, Executions
 from pipeline import entries
 
 ray = pytest.importorskip("ray", reason="the Ray extra is not installed (pip install "
