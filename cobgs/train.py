@@ -286,15 +286,16 @@ class Trainer:
         }
 
     def _accumulate(self, radii: Tensor, grad2d: Optional[Tensor], width: int, height: int) -> None:
-        vis = radii > 0
-        if grad2d is None or not bool(vis.any()):
+        if grad2d is None:
             return
+        # Dense masked updates (no boolean indexing: nonzero() is a large share of a CPU
+        # iteration at 100k Gaussians). Culled Gaussians have radius 0 and zero gradient.
+        vis = (radii > 0).to(self.grad_count.dtype)
         # The 2e-4 threshold is in NDC units: x_pix = ((x_ndc + 1) W - 1) / 2.
         scale = torch.tensor([width / 2.0, height / 2.0], dtype=grad2d.dtype)
-        g = (grad2d[vis] * scale).norm(dim=-1)
-        self.grad_accum[vis] += g
-        self.grad_count[vis] += 1
-        self.max_radii[vis] = torch.maximum(self.max_radii[vis], radii[vis].float())
+        self.grad_accum += (grad2d * scale).norm(dim=-1) * vis
+        self.grad_count += vis
+        torch.maximum(self.max_radii, radii.to(self.max_radii.dtype), out=self.max_radii)
 
     def densify_and_prune(self) -> dict:
         """Clone / split on the averaged gradient, then prune; resets the statistics.
