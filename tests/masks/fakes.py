@@ -48,6 +48,18 @@ class FakeEncoder(nn.Module):
         return feats, pos, hr0, hr1
 
 
+class FakeEncoderAddsNoMem(FakeEncoder):
+    """An export that folds no_mem_embed into its features (some public exports do)."""
+
+    def __init__(self, no_mem_embed: torch.Tensor):
+        super().__init__()
+        self.register_buffer("nme", no_mem_embed.reshape(1, -1, 1, 1))
+
+    def forward(self, image):
+        feats, pos, hr0, hr1 = super().forward(image)
+        return feats + self.nme, pos, hr0, hr1
+
+
 class FakeDecoder(nn.Module):
     def __init__(self, planes: int = 4, with_ptr: bool = True):
         super().__init__()
@@ -141,6 +153,22 @@ class FakeMemoryAttention(nn.Module):
     def forward(self, curr, curr_pos, memory, memory_pos, obj_ptr_tokens, obj_ptr_pos):
         rest = curr_pos.sum() + memory_pos.sum() + obj_ptr_tokens.sum() + obj_ptr_pos.sum()
         return self._run(curr, memory, rest)
+
+
+class FakeMemoryAttentionNCHW(FakeMemoryAttention):
+    """curr / curr_pos as [1, 256, 64, 64] (layout flag curr_layout = "nchw")."""
+
+    def forward(self, curr, curr_pos, memory, memory_pos, obj_ptr_tokens, obj_ptr_pos):
+        rest = curr_pos.sum() + memory_pos.sum() + obj_ptr_tokens.sum() + obj_ptr_pos.sum()
+        return self._run(curr.flatten(2).permute(2, 0, 1), memory, rest)
+
+
+class FakeMemoryAttentionConcat(FakeMemoryAttention):
+    """Pointers appended to the memory, their count as an input (ptr_mode concat_memory)."""
+
+    def forward(self, curr, curr_pos, memory, memory_pos, num_obj_ptr_tokens):
+        spatial = memory[: memory.shape[0] - num_obj_ptr_tokens[0]]
+        return self._run(curr, spatial, curr_pos.sum() + memory_pos.sum())
 
 
 class FakeMemoryAttentionNoPtr(FakeMemoryAttention):
@@ -242,6 +270,9 @@ def build_sam2(
     memenc_score: bool = True,
     planes: int = 4,
     write: bool = True,
+    curr_nchw: bool = False,
+    concat_ptr: bool = False,
+    encoder_adds_no_mem_embed: bool = False,
 ) -> Path:
     """Write ``root/sam2/*`` and the manifest's ``sam2`` entry; returns ``root``.
 
@@ -263,7 +294,10 @@ def build_sam2(
             out = self.inner(*a)
             return out if torch.is_tensor(out) else tuple(order(list(out)))
 
-    export(Reorder(FakeEncoder()), enc_args, sam / "sam2_image_encoder.onnx", r(ENC_IN),
+    nme = torch.zeros(256)
+    nme[0] = 0.5  # visible in the colour channels if the host forgot to subtract it
+    encoder = FakeEncoderAddsNoMem(nme) if encoder_adds_no_mem_embed else FakeEncoder()
+    export(Reorder(encoder), enc_args, sam / "sam2_image_encoder.onnx", r(ENC_IN),
            order(r(ENC_OUT)))
     dec_args = (torch.zeros(1, 256, 64, 64), torch.zeros(1, 32, 256, 256),
                 torch.zeros(1, 64, 128, 128), torch.zeros(1, 2, 2),
@@ -275,10 +309,25 @@ def build_sam2(
            {rename.get("point_coords", "point_coords"): {1: "N"},
             rename.get("point_labels", "point_labels"): {1: "N"}})
     layout = Sam2Layout(decoder_mask_planes=planes,
-                        ptr_mode="separate" if with_ptr_inputs else "none",
-                        memenc_takes_object_score=memenc_score)
+                        ptr_mode=("concat_memory" if concat_ptr else
+                                  "separate" if with_ptr_inputs else "none"),
+                        memenc_takes_object_score=memenc_score,
+                        curr_layout="nchw" if curr_nchw else "hw1c",
+                        encoder_feat_has_no_mem_embed=encoder_adds_no_mem_embed)
     if video:
-        if with_ptr_inputs:
+        if concat_ptr:
+            att_args = (torch.zeros(4096, 1, 256), torch.zeros(4096, 1, 256),
+                        torch.zeros(4096 * 2 + 8, 1, 64), torch.zeros(4096 * 2 + 8, 1, 64),
+                        torch.tensor([8], dtype=torch.int64))
+            att_in = ATT_IN[:4] + ["num_obj_ptr_tokens"]
+            att_mod = FakeMemoryAttentionConcat()
+        elif curr_nchw:
+            att_args = (torch.zeros(1, 256, 64, 64), torch.zeros(1, 256, 64, 64),
+                        torch.zeros(4096 * 2, 1, 64), torch.zeros(4096 * 2, 1, 64),
+                        torch.zeros(8, 1, 64), torch.zeros(8, 1, 64))
+            att_in = ATT_IN
+            att_mod = FakeMemoryAttentionNCHW()
+        elif with_ptr_inputs:
             att_args = (torch.zeros(4096, 1, 256), torch.zeros(4096, 1, 256),
                         torch.zeros(4096 * 2, 1, 64), torch.zeros(4096 * 2, 1, 64),
                         torch.zeros(8, 1, 64), torch.zeros(8, 1, 64))
@@ -290,7 +339,7 @@ def build_sam2(
             att_in = ATT_IN[:4]
             att_mod = FakeMemoryAttentionNoPtr()
         dyn = {} if fixed_memory else {
-            rename.get(n, n): {0: n + "_len"} for n in att_in[2:]}
+            rename.get(n, n): {0: n + "_len"} for n in att_in[2:6] if n != "num_obj_ptr_tokens"}
         export(Reorder(att_mod), att_args, sam / "sam2_memory_attention.onnx", r(att_in),
                r(ATT_OUT), dyn)
         if memenc_score:
@@ -302,7 +351,9 @@ def build_sam2(
             mem_args = (torch.zeros(1, 256, 64, 64), torch.zeros(1, 1, 1024, 1024))
             export(Reorder(FakeMemoryEncoderNoScore()), mem_args,
                    sam / "sam2_memory_encoder.onnx", r(MEM_IN[:2]), order(r(MEM_OUT)))
-    sam2_constants(sam / "sam2_constants.npz", v21=v21)
+    sam2_constants(sam / "sam2_constants.npz", v21=v21,
+                   extra={"no_mem_embed": nme.numpy().reshape(1, 1, 256)}
+                   if encoder_adds_no_mem_embed else None)
     if write:
         cfg = Sam2Config() if v21 else Sam2Config(add_tpos_enc_to_obj_ptrs=False,
                                                   proj_tpos_enc_in_obj_ptrs=False,

@@ -93,12 +93,38 @@ def test_sam20_variant_tracks(models_v20, moving):
 
 
 @pytest.mark.parametrize("kw", [dict(with_ptr_inputs=False, memenc_score=False),
-                                dict(planes=3), dict(planes=1)])
+                                dict(planes=3), dict(planes=1), dict(curr_nchw=True),
+                                dict(concat_ptr=True), dict(encoder_adds_no_mem_embed=True)])
 def test_layout_variants_track(tmp_path, moving, kw):
     root = fakes.build_sam2(tmp_path / "m", **kw)
     paths, gts = moving
     masks = _run(_predictor(root, paths), 0, box=(8, 10, 20, 22))
     assert all(scenes.iou(m, g) > 0.9 for m, g in zip(masks, gts))
+
+
+def test_encoder_no_mem_embed_flag_recovers_raw_features(models_dir, tmp_path, moving):
+    root = fakes.build_sam2(tmp_path / "m", encoder_adds_no_mem_embed=True)
+    paths, _ = moving
+    raw = _predictor(models_dir, paths).cache.get(0).feats
+    got = _predictor(root, paths).cache.get(0).feats
+    np.testing.assert_allclose(got, raw, atol=1e-6)  # 0.5 in channel 0 was subtracted
+
+
+def test_concat_pointer_layout_feeds_pointer_count(tmp_path, moving):
+    from cobgs.masks.session import RunOptions
+
+    root = fakes.build_sam2(tmp_path / "m", concat_ptr=True)
+    paths, _ = moving
+    sam = Sam2Models(load_manifest(root).sam2, RunOptions(trace_shapes=True))
+    pred = VideoPredictor(sam, EncoderCache(sam, paths))
+    pred.add_prompt(0, 1, box=(8, 10, 20, 22))
+    list(pred.propagate(0, 2))
+    shapes = sam.sessions["memory_attention"].stats.shapes
+    steps = pred.banks[1].steps
+    for st, sh in zip(steps, shapes):
+        n_ptr = 4 * len(st.pointers)
+        assert sh["memory"] == (4096 * len(st.memory) + n_ptr, 1, 64)
+        assert sh["num_obj_ptr_tokens"] == (1,)
 
 
 def test_image_only_export_prompts_but_refuses_video(models_image_only, moving, tmp_path):
