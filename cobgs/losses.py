@@ -32,11 +32,30 @@ def _to_nchw(img: Tensor, name: str) -> Tensor:
     raise InputError(f"{name} must be [H, W, C] or [B, H, W, C], got {list(img.shape)}")
 
 
+def _blur(t: Tensor, g: Tensor) -> Tensor:
+    """Separable zero-padded Gaussian blur of every channel of [B, K, H, W]."""
+    k, n = t.shape[1], g.shape[0]
+    pad = n // 2
+    t = F.conv2d(t, g.view(1, 1, n, 1).expand(k, 1, n, 1), padding=(pad, 0), groups=k)
+    return F.conv2d(t, g.view(1, 1, 1, n).expand(k, 1, 1, n), padding=(0, pad), groups=k)
+
+
+def _ssim_terms(x: Tensor, y: Tensor, g: Tensor):
+    c = x.shape[1]
+    mu_x, mu_y, exx, eyy, exy = _blur(torch.cat([x, y, x * x, y * y, x * y], 1), g).split(c, 1)
+    a1 = 2.0 * mu_x * mu_y + SSIM_C1
+    a2 = 2.0 * (exy - mu_x * mu_y) + SSIM_C2
+    b1 = mu_x * mu_x + mu_y * mu_y + SSIM_C1
+    b2 = (exx - mu_x * mu_x) + (eyy - mu_y * mu_y) + SSIM_C2
+    return mu_x, mu_y, a1, a2, b1, b2
+
+
 def ssim_map(img: Tensor, ref: Tensor, window: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA) -> Tensor:
     """Per-pixel SSIM with a Gaussian window, as in 3DGS (zero padding at the border).
 
     The 2D window is separable, so the five local statistics (μx, μy, E[x²], E[y²],
     E[xy]) are filtered with two 1D convolutions; this equals 3DGS's 2D convolution.
+    Differentiable in both arguments (plain autograd).
 
     Args:
         img: [H, W, C] or [B, H, W, C].
@@ -45,27 +64,68 @@ def ssim_map(img: Tensor, ref: Tensor, window: int = SSIM_WINDOW, sigma: float =
     Returns:
         [B, C, H, W] SSIM values.
     """
+    _check_pair(img, ref)
+    x, y = _to_nchw(img, "img").contiguous(), _to_nchw(ref, "ref").contiguous()
+    g = _gauss_1d(window, sigma, x.dtype, str(x.device))
+    _, _, a1, a2, b1, b2 = _ssim_terms(x, y, g)
+    return (a1 * a2) / (b1 * b2)
+
+
+class _MeanSSIM(torch.autograd.Function):
+    """Mean SSIM with a hand-written gradient w.r.t. the first image only.
+
+    With S = A1 A2 / (B1 B2) per window (A1 = 2μxμy + C1, A2 = 2σxy + C2,
+    B1 = μx² + μy² + C1, B2 = σx² + σy² + C2) and upstream g = dL/dS:
+
+        ∂S/∂μx    = 2μy (A2 − A1) / (B1 B2) − 2μx S (1/B1 − 1/B2)
+        ∂S/∂E[x²] = −S / B2
+        ∂S/∂E[xy] = 2 A1 / (B1 B2)
+        dL/dx = blur(g ∂S/∂μx) + 2x · blur(g ∂S/∂E[x²]) + y · blur(g ∂S/∂E[xy])
+
+    (the symmetric zero-padded blur is its own adjoint). This needs 3C blurred maps
+    instead of autograd's chain of ~40 full-image tensors: the SSIM term was the largest
+    cost of a CPU training iteration after the rasterizer.
+    """
+
+    @staticmethod
+    def forward(ctx, x: Tensor, y: Tensor, g: Tensor) -> Tensor:
+        mu_x, mu_y, a1, a2, b1, b2 = _ssim_terms(x, y, g)
+        den = b1 * b2
+        smap = a1 * a2 / den
+        ctx.save_for_backward(x, y, g, mu_x, mu_y, a1, a2, b1, b2)
+        return smap.mean()
+
+    @staticmethod
+    def backward(ctx, grad_out: Tensor):
+        x, y, g, mu_x, mu_y, a1, a2, b1, b2 = ctx.saved_tensors
+        scale = grad_out / float(mu_x.numel())
+        inv_den = scale / (b1 * b2)
+        s_scaled = a1 * a2 * inv_den  # scale · S
+        d_mu = 2.0 * mu_y * (a2 - a1) * inv_den - 2.0 * mu_x * s_scaled * (1.0 / b1 - 1.0 / b2)
+        d_exx = -s_scaled / b2
+        d_exy = 2.0 * a1 * inv_den
+        c = x.shape[1]
+        b_mu, b_xx, b_xy = _blur(torch.cat([d_mu, d_exx, d_exy], 1), g).split(c, 1)
+        return b_mu + 2.0 * x * b_xx + y * b_xy, None, None
+
+
+def _check_pair(img: Tensor, ref: Tensor) -> None:
     if img.shape != ref.shape:
         raise InputError(f"img and ref must have the same shape, got {list(img.shape)} and {list(ref.shape)}")
-    x, y = _to_nchw(img, "img"), _to_nchw(ref, "ref")
-    b, c, h, w = x.shape
-    g = _gauss_1d(window, sigma, x.dtype, str(x.device))
-    stats = torch.cat([x, y, x * x, y * y, x * y], 1)  # [B, 5C, H, W]
-    k = stats.shape[1]
-    pad = window // 2
-    stats = F.conv2d(stats, g.view(1, 1, window, 1).expand(k, 1, window, 1), padding=(pad, 0), groups=k)
-    stats = F.conv2d(stats, g.view(1, 1, 1, window).expand(k, 1, 1, window), padding=(0, pad), groups=k)
-    mu_x, mu_y, exx, eyy, exy = stats.split(c, 1)
-    mu_xx, mu_yy, mu_xy = mu_x * mu_x, mu_y * mu_y, mu_x * mu_y
-    var_x, var_y, cov = exx - mu_xx, eyy - mu_yy, exy - mu_xy
-    num = (2.0 * mu_xy + SSIM_C1) * (2.0 * cov + SSIM_C2)
-    den = (mu_xx + mu_yy + SSIM_C1) * (var_x + var_y + SSIM_C2)
-    return num / den
 
 
 def ssim(img: Tensor, ref: Tensor) -> Tensor:
-    """Mean SSIM (scalar) of ``img`` vs ``ref`` ([H, W, C] or [B, H, W, C])."""
-    return ssim_map(img, ref).mean()
+    """Mean SSIM (scalar) of ``img`` vs ``ref`` ([H, W, C] or [B, H, W, C]).
+
+    When only ``img`` needs a gradient (training against a fixed image) the analytic
+    backward of :class:`_MeanSSIM` is used; otherwise plain autograd.
+    """
+    _check_pair(img, ref)
+    if ref.requires_grad or not img.requires_grad:
+        return ssim_map(img, ref).mean()
+    x, y = _to_nchw(img, "img").contiguous(), _to_nchw(ref, "ref").contiguous()
+    g = _gauss_1d(SSIM_WINDOW, SSIM_SIGMA, x.dtype, str(x.device))
+    return _MeanSSIM.apply(x, y, g)
 
 
 def l1_loss(img: Tensor, ref: Tensor) -> Tensor:
