@@ -377,9 +377,9 @@ def _valid_io(io, layout, video):
 WORDS = {"square": 2000, "red": 2001, "green": 2002, "apple": 2003}
 
 
-def write_vocab(path: Path) -> None:
+def write_vocab(path: Path, size: int = 2100) -> None:
     """A BERT-style vocab whose special ids are bert-base-uncased's (101, 102, 1012, 1029)."""
-    lines = [f"[unused{i}]" for i in range(2100)]
+    lines = [f"[unused{i}]" for i in range(size)]
     lines[0] = "[PAD]"
     lines[100] = "[UNK]"
     lines[101] = "[CLS]"

@@ -105,9 +105,10 @@ class Parity:
     """Largest absolute and relative difference of one output, onnxruntime vs torch."""
 
     name: str
-    max_abs: float
+    max_abs: float  # over the compared elements (rows within tolerance, if rows_axis)
     max_rel: float
     ok: bool
+    bad_rows: int = 0  # slices beyond tolerance (only with rows_axis)
 
 
 def verify_graph(
@@ -117,14 +118,16 @@ def verify_graph(
     output_names: Sequence[str],
     atol: float = 1e-3,
     rtol: float = 1e-3,
-    compare: Optional[Dict[str, object]] = None,
+    rows_axis: Optional[int] = None,
+    max_bad_rows: float = 0.0,
 ) -> List[Parity]:
     """Run the graph with onnxruntime and ``module`` with torch on the same inputs.
 
     Args:
         inputs: our input names -> arrays, in the module's argument order.
-        compare: optional per-output function (ort, torch) -> (abs, rel) replacing the
-            elementwise comparison (e.g. for mask logits: agreement of the sign).
+        rows_axis, max_bad_rows: tolerate up to this fraction of slices along
+            ``rows_axis`` exceeding the tolerance (Grounding DINO: a top-k query selection
+            may swap near-tied proposals between runtimes; every other query must match).
 
     Raises:
         ExportError: an output differs beyond ``atol + rtol * |torch|``.
@@ -150,15 +153,30 @@ def verify_graph(
             diff = np.abs(g - r)
         max_abs = float(diff[finite].max(initial=0.0))
         max_rel = float((diff[finite] / (np.abs(r[finite]) + 1e-6)).max(initial=0.0))
-        ok = bool(np.all(diff[finite] <= atol + rtol * np.abs(r[finite])))
-        ok = ok and bool(np.array_equal(np.isfinite(g), finite))
-        report.append(Parity(name, max_abs, max_rel, ok))
+        off = ~(np.where(finite, diff, 0.0) <= atol + rtol * np.abs(np.where(finite, r, 0.0)))
+        off |= np.isfinite(g) != finite
+        n_bad = 0
+        if rows_axis is not None and r.ndim > rows_axis:
+            other = tuple(a for a in range(r.ndim) if a != rows_axis)
+            rows = off.any(axis=other)
+            n_bad = int(rows.sum())
+            ok = n_bad <= max_bad_rows * rows.size
+            good = np.expand_dims(~rows, other) if other else ~rows
+            good = np.broadcast_to(good, r.shape)
+            sel = good & finite
+            max_abs = float(diff[sel].max(initial=0.0))
+            max_rel = float((diff[sel] / (np.abs(r[sel]) + 1e-6)).max(initial=0.0))
+        else:
+            ok = not bool(off.any())
+        report.append(Parity(name, max_abs, max_rel, ok, n_bad))
     bad = [p for p in report if not p.ok]
     for p in report:
-        log.info("%s %s: max |ort - torch| = %.3g (rel %.3g)", path.name, p.name, p.max_abs,
-                 p.max_rel)
+        log.info("%s %s: max |ort - torch| = %.3g (rel %.3g)%s", path.name, p.name, p.max_abs,
+                 p.max_rel, f", {p.bad_rows} rows beyond tolerance" if p.bad_rows else "")
     if bad:
-        detail = "; ".join(f"'{p.name}' max abs diff {p.max_abs:.3g}" for p in bad)
+        detail = "; ".join(f"'{p.name}' max abs diff {p.max_abs:.3g}"
+                           + (f", {p.bad_rows} rows beyond tolerance" if p.bad_rows else "")
+                           for p in bad)
         raise ExportError(f"{path.name}: onnxruntime disagrees with PyTorch beyond "
                           f"atol={atol}, rtol={rtol}: {detail}")
     return report

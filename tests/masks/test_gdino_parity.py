@@ -1,0 +1,75 @@
+"""Grounding DINO export parity (needs the ``groundingdino`` package and ``transformers``).
+
+A randomly initialised Grounding DINO (Swin-T config shipped with the package, a 2-layer
+BERT built locally so nothing is downloaded) is exported with the project's exporter at a
+small fixed size; the graph fed with the *host* tokenisation must reproduce the model's
+own ``forward(captions=[...])``, which tokenises with its HF tokenizer. Skipped, with the
+reason, where the packages are missing. Slow: marked ``slow``.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+gd = pytest.importorskip("groundingdino", reason="the groundingdino package is not "
+                                                 "importable here (pip install groundingdino-py)")
+transformers = pytest.importorskip("transformers", reason="transformers is not importable")
+torch = pytest.importorskip("torch")
+
+pytestmark = pytest.mark.slow
+
+
+def _local_bert(folder):
+    from transformers import BertConfig, BertModel, BertTokenizerFast
+
+    from . import fakes
+
+    folder.mkdir(parents=True, exist_ok=True)
+    fakes.write_vocab(folder / "vocab.txt", size=30522)
+    torch.manual_seed(0)
+    BertModel(BertConfig(hidden_size=768, num_hidden_layers=2, num_attention_heads=12,
+                         intermediate_size=1024)).save_pretrained(folder)
+    BertTokenizerFast(vocab_file=str(folder / "vocab.txt")).save_pretrained(folder)
+
+
+def test_export_matches_grounding_dino_forward(tmp_path):
+    from groundingdino.models import build_model
+    from groundingdino.util.slconfig import SLConfig
+
+    from cobgs.masks.export.gdino_export import export_gdino
+    from cobgs.masks.gdino import GroundingDino
+    from cobgs.masks.images import to_model_input
+    from cobgs.masks.manifest import load_manifest
+
+    bert = tmp_path / "bert"
+    _local_bert(bert)
+    args = SLConfig.fromfile(os.path.join(os.path.dirname(gd.__file__), "config",
+                                          "GroundingDINO_SwinT_OGC.py"))
+    args.text_encoder_type = str(bert)
+    args.device = "cpu"
+    torch.manual_seed(0)
+    model = build_model(args).eval()
+    out = tmp_path / "models"
+    report = export_gdino(out, (256, 384), model=model, vocab_path=bert / "vocab.txt",
+                          caption="red square . green apple .")
+    assert report and all(p.ok for p in report)
+
+    det = GroundingDino(load_manifest(out).gdino)
+    rgb = np.random.default_rng(1).integers(0, 256, (256, 384, 3), dtype=np.uint8)
+    img = to_model_input(rgb, det.manifest.preprocess)
+    text = det.text_inputs("Red square. green apple")
+    got = det.session.run({"img": img, "input_ids": text.input_ids,
+                           "attention_mask": text.attention_mask,
+                           "position_ids": text.position_ids,
+                           "token_type_ids": text.token_type_ids,
+                           "text_token_mask": text.text_token_mask})
+    with torch.no_grad():
+        ref = model(torch.from_numpy(img), captions=["red square . green apple ."])
+    logits, boxes = ref["pred_logits"].numpy(), ref["pred_boxes"].numpy()
+    finite = np.isfinite(logits)
+    np.testing.assert_array_equal(np.isfinite(got["logits"]), finite)
+    assert np.abs(got["logits"][finite] - logits[finite]).max() < 1e-2
+    assert np.abs(got["boxes"] - boxes).max() < 1e-3
