@@ -38,10 +38,12 @@ from typing import List, Optional
 from .errors import BuildError
 
 CSRC = Path(__file__).resolve().parents[1] / "csrc"
-# -O3 plus auto-vectorisation; -ffp-contract=off keeps a*b+c unfused so the forward and
-# backward kernels (and the reference) round the per-pixel exponent identically;
+# -O3 with auto-vectorisation of the per-row pixel loops, which needs
+# -fno-trapping-math (lets GCC if-convert float compares; results are unchanged in the
+# default floating-point environment). -ffp-contract=off keeps a*b+c unfused so scalar
+# and SIMD code, forward and backward, round every per-pixel value identically.
 # -fno-math-errno lets sqrt/floor inline. No -march=native (see the module docstring).
-CFLAGS = ["-O3", "-fopenmp", "-ffp-contract=off", "-fno-math-errno"]
+CFLAGS = ["-O3", "-fopenmp", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math"]
 LDFLAGS = ["-fopenmp"]
 
 _lock = threading.Lock()

