@@ -424,7 +424,8 @@ def load_manifest(models_dir: Union[str, os.PathLike]) -> Manifest:
     sam2 = _read_sam2(data["sam2"], root, mpath) if "sam2" in data else None
     gdino = _read_gdino(data["groundingdino"], root, mpath) if "groundingdino" in data else None
     if sam2 is None and gdino is None:
-        raise ModelsNotConfiguredError("manifest declares neither 'sam2' nor 'groundingdino'", mpath)
+        raise ModelsNotConfiguredError("manifest declares neither 'sam2' nor 'groundingdino'",
+                                       mpath)
     return Manifest(root=root, sam2=sam2, gdino=gdino)
 
 

@@ -230,7 +230,8 @@ class Sam2Models:
     def encode_memory(self, frame: EncodedFrame, mask_for_mem: np.ndarray,
                       object_score: float):
         """Memory encoder -> (features [4096, 64], pos [4096, 64]), tokens row-major."""
-        feeds = {"pix_feat": frame.feats, "mask_for_mem": mask_for_mem.reshape(1, 1, *mask_for_mem.shape[-2:])}
+        feeds = {"pix_feat": frame.feats,
+                 "mask_for_mem": mask_for_mem.reshape(1, 1, *mask_for_mem.shape[-2:])}
         if self.layout.memenc_takes_object_score:
             feeds["object_score_logits"] = np.array([[object_score]], np.float32)
         out = self.sessions["memory_encoder"].run(feeds)

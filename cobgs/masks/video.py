@@ -79,7 +79,8 @@ class VideoPredictor:
 
     def _prompt_embed(self, enc: EncodedFrame) -> np.ndarray:
         if self.models.no_mem_embed is None:
-            raise ModelError("SAM2 constants lack no_mem_embed", self.models.manifest.constants_path)
+            raise ModelError("SAM2 constants lack no_mem_embed",
+                             self.models.manifest.constants_path)
         return enc.feats + self.models.no_mem_embed
 
     def add_prompt(

@@ -7,8 +7,9 @@ with behaviour the tests control:
 * encoder: average-pools the normalised frame; channels 0..2 of every feature map carry
   the pooled colour.
 * decoder: with a prompt, the mask is the saturated (coloured) pixels inside the box /
-  the positive points' bounding box grown by 160 units; without one, the pixels whose colour matches the
-  colour signature that memory attention wrote into channels 3..5 of the embedding.
+  the positive points' bounding box grown by 160 units; without one, the pixels whose
+  colour matches the colour signature that memory attention wrote into channels 3..5 of
+  the embedding.
   Planes are logit + (-0.3, -0.2, 0, -0.1) with IoUs (0.5, 0.6, 0.9, 0.7), so the
   multimask choice (token 2) and the single-mask choice (token 0) differ measurably;
   the object score is the largest logit; obj_ptr[k] = (k, present, 0, ...).

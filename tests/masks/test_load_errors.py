@@ -158,7 +158,8 @@ def test_unavailable_provider_named(models_dir):
     from cobgs.masks.session import RunOptions
 
     with pytest.raises(ModelError, match=r"\['NoSuchExecutionProvider'\] not available"):
-        Sam2Models(load_manifest(models_dir).sam2, RunOptions(providers=["NoSuchExecutionProvider"]))
+        Sam2Models(load_manifest(models_dir).sam2,
+                   RunOptions(providers=["NoSuchExecutionProvider"]))
 
 
 def test_manifest_json_round_trip(models_dir):
