@@ -184,9 +184,11 @@ def generate_masks_from_points(
     cache = EncoderCache(models, paths)
     try:
         predictor = VideoPredictor(models, cache)
-        predictor.add_prompt(frame, 1, points=points, labels=labels, box=box)
         masks: List[Optional[np.ndarray]] = [None] * len(paths)
-        masks[frame] = predictor.mask(frame, 1)
+        masks[frame] = predictor.add_prompt(frame, 1, points=points, labels=labels, box=box)
+        if not masks[frame].any():
+            log.warning("SAM2 returned an empty mask for the prompt on frame %d (%s): "
+                        "propagation will find nothing", frame, paths[frame].name)
         if len(paths) > 1:
             for f, per_obj in predictor.propagate(frame, len(paths) - 1):
                 masks[f] = per_obj[1]

@@ -504,6 +504,10 @@ def _read_gdino(model: dict, root: Path, mpath: Path) -> GdinoManifest:
             raise ModelError(f"{where}.files: missing '{key}'", mpath)
         _check_file(root, files[key], f"{where}.files.{key}", mpath)
     config = _dataclass_from(GdinoConfig, model.get("gdino"), f"{where}.gdino", mpath)
+    if not config.text_mask_on_host:
+        raise ModelError(
+            f"{where}.gdino.text_mask_on_host: only graphs that take the host-built "
+            "position_ids and text_token_mask are supported (found false)", mpath)
     pre = _preprocess(
         model.get("preprocess"),
         Preprocess(size_hw=(800, 1200), interpolation="bilinear"),

@@ -18,6 +18,7 @@ afterwards attends to both the stage-1 and the stage-2 prompts.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import asdict, dataclass, field
 from typing import Dict, List, Optional
 
@@ -27,6 +28,9 @@ from cobgs.errors import CobgsError, InputError
 
 from .gdino import Detection, GroundingDino
 from .video import VideoPredictor
+
+
+log = logging.getLogger("cobgs.masks")
 
 
 class NoDetectionError(CobgsError):
@@ -85,8 +89,14 @@ def run_two_stage(
     kept = [d for d in dets if d.confidence >= config.keep_ratio_of_best * best]
     obj_ids = list(range(1, len(kept) + 1))
     source = ["empty"] * n
-    for obj, d in zip(obj_ids, kept):
-        predictor.add_prompt(p, obj, box=d.box_xyxy)
+    prompt_masks = [predictor.add_prompt(p, obj, box=d.box_xyxy)
+                    for obj, d in zip(obj_ids, kept)]
+    prompt_empty = not any(m.any() for m in prompt_masks)
+    if prompt_empty:
+        # every later frame depends on this one: say so instead of failing silently
+        log.warning("SAM2 returned an empty mask for the detected box(es) on the prompt frame "
+                    "%d: tracking will find nothing (an FP16 export, or preprocessing that "
+                    "does not match the export, can cause this)", p)
     masks: List[Optional[np.ndarray]] = [None] * n
 
     def record(frame: int, per_obj: Dict[int, np.ndarray], label: str) -> None:
@@ -139,6 +149,7 @@ def run_two_stage(
             "detections": [_det(d) for d in dets],
             "best_confidence": best,
             "kept": len(kept),
+            "prompt_mask_empty": prompt_empty,
             "empty_after": stage1_empty,
         },
         "stage2": {"box_threshold": high, "text_threshold": text_high, "attempts": attempts},

@@ -122,6 +122,10 @@ def test_constants_checked(scratch_models, key, bad):
     (lambda d: d["sam2"]["sam2_config"].update(num_maskmem="7"), r"num_maskmem: expected int"),
     (lambda d: d.update(version=2), r"version: expected 1"),
     (lambda d: d["sam2"]["files"].pop("constants"), r"missing 'constants'"),
+    (lambda d: d["groundingdino"]["gdino"].update(text_mask_on_host=False),
+     r"text_mask_on_host: only graphs that take the host-built"),
+    (lambda d: d["groundingdino"]["preprocess"].update(resize="letterbox"),
+     r"resize: only 'stretch'"),
 ])
 def test_manifest_fields_validated(scratch_models, edit, match):
     fakes.edit_manifest(scratch_models, edit)

@@ -33,6 +33,7 @@ def test_red_gone_green(models_dir, red_green, tmp_path):
     assert res.log_path == tmp_path / "masks" / "square.json"
     assert log["stage1"]["best_confidence"] == pytest.approx(0.9)
     assert log["stage1"]["kept"] == 1  # the 0.35 distractor is below 0.7 x 0.9
+    assert log["stage1"]["prompt_mask_empty"] is False
     assert log["stage1"]["empty_after"] == list(range(5, 15))
     assert log["stage2"]["box_threshold"] == pytest.approx(0.765)
     att = log["stage2"]["attempts"]
@@ -97,3 +98,15 @@ def test_text_path_needs_grounding_dino(models_v20, red_green, tmp_path):
 
     with pytest.raises(ModelsNotConfiguredError, match="no 'groundingdino' model"):
         generate_masks(red_green[0], "square", models_v20, tmp_path / "o")
+
+
+def test_empty_prompt_mask_is_reported(models_dir, tmp_path, caplog):
+    # the detector sees the square, but the box lies beside it: SAM2 (stand-in) finds
+    # nothing inside, which must be said, not silently propagated
+    from cobgs.masks.api import generate_masks_from_points
+
+    paths, _ = scenes.write_sequence(tmp_path / "s", [scenes.Frame("red")] * 2)
+    caplog.set_level("WARNING", logger="cobgs.masks")
+    res = generate_masks_from_points(paths, 0, models_dir, tmp_path / "o", box=(40, 2, 60, 10))
+    assert res.sources == ["empty", "empty"]
+    assert "empty mask for the prompt on frame 0" in caplog.text
