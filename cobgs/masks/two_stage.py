@@ -141,7 +141,7 @@ def run_two_stage(
                     record(frame, per_obj, "stage2")
         f += 1
 
-    log = {
+    info = {
         "prompt": prompt,
         "prompt_frame": p,
         "config": asdict(config),
@@ -154,4 +154,4 @@ def run_two_stage(
         },
         "stage2": {"box_threshold": high, "text_threshold": text_high, "attempts": attempts},
     }
-    return TwoStageResult([m for m in masks], source, log)
+    return TwoStageResult([m for m in masks], source, info)

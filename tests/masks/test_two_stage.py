@@ -110,3 +110,24 @@ def test_empty_prompt_mask_is_reported(models_dir, tmp_path, caplog):
     res = generate_masks_from_points(paths, 0, models_dir, tmp_path / "o", box=(40, 2, 60, 10))
     assert res.sources == ["empty", "empty"]
     assert "empty mask for the prompt on frame 0" in caplog.text
+
+
+def test_empty_prompt_mask_in_two_stage_is_logged(models_dir, tmp_path, caplog):
+    from cobgs.masks.gdino import Detection
+    from cobgs.masks.two_stage import run_two_stage
+    from cobgs.masks.encoder_cache import EncoderCache
+    from cobgs.masks.manifest import load_manifest
+    from cobgs.masks.sam2_models import Sam2Models
+    from cobgs.masks.video import VideoPredictor
+
+    class BoxBesideTheObject:  # a detector whose box misses the object
+        def detect(self, rgb, caption, box_threshold, text_threshold):
+            return [Detection((40.0, 2.0, 60.0, 10.0), 0.9, "square")]
+
+    paths, _ = scenes.write_sequence(tmp_path / "s", [scenes.Frame("red")] * 2)
+    sam = Sam2Models(load_manifest(models_dir).sam2)
+    caplog.set_level("WARNING", logger="cobgs.masks")
+    res = run_two_stage(BoxBesideTheObject(), VideoPredictor(sam, EncoderCache(sam, paths)),
+                        "square", TwoStageConfig(run_stage2=False))
+    assert res.log["stage1"]["prompt_mask_empty"] is True
+    assert "empty mask for the detected box" in caplog.text
