@@ -81,14 +81,17 @@ def test_video_masks_match_sam2_video_predictor(tmp_path):
         for f, _ in pred.propagate(prompt_frame, reverse=rev):
             got[f] = pred.banks[1].output(f).low_res
     assert sorted(got) == sorted(want) == list(range(len(paths)))
-    ious = []
-    for f in range(len(paths)):
-        from cobgs.masks.postprocess import resize_logits
+    from cobgs.masks.postprocess import resize_logits
 
-        mine = resize_logits(got[f], want[f].shape) > 0
+    ious, diffs = [], []
+    for f in range(len(paths)):
+        logits = resize_logits(got[f], want[f].shape)
+        diffs.append(float(np.abs(logits - want[f]).max()))
+        mine = logits > 0
         theirs = want[f] > 0
         union = np.logical_or(mine, theirs).sum()
         ious.append(1.0 if union == 0 else np.logical_and(mine, theirs).sum() / union)
         assert theirs.any() and not theirs.all(), "degenerate reference mask"
     print("per-frame IoU vs sam2:", [round(float(i), 4) for i in ious])
+    print("per-frame max |logit difference|:", [f"{d:.2g}" for d in diffs])
     assert min(ious) >= 0.99
