@@ -36,20 +36,27 @@ _ORT_TYPES = {
 def choose_providers(requested: Optional[Sequence[str]] = None) -> List[str]:
     """Execution providers to ask for: ``requested`` if given, else CUDA when present, CPU.
 
+    Requested providers this onnxruntime build lacks are dropped with a warning (a CPU
+    build serves ``["CUDAExecutionProvider", "CPUExecutionProvider"]`` on CPU).
+
     Raises:
-        ModelError: a requested provider is not in this onnxruntime build.
+        ModelError: none of the requested providers is in this onnxruntime build.
     """
     import onnxruntime as ort
 
     available = ort.get_available_providers()
     if requested:
         missing = [p for p in requested if p not in available]
-        if missing:
+        kept = [p for p in requested if p in available]
+        if not kept:
             raise ModelError(
                 f"execution provider(s) {missing} not available in this onnxruntime build; "
                 f"available: {available}"
             )
-        return list(requested)
+        if missing:
+            log.warning("onnxruntime build lacks %s (available: %s); using %s", missing,
+                        available, kept)
+        return kept
     chosen = [p for p in ("CUDAExecutionProvider",) if p in available]
     return chosen + ["CPUExecutionProvider"]
 

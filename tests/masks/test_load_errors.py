@@ -158,12 +158,18 @@ def test_gdino_int64_mask_rejected(tmp_path):
         GroundingDino(load_manifest(tmp_path).gdino)
 
 
-def test_unavailable_provider_named(models_dir):
+def test_unavailable_provider_named(models_dir, caplog):
     from cobgs.masks.session import RunOptions
 
     with pytest.raises(ModelError, match=r"\['NoSuchExecutionProvider'\] not available"):
         Sam2Models(load_manifest(models_dir).sam2,
                    RunOptions(providers=["NoSuchExecutionProvider"]))
+    # with a fallback listed, the missing one is dropped and said so
+    caplog.set_level("WARNING", logger="cobgs.masks")
+    m = Sam2Models(load_manifest(models_dir).sam2,
+                   RunOptions(providers=["NoSuchExecutionProvider", "CPUExecutionProvider"]))
+    assert m.sessions["mask_decoder"].providers == ["CPUExecutionProvider"]
+    assert "lacks ['NoSuchExecutionProvider']" in caplog.text
 
 
 def test_manifest_json_round_trip(models_dir):
