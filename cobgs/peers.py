@@ -1,0 +1,336 @@
+"""The peers of SPEC §3, run in the same harness as COB-GS.
+
+Every peer takes the same trained scene, training views and masks as :func:`cobgs.refine.refine`
+and returns the same :class:`~cobgs.refine_result.RefineResult`, so
+:func:`cobgs.segment.evaluate_masks` and the exports treat all methods alike.
+
+* **nosplit** — COB-GS's label optimisation without splitting (paper Table 5, first row):
+  the same MASK stages, BAGS / BGTR / RAEM off.
+* **sa3d** — SA3D-GS: raw unbounded labels (init 0) blended as the mask channel, Adam
+  lr 1.0, loss ``−Σ G·M + 0.3·Σ (1−G)·M`` (not normalised), two passes over the views in
+  random order; after the first pass the Gaussians with label ≤ 0 are removed from the
+  optimised set (they are background and no longer rendered); foreground = label > 0.5.
+* **flashsplat** — FlashSplat: no optimisation. One forward pass per view accumulates,
+  per Gaussian and GT label, ``Σ α·T`` over the pixels of that label; each Gaussian's
+  vector is L2-normalised, the background bias ("slackness") is added to the background
+  entry and the argmax decides (ties → background). A Gaussian never seen has a zero
+  vector, so it goes to the background when the bias is ≥ 0 and to the object when it
+  is < 0, as upstream. Multi-object: L1-normalise over the K + 1 labels and compare each
+  object's share against the sum of the others (plus the bias).
+
+:func:`run_method` dispatches on a method name; it is the entry point of the pipeline's
+refine stage (one call per scene, method and object).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+from typing import Mapping, Optional, Sequence
+
+import torch
+from torch import Tensor
+
+from .data.scene import View
+from .errors import InputError
+from .gaussians import GaussianModel
+from .refine import RefineConfig, refine
+from .refine_result import PeakMemory, RefineResult, StageStats
+from .refine_scores import mask_loss, pixel_labels_from_mask, render_label_mask
+
+__all__ = [
+    "SA3DConfig",
+    "FlashSplatConfig",
+    "METHODS",
+    "nosplit_config",
+    "run_nosplit",
+    "run_sa3d",
+    "run_flashsplat",
+    "run_flashsplat_multi",
+    "flashsplat_votes",
+    "run_method",
+]
+
+METHODS = ("cobgs", "nosplit", "sa3d", "flashsplat")
+
+
+@dataclass(frozen=True)
+class SA3DConfig:
+    """SA3D-GS parameters (SPEC §3).
+
+    Attributes:
+        lr: Adam lr of the raw labels.
+        neg_weight: weight of the background term of the loss.
+        passes: passes over the training views.
+        threshold: foreground = label > threshold at the end.
+        seed: view order.
+        adam_eps: Adam epsilon.
+        backend: rasterizer backend.
+    """
+
+    lr: float = 1.0
+    neg_weight: float = 0.3
+    passes: int = 2
+    threshold: float = 0.5
+    seed: int = 0
+    adam_eps: float = 1e-15
+    backend: str = "native"
+
+    def __post_init__(self):
+        if self.passes < 1 or self.lr <= 0:
+            raise InputError("SA3DConfig.passes must be >= 1 and lr > 0")
+
+
+@dataclass(frozen=True)
+class FlashSplatConfig:
+    """FlashSplat parameters (SPEC §3).
+
+    Attributes:
+        background_bias: added to the normalised background entry before the argmax
+            (upstream tunes it per scene in about [−0.98, 0.88]).
+        backend: rasterizer backend.
+    """
+
+    background_bias: float = 0.0
+    backend: str = "native"
+
+
+def nosplit_config(base: RefineConfig = RefineConfig()) -> RefineConfig:
+    """``base`` with BAGS, BGTR and RAEM off (paper Table 5, first row)."""
+    return dataclasses.replace(base, bags=False, bgtr=False, raem="off")
+
+
+def _check(views: Sequence[View], masks: Sequence) -> None:
+    if not views:
+        raise InputError("need at least one training view")
+    if len(masks) != len(views):
+        raise InputError(f"got {len(masks)} masks for {len(views)} views (one per view, None = none)")
+
+
+def run_nosplit(model: GaussianModel, views: Sequence[View], masks: Sequence[Optional[Tensor]], extent: float,
+                config: RefineConfig = RefineConfig(), **kw) -> RefineResult:
+    """Label optimisation without splitting: :func:`refine` with :func:`nosplit_config`."""
+    kw.setdefault("method", "nosplit")
+    return refine(model, views, masks, extent, nosplit_config(config), **kw)
+
+
+def run_sa3d(
+    model: GaussianModel,
+    views: Sequence[View],
+    masks: Sequence[Optional[Tensor]],
+    config: SA3DConfig = SA3DConfig(),
+    *,
+    object_name: str = "",
+    progress: bool = True,
+) -> RefineResult:
+    """SA3D-GS on the scene ``model`` (not modified; see the module docstring)."""
+    _check(views, masks)
+    t0 = time.perf_counter()
+    n = len(model)
+    labels_px = [pixel_labels_from_mask(m, v.height, v.width, f"mask of view {v.name!r}")
+                 for m, v in zip(masks, views)]
+    stats: list[StageStats] = []
+    with PeakMemory() as mem:
+        # The working set: a geometry-only copy plus the raw labels; pruning it keeps
+        # Adam's moments aligned (GaussianModel.keep edits the optimizer too).
+        work = GaussianModel(*(model.data[k].detach() for k in ("means", "log_scales", "quats", "opacity_logits",
+                                                                  "sh0")),
+                             torch.zeros(n, 0, 3), active_sh_degree=0)
+        work.add_extra("sa3d_label", torch.zeros(n), fill=0.0)
+        work.add_extra("source_index", torch.arange(n), fill=-1)
+        opt = work.make_adam({"sa3d_label": config.lr}, eps=config.adam_eps)
+        rng = torch.Generator().manual_seed(config.seed)
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=config.passes * len(views), desc=f"sa3d {object_name}".strip(), dynamic_ncols=True)
+        try:
+            for p in range(config.passes):
+                ts, n0, losses = time.perf_counter(), len(work), []
+                for i in torch.randperm(len(views), generator=rng).tolist():
+                    out = render_label_mask(work, views[i].camera, work.data["sa3d_label"], None, config.backend)
+                    loss = mask_loss(out.image[..., 0], labels_px[i], config.neg_weight, normalise=False)
+                    loss.backward()
+                    opt.step()
+                    opt.zero_grad(set_to_none=True)
+                    losses.append(float(loss.detach()))
+                    if bar is not None:
+                        bar.update(1)
+                        bar.set_postfix(pass_=p, loss=f"{losses[-1]:.4g}", n=len(work))
+                pruned = 0
+                if p == 0 and config.passes > 1:
+                    keep = work.data["sa3d_label"].detach() > 0
+                    pruned = int((~keep).sum())
+                    work.keep(keep, [opt])
+                stats.append(StageStats(kind="sa3d_pass", index=p, iterations=len(views), gaussians_start=n0,
+                                        gaussians_end=len(work), pruned=pruned,
+                                        mean_loss=sum(losses) / len(losses), wall_s=time.perf_counter() - ts))
+        finally:
+            if bar is not None:
+                bar.close()
+        fg = torch.zeros(n, dtype=torch.bool)
+        label = torch.full((n,), float("-inf"))
+        src = work.data["source_index"]
+        label[src] = work.data["sa3d_label"].detach()
+        fg[src[work.data["sa3d_label"].detach() > config.threshold]] = True
+        out_model = model.clone()
+        if "sa3d_label" in out_model.data:
+            out_model.remove_extra("sa3d_label")
+        # Gaussians removed after the first pass keep −inf (they are background).
+        out_model.add_extra("sa3d_label", label, fill=0.0)
+    return RefineResult(method="sa3d", object_name=object_name, model=out_model, foreground=fg, background=~fg,
+                        mask_values=torch.ones(n), stages=stats, num_gaussians_start=n, num_gaussians_end=n,
+                        wall_s=time.perf_counter() - t0, peak_mem_bytes=mem.peak_bytes,
+                        config=dataclasses.asdict(config))
+
+
+def flashsplat_votes(
+    model: GaussianModel,
+    views: Sequence[View],
+    pixel_labels: Sequence[Tensor],  # each [H, W] int32 in −1..K
+    num_labels: int,
+    backend: str = "native",
+) -> Tensor:
+    """[N, num_labels] Σ α·T per GT label over all views (one forward pass per view)."""
+    from .rasterize import rasterize
+
+    m = model
+    acc = torch.zeros(len(m), num_labels, dtype=torch.float64)
+    means, quats, scales, opac = (t.detach() for t in (m.means, m.quats, m.scales, m.opacities))
+    feats = torch.zeros(len(m), 1)
+    with torch.no_grad():
+        for v, lab in zip(views, pixel_labels):
+            cam = v.camera
+            out = rasterize(means, quats, scales, opac, feats, cam.viewmat, cam.K, int(cam.width), int(cam.height),
+                            pixel_labels=lab, num_labels=num_labels, backend=backend)
+            acc += out.label_weights.to(torch.float64)
+    return acc
+
+
+def run_flashsplat(
+    model: GaussianModel,
+    views: Sequence[View],
+    masks: Sequence[Optional[Tensor]],
+    config: FlashSplatConfig = FlashSplatConfig(),
+    *,
+    object_name: str = "",
+    progress: bool = False,
+) -> RefineResult:
+    """FlashSplat, one object (see the module docstring)."""
+    _check(views, masks)
+    t0 = time.perf_counter()
+    n = len(model)
+    with PeakMemory() as mem:
+        labels_px = [pixel_labels_from_mask(mk, v.height, v.width, f"mask of view {v.name!r}")
+                     for mk, v in zip(masks, views)]
+        w = flashsplat_votes(model, views, labels_px, 2, config.backend)
+        wn = w / w.norm(dim=1, keepdim=True).clamp_min(1e-12)
+        # argmax over [background + bias, object]; ties (unseen with bias 0) → background.
+        fg = wn[:, 1] > wn[:, 0] + config.background_bias
+        out_model = model.clone()
+        if "flashsplat_score" in out_model.data:
+            out_model.remove_extra("flashsplat_score")
+        out_model.add_extra("flashsplat_score", (wn[:, 1] - wn[:, 0]).float(), fill=0.0)
+    wall = time.perf_counter() - t0
+    st = StageStats(kind="flashsplat_vote", index=0, iterations=len(views), gaussians_start=n, gaussians_end=n,
+                    wall_s=wall)
+    return RefineResult(method="flashsplat", object_name=object_name, model=out_model, foreground=fg,
+                        background=~fg, mask_values=torch.ones(n), stages=[st], num_gaussians_start=n,
+                        num_gaussians_end=n, wall_s=wall, peak_mem_bytes=mem.peak_bytes,
+                        config=dataclasses.asdict(config))
+
+
+def run_flashsplat_multi(
+    model: GaussianModel,
+    views: Sequence[View],
+    masks: Mapping[str, Sequence[Optional[Tensor]]],
+    config: FlashSplatConfig = FlashSplatConfig(),
+) -> dict[str, RefineResult]:
+    """FlashSplat for K objects at once (L1-normalised, each object vs the sum of the others).
+
+    Pixel labels: 0 = background, k + 1 = object k; where masks overlap the later object
+    wins; a view with no mask of any object (all None) is skipped. (A view missing only
+    some objects' masks treats them as absent there.)
+
+    Returns:
+        object name → :class:`RefineResult` (sharing one scene copy).
+    """
+    names = list(masks)
+    if not names:
+        raise InputError("run_flashsplat_multi needs at least one object")
+    for k in names:
+        _check(views, masks[k])
+    t0 = time.perf_counter()
+    n, K = len(model), len(names)
+    with PeakMemory() as mem:
+        use_views, labels_px = [], []
+        for i, v in enumerate(views):
+            ms = [masks[k][i] for k in names]
+            if all(m is None for m in ms):
+                continue
+            lab = torch.zeros(v.height, v.width, dtype=torch.int32)
+            for k, m in enumerate(ms):
+                if m is not None:
+                    px = pixel_labels_from_mask(m, v.height, v.width, f"mask {names[k]!r} of view {v.name!r}")
+                    lab[px == 1] = k + 1
+            use_views.append(v)
+            labels_px.append(lab)
+        w = flashsplat_votes(model, use_views, labels_px, K + 1, config.backend)
+        wn = w / w.sum(dim=1, keepdim=True).clamp_min(1e-12)
+        out_model = model.clone()
+        out_model.add_extra("flashsplat_share", wn[:, 1:].float(), fill=0.0)
+    wall = time.perf_counter() - t0
+    res = {}
+    for k, name in enumerate(names):
+        share = wn[:, k + 1]
+        fg = share > (wn.sum(dim=1) - share) + config.background_bias
+        st = StageStats(kind="flashsplat_vote", index=0, iterations=len(use_views), gaussians_start=n,
+                        gaussians_end=n, wall_s=wall)
+        res[name] = RefineResult(method="flashsplat", object_name=name, model=out_model, foreground=fg,
+                                 background=~fg, mask_values=torch.ones(n), stages=[st], num_gaussians_start=n,
+                                 num_gaussians_end=n, wall_s=wall, peak_mem_bytes=mem.peak_bytes,
+                                 config=dataclasses.asdict(config) | {"objects": names})
+    return res
+
+
+def run_method(
+    method: str,
+    model: GaussianModel,
+    views: Sequence[View],
+    masks: Sequence[Optional[Tensor]],
+    extent: float,
+    *,
+    config=None,
+    background: Sequence[float] = (0.0, 0.0, 0.0),
+    object_name: str = "",
+    progress: bool = True,
+) -> RefineResult:
+    """Run one segmentation method on one object.
+
+    Args:
+        method: "cobgs" (config: :class:`RefineConfig`, ablations included), "nosplit"
+            (:class:`RefineConfig`, switches forced off), "sa3d" (:class:`SA3DConfig`) or
+            "flashsplat" (:class:`FlashSplatConfig`).
+        model: the trained scene (not modified).
+        views, masks, extent, background: as in :func:`cobgs.refine.refine`.
+        config: the method's config (None = its defaults).
+        object_name: recorded in the result.
+        progress: tqdm bar.
+    """
+    defaults = {"cobgs": RefineConfig, "nosplit": RefineConfig, "sa3d": SA3DConfig, "flashsplat": FlashSplatConfig}
+    if method not in defaults:
+        raise InputError(f"unknown method {method!r} (expected one of {METHODS})")
+    cfg = defaults[method]() if config is None else config
+    if not isinstance(cfg, defaults[method]):
+        raise InputError(f"method {method!r} takes a {defaults[method].__name__}, got {type(cfg).__name__}")
+    if method == "cobgs":
+        return refine(model, views, masks, extent, cfg, background=background, object_name=object_name,
+                      progress=progress)
+    if method == "nosplit":
+        return run_nosplit(model, views, masks, extent, cfg, background=background, object_name=object_name,
+                           progress=progress)
+    if method == "sa3d":
+        return run_sa3d(model, views, masks, cfg, object_name=object_name, progress=progress)
+    return run_flashsplat(model, views, masks, cfg, object_name=object_name, progress=progress)

@@ -1,0 +1,568 @@
+"""COB-GS refinement (SPEC §2): alternating MASK / TEXTURE stages with boundary splits.
+
+The schedule, with V training views and stages of 2V iterations::
+
+    MASK, TEXTURE, MASK, TEXTURE, ..., MASK          forward-facing: 6 + 5 stages = 22 V
+                                                      360°:           4 + 3 stages = 14 V
+
+* **MASK stage** — only the label logits train (Adam, lr 0.1, eps 1e-15) on the
+  normalised mask loss; the rendered mask reaches the labels only
+  (:mod:`cobgs.refine_scores`). Every iteration adds the view's per-Gaussian score
+  ``|N⁺ − N⁻| / (N⁺ + N⁻ + 1e-6)`` (unseen = 1) to the stage accumulator. At the end of
+  the stage the Gaussians whose mean score is < δ are ambiguous; the large ones are split
+  (BAGS, :mod:`cobgs.refine_split`) and the accumulator is reset.
+* **TEXTURE stage** — labels frozen; every other tensor trains on 0.8·L1 + 0.2·(1−SSIM)
+  with the 3DGS learning rates (:class:`cobgs.train.TrainConfig` defaults), except the
+  position lr, fixed at its final value 1.6e-6 × extent; no densification, no opacity
+  reset.
+* **Last MASK stage** — ends with RAEM instead of a split, as in the released code (its
+  final iteration calls ``mask_and_split(..., prune_only=True)``): a split there would
+  leave children with label 0.5 that no later stage trains. With RAEM "off" it ends with
+  neither.
+
+Views are drawn at random without replacement, the queue refilled every V iterations;
+all randomness comes from private generators seeded by ``RefineConfig.seed``. Both Adam
+optimizers (labels, texture) live for the whole run and are edited with the model at
+every split / prune, so their moments stay aligned with the Gaussians.
+
+Multi-object (:func:`refine_objects`): objects are refined one after another on the
+updated scene, each with fresh labels; then one label-only MASK stage per object
+(except the last, whose labels are already final on this scene) gives each object's
+labels on the final scene, stored as the [N, K] extra ``object_logits`` plus an integer
+``object_id`` (0 = none, k + 1 = object k) for fast lookup.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Mapping, Optional, Sequence
+
+import torch
+from torch import Tensor
+
+from .data.scene import Scene, View
+from .errors import InputError
+from .gaussians import GaussianModel
+from .losses import photometric_loss
+from .refine_result import PeakMemory, RefineResult, StageStats
+from .refine_scores import (
+    LABEL,
+    ScoreAccumulator,
+    ensure_label,
+    mask_loss,
+    pixel_labels_from_mask,
+    render_label_mask,
+    view_scores,
+)
+from .refine_split import RAEM_VARIANTS, boundary_split, raem_prune_mask, split_candidates
+from .render import render
+from .train import TrainConfig
+
+__all__ = [
+    "RefineConfig",
+    "Refiner",
+    "refine",
+    "refine_scene",
+    "refine_objects",
+    "MultiObjectResult",
+    "masks_for",
+    "FG_THRESHOLD",
+    "BG_THRESHOLD",
+]
+
+FG_THRESHOLD = 0.9  # SPEC §2 segmentation: foreground = label > 0.9
+BG_THRESHOLD = 0.1  # background = label < 0.1
+OBJECT_LOGITS = "object_logits"
+OBJECT_ID = "object_id"
+
+_SCENE_DEFAULTS = {"forward": (0.5, 6), "360": (0.8, 4)}  # δ, mask stages (SPEC §2)
+_TC = TrainConfig  # the baseline's learning rates are the texture stage's (SPEC §2)
+
+
+@dataclass(frozen=True)
+class RefineConfig:
+    """Every parameter of the COB-GS refinement (defaults: the released behaviour).
+
+    Attributes:
+        scene_type: "forward" (δ 0.5, 6 mask + 5 texture stages) or "360" (δ 0.8, 4 + 3).
+        delta: ambiguity threshold δ; None = the scene type's.
+        mask_stages: number of MASK stages; None = the scene type's. TEXTURE stages sit
+            between consecutive MASK stages (mask_stages − 1 of them) when ``bgtr``.
+        stage_length_views: stage length in units of V (2 → 2V iterations).
+        bags: boundary-adaptive Gaussian splitting on/off (Table 5).
+        bgtr: boundary-guided texture restoration (TEXTURE stages) on/off (Table 5).
+        raem: final pruning: "off", "released" (every ambiguous Gaussian) or "paper"
+            (ambiguous and below the pixel footprint; :mod:`cobgs.refine_split`).
+        score: "count" (pixel counts N⁺/N⁻, released) or "weight" (Σ α·T, ablation).
+        split_size_fraction: split only ambiguous Gaussians with max scale > this × extent.
+        split_children: children per split parent.
+        split_scale_divisor: child scale = parent scale / this.
+        raem_footprint_px: pixel-footprint threshold of the "paper" RAEM.
+        mask_lambda: λ of the mask loss (weight of the background term).
+        label_lr: Adam lr of the label logits.
+        adam_eps: Adam epsilon of both optimizers.
+        position_lr: texture-stage position lr (× extent): the baseline's final lr.
+        sh0_lr, shN_lr, opacity_lr, scaling_lr, rotation_lr: texture-stage lrs (3DGS).
+        ssim_weight: λ of the photometric loss 0.8·L1 + 0.2·(1 − SSIM).
+        seed: seeds the view order and the split samples.
+        backend: rasterizer backend.
+        label_name: name of the label-logit extra.
+        record_scores: keep every mask stage's mean scores in the result (δ sweep).
+    """
+
+    scene_type: str = "forward"
+    delta: Optional[float] = None
+    mask_stages: Optional[int] = None
+    stage_length_views: float = 2.0
+    bags: bool = True
+    bgtr: bool = True
+    raem: str = "released"
+    score: str = "count"
+    split_size_fraction: float = 0.01
+    split_children: int = 2
+    split_scale_divisor: float = 1.6
+    raem_footprint_px: float = 1.0
+    mask_lambda: float = 1.0
+    label_lr: float = 0.1
+    adam_eps: float = 1e-15
+    position_lr: float = _TC.position_lr_final
+    sh0_lr: float = _TC.sh0_lr
+    shN_lr: float = _TC.shN_lr
+    opacity_lr: float = _TC.opacity_lr
+    scaling_lr: float = _TC.scaling_lr
+    rotation_lr: float = _TC.rotation_lr
+    ssim_weight: float = _TC.ssim_weight
+    seed: int = 0
+    backend: str = "native"
+    label_name: str = LABEL
+    record_scores: bool = True
+
+    def __post_init__(self):
+        if self.scene_type not in _SCENE_DEFAULTS:
+            raise InputError(f"RefineConfig.scene_type must be 'forward' or '360', got {self.scene_type!r}")
+        if self.raem not in RAEM_VARIANTS:
+            raise InputError(f"RefineConfig.raem must be one of {RAEM_VARIANTS}, got {self.raem!r}")
+        if self.score not in ("count", "weight"):
+            raise InputError(f"RefineConfig.score must be 'count' or 'weight', got {self.score!r}")
+        if self.delta is not None and not (0.0 <= self.delta <= 1.0):
+            raise InputError(f"RefineConfig.delta must be in [0, 1], got {self.delta}")
+        if self.mask_stages is not None and (not isinstance(self.mask_stages, int) or self.mask_stages < 1):
+            raise InputError(f"RefineConfig.mask_stages must be an int >= 1, got {self.mask_stages!r}")
+        if not self.stage_length_views > 0:
+            raise InputError(f"RefineConfig.stage_length_views must be > 0, got {self.stage_length_views}")
+        if self.split_children < 1 or self.split_scale_divisor <= 0:
+            raise InputError("RefineConfig.split_children must be >= 1 and split_scale_divisor > 0")
+        if self.mask_lambda < 0:
+            raise InputError(f"RefineConfig.mask_lambda must be >= 0, got {self.mask_lambda}")
+        for name in ("label_lr", "adam_eps"):
+            if not getattr(self, name) > 0:
+                raise InputError(f"RefineConfig.{name} must be > 0")
+
+    @property
+    def threshold(self) -> float:
+        """δ actually used."""
+        return _SCENE_DEFAULTS[self.scene_type][0] if self.delta is None else float(self.delta)
+
+    @property
+    def num_mask_stages(self) -> int:
+        return _SCENE_DEFAULTS[self.scene_type][1] if self.mask_stages is None else self.mask_stages
+
+    def stage_length(self, num_views: int) -> int:
+        """Iterations per stage: round(stage_length_views × V), at least 1."""
+        return max(1, int(round(self.stage_length_views * num_views)))
+
+    def plan(self) -> list[str]:
+        """Stage kinds in order: "mask" / "texture", starting and ending with "mask"."""
+        out = []
+        for i in range(self.num_mask_stages):
+            out.append("mask")
+            if self.bgtr and i < self.num_mask_stages - 1:
+                out.append("texture")
+        return out
+
+    def as_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["threshold"] = self.threshold
+        d["num_mask_stages"] = self.num_mask_stages
+        return d
+
+
+def masks_for(views: Sequence[View], object_name: str) -> list[Optional[Tensor]]:
+    """The object's mask in each view (None where the view has no annotation of it)."""
+    return [v.masks.get(object_name) for v in views]
+
+
+class Refiner:
+    """The state of one COB-GS refinement; :func:`refine` drives it.
+
+    Args:
+        model: the scene, edited in place (pass a clone to keep the original).
+        views: training views (camera and image).
+        masks: one GT mask per view (see :func:`cobgs.refine_scores.pixel_labels_from_mask`:
+            [H, W] bool, or int with −1 = don't care, or None = not annotated).
+        extent: scene extent (world units).
+        config: the parameters.
+        background: RGB behind the scene in TEXTURE stages (the baseline's).
+        reset_labels: start every label logit at 0 (SPEC §2).
+    """
+
+    def __init__(
+        self,
+        model: GaussianModel,
+        views: Sequence[View],
+        masks: Sequence[Optional[Tensor]],
+        extent: float,
+        config: RefineConfig = RefineConfig(),
+        background: Sequence[float] = (0.0, 0.0, 0.0),
+        reset_labels: bool = True,
+    ):
+        if not views:
+            raise InputError("refinement needs at least one training view")
+        if len(masks) != len(views):
+            raise InputError(f"got {len(masks)} masks for {len(views)} views (one per view, None = none)")
+        if not (isinstance(extent, (int, float)) and math.isfinite(extent) and extent > 0):
+            raise InputError(f"extent must be a positive number, got {extent!r}")
+        self.model = model
+        self.views = list(views)
+        self.config = c = config
+        self.extent = float(extent)
+        self.background = torch.as_tensor(background, dtype=torch.float32).reshape(3)
+        self.pixel_labels = [pixel_labels_from_mask(m, v.height, v.width, f"mask of view {v.name!r}")
+                             for m, v in zip(masks, self.views)]
+        if all(bool((p < 0).all()) for p in self.pixel_labels):
+            raise InputError("no view has an annotated mask pixel for this object")
+        ensure_label(model, c.label_name, reset=reset_labels)
+        self.label_opt = model.make_adam({c.label_name: c.label_lr}, eps=c.adam_eps)
+        self.texture_opt = model.make_adam(
+            {
+                "means": c.position_lr * self.extent,
+                "sh0": c.sh0_lr,
+                "shN": c.shN_lr,
+                "opacity_logits": c.opacity_lr,
+                "log_scales": c.scaling_lr,
+                "quats": c.rotation_lr,
+            },
+            eps=c.adam_eps,
+        )
+        self.view_rng = torch.Generator().manual_seed(c.seed)
+        self.split_rng = torch.Generator().manual_seed(c.seed + 1)
+        self.queue: list[int] = []
+        self.scores = ScoreAccumulator(len(model))
+        self.iteration = 0
+
+    @property
+    def optimizers(self) -> list:
+        return [self.label_opt, self.texture_opt]
+
+    def next_view(self) -> int:
+        """Index of the next view: random without replacement, refilled every V draws."""
+        if not self.queue:
+            self.queue = torch.randperm(len(self.views), generator=self.view_rng).tolist()
+        return self.queue.pop()
+
+    # -- iterations --------------------------------------------------------------------------
+    def mask_step(self, i: int) -> float:
+        """One MASK iteration on view ``i``: label loss, scores, label update."""
+        c, view = self.config, self.views[i]
+        logits = self.model.data[c.label_name]
+        out = render_label_mask(self.model, view.camera, torch.sigmoid(logits), self.pixel_labels[i], c.backend)
+        loss = mask_loss(out.image[..., 0], self.pixel_labels[i], c.mask_lambda)
+        loss.backward()
+        with torch.no_grad():
+            self.scores.add(view_scores(out.label_counts, out.label_weights, c.score == "weight", c.mask_lambda))
+            self.label_opt.step()
+            self.label_opt.zero_grad(set_to_none=True)
+        self.iteration += 1
+        return float(loss.detach())
+
+    def texture_step(self, i: int) -> float:
+        """One TEXTURE iteration on view ``i``: photometric loss, geometry/colour update."""
+        c, view = self.config, self.views[i]
+        out = render(self.model, view.camera, self.background, backend=c.backend)
+        loss = photometric_loss(out.image, view.image, c.ssim_weight)
+        loss.backward()
+        with torch.no_grad():
+            self.texture_opt.step()
+            self.texture_opt.zero_grad(set_to_none=True)
+        self.iteration += 1
+        return float(loss.detach())
+
+    # -- stage ends --------------------------------------------------------------------------
+    def end_mask_stage(self, length: int, last: bool) -> dict:
+        """Classify, then split (or, after the last stage, apply RAEM); reset the scores.
+
+        Returns:
+            ``ambiguous``, ``ambiguous_large``, ``split``, ``pruned`` counts and the
+            stage-mean ``scores`` [N] (before the edit).
+        """
+        c, m = self.config, self.model
+        mean = self.scores.mean(length)
+        amb = mean < c.threshold
+        large = split_candidates(m, amb, self.extent, c.split_size_fraction)
+        info = {"ambiguous": int(amb.sum()), "ambiguous_large": int(large.sum()), "split": 0, "pruned": 0,
+                "scores": mean}
+        if last:
+            prune = raem_prune_mask(m, amb, c.raem, [v.camera for v in self.views], c.raem_footprint_px)
+            info["pruned"] = int(prune.sum())
+            if info["pruned"]:
+                m.keep(~prune, self.optimizers)
+        elif c.bags:
+            info["split"] = boundary_split(
+                m, amb, self.extent, size_fraction=c.split_size_fraction, n_children=c.split_children,
+                scale_divisor=c.split_scale_divisor, reset=(c.label_name,), optimizers=self.optimizers,
+                generator=self.split_rng,
+            )
+        self.scores.reset(len(m))
+        return info
+
+    # -- the whole run -----------------------------------------------------------------------
+    def run(self, progress: bool = True, desc: str = "refine") -> tuple[list[StageStats], list[Tensor], int]:
+        """Run every stage of ``config.plan()``.
+
+        Returns:
+            (stage statistics, stage-mean scores of each mask stage, ambiguous count at
+            the end before RAEM).
+        """
+        c = self.config
+        plan = c.plan()
+        length = c.stage_length(len(self.views))
+        bar = None
+        if progress:
+            from tqdm import tqdm
+
+            bar = tqdm(total=len(plan) * length, desc=desc, dynamic_ncols=True)
+        stats: list[StageStats] = []
+        scores: list[Tensor] = []
+        ambiguous_final = -1
+        last_amb = -1
+        n_mask_done = 0
+        try:
+            for si, kind in enumerate(plan):
+                t0 = time.perf_counter()
+                n0 = len(self.model)
+                losses = []
+                for _ in range(length):
+                    i = self.next_view()
+                    loss = self.mask_step(i) if kind == "mask" else self.texture_step(i)
+                    losses.append(loss)
+                    if bar is not None:
+                        bar.update(1)
+                        if len(losses) % 10 == 0 or len(losses) == length:
+                            bar.set_postfix(stage=f"{kind}{si}", it=self.iteration, loss=f"{loss:.4g}",
+                                            n=len(self.model), amb=last_amb)
+                st = StageStats(kind=kind, index=si, iterations=length, gaussians_start=n0, gaussians_end=n0,
+                                mean_loss=sum(losses) / len(losses))
+                if kind == "mask":
+                    n_mask_done += 1
+                    last = n_mask_done == c.num_mask_stages
+                    info = self.end_mask_stage(length, last)
+                    st.ambiguous, st.ambiguous_large = info["ambiguous"], info["ambiguous_large"]
+                    st.split, st.pruned = info["split"], info["pruned"]
+                    last_amb = info["ambiguous"]
+                    if c.record_scores:
+                        scores.append(info["scores"])
+                    if last:
+                        ambiguous_final = info["ambiguous"]
+                st.gaussians_end = len(self.model)
+                st.wall_s = time.perf_counter() - t0
+                stats.append(st)
+                if bar is not None:
+                    bar.set_postfix(stage=f"{kind}{si}", it=self.iteration, n=len(self.model), amb=last_amb)
+        finally:
+            if bar is not None:
+                bar.close()
+        return stats, scores, ambiguous_final
+
+
+def _label_sets(logits: Tensor) -> tuple[Tensor, Tensor]:
+    """(foreground, background) [N] bool of label logits: sigmoid > 0.9 / < 0.1.
+
+    Compared in logit space (logit(0.9) = ln 9), which is exact and avoids a sigmoid.
+    """
+    t_fg = math.log(FG_THRESHOLD / (1.0 - FG_THRESHOLD))
+    t_bg = math.log(BG_THRESHOLD / (1.0 - BG_THRESHOLD))
+    lg = logits.detach()
+    return lg > t_fg, lg < t_bg
+
+
+def refine(
+    model: GaussianModel,
+    views: Sequence[View],
+    masks: Sequence[Optional[Tensor]],
+    extent: float,
+    config: RefineConfig = RefineConfig(),
+    *,
+    background: Sequence[float] = (0.0, 0.0, 0.0),
+    object_name: str = "",
+    method: str = "cobgs",
+    progress: bool = True,
+    copy: bool = True,
+) -> RefineResult:
+    """Refine ``model`` for one object with COB-GS and segment it.
+
+    Args:
+        model: the trained 3DGS scene (left untouched when ``copy``).
+        views: training views.
+        masks: the object's GT mask per view ([H, W] bool / int with −1 = ignore / None).
+        extent: scene extent.
+        config: the parameters (ablation switches included).
+        background: the baseline's background colour (TEXTURE stages render on it).
+        object_name: recorded in the result.
+        method: recorded in the result ("cobgs", or an ablation row's name).
+        progress: tqdm bar (stage, iteration, loss, Gaussians, ambiguous count).
+        copy: refine a clone of ``model`` (True) or ``model`` itself.
+
+    Returns:
+        :class:`RefineResult`; ``model`` carries the label-logit extra; foreground =
+        label > 0.9, background = label < 0.1, mask values = labels.
+    """
+    m = model.clone() if copy else model
+    n0 = len(m)
+    t0 = time.perf_counter()
+    with PeakMemory() as mem:
+        r = Refiner(m, views, masks, extent, config, background)
+        stats, scores, amb = r.run(progress=progress, desc=f"{method} {object_name}".strip())
+    wall = time.perf_counter() - t0
+    logits = m.data[config.label_name]
+    fg, bg = _label_sets(logits)
+    return RefineResult(
+        method=method,
+        object_name=object_name,
+        model=m,
+        foreground=fg,
+        background=bg,
+        mask_values=torch.sigmoid(logits.detach()),
+        stages=stats,
+        stage_scores=scores,
+        ambiguous_final=amb,
+        num_gaussians_start=n0,
+        num_gaussians_end=len(m),
+        wall_s=wall,
+        peak_mem_bytes=mem.peak_bytes,
+        config=config.as_dict(),
+    )
+
+
+def refine_scene(model: GaussianModel, scene: Scene, object_name: str, config: RefineConfig = RefineConfig(),
+                 **kw) -> RefineResult:
+    """:func:`refine` with the training views, masks, extent and background of ``scene``."""
+    if object_name not in scene.object_names:
+        raise InputError(f"object {object_name!r} has no masks in this scene (objects: {scene.object_names})")
+    return refine(model, scene.train, masks_for(scene.train, object_name), scene.extent, config,
+                  background=scene.background, object_name=object_name, **kw)
+
+
+# -- multi-object ---------------------------------------------------------------------------
+@dataclass
+class MultiObjectResult:
+    """K objects refined sequentially on one scene (SPEC §2 multi-object).
+
+    Attributes:
+        model: the final scene, with extras ``object_logits`` [N, K] (each object's label
+            logit from the final label pass) and ``object_id`` [N] int64 (0 = no object,
+            k + 1 = the object with the highest label among those above 0.9).
+        object_names: the K objects, in refinement order.
+        refinements: each object's sequential refinement summary (:meth:`RefineResult.summary`).
+        final_pass: the label-only stage of each object on the final scene (None for the
+            last object, whose labels are already final).
+        wall_s: total wall time.
+        peak_mem_bytes: peak RSS above the start.
+    """
+
+    model: GaussianModel
+    object_names: list[str]
+    refinements: list[dict] = field(default_factory=list)
+    final_pass: list[Optional[StageStats]] = field(default_factory=list)
+    wall_s: float = 0.0
+    peak_mem_bytes: int = 0
+
+    def index(self, name: str) -> int:
+        if name not in self.object_names:
+            raise InputError(f"unknown object {name!r} (objects: {self.object_names})")
+        return self.object_names.index(name)
+
+    def result(self, name: str, method: str = "cobgs") -> RefineResult:
+        """The single-object view of object ``name`` on the final scene (shares ``model``)."""
+        k = self.index(name)
+        logits = self.model.data[OBJECT_LOGITS][:, k].detach()
+        fg, bg = _label_sets(logits)
+        s = self.refinements[k]
+        return RefineResult(method=method, object_name=name, model=self.model, foreground=fg, background=bg,
+                            mask_values=torch.sigmoid(logits), ambiguous_final=s["ambiguous_final"],
+                            num_gaussians_start=s["num_gaussians_start"], num_gaussians_end=len(self.model),
+                            wall_s=s["wall_s"], peak_mem_bytes=self.peak_mem_bytes, config=s["config"])
+
+
+def assign_object_ids(object_logits: Tensor) -> Tensor:
+    """[N] int64 object id from [N, K] label logits: k + 1 for the object with the
+    highest label among those with label > 0.9; 0 where none is above 0.9."""
+    if object_logits.dim() != 2:
+        raise InputError(f"object_logits must be [N, K], got {list(object_logits.shape)}")
+    lg = object_logits.detach()
+    best, arg = lg.max(dim=1)
+    t_fg = math.log(FG_THRESHOLD / (1.0 - FG_THRESHOLD))
+    return torch.where(best > t_fg, arg + 1, torch.zeros_like(arg)).to(torch.int64)
+
+
+def refine_objects(
+    model: GaussianModel,
+    views: Sequence[View],
+    masks: Mapping[str, Sequence[Optional[Tensor]]],
+    extent: float,
+    config: RefineConfig = RefineConfig(),
+    *,
+    background: Sequence[float] = (0.0, 0.0, 0.0),
+    progress: bool = True,
+) -> MultiObjectResult:
+    """Refine and segment K objects in one run (see the module docstring).
+
+    Args:
+        model: the trained scene (not modified; a clone is refined).
+        views: training views.
+        masks: object name → one mask per view, in refinement order.
+        extent, config, background, progress: as in :func:`refine`.
+    """
+    names = list(masks)
+    if not names:
+        raise InputError("refine_objects needs at least one object")
+    for n in names:
+        if len(masks[n]) != len(views):
+            raise InputError(f"object {n!r}: got {len(masks[n])} masks for {len(views)} views")
+    m = model.clone()
+    for extra in (OBJECT_LOGITS, OBJECT_ID):
+        if extra in m.data:
+            m.remove_extra(extra)
+    t0 = time.perf_counter()
+    summaries: list[dict] = []
+    final: list[Optional[StageStats]] = []
+    with PeakMemory() as mem:
+        for name in names:
+            r = refine(m, views, masks[name], extent, config, background=background, object_name=name,
+                       progress=progress, copy=False)
+            summaries.append(r.summary() | {"ambiguous_final": r.ambiguous_final})
+        # Final label-only pass: one MASK stage per earlier object on the final scene.
+        label_cfg = dataclasses.replace(config, bags=False, bgtr=False, raem="off", mask_stages=1,
+                                        record_scores=False)
+        last_labels = m.data[config.label_name].detach().clone()
+        cols = []
+        for k, name in enumerate(names):
+            if k == len(names) - 1:
+                cols.append(last_labels)
+                final.append(None)
+                continue
+            pr = Refiner(m, views, masks[name], extent, label_cfg, background)
+            stats, _, _ = pr.run(progress=progress, desc=f"labels {name}")
+            st = stats[0]
+            st.kind = "label_pass"
+            final.append(st)
+            cols.append(m.data[config.label_name].detach().clone())
+        obj = torch.stack(cols, 1)
+        # The working label extra ends as the last object's (as after its refinement).
+        m.set_tensor(config.label_name, last_labels)
+        m.add_extra(OBJECT_LOGITS, obj, fill=0.0)
+        m.add_extra(OBJECT_ID, assign_object_ids(obj), fill=0)
+    return MultiObjectResult(model=m, object_names=names, refinements=summaries, final_pass=final,
+                             wall_s=time.perf_counter() - t0, peak_mem_bytes=mem.peak_bytes)

@@ -1,0 +1,161 @@
+"""What every segmentation method returns (COB-GS, its ablations and the peers alike).
+
+One result type makes the comparison side by side: the evaluation (:mod:`cobgs.segment`)
+only needs the scene after the method (``model``), which Gaussians are the object
+(``foreground``), which remain when the object is removed (``background``) and the value
+each foreground Gaussian contributes to the rendered object mask (``mask_values``).
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Optional
+
+from torch import Tensor
+
+from .gaussians import GaussianModel
+
+
+@dataclass
+class StageStats:
+    """One stage of a refinement (or one pass of a peer).
+
+    Attributes:
+        kind: "mask", "texture", "label_pass" (multi-object final pass), or a peer's pass
+            name ("sa3d_pass", "flashsplat_vote").
+        index: position among all stages, from 0.
+        iterations: iterations (views rendered) in the stage.
+        gaussians_start, gaussians_end: model size before / after the stage (after its
+            split or pruning).
+        ambiguous: Gaussians with stage-mean score < δ at the end of a mask stage (−1
+            where not applicable).
+        ambiguous_large: of those, the ones above the split size (−1 where n/a).
+        split: parents split at the end of the stage.
+        pruned: Gaussians removed at the end of the stage.
+        mean_loss: mean loss over the stage's iterations (nan where there is none).
+        wall_s: wall time of the stage.
+    """
+
+    kind: str
+    index: int
+    iterations: int
+    gaussians_start: int
+    gaussians_end: int
+    ambiguous: int = -1
+    ambiguous_large: int = -1
+    split: int = 0
+    pruned: int = 0
+    mean_loss: float = float("nan")
+    wall_s: float = 0.0
+
+    def as_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+@dataclass
+class RefineResult:
+    """The outcome of one method on one object of one scene.
+
+    Attributes:
+        method: "cobgs", "nosplit", "sa3d", "flashsplat" (or a caller's label).
+        object_name: the object segmented.
+        model: the scene after the method (refined for COB-GS; the input scene, with a
+            score extra, for label-only methods).
+        foreground: [N] bool, the object's Gaussians.
+        background: [N] bool, the Gaussians kept when the object is removed.
+        mask_values: [N] float32, each Gaussian's value in the rendered object mask
+            (COB-GS: its label; hard-assignment peers: 1).
+        stages: per-stage statistics.
+        stage_scores: [N_s] float32 stage-mean score of every mask stage (before that
+            stage's split), for the δ sweep (paper Fig. 7); empty when not recorded.
+        ambiguous_final: ambiguous Gaussians (score < δ) at the end, before RAEM (−1 n/a).
+        num_gaussians_start, num_gaussians_end: scene size before / after.
+        wall_s: total wall time.
+        peak_mem_bytes: peak resident memory above the level at the start (sampled).
+        config: the method's parameters as a plain dict.
+    """
+
+    method: str
+    object_name: str
+    model: GaussianModel
+    foreground: Tensor
+    background: Tensor
+    mask_values: Tensor
+    stages: list[StageStats] = field(default_factory=list)
+    stage_scores: list[Tensor] = field(default_factory=list)
+    ambiguous_final: int = -1
+    num_gaussians_start: int = 0
+    num_gaussians_end: int = 0
+    wall_s: float = 0.0
+    peak_mem_bytes: int = 0
+    config: dict = field(default_factory=dict)
+
+    def summary(self) -> dict:
+        """JSON-ready numbers (no tensors) for manifests and reports."""
+        return {
+            "method": self.method,
+            "object": self.object_name,
+            "num_gaussians_start": self.num_gaussians_start,
+            "num_gaussians_end": self.num_gaussians_end,
+            "foreground": int(self.foreground.sum()),
+            "background": int(self.background.sum()),
+            "ambiguous_final": self.ambiguous_final,
+            "splits": sum(s.split for s in self.stages),
+            "pruned": sum(s.pruned for s in self.stages),
+            "wall_s": self.wall_s,
+            "peak_mem_bytes": self.peak_mem_bytes,
+            "stages": [s.as_dict() for s in self.stages],
+            "config": dict(self.config),
+        }
+
+
+def current_rss_bytes() -> int:
+    """Resident set size of this process now (Linux /proc; 0 where unavailable)."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError, IndexError):
+        return 0
+
+
+class PeakMemory:
+    """Samples the process RSS in a thread; ``peak_bytes`` is the peak above the start.
+
+    The process-wide ``ru_maxrss`` cannot attribute memory to one method when several
+    run in one process (it only grows), hence the sampling. Use as a context manager.
+
+    Args:
+        interval_s: sampling period.
+    """
+
+    def __init__(self, interval_s: float = 0.005):
+        self.interval_s = interval_s
+        self.start = 0
+        self.peak = 0
+        self._stop = threading.Event()
+        self._thread: Optional[threading.Thread] = None
+
+    def __enter__(self) -> "PeakMemory":
+        self.start = self.peak = current_rss_bytes()
+        self._stop.clear()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+        return self
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            self.peak = max(self.peak, current_rss_bytes())
+            time.sleep(self.interval_s)
+
+    def __exit__(self, *exc) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+        self.peak = max(self.peak, current_rss_bytes())
+
+    @property
+    def peak_bytes(self) -> int:
+        return max(0, self.peak - self.start)

@@ -1,0 +1,135 @@
+"""The peers (SPEC §3) on hand-built cases, and the run_method dispatch."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from cobgs.errors import InputError
+from cobgs.peers import (
+    FlashSplatConfig,
+    SA3DConfig,
+    flashsplat_votes,
+    nosplit_config,
+    run_flashsplat,
+    run_flashsplat_multi,
+    run_method,
+    run_sa3d,
+)
+from cobgs.refine import RefineConfig, masks_for
+from cobgs.refine_scores import pixel_labels_from_mask
+from test_refine_fixtures import three_gaussians, tiny_scene
+
+
+def test_flashsplat_votes_are_alpha_t_sums_per_label():
+    model, view = three_gaussians()
+    lab = pixel_labels_from_mask(view.masks["obj"], 32, 32)
+    w = flashsplat_votes(model, [view, view], [lab, lab], 2)
+    assert w.shape == (3, 2)
+    assert w[0, 0] == 0 and w[0, 1] > 0  # A: object pixels only
+    assert w[1, 0] == pytest.approx(float(w[1, 1]), rel=1e-5)  # B: symmetric on the edge
+    assert torch.all(w[2] == 0)  # C: never seen
+
+
+@pytest.mark.parametrize("bias, expected", [(0.0, [True, False, False]), (0.3, [True, False, False]),
+                                            (-0.1, [True, True, True]), (-1.5, [True, True, True])])
+def test_flashsplat_bias_and_unseen_rule(bias, expected):
+    model, view = three_gaussians()
+    r = run_flashsplat(model, [view], [view.masks["obj"]], FlashSplatConfig(background_bias=bias), object_name="obj")
+    # A wins the object; B is a tie (object only with a negative bias); C, unseen, goes to
+    # the background unless the bias is negative.
+    assert r.foreground.tolist() == expected
+    assert torch.equal(r.background, ~r.foreground)
+    assert r.method == "flashsplat" and len(r.model) == len(model)
+    assert torch.all(r.mask_values == 1)
+
+
+def test_flashsplat_strong_bias_removes_weak_object_gaussians():
+    model, view = three_gaussians()
+    mask = view.masks["obj"].clone()
+    mask[:, :] = False
+    mask[:, :15] = True  # shift the edge one pixel left: B is now mostly background
+    r0 = run_flashsplat(model, [view], [mask], FlashSplatConfig(background_bias=0.0))
+    rn = run_flashsplat(model, [view], [mask], FlashSplatConfig(background_bias=-0.9))
+    assert not r0.foreground[1] and rn.foreground[1]
+
+
+def test_flashsplat_multi_object_l1_rule():
+    model, view = three_gaussians()
+    left = view.masks["obj"]
+    right = ~left
+    res = run_flashsplat_multi(model, [view], {"left": [left], "right": [right]})
+    assert set(res) == {"left", "right"}
+    # A is all "left"; B splits evenly (share 0.5 = sum of the others: not above, so neither);
+    # C unseen: neither.
+    assert res["left"].foreground.tolist() == [True, False, False]
+    assert res["right"].foreground.tolist() == [False, False, False]
+    biased = run_flashsplat_multi(model, [view], {"left": [left], "right": [right]},
+                                  FlashSplatConfig(background_bias=-0.1))
+    assert biased["right"].foreground.tolist() == [False, True, True]
+
+
+def test_sa3d_two_passes_prune_and_threshold():
+    model, view = three_gaussians()
+    r = run_sa3d(model, [view], [view.masks["obj"]], SA3DConfig(passes=2), object_name="obj", progress=False)
+    assert [s.kind for s in r.stages] == ["sa3d_pass", "sa3d_pass"]
+    # Pass 1 (one Adam step of lr 1): A's raw label rises to 1; B, on the edge, rises too
+    # (the 0.3-weighted background term is outweighed: SA3D-GS's foreground bias); C has
+    # no gradient and stays at 0 -> removed (label <= 0).
+    assert r.stages[0].pruned == 1 and r.stages[1].gaussians_start == 2
+    assert r.foreground.tolist() == [True, True, False]
+    lab = r.model.data["sa3d_label"]
+    assert lab[0] > 0.5 and lab[1] > 0.5 and torch.isinf(lab[2])
+    assert "sa3d_label" not in model.data  # input untouched
+
+
+def test_sa3d_unnormalised_weighted_loss():
+    model, view = three_gaussians()
+    with torch.no_grad():
+        model.data["means"][1, 0] = 0.02  # B's centre at 16.5 px: ~55 % of its weight is object
+    mask = view.masks["obj"]
+    r = run_sa3d(model, [view, view], [mask, mask], SA3DConfig(passes=1), progress=False)
+    lab = r.model.data["sa3d_label"]
+    # Step 1 at labels 0: d/dlabel = -sum_obj aT + 0.3 sum_bg aT < 0 for A and for B.
+    # Step 2: Adam keeps moving both up; C never moves.
+    assert lab[0] > 1.0 and lab[1] > 1.0 and lab[2] == 0.0
+    # The COB-GS loss (lambda = 1) would push B down instead: the 0.3 weight matters.
+    from cobgs.refine_scores import mask_loss as ml, render_label_mask as rlm
+
+    px = pixel_labels_from_mask(mask, 32, 32)
+    x = torch.zeros(3, requires_grad=True)
+    ml(rlm(model, view.camera, x, px).image[..., 0], px, 1.0).backward()
+    assert x.grad[1] > 0
+    # Recorded loss = mean of the two unnormalised losses: 0 at labels 0, then at [1, 1, 0].
+    m1 = rlm(model, view.camera, torch.tensor([1.0, 1.0, 0.0]), px).image[..., 0]
+    expected = 0.5 * float(-(m1 * (px == 1)).sum() + 0.3 * (m1 * (px == 0)).sum())
+    assert r.stages[0].mean_loss == pytest.approx(expected, rel=1e-5)
+
+
+def test_nosplit_is_table5_first_row():
+    cfg = nosplit_config(RefineConfig(delta=0.4))
+    assert (cfg.bags, cfg.bgtr, cfg.raem, cfg.delta) == (False, False, "off", 0.4)
+    model, views, extent = tiny_scene(n_views=2)
+    r = run_method("nosplit", model, views, masks_for(views, "ball"), extent,
+                   config=RefineConfig(mask_stages=2, stage_length_views=1), progress=False, object_name="ball")
+    assert r.method == "nosplit" and len(r.model) == len(model)
+    assert [s.kind for s in r.stages] == ["mask", "mask"] and sum(s.split for s in r.stages) == 0
+
+
+def test_run_method_dispatch_and_errors():
+    model, views, extent = tiny_scene(n_views=2)
+    masks = masks_for(views, "ball")
+    results = {m: run_method(m, model, views, masks, extent, progress=False, object_name="ball",
+                             config=RefineConfig(mask_stages=1, stage_length_views=1)
+                             if m in ("cobgs", "nosplit") else None)
+               for m in ("cobgs", "nosplit", "sa3d", "flashsplat")}
+    for m, r in results.items():
+        assert r.method == m and r.object_name == "ball"
+        assert r.foreground.shape == r.background.shape == r.mask_values.shape == (len(r.model),)
+        assert r.wall_s > 0
+    with pytest.raises(InputError, match="unknown method"):
+        run_method("saga", model, views, masks, extent)
+    with pytest.raises(InputError, match="takes a"):
+        run_method("sa3d", model, views, masks, extent, config=RefineConfig())
+    with pytest.raises(InputError):
+        run_flashsplat(model, views, masks[:1])

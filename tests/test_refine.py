@@ -1,0 +1,361 @@
+"""COB-GS refinement: scores, splitting, stage invariants, RAEM, configuration."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+import torch
+
+from cobgs.errors import InputError
+from cobgs.gaussians import GaussianModel, quat_to_rotmat
+from cobgs.refine import RefineConfig, Refiner, masks_for, refine
+from cobgs.refine_scores import (
+    LABEL,
+    ScoreAccumulator,
+    ensure_label,
+    mask_loss,
+    pixel_labels_from_mask,
+    render_label_mask,
+    view_scores,
+)
+from cobgs.refine_split import boundary_split, pixel_footprint, raem_prune_mask, split_candidates
+from test_refine_fixtures import three_gaussians, tiny_scene
+
+CORE_NO_LABEL = ("means", "log_scales", "quats", "opacity_logits", "sh0", "shN")
+
+
+# -- scores ---------------------------------------------------------------------------------
+def test_view_scores_from_known_counts():
+    # Rows: (N-, N+). Expected r = |N+ - N-| / (N+ + N- + 1e-6), unseen -> 1.
+    counts = torch.tensor([[0, 10], [5, 5], [0, 0], [3, 1], [7, 0]], dtype=torch.int32)
+    r = view_scores(counts)
+    expected = torch.tensor([10 / (10 + 1e-6), 0.0, 1.0, 2 / (4 + 1e-6), 7 / (7 + 1e-6)])
+    assert torch.allclose(r, expected, atol=1e-7)
+
+
+def test_view_scores_weighted_variant_and_lambda_zero():
+    counts = torch.tensor([[2, 2], [0, 0], [4, 0]], dtype=torch.int32)
+    weights = torch.tensor([[0.1, 0.3], [0.0, 0.0], [0.5, 0.0]])
+    r = view_scores(counts, weights, use_weights=True)
+    assert torch.allclose(r, torch.tensor([0.2 / 0.4, 1.0, 1.0]), atol=1e-5)
+    # The count variant sees the first Gaussian as perfectly ambiguous instead.
+    assert view_scores(counts)[0] == 0.0
+    # lambda = 0: background pixels carry no gradient, so N- = 0 and a Gaussian seen only
+    # by background pixels has no signal at all (unseen -> 1).
+    r0 = view_scores(counts, lam=0.0)
+    assert torch.allclose(r0, torch.tensor([2 / (2 + 1e-6), 1.0, 1.0]), atol=1e-6)
+    with pytest.raises(InputError):
+        view_scores(counts, None, use_weights=True)
+
+
+def test_score_accumulator_stage_mean():
+    acc = ScoreAccumulator(3)
+    for s in ([1.0, 0.0, 0.5], [1.0, 0.2, 0.5], [1.0, 0.4, 1.0], [1.0, 0.2, 0.0]):
+        acc.add(torch.tensor(s))
+    assert torch.allclose(acc.mean(), torch.tensor([1.0, 0.2, 0.5]))
+    assert torch.equal(acc.ambiguous(0.5), torch.tensor([False, True, False]))
+    # Divided by the stage length when given (released: base_num = 2V).
+    assert torch.allclose(acc.mean(8), torch.tensor([0.5, 0.1, 0.25]))
+    with pytest.raises(InputError):
+        acc.add(torch.zeros(4))
+    acc.reset(2)
+    with pytest.raises(InputError):
+        acc.mean()
+
+
+def test_hand_built_counts_and_scores():
+    model, view = three_gaussians()
+    labels = pixel_labels_from_mask(view.masks["obj"], 32, 32)
+    ensure_label(model)
+    out = render_label_mask(model, view.camera, torch.sigmoid(model.data[LABEL]), labels)
+    n_neg, n_pos = out.label_counts[:, 0].tolist(), out.label_counts[:, 1].tolist()
+    # A lies entirely in the object half: only N+.
+    assert n_pos[0] > 0 and n_neg[0] == 0
+    # B sits on the mask edge (x = 16 px), mirror-symmetric: N+ = N-.
+    assert n_pos[1] == n_neg[1] > 0
+    # C is behind the camera: nothing.
+    assert n_pos[2] == n_neg[2] == 0
+    # The same counts from the pure-PyTorch reference rasterizer.
+    ref = render_label_mask(model, view.camera, torch.sigmoid(model.data[LABEL]), labels, backend="reference")
+    assert torch.equal(ref.label_counts, out.label_counts)
+    r = view_scores(out.label_counts)
+    assert r[0] == pytest.approx(1.0, abs=1e-6) and r[1] == 0.0 and r[2] == 1.0
+
+
+def test_refiner_accumulates_rasterizer_scores_and_ignores_dont_care_pixels():
+    model, view = three_gaussians()
+    mask = view.masks["obj"].to(torch.int64)
+    mask[:, 16:] = -1  # the right half is "don't care": B now sees only object pixels
+    r = Refiner(model, [view], [mask], 1.0, RefineConfig(stage_length_views=3))
+    for _ in range(3):
+        r.mask_step(0)
+    mean = r.scores.mean()
+    assert r.scores.iterations == 3
+    assert torch.allclose(mean, torch.ones(3), atol=1e-6)  # A, B unambiguous; C unseen
+
+
+def test_mask_loss_normalised_and_gradient_sign():
+    M = torch.full((4, 5), 0.5, requires_grad=True)
+    G = torch.zeros(4, 5, dtype=torch.int32)
+    G[:, :2] = 1
+    G[0, 4] = -1
+    loss = mask_loss(M, G)
+    assert loss.item() == pytest.approx((-8 * 0.5 + 11 * 0.5) / 20)
+    loss.backward()
+    assert torch.all(M.grad[G == 1] == -1 / 20) and torch.all(M.grad[G == 0] == 1 / 20)
+    assert M.grad[0, 4] == 0
+
+
+def test_mask_path_reaches_labels_only():
+    model, view = three_gaussians()
+    ensure_label(model)
+    labels = pixel_labels_from_mask(view.masks["obj"], 32, 32)
+    out = render_label_mask(model, view.camera, torch.sigmoid(model.data[LABEL]), labels)
+    mask_loss(out.image[..., 0], labels).backward()
+    assert model.data[LABEL].grad is not None and model.data[LABEL].grad.abs().sum() > 0
+    for k in CORE_NO_LABEL:
+        assert model.data[k].grad is None
+
+
+def test_pixel_labels_validation():
+    assert torch.equal(pixel_labels_from_mask(None, 2, 3), torch.full((2, 3), -1, dtype=torch.int32))
+    with pytest.raises(InputError, match="shape"):
+        pixel_labels_from_mask(torch.zeros(3, 3, dtype=torch.bool), 2, 3)
+    with pytest.raises(InputError, match="bool or integer"):
+        pixel_labels_from_mask(torch.zeros(2, 3), 2, 3)
+    with pytest.raises(InputError, match="values"):
+        pixel_labels_from_mask(torch.full((2, 3), 2), 2, 3)
+
+
+# -- splitting ------------------------------------------------------------------------------
+def _model_with_label(n_big: int, n_small: int, seed: int = 0) -> GaussianModel:
+    g = torch.Generator().manual_seed(seed)
+    n = n_big + n_small
+    scales = torch.cat([torch.tensor([[0.2, 0.05, 0.01]]).repeat(n_big, 1),
+                        torch.full((n_small, 3), 0.001)])
+    q = torch.nn.functional.normalize(torch.tensor([[0.9, 0.3, -0.2, 0.25]]), dim=-1).repeat(n, 1)
+    m = GaussianModel(torch.randn(n, 3, generator=g), torch.log(scales), q, torch.randn(n, generator=g),
+                      torch.randn(n, 1, 3, generator=g), torch.randn(n, 3, 3, generator=g))
+    m.add_extra(LABEL, torch.randn(n, generator=g), fill=0.0)
+    m.add_extra("object_id", torch.arange(n), fill=0)
+    return m
+
+
+def test_boundary_split_mechanics_and_optimizer_states():
+    m = _model_with_label(n_big=6, n_small=4)
+    n = len(m)
+    label_opt = m.make_adam({LABEL: 0.1})
+    tex_opt = m.make_adam({"means": 1e-3, "sh0": 1e-3, "shN": 1e-3, "opacity_logits": 1e-3,
+                           "log_scales": 1e-3, "quats": 1e-3})
+    # One optimizer step so every moment is non-zero.
+    loss = sum(t.sum() for t in m.data.values() if t.is_floating_point())
+    loss.backward()
+    label_opt.step()
+    tex_opt.step()
+    before = {k: v.detach().clone() for k, v in m.data.items()}
+    moments = {k: label_opt.state[m.data[k]]["exp_avg"].clone() if k == LABEL
+               else tex_opt.state[m.data[k]]["exp_avg"].clone() for k in m.data if m.data[k].is_floating_point()}
+    ambiguous = torch.tensor([True, True, False, True, False, False, True, True, False, False])
+    extent = 2.0  # split threshold 0.02: the big ones (max 0.2) split, the small (0.001) do not
+    assert torch.equal(split_candidates(m, ambiguous, extent),
+                       ambiguous & torch.tensor([True] * 6 + [False] * 4))
+    n_split = boundary_split(m, ambiguous, extent, reset=(LABEL,), optimizers=[label_opt, tex_opt],
+                             generator=torch.Generator().manual_seed(1))
+    parents = torch.tensor([0, 1, 3])
+    assert n_split == 3
+    assert len(m) == n - 3 + 6
+    kept = torch.tensor([i for i in range(n) if i not in parents.tolist()])
+    for k, v in m.data.items():
+        assert v.shape[0] == len(m)
+        assert torch.equal(v.detach()[: len(kept)], before[k][kept])  # kept rows untouched
+    kids = slice(len(kept), len(m))
+    par2 = parents.repeat(2)  # children are child-major: all first children, then all second
+    assert torch.allclose(m.scales[kids], torch.exp(before["log_scales"][par2]) / 1.6)
+    for k in ("quats", "opacity_logits", "sh0", "shN", "object_id"):
+        assert torch.equal(m.data[k].detach()[kids], before[k][par2])
+    assert torch.all(m.data[LABEL][kids] == 0)  # label logit reset
+    assert not torch.equal(m.means[kids], before["means"][par2])  # positions resampled
+    for k, mom in moments.items():
+        opt = label_opt if k == LABEL else tex_opt
+        st = opt.state[m.data[k]]
+        assert st["exp_avg"].shape == m.data[k].shape and st["exp_avg_sq"].shape == m.data[k].shape
+        assert torch.equal(st["exp_avg"][: len(kept)], mom[kept])
+        assert torch.all(st["exp_avg"][kids] == 0) and torch.all(st["exp_avg_sq"][kids] == 0)
+
+
+def test_split_children_positions_follow_parent_covariance():
+    # Many identical anisotropic, rotated parents: the child offsets must have covariance
+    # R diag(s^2) R^T (a sample of the parent Gaussian).
+    n = 4000
+    m = _model_with_label(n_big=n, n_small=0)
+    with torch.no_grad():
+        m.data["means"].zero_()
+    s = torch.tensor([0.2, 0.05, 0.01])
+    R = quat_to_rotmat(m.quats[:1].detach())[0]
+    boundary_split(m, torch.ones(n, dtype=torch.bool), 1.0, reset=(LABEL,), generator=torch.Generator().manual_seed(0))
+    x = m.means.detach().double()
+    assert len(m) == 2 * n
+    cov = x.T @ x / len(x)
+    expected = (R.double() @ torch.diag(s.double() ** 2) @ R.T.double())
+    # 8000 samples: relative standard error of a variance ~ sqrt(2/8000) = 1.6 %.
+    assert torch.allclose(cov, expected, atol=0.06 * float(s[0] ** 2))
+    assert x.mean(0).abs().max() < 4 * 0.2 / math.sqrt(2 * n)
+
+
+# -- stage invariants -----------------------------------------------------------------------
+def _snapshot(m, names):
+    return {k: m.data[k].detach().clone() for k in names}
+
+
+def test_mask_stage_keeps_geometry_and_colour_bit_identical():
+    model, views, extent = tiny_scene(n_views=3)
+    cfg = RefineConfig(bags=False, stage_length_views=2)
+    r = Refiner(model, views, masks_for(views, "ball"), extent, cfg)
+    geo = _snapshot(model, CORE_NO_LABEL)
+    lab0 = model.data[LABEL].detach().clone()
+    for _ in range(cfg.stage_length(3)):
+        r.mask_step(r.next_view())
+    info = r.end_mask_stage(cfg.stage_length(3), last=False)
+    assert info["split"] == 0
+    for k, v in geo.items():
+        assert torch.equal(model.data[k].detach(), v), k
+    assert not torch.equal(model.data[LABEL].detach(), lab0)  # labels did train
+
+
+def test_mask_stage_with_split_keeps_unsplit_gaussians_identical():
+    model, views, extent = tiny_scene(n_views=3)
+    cfg = RefineConfig(stage_length_views=2, split_size_fraction=0.0)
+    r = Refiner(model, views, masks_for(views, "ball"), extent, cfg)
+    geo = _snapshot(model, CORE_NO_LABEL)
+    for _ in range(cfg.stage_length(3)):
+        r.mask_step(r.next_view())
+    amb = r.scores.ambiguous(cfg.threshold, cfg.stage_length(3))
+    info = r.end_mask_stage(cfg.stage_length(3), last=False)
+    assert info["split"] == int(amb.sum()) > 0
+    keep = ~amb
+    for k, v in geo.items():
+        assert torch.equal(model.data[k].detach()[: int(keep.sum())], v[keep]), k
+    assert r.scores.iterations == 0 and r.scores.sum.shape == (len(model),)  # reset after the split
+
+
+def test_texture_stage_keeps_labels_bit_identical():
+    model, views, extent = tiny_scene(n_views=3)
+    cfg = RefineConfig(bags=False)
+    r = Refiner(model, views, masks_for(views, "ball"), extent, cfg)
+    for _ in range(6):
+        r.mask_step(r.next_view())
+    labels = model.data[LABEL].detach().clone()
+    geo = _snapshot(model, CORE_NO_LABEL)
+    # Perturb the colours so the texture loss has work to do.
+    with torch.no_grad():
+        model.data["sh0"].add_(0.3)
+    for _ in range(6):
+        r.texture_step(r.next_view())
+    assert torch.equal(model.data[LABEL].detach(), labels)
+    assert not torch.equal(model.data["sh0"].detach(), geo["sh0"] + 0.3)
+    assert not torch.equal(model.data["means"].detach(), geo["means"])
+
+
+def test_texture_stage_learning_rates():
+    model, views, extent = tiny_scene(n_views=2)
+    r = Refiner(model, views, masks_for(views, "ball"), extent, RefineConfig())
+    lrs = {g["name"]: g["lr"] for g in r.texture_opt.param_groups}
+    assert lrs["means"] == pytest.approx(1.6e-6 * extent)
+    assert lrs == pytest.approx({"means": 1.6e-6 * extent, "sh0": 2.5e-3, "shN": 2.5e-3 / 20, "opacity_logits": 0.025,
+                                 "log_scales": 5e-3, "quats": 1e-3})
+    assert [g["lr"] for g in r.label_opt.param_groups] == [0.1]
+    assert r.label_opt.defaults["eps"] == 1e-15 and r.texture_opt.defaults["eps"] == 1e-15
+
+
+def test_view_order_without_replacement():
+    model, views, extent = tiny_scene(n_views=4)
+    r = Refiner(model, views, masks_for(views, "ball"), extent, RefineConfig(seed=3))
+    draws = [r.next_view() for _ in range(12)]
+    for k in range(3):
+        assert sorted(draws[4 * k: 4 * k + 4]) == [0, 1, 2, 3]
+
+
+# -- schedules and the whole run ------------------------------------------------------------
+def test_schedule_defaults():
+    f, s = RefineConfig(), RefineConfig(scene_type="360")
+    assert f.threshold == 0.5 and s.threshold == 0.8
+    assert f.plan() == ["mask", "texture"] * 5 + ["mask"]
+    assert s.plan() == ["mask", "texture"] * 3 + ["mask"]
+    assert len(f.plan()) * f.stage_length(10) == 22 * 10
+    assert len(s.plan()) * s.stage_length(10) == 14 * 10
+    assert RefineConfig(bgtr=False).plan() == ["mask"] * 6
+    assert RefineConfig(delta=0.3, scene_type="360").threshold == 0.3
+
+
+@pytest.mark.parametrize("kw", [dict(scene_type="llff"), dict(raem="yes"), dict(score="alpha"), dict(delta=1.5),
+                                dict(mask_stages=0), dict(stage_length_views=0), dict(mask_lambda=-1.0)])
+def test_config_validation(kw):
+    with pytest.raises(InputError):
+        RefineConfig(**kw)
+
+
+def test_refine_run_statistics_and_determinism():
+    model, views, extent = tiny_scene(n_views=3)
+    cfg = RefineConfig(mask_stages=3, stage_length_views=2)
+    n0 = len(model)
+    a = refine(model, views, masks_for(views, "ball"), extent, cfg, object_name="ball", progress=False)
+    assert len(model) == n0 and LABEL not in model.data  # input untouched
+    kinds = [s.kind for s in a.stages]
+    assert kinds == ["mask", "texture", "mask", "texture", "mask"]
+    assert all(s.iterations == 6 for s in a.stages)
+    for s0, s1 in zip(a.stages, a.stages[1:]):
+        assert s1.gaussians_start == s0.gaussians_end
+    masks_ = [s for s in a.stages if s.kind == "mask"]
+    assert all(s.ambiguous >= s.ambiguous_large >= s.split for s in masks_[:-1])
+    assert masks_[-1].split == 0 and masks_[-1].pruned == masks_[-1].ambiguous == a.ambiguous_final
+    assert a.num_gaussians_end == len(a.model) == n0 + sum(s.split for s in masks_) - masks_[-1].pruned
+    assert len(a.stage_scores) == 3 and a.stage_scores[-1].shape[0] == masks_[-1].gaussians_start
+    assert a.foreground.shape == (len(a.model),) and not bool((a.foreground & a.background).any())
+    assert torch.equal(a.foreground, a.mask_values > 0.9)
+    b = refine(model, views, masks_for(views, "ball"), extent, cfg, object_name="ball", progress=False)
+    for k in a.model.data:
+        assert torch.equal(a.model.data[k].detach(), b.model.data[k].detach()), k
+    s = a.summary()
+    assert s["splits"] == sum(x.split for x in a.stages) and s["config"]["threshold"] == 0.5
+
+
+def test_ablation_switches():
+    model, views, extent = tiny_scene(n_views=3)
+    base = RefineConfig(mask_stages=2, stage_length_views=2)
+    none = refine(model, views, masks_for(views, "ball"), extent,
+                  dataclasses.replace(base, bags=False, bgtr=False, raem="off"), progress=False)
+    assert [s.kind for s in none.stages] == ["mask", "mask"]
+    assert len(none.model) == len(model) and sum(s.split + s.pruned for s in none.stages) == 0
+    for k in CORE_NO_LABEL:
+        assert torch.equal(none.model.data[k].detach(), model.data[k].detach())
+    bags = refine(model, views, masks_for(views, "ball"), extent,
+                  dataclasses.replace(base, bgtr=False, raem="off", split_size_fraction=0.0), progress=False)
+    assert bags.stages[0].split > 0 and bags.stages[-1].pruned == 0
+
+
+def test_raem_variants():
+    model, view = three_gaussians()
+    amb = torch.tensor([True, True, False])
+    assert not raem_prune_mask(model, amb, "off").any()
+    assert torch.equal(raem_prune_mask(model, amb, "released"), amb)
+    # Footprints: A 0.02 * 50 / 2 = 0.5 px, B 0.05 * 50 / 2 = 1.25 px, C unseen = 0.
+    fp = pixel_footprint(model, [view.camera])
+    assert torch.allclose(fp, torch.tensor([0.5, 1.25, 0.0]))
+    assert torch.equal(raem_prune_mask(model, amb, "paper", [view.camera]), torch.tensor([True, False, False]))
+    assert torch.equal(raem_prune_mask(model, amb, "paper", [view.camera], footprint_px=2.0), amb)
+    with pytest.raises(InputError):
+        raem_prune_mask(model, amb, "paper")
+
+
+def test_refine_input_errors():
+    model, views, extent = tiny_scene(n_views=2)
+    with pytest.raises(InputError, match="masks"):
+        refine(model, views, [None], extent, progress=False)
+    with pytest.raises(InputError, match="annotated"):
+        refine(model, views, [None, None], extent, progress=False)
+    with pytest.raises(InputError, match="extent"):
+        refine(model, views, masks_for(views, "ball"), -1.0, progress=False)
+    with pytest.raises(InputError):
+        refine(model, [], [], extent, progress=False)
