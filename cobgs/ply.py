@@ -62,7 +62,9 @@ def save_ply(path: os.PathLike | str, model: GaussianModel, extras: Optional[Seq
             raise InputError(f"model has no extra {name!r} (extras: {model.extras})")
     n = len(model)
     d = {k: v.detach().cpu() for k, v in model.data.items()}
-    shN = d["shN"].transpose(1, 2).reshape(n, -1)  # [N, 3 (K-1)], channel-major
+    # [N, 3 (K-1)], channel-major; explicit width so that an empty model (an empty
+    # segmentation) still writes a valid, empty PLY.
+    shN = d["shN"].transpose(1, 2).reshape(n, 3 * d["shN"].shape[1])
     cols: list[tuple[str, str, np.ndarray]] = []
     std = torch.cat(
         [
@@ -82,7 +84,7 @@ def save_ply(path: os.PathLike | str, model: GaussianModel, extras: Optional[Seq
     for name in names:
         t = d[name]
         arr, ply_type = _extra_to_numpy(name, t)
-        flat = arr.reshape(n, -1)
+        flat = arr.reshape(n, int(np.prod(arr.shape[1:], dtype=np.int64)))
         if t.dim() == 1:
             cols.append((name, ply_type, flat[:, 0]))
         else:

@@ -18,6 +18,7 @@ PROVIDERS = (
     "stages.build_cmd",
     "stages.synth_cmd",
     "stages.workflow_cmd",
+    "stages.export_cmd",
     "stages.onnx_cmd",
 )
 

@@ -8,6 +8,8 @@ stage's ``run``): every ``cobgs run`` / ``status`` imports all stage modules.
 
 Extra stage modules (experiments, test fixtures) can be added without editing this file
 by listing them, comma-separated, in the environment variable ``COBGS_STAGE_MODULES``.
+A fixture that brings a whole DAG of its own (the engine's toy stages reuse the names
+``train``, ``refine``, ...) sets ``COBGS_BUILTIN_STAGES=0`` to leave the built-in stages out.
 """
 
 from __future__ import annotations
@@ -19,14 +21,25 @@ from typing import Iterable, Optional
 from pipeline import PipelineError, Registry, Stage
 
 #: Modules holding the built-in stages, in the order `cobgs stages` lists them.
-STAGE_MODULES: tuple[str, ...] = ()
+STAGE_MODULES: tuple[str, ...] = (
+    "stages.dataset",
+    "stages.sfm",
+    "stages.train",
+    "stages.masks",
+    "stages.refine",
+    "stages.segment",
+    "stages.evaluate",
+    "stages.summary",
+)
 
 EXTRA_MODULES_ENV = "COBGS_STAGE_MODULES"
+BUILTIN_ENV = "COBGS_BUILTIN_STAGES"
 
 
 def stage_modules(extra: Optional[Iterable[str]] = None) -> list[str]:
     env = [m.strip() for m in os.environ.get(EXTRA_MODULES_ENV, "").split(",") if m.strip()]
-    return list(STAGE_MODULES) + env + list(extra or ())
+    builtin = [] if os.environ.get(BUILTIN_ENV, "1").strip() == "0" else list(STAGE_MODULES)
+    return builtin + env + list(extra or ())
 
 
 def load_registry(extra: Optional[Iterable[str]] = None) -> Registry:

@@ -35,6 +35,7 @@ def cli_env(**extra: str) -> dict[str, str]:
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(HERE), str(REPO), env.get("PYTHONPATH", "")])
     env["COBGS_STAGE_MODULES"] = "pipeline_toys"
+    env["COBGS_BUILTIN_STAGES"] = "0"  # the toys reuse the program's stage names
     env.pop("COBGS_CACHE_DIR", None)
     env.update(extra)
     return env

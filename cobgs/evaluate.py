@@ -1,0 +1,341 @@
+"""Evaluation protocols (SPEC §5) on predicted and ground-truth masks and renders.
+
+Everything here works on arrays (or image files) already produced: the pipeline's segment
+stage renders the predictions, the evaluate stage hands them over with the protocol's GT.
+
+* :func:`compare_masks` — the per-image comparison every protocol shares: the prediction
+  is resized NEAREST to the GT size (PIL's nearest, as the published evaluation scripts),
+  both are binarised ``> 128`` (boolean masks count as 0/255), then IoU, accuracy and
+  boundary IoU (:mod:`cobgs.metrics`).
+* **NVOS** (:func:`nvos_summary`): one target view per task; mIoU / mAcc = means over tasks.
+* **LERF-mask** (:func:`lerf_prompt_scores`, :func:`lerf_summary`): IoU and boundary IoU
+  per prompt and test view, averaged per prompt, then over prompts; views whose GT is
+  missing or empty are skipped and listed.
+* **Exact GT** (:func:`exact_scores`): synthetic scenes and NeRF-synthetic alpha masks,
+  every held-out view with a non-empty GT.
+* **Texture** (:func:`psnr_scores`): PSNR of 8-bit renders against the held-out images, the
+  refined scene next to the vanilla one (paper Table 4).
+
+Aggregation over objects / scenes / methods is :func:`aggregate`: first the mean over a
+scene's objects (prompts, tasks), then the mean over scenes, so that NVOS's "mean over
+tasks" and LERF-mask's "mean over prompts" come out of the same rule.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Iterable, Mapping, Optional, Sequence
+
+import numpy as np
+
+from .errors import DataError, InputError
+from .metrics import boundary_iou, psnr
+
+__all__ = [
+    "MaskScores",
+    "read_mask_u8",
+    "to_u8",
+    "resize_nearest",
+    "compare_masks",
+    "exact_scores",
+    "nvos_summary",
+    "lerf_prompt_scores",
+    "lerf_summary",
+    "psnr_scores",
+    "aggregate",
+    "nanmean",
+]
+
+THRESHOLD_U8 = 128  # "> 128" of 255, as the NVOS and LERF-mask scripts binarise
+BOUNDARY_RATIO = 0.02
+
+
+@dataclass(frozen=True)
+class MaskScores:
+    """One prediction against one GT mask (at the GT's size).
+
+    Attributes:
+        iou: TP / (TP + FP + FN) (1.0 when both are empty).
+        acc: (TP + TN) / pixels.
+        biou: boundary IoU with d = max(1, round(0.02 x diagonal)).
+        tp, fp, fn, tn: pixel counts.
+        height, width: the GT size the comparison was made at.
+        resized: the prediction had another size and was resized.
+    """
+
+    iou: float
+    acc: float
+    biou: float
+    tp: int
+    fp: int
+    fn: int
+    tn: int
+    height: int
+    width: int
+    resized: bool
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+
+def nanmean(values: Iterable[float]) -> float:
+    """Mean of the finite values (nan when there is none)."""
+    vals = [float(v) for v in values if v is not None and math.isfinite(float(v))]
+    return float(np.mean(vals)) if vals else float("nan")
+
+
+def to_u8(mask) -> np.ndarray:
+    """A [H, W] mask as uint8: bool -> 0/255, uint8 kept, floats in [0, 1] scaled by 255."""
+    try:
+        import torch
+
+        if isinstance(mask, torch.Tensor):
+            mask = mask.detach().cpu().numpy()
+    except ImportError:  # pragma: no cover - torch is a dependency
+        pass
+    arr = np.asarray(mask)
+    if arr.ndim != 2:
+        raise InputError(f"a mask must be [H, W], got shape {list(arr.shape)}")
+    if arr.dtype == np.bool_:
+        return arr.astype(np.uint8) * 255
+    if arr.dtype == np.uint8:
+        return arr
+    if np.issubdtype(arr.dtype, np.floating):
+        return np.clip(np.rint(arr * 255.0), 0, 255).astype(np.uint8)
+    raise InputError(f"a mask must be bool, uint8 or float in [0, 1], got {arr.dtype}")
+
+
+def read_mask_u8(path: os.PathLike | str) -> np.ndarray:
+    """An 8-bit grey mask file as uint8 [H, W] (colour files: their luminance)."""
+    from .data.nvos import read_gt_mask
+
+    return read_gt_mask(path)
+
+
+def resize_nearest(mask_u8: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Nearest-neighbour resize of a uint8 [H, W] mask with PIL's sampling (pixel centres),
+    which the published evaluation scripts use."""
+    from PIL import Image
+
+    if mask_u8.shape == (height, width):
+        return mask_u8
+    return np.asarray(Image.fromarray(mask_u8).resize((int(width), int(height)), resample=Image.NEAREST))
+
+
+def compare_masks(pred, gt, boundary_ratio: float = BOUNDARY_RATIO) -> MaskScores:
+    """Compare a predicted mask with a GT mask by the protocol rules (module docstring).
+
+    Args:
+        pred: [h, w] bool / uint8 / float in [0, 1]; any size (resized to the GT's).
+        gt: [H, W] bool / uint8 / float in [0, 1].
+        boundary_ratio: boundary width ratio of the boundary IoU.
+    """
+    g8 = to_u8(gt)
+    p8 = to_u8(pred)
+    resized = p8.shape != g8.shape
+    if resized:
+        p8 = resize_nearest(p8, *g8.shape)
+    p, g = p8 > THRESHOLD_U8, g8 > THRESHOLD_U8
+    tp = int(np.count_nonzero(p & g))
+    fp = int(np.count_nonzero(p & ~g))
+    fn = int(np.count_nonzero(~p & g))
+    tn = int(g.size - tp - fp - fn)
+    union = tp + fp + fn
+    return MaskScores(
+        iou=1.0 if union == 0 else tp / union,
+        acc=(tp + tn) / g.size,
+        biou=boundary_iou(p, g, boundary_ratio),
+        tp=tp, fp=fp, fn=fn, tn=tn, height=int(g.shape[0]), width=int(g.shape[1]), resized=resized,
+    )
+
+
+def exact_scores(preds: Mapping[str, object], gts: Mapping[str, Optional[object]],
+                 skip_empty_gt: bool = True, boundary_ratio: float = BOUNDARY_RATIO) -> dict:
+    """Exact-GT evaluation of one object over held-out views.
+
+    Args:
+        preds: view name -> predicted mask.
+        gts: view name -> GT mask (None = the view has no annotation of the object).
+        skip_empty_gt: skip views where the object is not visible (empty GT).
+        boundary_ratio: boundary width of the boundary IoU.
+
+    Returns:
+        ``{"iou", "acc", "biou"`` (means over evaluated views, nan if none), ``"views"``
+        (count), ``"per_view": {name: MaskScores dict}``, ``"skipped": {name: reason}}``.
+    """
+    per, skipped = {}, {}
+    for name in sorted(gts):
+        gt = gts[name]
+        if gt is None:
+            skipped[name] = "no GT annotation"
+            continue
+        g8 = to_u8(gt)
+        if skip_empty_gt and not np.any(g8 > THRESHOLD_U8):
+            skipped[name] = "empty GT (object not visible)"
+            continue
+        if name not in preds:
+            raise InputError(f"no prediction for held-out view {name!r}")
+        per[name] = compare_masks(preds[name], g8, boundary_ratio).to_json()
+    return {
+        "iou": nanmean(p["iou"] for p in per.values()),
+        "acc": nanmean(p["acc"] for p in per.values()),
+        "biou": nanmean(p["biou"] for p in per.values()),
+        "views": len(per),
+        "per_view": per,
+        "skipped": skipped,
+    }
+
+
+def nvos_summary(per_task: Mapping[str, MaskScores | Mapping]) -> dict:
+    """mIoU / mAcc over NVOS tasks (each task: one target view)."""
+    rows = {k: (v.to_json() if isinstance(v, MaskScores) else dict(v)) for k, v in per_task.items()}
+    return {
+        "miou": nanmean(r["iou"] for r in rows.values()),
+        "macc": nanmean(r["acc"] for r in rows.values()),
+        "tasks": len(rows),
+        "per_task": rows,
+    }
+
+
+def lerf_prompt_scores(preds: Mapping[str, object], gt_paths: Mapping[str, Optional[os.PathLike | str]],
+                       test_views: Sequence[str], boundary_ratio: float = BOUNDARY_RATIO) -> dict:
+    """LERF-mask scores of one prompt over its annotated test views.
+
+    Args:
+        preds: test view -> predicted mask (any size; resized NEAREST to the GT).
+        gt_paths: test view -> GT file of this prompt (missing / None: no GT).
+        test_views: every test view in protocol order (to report those without GT).
+        boundary_ratio: boundary width of the boundary IoU.
+
+    Returns:
+        ``{"iou", "biou", "acc"`` (means over evaluated views), ``"views"``,
+        ``"per_view"``, ``"skipped": {view: reason}}``.
+    """
+    per, skipped = {}, {}
+    for v in test_views:
+        path = gt_paths.get(v)
+        if path is None:
+            skipped[v] = "no GT file"
+            continue
+        g8 = read_mask_u8(path)
+        if not np.any(g8 > THRESHOLD_U8):
+            skipped[v] = "empty GT"
+            continue
+        if v not in preds:
+            raise InputError(f"no prediction for test view {v!r} (GT {path})")
+        per[v] = compare_masks(preds[v], g8, boundary_ratio).to_json()
+    return {
+        "iou": nanmean(p["iou"] for p in per.values()),
+        "biou": nanmean(p["biou"] for p in per.values()),
+        "acc": nanmean(p["acc"] for p in per.values()),
+        "views": len(per),
+        "per_view": per,
+        "skipped": skipped,
+    }
+
+
+def lerf_summary(per_prompt: Mapping[str, Mapping]) -> dict:
+    """mIoU / mBIoU of a scene: the mean over prompts of the per-prompt means (prompts
+    with no evaluated view are left out and listed)."""
+    used = {p: r for p, r in per_prompt.items() if r.get("views", 0) > 0}
+    return {
+        "miou": nanmean(r["iou"] for r in used.values()),
+        "mbiou": nanmean(r["biou"] for r in used.values()),
+        "prompts": len(used),
+        "prompts_without_gt": sorted(set(per_prompt) - set(used)),
+    }
+
+
+def _as_float_image(img, name: str) -> np.ndarray:
+    try:
+        import torch
+
+        if isinstance(img, torch.Tensor):
+            img = img.detach().cpu().numpy()
+    except ImportError:  # pragma: no cover
+        pass
+    arr = np.asarray(img)
+    if arr.ndim != 3 or arr.shape[2] != 3:
+        raise InputError(f"{name} must be [H, W, 3], got shape {list(arr.shape)}")
+    if arr.dtype == np.uint8:
+        return arr.astype(np.float64) / 255.0
+    if np.issubdtype(arr.dtype, np.floating):
+        # Quantise like a saved 8-bit PNG, so renders and references compare alike.
+        return np.rint(np.clip(arr.astype(np.float64), 0.0, 1.0) * 255.0) / 255.0
+    raise InputError(f"{name} must be uint8 or float in [0, 1], got {arr.dtype}")
+
+
+def psnr_scores(renders: Mapping[str, object], references: Mapping[str, object]) -> dict:
+    """PSNR (dB) of renders against held-out images, both taken as 8-bit.
+
+    Args:
+        renders: view -> [H, W, 3] uint8 (or float in [0, 1], quantised to 8 bits).
+        references: view -> [H, W, 3] uint8 / float; every view here must be rendered.
+
+    Returns:
+        ``{"psnr": mean dB over views, "views": n, "per_view": {view: dB}}``.
+    """
+    import torch
+
+    per = {}
+    for v in sorted(references):
+        if v not in renders:
+            raise InputError(f"no render for held-out view {v!r}")
+        a = _as_float_image(renders[v], f"render of {v!r}")
+        b = _as_float_image(references[v], f"reference image of {v!r}")
+        if a.shape != b.shape:
+            raise InputError(f"render of {v!r} is {a.shape[1]}x{a.shape[0]}, the reference "
+                             f"{b.shape[1]}x{b.shape[0]}")
+        per[v] = psnr(torch.from_numpy(a), torch.from_numpy(b))
+    # inf (a render identical to its reference) must survive the mean, unlike nan.
+    mean = float(np.mean(list(per.values()))) if per else float("nan")
+    return {"psnr": mean, "views": len(per), "per_view": per}
+
+
+def read_rgb_u8(path: os.PathLike | str) -> np.ndarray:
+    """An 8-bit RGB image file as uint8 [H, W, 3]."""
+    import cv2
+
+    p = Path(path)
+    arr = cv2.imread(os.fspath(p), cv2.IMREAD_COLOR)
+    if arr is None:
+        raise DataError("missing or unreadable image", p)
+    return np.ascontiguousarray(arr[:, :, ::-1])
+
+
+def aggregate(rows: Sequence[Mapping], metrics: Sequence[str], by: Sequence[str] = ("method",),
+              within: str = "scene", over: str = "object") -> list[dict]:
+    """Two-level means: first over ``over`` (objects) within each (``by`` + ``within``)
+    group, then over ``within`` (scenes) for each ``by`` group.
+
+    Args:
+        rows: one dict per (scene, method, object) with the grouping keys and metrics.
+        metrics: metric keys to average (non-finite values are ignored).
+        by: keys of the output groups.
+        within: the middle level (scene).
+        over: the innermost level (object).
+
+    Returns:
+        one dict per ``by`` group: the keys, each metric's mean, ``scenes`` and ``objects``
+        counts.
+    """
+    inner: dict[tuple, list[Mapping]] = {}
+    for r in rows:
+        inner.setdefault(tuple(r[k] for k in by) + (r[within],), []).append(r)
+    mid: dict[tuple, list[dict]] = {}
+    for key, group in inner.items():
+        m = {k: nanmean(g.get(k) for g in group) for k in metrics}
+        m["_objects"] = len({g[over] for g in group})
+        mid.setdefault(key[:-1], []).append(m)
+    out = []
+    for key, group in mid.items():
+        d = dict(zip(by, key))
+        for k in metrics:
+            d[k] = nanmean(g[k] for g in group)
+        d["scenes"] = len(group)
+        d["objects"] = sum(g["_objects"] for g in group)
+        out.append(d)
+    return out

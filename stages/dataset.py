@@ -1,0 +1,268 @@
+"""Stage ``dataset``: generate a synthetic scene, or ingest an external one, per scene.
+
+The scene's *kind* and location come from the ``scene`` axis attributes
+(:class:`SceneAttrs`); how to ingest it from the params (:class:`DatasetParams`). The output
+``dataset`` artifact holds ``dataset.json`` (see stages/_common.py) and, for synthetic
+scenes, the generated scene itself. External data is only read: the spec points at it by
+absolute path, so after editing such data in place rerun with ``--force dataset``.
+
+Kinds:
+  synthetic  cobgs.data.synthetic preset (exact masks; exact-GT protocol)
+  transforms NeRF-style transforms.json with masks/<object>/ (exact-GT protocol when masks)
+  blender    NeRF-synthetic (alpha = object mask "object"; exact-GT protocol)
+  llff       poses_bounds.npy + images_<k>/ (no masks)
+  colmap     a COLMAP model + images/ (masks/<object>/ optional)
+  images     a folder of images without poses (SfM required)
+  nvos       an LLFF scene + the NVOS labels folder (NVOS protocol; target view held out)
+  lerf_mask  a LERF-mask scene (LERF-mask protocol; split from images_train/)
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+from pipeline import Resources, Stage
+
+from ._common import SPEC_FORMAT, SPEC_VERSION, StageInputError, write_json
+
+KINDS = ("synthetic", "transforms", "blender", "llff", "colmap", "images", "nvos", "lerf_mask")
+_POSED_FORMATS = {"transforms": "transforms", "blender": "blender", "llff": "llff", "colmap": "colmap",
+                  "nvos": None, "lerf_mask": "colmap"}
+_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
+@dataclass(frozen=True)
+class SceneAttrs:
+    """Attributes of a ``scene`` axis value: what the data is and where it lives.
+
+    Attributes:
+        kind: one of :data:`KINDS`.
+        path: the data folder (every kind but ``synthetic``); relative paths resolve
+            against the workflow file; checked when the workflow loads (fail fast).
+        labels: the NVOS labels folder (``kind = "nvos"``).
+        task: the NVOS task (default: the scene value's name).
+        scene_type: "forward" or "360" (default: from the kind / preset).
+    """
+
+    kind: str = "synthetic"
+    path: Optional[Path] = None
+    labels: Optional[Path] = None
+    task: str = ""
+    scene_type: str = ""
+
+    def __post_init__(self) -> None:
+        if self.kind not in KINDS:
+            raise ValueError(f"kind must be one of {list(KINDS)}, got {self.kind!r}")
+        if self.scene_type not in ("", "forward", "360"):
+            raise ValueError(f"scene_type must be 'forward' or '360', got {self.scene_type!r}")
+        if self.kind == "synthetic":
+            return
+        if self.path is None:
+            raise ValueError(f"kind {self.kind!r} needs path = the data folder")
+        if not Path(self.path).is_dir():
+            raise ValueError(f"data folder {self.path} (kind {self.kind!r}) does not exist")
+        if self.kind == "nvos":
+            if self.labels is None:
+                raise ValueError("kind 'nvos' needs labels = the NVOS labels folder "
+                                 "(masks/, reference_image/, scribbles/)")
+            if not Path(self.labels).is_dir():
+                raise ValueError(f"NVOS labels folder {self.labels} does not exist")
+
+
+@dataclass(frozen=True)
+class DatasetParams:
+    """How a scene is generated or ingested.
+
+    Attributes:
+        preset: synthetic preset ("demo", "forward", "orbit").
+        seed: synthetic seed.
+        width_px, height_px, num_views, supersampling: synthetic overrides (0 = preset's).
+        workers: processes rendering synthetic views (the output does not depend on it).
+        downscale: divide the image size for training (LLFF: picks ``images_<k>/``).
+        images_dir: image sub-folder SfM runs on ("" = ``images_<downscale>/`` when it
+            exists, else ``images/``); when given, ``downscale`` applies after SfM.
+        view_stride: keep every k-th view (sorted by name) — subsets of long captures.
+        max_views: keep at most this many views after the stride (0 = all).
+        test_every: hold out every k-th kept view when the data defines no split.
+        background: RGB in [0, 1] that RGBA images are composited on (None: the reader's).
+    """
+
+    preset: str = "demo"
+    seed: int = 0
+    width_px: int = 0
+    height_px: int = 0
+    num_views: int = 0
+    supersampling: int = 0
+    workers: int = 1
+    downscale: float = 1.0
+    images_dir: str = ""
+    view_stride: int = 1
+    max_views: int = 0
+    test_every: int = 8
+    background: Optional[tuple[float, float, float]] = None
+
+    def __post_init__(self) -> None:
+        if self.view_stride < 1 or self.max_views < 0 or self.test_every < 0:
+            raise ValueError("view_stride must be >= 1, max_views and test_every >= 0")
+        if not self.downscale > 0:
+            raise ValueError(f"downscale must be > 0, got {self.downscale}")
+
+
+def _stems(folder: Path) -> list[str]:
+    if not folder.is_dir():
+        raise StageInputError(f"{folder}: image folder not found")
+    return sorted(p.stem for p in folder.iterdir() if p.is_file() and p.suffix.lower() in _IMAGE_SUFFIXES)
+
+
+def _names(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if p.is_file() and p.suffix.lower() in _IMAGE_SUFFIXES)
+
+
+def _subset(names: list[str], p: DatasetParams) -> list[str]:
+    out = names[:: p.view_stride]
+    return out[: p.max_views] if p.max_views else out
+
+
+def _every(names: list[str], k: int) -> list[str]:
+    return [n for i, n in enumerate(names) if k and i % k == 0]
+
+
+def _sfm_images(root: Path, p: DatasetParams) -> tuple[Path, float]:
+    """(folder SfM reads, downscale applied to its images afterwards)."""
+    if p.images_dir:
+        d = root / p.images_dir
+        if not d.is_dir():
+            raise StageInputError(f"dataset.images_dir: {d} does not exist")
+        return d, p.downscale
+    k = int(round(p.downscale))
+    if abs(p.downscale - k) < 1e-9 and k > 1 and (root / f"images_{k}").is_dir():
+        return root / f"images_{k}", 1.0
+    return root / "images", p.downscale
+
+
+def _run(ctx, inputs):
+    from cobgs.data.readers import read_scene
+
+    p: DatasetParams = ctx.params
+    attrs: SceneAttrs = ctx.item.attrs["scene"]
+    name = ctx.item["scene"]
+    t0 = time.perf_counter()
+    spec: dict = {"format": SPEC_FORMAT, "version": SPEC_VERSION, "scene": name, "kind": attrs.kind,
+                  "protocol": "none", "objects": [], "sfm_downscale": 1.0}
+    reader: dict = {"format": _POSED_FORMATS.get(attrs.kind), "path": None, "downscale": p.downscale,
+                    "background": None if p.background is None else list(p.background)}
+
+    if attrs.kind == "synthetic":
+        from cobgs.data.synthetic import generate_scene
+
+        out = generate_scene(ctx.out_dir / "scene", p.preset, p.seed, progress=False,
+                             width_px=p.width_px or None, height_px=p.height_px or None,
+                             num_views=p.num_views or None, supersampling=p.supersampling or None,
+                             workers=p.workers)
+        from ._common import read_json
+
+        meta = read_json(out / "scene.json")
+        tf = read_json(out / "transforms.json")
+        reader.update(format="transforms", path="scene")
+        views = [Path(f["file_path"]).stem for f in tf["frames"]]
+        test = [Path(f).stem for f in tf.get("test_filenames", [])]
+        spec.update(protocol="exact", synthetic={k: meta[k] for k in ("preset", "seed", "trajectory",
+                                                                        "image_size", "supersampling",
+                                                                        "num_views")},
+                    objects=[o["name"] for o in meta["objects"] if o.get("target", True)],
+                    distractors=[o["name"] for o in meta["objects"] if not o.get("target", True)],
+                    scene_type=attrs.scene_type or ("360" if meta["trajectory"] == "orbit" else "forward"),
+                    images={"dir": "scene/images", "names": [Path(f["file_path"]).name for f in tf["frames"]]},
+                    has_poses=True)
+        kept = _subset(views, p)
+        spec.update(views=kept, test_views=[v for v in test if v in set(kept)])
+    else:
+        root = Path(attrs.path).resolve()
+        spec["source"] = os.fspath(root)
+        reader["path"] = os.fspath(root)
+        if attrs.kind == "images":
+            sfm_dir, post = _sfm_images(root, p)
+            names = _subset(_names(sfm_dir), p)
+            stems = [Path(n).stem for n in names]
+            spec.update(views=stems, test_views=_every(stems, p.test_every), has_poses=False,
+                        images={"dir": os.fspath(sfm_dir), "names": names}, sfm_downscale=post,
+                        scene_type=attrs.scene_type or "360")
+        elif attrs.kind == "nvos":
+            from cobgs.data.nvos import read_nvos_task
+
+            task = read_nvos_task(attrs.labels, attrs.task or name)
+            fmt = _detect(root)
+            reader["format"] = fmt
+            scene = read_scene(root, format=fmt, downscale=p.downscale, test_every=0)
+            stems = sorted(v.name for v in scene.views)
+            for need in (task.target, task.reference):
+                if need not in stems:
+                    raise StageInputError(f"NVOS task {task.task!r}: view {need!r} is not an image of "
+                                          f"{root} (images: {stems[:3]} ...)")
+            sfm_dir, post = _sfm_images(root, p)
+            spec.update(protocol="nvos", nvos=task.to_json(), objects=[task.task],
+                        views=stems, test_views=[task.target], has_poses=True,
+                        images={"dir": os.fspath(sfm_dir), "names": _names(sfm_dir)}, sfm_downscale=post,
+                        scene_type=attrs.scene_type or "forward")
+        elif attrs.kind == "lerf_mask":
+            from cobgs.data.lerf_mask import read_lerf_gt
+
+            gt = read_lerf_gt(root)
+            every = _stems(root / "images")
+            spec.update(protocol="lerf_mask", lerf_mask=gt.to_json(), objects=gt.prompts,
+                        views=every, test_views=list(gt.test_views), has_poses=True,
+                        images={"dir": os.fspath(root / "images"), "names": _names(root / "images")},
+                        sfm_downscale=p.downscale, scene_type=attrs.scene_type or "360")
+            if gt.views_without_gt:
+                ctx.log.info("LERF-mask: %d test view(s) have no GT folder: %s", len(gt.views_without_gt),
+                             gt.views_without_gt[:10])
+        else:
+            kw = {"background": tuple(p.background)} if p.background is not None else {}
+            scene = read_scene(root, format=reader["format"], downscale=p.downscale,
+                               test_every=p.test_every, **kw)
+            all_views = sorted(v.name for v in scene.views)
+            kept = set(_subset(all_views, p))
+            test = [v.name for v in scene.test if v.name in kept]
+            with_gt = sorted({k for v in scene.test for k in v.masks})
+            if attrs.kind == "blender":
+                spec["has_poses"], spec["images"] = True, None
+            else:
+                sfm_dir, post = _sfm_images(root, p)
+                spec["has_poses"] = True
+                spec["images"] = {"dir": os.fspath(sfm_dir), "names": [n for n in _names(sfm_dir)
+                                                                        if Path(n).stem in kept]}
+                spec["sfm_downscale"] = post
+            spec.update(views=sorted(kept), test_views=test, objects=sorted({k for v in scene.views for k in v.masks}),
+                        protocol="exact" if with_gt else "none",
+                        scene_type=attrs.scene_type or ("360" if attrs.kind == "blender" else "forward"))
+    spec["reader"] = reader
+    spec["seconds"] = round(time.perf_counter() - t0, 3)
+    write_json(ctx.out_dir / "dataset.json", spec)
+    ctx.log.info("dataset %s (%s): %d views, %d held out, objects %s, protocol %s", name, attrs.kind,
+                 len(spec["views"]), len(spec["test_views"]), spec["objects"], spec["protocol"])
+    ctx.note(kind=attrs.kind, views=len(spec["views"]), test_views=len(spec["test_views"]),
+             objects=spec["objects"], protocol=spec["protocol"], scene_type=spec["scene_type"])
+    return {"dataset": ctx.out_dir}
+
+
+def _detect(root: Path) -> str:
+    from cobgs.data.readers import detect_format
+
+    fmt = detect_format(root)
+    if fmt not in ("colmap", "llff"):
+        raise StageInputError(f"{root}: an NVOS scene must be an LLFF scene (sparse/0 or "
+                              f"poses_bounds.npy), found a {fmt!r} layout")
+    return fmt
+
+
+STAGE = Stage(
+    name="dataset", version=1, run=_run, inputs=(), outputs=("dataset",), params=DatasetParams,
+    level=("scene",), resources=Resources(cpus=1),
+    description="generate a synthetic scene or ingest an external one (dataset.json)",
+)
+
+AXIS_SCHEMAS = {"scene": SceneAttrs}

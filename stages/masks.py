@@ -1,0 +1,191 @@
+"""Stage ``masks``: one object's 2D masks on the training views, per scene x object.
+
+Sources (``masks.source``):
+  files  the dataset's own masks (``masks/<object>/`` folders, Blender alpha), training
+         views only — held-out masks stay ground truth;
+  noisy  the same, corrupted by :mod:`cobgs.data.mask_noise` (robustness runs);
+  onnx   two-stage text prompting, Grounding DINO + SAM2 (:func:`cobgs.masks.generate_masks`),
+         prompt = the object's ``prompt`` attribute (default: its name, ``_`` as spaces);
+  nvos   NVOS scribbles on the reference view -> SAM2 -> propagation
+         (:func:`cobgs.masks.generate_masks_from_scribbles`).
+``onnx`` and ``nvos`` need ``masks.models_dir`` (the folder ``cobgs export-onnx`` writes).
+
+Output ``masks``: ``<view>.png`` (0/255 at the training size) for every training view
+with a mask, and ``masks.json`` (source, per-view foreground area, empty views, the noise
+records or the generator's log).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+from pipeline import Resources, Stage
+
+from ._common import StageInputError, load_scene, object_name, read_json, read_spec, write_json, write_png
+from .params import MaskNoiseOptions, ScribbleOptions, TwoStageOptions, to_config
+
+SOURCES = ("files", "noisy", "onnx", "nvos")
+
+
+@dataclass(frozen=True)
+class ObjectAttrs:
+    """Attributes of an ``object`` axis value (objects are nested in scenes).
+
+    Attributes:
+        mask: the dataset object it segments (mask folder name, ``object`` for Blender
+            alpha, the prompt for LERF-mask); default: the value's own name. Two values
+            may name the same object, e.g. ``ball`` and ``ball_noisy`` with another
+            ``masks.source``.
+        prompt: text prompt for ``masks.source = "onnx"`` (default: the object name with
+            ``_`` read as a space).
+    """
+
+    mask: str = ""
+    prompt: str = ""
+
+
+@dataclass(frozen=True)
+class MasksParams:
+    """Attributes:
+        source: one of :data:`SOURCES`.
+        models_dir: ONNX model folder (``onnx`` / ``nvos``).
+        noise: mask-noise parameters (``noisy``).
+        two_stage: Alg. 1 thresholds (``onnx``).
+        scribbles: scribble point sampling (``nvos``).
+        intra_op_threads: onnxruntime threads per graph (0 = its choice).
+    """
+
+    source: str = "files"
+    models_dir: Optional[Path] = None
+    noise: MaskNoiseOptions = field(default_factory=MaskNoiseOptions)
+    two_stage: TwoStageOptions = field(default_factory=TwoStageOptions)
+    scribbles: ScribbleOptions = field(default_factory=ScribbleOptions)
+    intra_op_threads: int = 0
+
+    def __post_init__(self) -> None:
+        if self.source not in SOURCES:
+            raise ValueError(f"source must be one of {list(SOURCES)}, got {self.source!r}")
+
+
+def _run(ctx, inputs):
+    p: MasksParams = ctx.params
+    spec = read_spec(inputs["dataset"])
+    obj = object_name(ctx)
+    scene = load_scene(inputs["dataset"], inputs["poses"])
+    views = scene.train
+    t0 = time.perf_counter()
+    info: dict = {"source": p.source, "object": obj, "scene": spec["scene"]}
+    if p.source in ("files", "noisy"):
+        masks = _dataset_masks(views, obj, spec)
+        if p.source == "noisy":
+            from cobgs.data.mask_noise import MaskNoiseParams, mask_rng, apply_mask_noise
+
+            noise = to_config(p.noise, MaskNoiseParams)
+            records = {}
+            for name in list(masks):
+                m, rec = apply_mask_noise(masks[name], noise, mask_rng(noise, f"{obj}/{name}"))
+                masks[name] = m
+                records[name] = rec
+            info["noise"] = {"params": noise, "records": records}
+        for name, m in masks.items():
+            write_png(ctx.out_dir / f"{name}.png", m)
+    else:
+        _generate(ctx, p, spec, obj, views, info)
+    areas = {}
+    for v in views:
+        f = ctx.out_dir / f"{v.name}.png"
+        if f.is_file():
+            import cv2
+
+            a = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+            areas[v.name] = int((a >= 128).sum())
+    info.update(views=len(areas), train_views=len(views), area_px=areas,
+                empty=sorted(k for k, a in areas.items() if a == 0),
+                without_mask=sorted(v.name for v in views if v.name not in areas),
+                seconds=round(time.perf_counter() - t0, 3))
+    if not areas or all(a == 0 for a in areas.values()):
+        raise StageInputError(f"object {obj!r}: no training view got a non-empty mask "
+                              f"(source {p.source!r}); nothing to segment")
+    write_json(ctx.out_dir / "masks.json", info)
+    ctx.log.info("masks of %r (%s): %d views, %d empty", obj, p.source, len(areas), len(info["empty"]))
+    ctx.note(source=p.source, object=obj, views=len(areas), empty=len(info["empty"]))
+    return {"masks": ctx.out_dir}
+
+
+def _dataset_masks(views, obj: str, spec: dict) -> dict:
+    """The dataset's mask of ``obj`` per training view (uint8 0/255)."""
+    import numpy as np
+
+    out = {}
+    for v in views:
+        m = v.masks.get(obj)
+        if m is not None:
+            out[v.name] = (m.cpu().numpy().astype(np.uint8) * 255)
+    if not out:
+        have = sorted({k for v in views for k in v.masks})
+        raise StageInputError(f"masks.source 'files': the dataset has no masks of object {obj!r} on its "
+                              f"training views (objects with masks: {have}); set the object's `mask` "
+                              "attribute, or use source 'onnx' / 'nvos'")
+    return out
+
+
+def _need_models(p: MasksParams) -> Path:
+    if p.models_dir is None:
+        raise StageInputError(
+            f"masks.source {p.source!r} needs masks.models_dir, which is not set: export the models with "
+            "`cobgs export-onnx sam2 ...` (and `gdino` for text prompts) and pass the folder with "
+            "`--set masks.models_dir=DIR` or `models_dir = ...` under [params.masks]")
+    return p.models_dir
+
+
+def _generate(ctx, p: MasksParams, spec: dict, obj: str, views, info: dict) -> None:
+    from cobgs.masks import RunOptions, ScribbleConfig, TwoStageConfig, load_manifest
+    from cobgs.masks import generate_masks, generate_masks_from_scribbles
+
+    models = _need_models(p)
+    load_manifest(models)  # fails here, naming the folder, before any image is read
+    providers = ["CUDAExecutionProvider", "CPUExecutionProvider"] if ctx.device.startswith("cuda") \
+        else ["CPUExecutionProvider"]
+    options = RunOptions(providers=providers, intra_op_threads=p.intra_op_threads)
+    paths = [v.path for v in views]
+    if any(pth is None for pth in paths):
+        raise StageInputError("the training views have no image files to prompt SAM2 with")
+    out = ctx.scratch_dir / "generated"
+    if p.source == "onnx":
+        attrs = ctx.item.attrs.get("object")
+        prompt = (getattr(attrs, "prompt", "") if attrs is not None else "") or obj.replace("_", " ")
+        res = generate_masks(paths, prompt, models, out, config=to_config(p.two_stage, TwoStageConfig),
+                             log_path=ctx.scratch_dir / "generated.json", options=options)
+        info["prompt"] = prompt
+    else:
+        if spec.get("protocol") != "nvos":
+            raise StageInputError(f"masks.source 'nvos' needs an NVOS scene (kind 'nvos'), got kind "
+                                  f"{spec.get('kind')!r}")
+        task = spec["nvos"]
+        names = [v.name for v in views]
+        if task["reference"] not in names:
+            raise StageInputError(f"NVOS reference view {task['reference']!r} is not a training view")
+        res = generate_masks_from_scribbles(
+            paths, names.index(task["reference"]), task["positive_scribbles"], task["negative_scribbles"],
+            models, out, config=to_config(p.scribbles, ScribbleConfig),
+            log_path=ctx.scratch_dir / "generated.json", options=options)
+    info["generator"] = read_json(res.log_path)
+    # The generator writes each image's own size; the training size may be smaller.
+    from ._common import read_mask_png
+
+    for v in views:
+        f = res.out_dir / f"{Path(v.path).stem}.png"
+        if f.is_file():
+            write_png(ctx.out_dir / f"{v.name}.png", read_mask_png(f, v.width, v.height).numpy())
+
+
+STAGE = Stage(
+    name="masks", version=1, run=_run, inputs=("dataset", "poses"), outputs=("masks",), params=MasksParams,
+    level=("scene", "object"), uses_device=True, resources=Resources(cpus=2),
+    description="an object's training-view masks: dataset files, noisy copies, ONNX text or NVOS scribbles",
+)
+
+AXIS_SCHEMAS = {"object": ObjectAttrs}

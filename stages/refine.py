@@ -1,0 +1,124 @@
+"""Stage ``refine``: COB-GS or a peer on one object of one scene (scene x method x object).
+
+The ``method`` axis holds COB-GS, its ablation rows and the peers as items with param
+overrides, e.g. ``[axes.method.no_bags] refine = { cobgs = { bags = false } }`` or
+``[axes.method.flashsplat] refine = { method = "flashsplat" }``. Every method starts from
+the same trained scene and the same masks (:func:`cobgs.peers.run_method`).
+
+Output ``refined``: ``refined.ply`` (the scene after the method, with its label extras:
+``mask_logit`` for COB-GS), ``segmentation.npz`` (``foreground``, ``background`` [N] bool,
+``mask_values`` [N] float32 — what the segment stage extracts and renders),
+``stage_scores.npz`` (the stage-mean ambiguity score of every Gaussian after each mask
+stage: the δ sweep of paper Fig. 7) and ``refine.json`` (the method's summary: Gaussian
+counts, splits, prunes, per-stage statistics, wall time, peak memory, config).
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from pipeline import Resources, Stage
+
+from ._common import (StageInputError, load_scene, masks_for_views, object_name, read_json, read_spec,
+                      to_device, torch_device, write_json)
+from .params import FlashSplatOptions, RefineOptions, SA3DOptions, to_config
+
+METHODS = ("cobgs", "nosplit", "sa3d", "flashsplat")
+
+
+@dataclass(frozen=True)
+class RefineParams:
+    """Attributes:
+        method: "cobgs" (ablations through ``cobgs``), "nosplit", "sa3d", "flashsplat".
+        scene_type: "auto" (the dataset's: forward-facing or 360°), "forward" or "360";
+            it sets ``cobgs.scene_type`` (δ and the number of stages).
+        cobgs: COB-GS parameters (also the no-split peer's, with its switches forced off).
+        sa3d: SA3D-GS parameters.
+        flashsplat: FlashSplat parameters.
+    """
+
+    method: str = "cobgs"
+    scene_type: str = "auto"
+    cobgs: RefineOptions = field(default_factory=RefineOptions)
+    sa3d: SA3DOptions = field(default_factory=SA3DOptions)
+    flashsplat: FlashSplatOptions = field(default_factory=FlashSplatOptions)
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ValueError(f"method must be one of {list(METHODS)}, got {self.method!r}")
+        if self.scene_type not in ("auto", "forward", "360"):
+            raise ValueError(f"scene_type must be 'auto', 'forward' or '360', got {self.scene_type!r}")
+
+
+def method_config(p: RefineParams, dataset_scene_type: str):
+    """The library config object :func:`cobgs.peers.run_method` takes for ``p.method``."""
+    from cobgs.peers import FlashSplatConfig, SA3DConfig
+    from cobgs.refine import RefineConfig
+
+    if p.method in ("cobgs", "nosplit"):
+        st = dataset_scene_type if p.scene_type == "auto" else p.scene_type
+        return to_config(p.cobgs, RefineConfig, scene_type=st or "forward")
+    if p.method == "sa3d":
+        return to_config(p.sa3d, SA3DConfig)
+    return to_config(p.flashsplat, FlashSplatConfig)
+
+
+def _run(ctx, inputs):
+    import numpy as np
+    import torch
+
+    from cobgs.peers import run_method
+    from cobgs.ply import load_ply, save_ply
+
+    p: RefineParams = ctx.params
+    spec = read_spec(inputs["dataset"])
+    obj = object_name(ctx)
+    dev = torch_device(ctx.device)
+    scene = to_device(load_scene(inputs["dataset"], inputs["poses"]), ctx.device)
+    trained = read_json(Path(inputs["scene"]) / "train.json")
+    model = load_ply(Path(inputs["scene"]) / "scene.ply", device=dev)
+    masks = masks_for_views(Path(inputs["masks"]), scene.train)
+    if all(m is None for m in masks):
+        raise StageInputError(f"no mask of object {obj!r} matches a training view of {spec['scene']!r}")
+    masks = [None if m is None else m.to(dev) for m in masks]
+    config = method_config(p, spec.get("scene_type", ""))
+    ctx.log.info("%s on %r: %d Gaussians, %d views (%d with a mask)", p.method, obj, len(model),
+                 len(scene.train), sum(m is not None for m in masks))
+    result = run_method(p.method, model, scene.train, masks, scene.extent, config=config,
+                        background=trained["background"], object_name=obj, progress=sys.stderr.isatty())
+    out_model = result.model.to(torch.device("cpu")) if dev.type != "cpu" else result.model
+    save_ply(ctx.out_dir / "refined.ply", out_model)
+    np.savez_compressed(ctx.out_dir / "segmentation.npz",
+                        foreground=result.foreground.cpu().numpy().astype(bool),
+                        background=result.background.cpu().numpy().astype(bool),
+                        mask_values=result.mask_values.detach().cpu().numpy().astype(np.float32))
+    np.savez_compressed(ctx.out_dir / "stage_scores.npz",
+                        **{f"stage_{i}": s.cpu().numpy().astype(np.float32)
+                           for i, s in enumerate(result.stage_scores)})
+    summary = result.summary()
+    summary.update(method_param=p.method, method_item=ctx.item["method"], object=obj,
+                   scene=spec["scene"], train_views=len(scene.train),
+                   views_with_mask=sum(m is not None for m in masks), extent=scene.extent)
+    if p.method in ("cobgs", "nosplit"):
+        from cobgs.peers import nosplit_config
+
+        eff = nosplit_config(config) if p.method == "nosplit" else config
+        summary.update(delta=eff.threshold, scene_type=eff.scene_type, mask_stages=eff.num_mask_stages,
+                       plan=eff.plan())
+    write_json(ctx.out_dir / "refine.json", summary)
+    ctx.log.info("%s: %d -> %d Gaussians, %d foreground, %.1f s", p.method, summary["num_gaussians_start"],
+                 summary["num_gaussians_end"], summary["foreground"], summary["wall_s"])
+    ctx.note(method=p.method, object=obj, num_gaussians_start=summary["num_gaussians_start"],
+             num_gaussians_end=summary["num_gaussians_end"], foreground=summary["foreground"],
+             splits=summary["splits"], pruned=summary["pruned"], ambiguous_final=summary["ambiguous_final"],
+             refine_s=summary["wall_s"], peak_mem_bytes=summary["peak_mem_bytes"])
+    return {"refined": ctx.out_dir}
+
+
+STAGE = Stage(
+    name="refine", version=1, run=_run, inputs=("dataset", "poses", "scene", "masks"), outputs=("refined",),
+    params=RefineParams, level=("scene", "method", "object"), uses_device=True, resources=Resources(cpus=2),
+    description="COB-GS (or an ablation row / a peer) on one object: labels, splits, refined scene",
+)

@@ -1,0 +1,83 @@
+"""Stage ``sfm``: camera poses with pycolmap (cobgs.sfm), or a recorded skip.
+
+``mode = "auto"`` runs SfM only when the dataset has no poses; ``"always"`` runs it anyway
+(the demo reconstructs its synthetic views, as a user's capture would be); ``"never"``
+skips it. The matcher follows :class:`cobgs.sfm.SfmOptions` ("auto": exhaustive up to
+``exhaustive_max_images`` images, sequential above — ordered captures). Too few
+registered images fail the task with a message naming the images that did not register.
+
+Output ``poses``: ``sfm.json`` (``{"ran": bool, "reason", ...cobgs.sfm summary}``) and,
+when SfM ran, ``images/`` (undistorted, PINHOLE) and ``sparse/0/``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from pipeline import Resources, Stage
+
+from ._common import StageInputError, read_json, read_spec, spec_path, write_json
+from .params import SfmOptionsParams, to_config
+
+
+@dataclass(frozen=True)
+class SfmParams:
+    """Attributes:
+        mode: "auto" (only without poses), "always", "never".
+        options: the SfM options.
+    """
+
+    mode: str = "auto"
+    options: SfmOptionsParams = field(default_factory=SfmOptionsParams)
+
+    def __post_init__(self) -> None:
+        if self.mode not in ("auto", "always", "never"):
+            raise ValueError(f"mode must be 'auto', 'always' or 'never', got {self.mode!r}")
+
+
+def _run(ctx, inputs):
+    from cobgs.sfm import SfmOptions, run_sfm
+
+    p: SfmParams = ctx.params
+    spec = read_spec(inputs["dataset"])
+    has_poses = bool(spec.get("has_poses"))
+    run = p.mode == "always" or (p.mode == "auto" and not has_poses)
+    if not run:
+        reason = ("mode 'never'" if p.mode == "never" else "the dataset has poses")
+        if not has_poses:
+            raise StageInputError(f"scene {spec['scene']!r} has no poses and sfm.mode is 'never'")
+        write_json(ctx.out_dir / "sfm.json", {"ran": False, "reason": reason})
+        ctx.log.info("SfM skipped: %s", reason)
+        ctx.note(ran=False, reason=reason)
+        return {"poses": ctx.out_dir}
+    images = spec.get("images")
+    if not images:
+        raise StageInputError(f"dataset kind {spec['kind']!r} has no image folder to run SfM on "
+                              "(set sfm.mode = 'auto' to use its own poses)")
+    image_dir = spec_path(Path(inputs["dataset"]), images["dir"])
+    device = "cuda" if ctx.device.startswith("cuda") else "cpu"
+    opts = to_config(p.options, SfmOptions, device=device)
+    ctx.log.info("SfM on %d images of %s (%s matcher, %s)", len(images["names"]), image_dir,
+                 opts.matcher, opts.camera_model)
+    res = run_sfm(image_dir, ctx.scratch_dir / "sfm", opts, image_names=images["names"])
+    # The result folder is built in scratch (run_sfm renames its own temporary folder into
+    # place); move its parts into the artifact.
+    for part in ("images", "sparse", "sfm.json"):
+        (res.root / part).rename(ctx.out_dir / part)
+    summary = read_json(ctx.out_dir / "sfm.json")
+    # Paths inside the artifact, relative (the scratch folder SfM ran in is gone).
+    summary.update(root=".", model_dir="sparse/0", image_dir="images")
+    summary.update(ran=True, reason=f"mode {p.mode!r}" + ("" if has_poses else ", the dataset has no poses"))
+    write_json(ctx.out_dir / "sfm.json", summary)
+    ctx.note(ran=True, registered=len(res.registered), unregistered=len(res.unregistered),
+             points3d=res.num_points3d, reprojection_error_px=res.mean_reprojection_error_px,
+             matcher=res.matcher, timings_s=res.timings_s)
+    return {"poses": ctx.out_dir}
+
+
+STAGE = Stage(
+    name="sfm", version=1, run=_run, inputs=("dataset",), outputs=("poses",), params=SfmParams,
+    level=("scene",), uses_device=True, resources=Resources(cpus=2),
+    description="pycolmap SfM (skipped when the dataset has poses, unless mode = 'always')",
+)
