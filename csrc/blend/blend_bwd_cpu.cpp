@@ -241,14 +241,16 @@ void blend_backward(const at::Tensor& means2d, const at::Tensor& conics,
   const int height = static_cast<int>(transmittance.size(0));
   const int tiles_x = (width + kTileSize - 1) / kTileSize;
   const int64_t n_tiles = int64_t(tiles_x) * ((height + kTileSize - 1) / kTileSize);
-  const auto prep = prepare<T>(means2d.data_ptr<T>(), conics.data_ptr<T>(),
-                               opacities.data_ptr<T>(), n);
+  GaussPrep<T>* prep = reusable_buffer<GaussPrep<T>, 0>(n);  // filled in the region
+  const T* m2_ptr = means2d.data_ptr<T>();
+  const T* conic_ptr = conics.data_ptr<T>();
+  const T* opacity_ptr = opacities.data_ptr<T>();
   // One slot per tile-list entry, written only by the thread owning the tile (no atomics)
   // and reduced per Gaussian afterwards in list order (deterministic).
-  std::unique_ptr<T[]> pair_grad(new T[size_t(m) * S]);
+  T* pair_grad = reusable_buffer<T, 4>(size_t(m) * S);  // zeroed tile by tile
 
   BwdArgs<T> a;
-  a.prep = prep.data();
+  a.prep = prep;
   a.off = tile_offsets.data_ptr<int64_t>();
   a.ids = flat_ids.data_ptr<int32_t>();
   a.feat = features.data_ptr<T>();
@@ -262,11 +264,12 @@ void blend_backward(const at::Tensor& means2d, const at::Tensor& conics,
   a.width = width;
   a.height = height;
   a.tiles_x = tiles_x;
-  a.pair_grad = pair_grad.get();
+  a.pair_grad = pair_grad;
   const BackwardTileFn<T> tile_fn = pick_backward_tile(T(0));
 
 #pragma omp parallel num_threads(cpu_threads())
   {
+    prepare<T>(m2_ptr, conic_ptr, opacity_ptr, n, prep);  // ends with a barrier
     std::unique_ptr<BwdScratch<T>> scratch(new BwdScratch<T>(C, S));
 #pragma omp for schedule(dynamic, 1)
     for (int64_t tile = 0; tile < n_tiles; ++tile) tile_fn(a, tile, *scratch);
@@ -282,7 +285,7 @@ void blend_backward(const at::Tensor& means2d, const at::Tensor& conics,
   T* vf = v_features.data_ptr<T>();
   for (int64_t j = 0; j < m; ++j) {
     const int64_t g = ids[j];
-    const T* src = pair_grad.get() + j * S;
+    const T* src = pair_grad + j * S;
     vm[2 * g] += src[kMx];
     vm[2 * g + 1] += src[kMy];
     vco[3 * g] += src[kCa];

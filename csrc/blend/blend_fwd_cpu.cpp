@@ -227,15 +227,20 @@ void blend_forward(const at::Tensor& means2d, const at::Tensor& conics,
   const int K = num_labels;
   const int tiles_x = (width + kTileSize - 1) / kTileSize;
   const int64_t n_tiles = int64_t(tiles_x) * ((height + kTileSize - 1) / kTileSize);
-  const auto prep = prepare<T>(means2d.data_ptr<T>(), conics.data_ptr<T>(),
-                               opacities.data_ptr<T>(), n);
+  GaussPrep<T>* prep = reusable_buffer<GaussPrep<T>, 0>(n);  // filled in the region
+  const T* m2_ptr = means2d.data_ptr<T>();
+  const T* conic_ptr = conics.data_ptr<T>();
+  const T* opacity_ptr = opacities.data_ptr<T>();
   // Label statistics per tile-list entry (each written only by the thread owning its
   // tile), summed per Gaussian afterwards in list order: no atomics, deterministic.
-  std::vector<int32_t> pair_counts(labels ? m * K : 0);
-  std::vector<T> pair_weights(labels ? m * K : 0);
+  const size_t pairs = labels ? size_t(m) * K : 0;
+  int32_t* pair_counts = reusable_buffer<int32_t, 1>(pairs);
+  T* pair_weights = reusable_buffer<T, 2>(pairs);
+  std::fill(pair_counts, pair_counts + pairs, 0);
+  std::fill(pair_weights, pair_weights + pairs, T(0));
 
   FwdArgs<T> a;
-  a.prep = prep.data();
+  a.prep = prep;
   a.off = tile_offsets.data_ptr<int64_t>();
   a.ids = flat_ids.data_ptr<int32_t>();
   a.feat = features.data_ptr<T>();
@@ -249,12 +254,13 @@ void blend_forward(const at::Tensor& means2d, const at::Tensor& conics,
   a.img = image.data_ptr<T>();
   a.trans = trans.data_ptr<T>();
   a.n_contrib = n_contrib.data_ptr<int32_t>();
-  a.pair_counts = pair_counts.data();
-  a.pair_weights = pair_weights.data();
+  a.pair_counts = pair_counts;
+  a.pair_weights = pair_weights;
   const ForwardTileFn<T> tile_fn = pick_forward_tile(T(0));
 
 #pragma omp parallel num_threads(cpu_threads())
   {
+    prepare<T>(m2_ptr, conic_ptr, opacity_ptr, n, prep);  // ends with a barrier
     std::unique_ptr<FwdScratch<T>> scratch(new FwdScratch<T>(C));
 #pragma omp for schedule(dynamic, 1)
     for (int64_t tile = 0; tile < n_tiles; ++tile) tile_fn(a, tile, *scratch);
@@ -263,7 +269,8 @@ void blend_forward(const at::Tensor& means2d, const at::Tensor& conics,
   if (labels) {
     int32_t* cnt = label_counts.data_ptr<int32_t>();
     float* wts = label_weights.data_ptr<float>();
-    std::vector<T> wsum(size_t(n) * K, T(0));
+    T* wsum = reusable_buffer<T, 3>(size_t(n) * K);
+    std::fill(wsum, wsum + size_t(n) * K, T(0));
     for (int64_t j = 0; j < m; ++j) {
       const int64_t g = a.ids[j];
       for (int k = 0; k < K; ++k) {
@@ -271,7 +278,7 @@ void blend_forward(const at::Tensor& means2d, const at::Tensor& conics,
         wsum[g * K + k] += pair_weights[j * K + k];
       }
     }
-    for (size_t i = 0; i < wsum.size(); ++i) wts[i] = static_cast<float>(wsum[i]);
+    for (size_t i = 0; i < size_t(n) * K; ++i) wts[i] = static_cast<float>(wsum[i]);
   }
 }
 

@@ -36,11 +36,24 @@ struct GaussPrep {
   int32_t x0, x1, y0, y1;  // pixel box that can get α >= 1/255; empty if none can
 };
 
+// A per-thread buffer kept across calls (grow-only). Fresh multi-megabyte allocations
+// are mmap'ed and zero-filled page by page by the kernel on every call, which cost
+// several milliseconds per render; these buffers stay mapped. Contents are left as the
+// previous call wrote them: callers initialise what they read. `Tag` tells the buffers
+// of one thread apart.
+template <typename V, int Tag>
+V* reusable_buffer(size_t n) {
+  thread_local std::vector<V> buf;
+  if (buf.size() < n) buf.resize(n);
+  return buf.data();
+}
+
+// Fills prep[0..n). Called inside the kernels' parallel region: the loop is an orphaned
+// worksharing construct, so the threads split it without another fork/join.
 template <typename T>
-std::vector<GaussPrep<T>> prepare(const T* m2, const T* co, const T* op, int64_t n) {
-  std::vector<GaussPrep<T>> prep(n);
+void prepare(const T* m2, const T* co, const T* op, int64_t n, GaussPrep<T>* prep) {
   const double eps = std::numeric_limits<T>::epsilon() * 0.5;
-#pragma omp parallel for schedule(static) num_threads(cpu_threads())
+#pragma omp for schedule(static)
   for (int64_t i = 0; i < n; ++i) {
     GaussPrep<T>& g = prep[i];
     g.mx = m2[2 * i];
@@ -56,7 +69,6 @@ std::vector<GaussPrep<T>> prepare(const T* m2, const T* co, const T* op, int64_t
     g.y0 = bb.y0;
     g.y1 = bb.y1;
   }
-  return prep;
 }
 
 // Software prefetch of a Gaussian a few entries ahead in the tile list: the hardware

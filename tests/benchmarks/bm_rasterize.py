@@ -16,7 +16,10 @@ are RGB in [0, 1]; background grey. The script prints the mean radius, the tile-
 length, the candidate pairs per pixel (tile-list entries x 256 / pixels: the pairs the
 blending loop has to consider), and the blended contributions per pixel.
 
-Timings use 2 threads (torch.set_num_threads and OMP_NUM_THREADS) and report medians.
+Timings use 2 threads (torch.set_num_threads and OMP_NUM_THREADS) and report medians
+of wall time; the native rows also report process CPU time (all threads), since on a
+machine shared with other jobs the wall time includes waiting for a core (the load
+average is printed).
 Forward = the ``cobgs.rasterize`` call with inputs requiring grad (projection, binning,
 blending, autograd bookkeeping); backward = ``loss.backward()`` for a fixed random
 linear loss on image and alpha. The label-statistics overhead is the native forward with
@@ -32,6 +35,13 @@ import sys
 import time
 
 os.environ.setdefault("OMP_NUM_THREADS", "2")
+# libgomp (used by torch and by the extension) spin-waits between parallel regions by
+# default. On a machine shared with other jobs (more runnable threads than cores) the
+# spinning thread takes the core its partner needs, which more than doubled wall times
+# here. Passive waiting is the default of this benchmark; export OMP_WAIT_POLICY=active
+# (or any value) before running to measure another policy. It applies to the native and
+# the reference runs alike.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 import torch  # noqa: E402
 
@@ -63,23 +73,35 @@ def make_scene(n: int, seed: int, dtype=torch.float32):
     return tensors, labels, grad_image, grad_alpha
 
 
+class Clock:
+    """Wall time and process CPU time (all threads, user + system) of a block."""
+
+    def __enter__(self):
+        self.wall0, self.cpu0 = time.perf_counter(), time.process_time()
+        return self
+
+    def __exit__(self, *exc):
+        self.wall = time.perf_counter() - self.wall0
+        self.cpu = time.process_time() - self.cpu0
+
+
 def run_once(tensors, backend, grad_image, grad_alpha, labels=None, backward=True):
+    """Returns (forward Clock, backward Clock or None, output)."""
     leaves = [t.clone().requires_grad_(i < 5) for i, t in enumerate(tensors)]
     bg = torch.full((3,), 0.5, dtype=tensors[0].dtype)
-    t0 = time.perf_counter()
-    out = cobgs.rasterize(*leaves, W, H, background=bg, pixel_labels=labels, backend=backend)
-    t1 = time.perf_counter()
+    with Clock() as fwd:
+        out = cobgs.rasterize(*leaves, W, H, background=bg, pixel_labels=labels,
+                              backend=backend)
     if not backward:
-        return t1 - t0, None, out
+        return fwd, None, out
     loss = (out.image * grad_image).sum() + (out.alpha * grad_alpha).sum()
-    t2 = time.perf_counter()
-    loss.backward()
-    t3 = time.perf_counter()
-    return t1 - t0, t3 - t2, out
+    with Clock() as bwd:
+        loss.backward()
+    return fwd, bwd, out
 
 
-def median_ms(xs):
-    return 1000 * statistics.median(xs)
+def median_ms(clocks, attr="wall"):
+    return 1000 * statistics.median(getattr(c, attr) for c in clocks)
 
 
 def main(argv=None) -> int:
@@ -102,13 +124,14 @@ def main(argv=None) -> int:
     _, flat_ids = _ops.bin_tiles(out.means2d, out.radii, out.depths, W, H)
     contributions = int(out.label_counts.sum())
     print(f"scene: N = {args.n}, {W}x{H}, seed {args.seed}, threads {args.threads}, "
-          f"torch {torch.__version__}")
+          f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}, torch {torch.__version__}")
     print(f"  visible {int(vis.sum())}, mean radius {out.radii[vis].float().mean():.2f} px, "
           f"tile-list entries {flat_ids.numel()}")
     print(f"  candidate pairs per pixel {flat_ids.numel() * 256 / (W * H):.1f}, blended "
           f"contributions per pixel {contributions / (W * H):.1f}, mean alpha "
           f"{out.alpha.mean():.3f}")
 
+    load0 = os.getloadavg()[0]
     nat_f, nat_b, nat_fl, nat_fn = [], [], [], []
     for _ in range(args.reps):
         f, b, _ = run_once(tensors, "native", gi, ga)
@@ -121,10 +144,17 @@ def main(argv=None) -> int:
         nat_fl.append(f1)
     nf, nb = median_ms(nat_f), median_ms(nat_b)
     print(f"native    forward {nf:8.1f} ms   backward {nb:8.1f} ms   total {nf + nb:8.1f} ms"
-          f"   (median of {args.reps})")
+          f"   (median of {args.reps}, wall)")
+    # CPU time summed over threads: on a machine shared with other jobs the wall time
+    # above includes waiting for a core; CPU / threads is what an idle machine would show.
+    cf, cb = median_ms(nat_f, "cpu"), median_ms(nat_b, "cpu")
+    print(f"native    CPU time  forward {cf:.1f} ms   backward {cb:.1f} ms   total "
+          f"{cf + cb:.1f} ms (all threads; load average {load0:.1f} -> "
+          f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs)")
     plain, with_labels = median_ms(nat_fn), median_ms(nat_fl)
     print(f"label statistics: forward {plain:.1f} ms -> {with_labels:.1f} ms with labels "
-          f"(+{100 * (with_labels / plain - 1):.1f}%)")
+          f"(+{100 * (with_labels / plain - 1):.1f}% wall; CPU time "
+          f"+{100 * (median_ms(nat_fl, 'cpu') / median_ms(nat_fn, 'cpu') - 1):.1f}%)")
     if args.skip_reference:
         return 0
     ref_f, ref_b = [], []
@@ -134,9 +164,9 @@ def main(argv=None) -> int:
         ref_b.append(b)
     rf, rb = median_ms(ref_f), median_ms(ref_b)
     print(f"reference forward {rf:8.1f} ms   backward {rb:8.1f} ms   total {rf + rb:8.1f} ms"
-          f"   (median of {args.ref_reps})")
-    print(f"speed-up (reference / native): forward {rf / nf:.1f}x, backward {rb / nb:.1f}x, "
-          f"forward+backward {(rf + rb) / (nf + nb):.1f}x")
+          f"   (median of {args.ref_reps}, wall)")
+    print(f"speed-up (reference / native, wall): forward {rf / nf:.1f}x, backward "
+          f"{rb / nb:.1f}x, forward+backward {(rf + rb) / (nf + nb):.1f}x")
     return 0
 
 
