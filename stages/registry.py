@@ -30,6 +30,7 @@ STAGE_MODULES: tuple[str, ...] = (
     "stages.segment",
     "stages.evaluate",
     "stages.summary",
+    "stages.heldout",
 )
 
 EXTRA_MODULES_ENV = "COBGS_STAGE_MODULES"
