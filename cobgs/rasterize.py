@@ -163,7 +163,7 @@ def _validate(means, quats, scales, opacities, features, viewmat, K, width, heig
                 raise InputError(f"pixel_labels must have an integer dtype, got "
                                  f"{pixel_labels.dtype}")
             if pixel_labels.numel():
-                lo, hi = int(pixel_labels.min()), int(pixel_labels.max())
+                lo, hi = (int(v) for v in torch.aminmax(pixel_labels))
                 if lo < -1 or hi >= num_labels:
                     raise InputError(f"pixel_labels must lie in -1..{num_labels - 1} "
                                      f"(num_labels = {num_labels}), got values in {lo}..{hi}")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import fcntl
 import os
+import select
 import shutil
 import subprocess
 import sys
@@ -94,11 +95,19 @@ def test_second_process_waits_for_the_builder(tmp_path):
             [sys.executable, "-c", "from cobgs import _build; print(_build.load_extension())"],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO)
         try:
+            # Wait (at most 60 s) until the child reports that it is blocked on the lock.
             deadline = time.time() + 60
-            # Wait until the child reports that it is blocked on the lock.
-            line = child.stderr.readline()
-            assert "waiting for another process building the native extension" in line
-            assert time.time() < deadline and child.poll() is None
+            seen = ""
+            while "waiting for another process" not in seen and time.time() < deadline:
+                ready, _, _ = select.select([child.stderr], [], [], deadline - time.time())
+                if not ready:
+                    break
+                line = child.stderr.readline()
+                if not line:
+                    break
+                seen += line
+            assert "waiting for another process building the native extension" in seen, seen
+            assert child.poll() is None  # still blocked while we hold the lock
         finally:
             fcntl.flock(fh, fcntl.LOCK_UN)
     out, err = child.communicate(timeout=60)

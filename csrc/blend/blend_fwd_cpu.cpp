@@ -271,10 +271,15 @@ void blend_forward(const at::Tensor& means2d, const at::Tensor& conics,
     float* wts = label_weights.data_ptr<float>();
     T* wsum = reusable_buffer<T, 3>(size_t(n) * K);
     std::fill(wsum, wsum + size_t(n) * K, T(0));
+    std::fill(cnt, cnt + size_t(n) * K, 0);
     for (int64_t j = 0; j < m; ++j) {
+      const int32_t* pc = pair_counts + j * K;
+      int32_t total = 0;
+      for (int k = 0; k < K; ++k) total |= pc[k];
+      if (total == 0) continue;  // the entry contributed to no labelled pixel
       const int64_t g = a.ids[j];
       for (int k = 0; k < K; ++k) {
-        cnt[g * K + k] += pair_counts[j * K + k];
+        cnt[g * K + k] += pc[k];
         wsum[g * K + k] += pair_weights[j * K + k];
       }
     }
@@ -309,8 +314,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> blend_cpu
   at::Tensor trans = at::empty({height, width}, opts);
   at::Tensor n_contrib = at::empty({height, width}, opts.dtype(at::kInt));
   const int64_t rows = labels ? n : 0;
-  at::Tensor label_counts = at::zeros({rows, num_labels}, opts.dtype(at::kInt));
-  at::Tensor label_weights = at::zeros({rows, num_labels}, opts.dtype(at::kFloat));
+  // Filled completely by blend_forward (empty + a plain loop: no extra ATen kernel).
+  at::Tensor label_counts = at::empty({rows, num_labels}, opts.dtype(at::kInt));
+  at::Tensor label_weights = at::empty({rows, num_labels}, opts.dtype(at::kFloat));
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "cobgs::blend", [&] {
     blend_forward<scalar_t>(means2d, conics, opacities, features, background, tile_offsets,
                             flat_ids, static_cast<int>(width), static_cast<int>(height),
