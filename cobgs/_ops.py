@@ -84,6 +84,8 @@ def _register() -> None:
         ctx.size = (width, height)
 
     def project_backward(ctx, v_means2d, v_conics, v_depths, _v_radii):
+        if not any(ctx.needs_input_grad[:3]):  # e.g. only features/labels are trained
+            return None, None, None, None, None, None, None, None
         means, quats, scales, viewmat, K, radii = ctx.saved_tensors
         v_means2d = _or_zeros(v_means2d, (means.shape[0], 2), means)
         v_conics = _or_zeros(v_conics, (means.shape[0], 3), means)
