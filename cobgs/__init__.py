@@ -18,7 +18,7 @@ def __getattr__(name):  # lazy entry points keep `import cobgs` light
         # binds `cobgs.rasterize` to the module; rebind it to the function.
         import importlib
 
-        value = getattr(importlib.import_module(".rasterize", __name__), name)
-        globals()[name] = value
-        return value
+        module = importlib.import_module(".rasterize", __name__)
+        globals().update(rasterize=module.rasterize, RasterOutput=module.RasterOutput)
+        return globals()[name]
     raise AttributeError(f"module 'cobgs' has no attribute {name!r}")
