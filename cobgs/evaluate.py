@@ -32,7 +32,6 @@ from typing import Iterable, Mapping, Optional, Sequence
 import numpy as np
 
 from .errors import DataError, InputError
-from .metrics import boundary_iou, psnr
 
 __all__ = [
     "MaskScores",
@@ -133,6 +132,8 @@ def compare_masks(pred, gt, boundary_ratio: float = BOUNDARY_RATIO) -> MaskScore
         gt: [H, W] bool / uint8 / float in [0, 1].
         boundary_ratio: boundary width ratio of the boundary IoU.
     """
+    from .metrics import boundary_iou  # lazily: cobgs.metrics imports torch
+
     g8 = to_u8(gt)
     p8 = to_u8(pred)
     resized = p8.shape != g8.shape
@@ -279,6 +280,8 @@ def psnr_scores(renders: Mapping[str, object], references: Mapping[str, object])
         ``{"psnr": mean dB over views, "views": n, "per_view": {view: dB}}``.
     """
     import torch
+
+    from .metrics import psnr
 
     per = {}
     for v in sorted(references):

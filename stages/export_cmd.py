@@ -2,7 +2,7 @@
 
 Layout written (README "Exports")::
 
-    DIR/summary.json, summary.csv, by_method.csv, by_scene_method.csv, timings.csv
+    DIR/summary.json, summary.csv, by_method.csv, by_scene_method.csv, timings.csv, scenes.csv
     DIR/<scene>/scene.ply                         trained 3DGS scene (standard layout)
     DIR/<scene>/train.json
     DIR/<scene>/<method>/<object>/refined.ply     scene after the method, with label extras
@@ -27,7 +27,7 @@ EXPORTS = (
     ("segment", "segmentation", ("object.ply", "background.ply"), "object"),
     ("evaluate", "metrics", ("metrics.json",), "object"),
     ("summary", "summary", ("summary.json", "summary.csv", "by_method.csv", "by_scene_method.csv",
-                            "timings.csv"), "root"),
+                            "timings.csv", "scenes.csv"), "root"),
 )
 
 

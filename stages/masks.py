@@ -68,6 +68,19 @@ class MasksParams:
     def __post_init__(self) -> None:
         if self.source not in SOURCES:
             raise ValueError(f"source must be one of {list(SOURCES)}, got {self.source!r}")
+        # Checked when the workflow is planned, before any task runs (fail fast: the
+        # masks stage comes after hours of training on a real scene).
+        if self.source in ("onnx", "nvos"):
+            if self.models_dir is None:
+                raise ValueError(_MODELS_HELP.format(source=self.source))
+            if not Path(self.models_dir).is_dir():
+                raise ValueError(f"masks.models_dir {self.models_dir} does not exist "
+                                 f"(source {self.source!r} needs the ONNX model folder)")
+
+
+_MODELS_HELP = ("masks.source {source!r} needs masks.models_dir, which is not set: export the models "
+                "with `cobgs export-onnx sam2 ...` (and `gdino` for text prompts) and pass the folder "
+                "with `--set masks.models_dir=DIR` or `models_dir = ...` under [params.masks]")
 
 
 def _run(ctx, inputs):
@@ -133,11 +146,8 @@ def _dataset_masks(views, obj: str, spec: dict) -> dict:
 
 
 def _need_models(p: MasksParams) -> Path:
-    if p.models_dir is None:
-        raise StageInputError(
-            f"masks.source {p.source!r} needs masks.models_dir, which is not set: export the models with "
-            "`cobgs export-onnx sam2 ...` (and `gdino` for text prompts) and pass the folder with "
-            "`--set masks.models_dir=DIR` or `models_dir = ...` under [params.masks]")
+    if p.models_dir is None:  # params built without their checks (a caller of run())
+        raise StageInputError(_MODELS_HELP.format(source=p.source))
     return p.models_dir
 
 

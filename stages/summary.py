@@ -1,6 +1,7 @@
 """Stage ``summary``: one table over every scene x method x object of a workflow.
 
-It gathers every ``metrics`` artifact and, walking the provenance of each (the cache
+It gathers every ``metrics`` artifact (and every trained ``scene``, for scenes evaluated
+on texture only) and, walking the provenance of each (the cache
 manifests), the entries of every stage that fed it, so that a report can be built from
 this artifact plus the manifests alone.
 
@@ -12,6 +13,7 @@ Output ``summary``:
   summary.csv           the rows
   by_method.csv, by_scene_method.csv   the aggregates
   timings.csv           one line per cache entry used: stage, item, wall / CPU time, peak RSS
+  scenes.csv            per scene: the trained scene's held-out PSNR / SSIM, Gaussians, time
 """
 
 from __future__ import annotations
@@ -80,7 +82,17 @@ def _run(ctx, inputs):
     from pipeline import entry_of
 
     p: SummaryParams = ctx.params
-    rows, seen, heads = [], {}, []
+    scenes, seen = [], {}
+    for item, path in sorted(inputs["scene"].items(), key=lambda kv: kv[0].id):
+        t = read_json(Path(path) / "train.json")
+        entry = entry_of(path)
+        _walk(entry, seen)
+        ev = t.get("eval") or {}
+        scenes.append({"scene": item["scene"], "psnr": ev.get("psnr"), "ssim": ev.get("ssim"),
+                       "num_gaussians": t["num_gaussians"], "iterations": t["iterations"],
+                       "train_views": len(t["train_views"]), "test_views": len(t["test_views"]),
+                       "train_s": t["wall_s"], "s_per_it": t["s_per_it"], "entries": _chain(entry, entry.parents[2])})
+    rows, heads = [], []
     for item, path in sorted(inputs["metrics"].items(), key=lambda kv: kv[0].id):
         row = dict(read_json(Path(path) / "metrics.json")["row"])
         row["item"] = item.id
@@ -114,7 +126,7 @@ def _run(ctx, inputs):
         s["cpu_s"] += t["cpu_s"] or 0.0
 
     protocols = sorted({r["protocol"] for r in rows})
-    out = {"format": "cobgs-summary", "version": 1, "protocols": protocols, "rows": rows, "by_scene_method": by_scene_method, "by_method": by_method,
+    out = {"format": "cobgs-summary", "version": 1, "scenes": scenes, "protocols": protocols, "rows": rows, "by_scene_method": by_scene_method, "by_method": by_method,
            "stage_totals": per_stage, "timings": timings, "cache_root": str(root) if root else None,
            "overall": {"miou": nanmean(r["iou"] for r in by_method), "target_miou": p.target_miou or None}}
     write_json(ctx.out_dir / "summary.json", out)
@@ -122,6 +134,7 @@ def _run(ctx, inputs):
     _write_csv(ctx.out_dir / "by_method.csv", by_method)
     _write_csv(ctx.out_dir / "by_scene_method.csv", by_scene_method)
     _write_csv(ctx.out_dir / "timings.csv", timings)
+    _write_csv(ctx.out_dir / "scenes.csv", scenes)
     for r in by_method:
         ctx.log.info("%-14s mIoU %.4f  mBIoU %.4f  mAcc %.4f  PSNR %.2f (vanilla %.2f) dB  [%d scenes, %d objects]",
                      r["method"], r["iou"], r["biou"], r["acc"], r["psnr"], r["psnr_vanilla"], r["scenes"],
@@ -132,7 +145,7 @@ def _run(ctx, inputs):
 
 
 STAGE = Stage(
-    name="summary", version=1, run=_run, inputs=("metrics",), outputs=("summary",), params=SummaryParams,
+    name="summary", version=1, run=_run, inputs=("metrics", "scene"), outputs=("summary",), params=SummaryParams,
     level=(), resources=Resources(cpus=1),
     description="JSON/CSV summary over every scene x method x object, with per-stage timings",
 )

@@ -1,0 +1,44 @@
+"""The stages' params mirror the library configs exactly (stages/params.py says why)."""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import subprocess
+import sys
+
+import pytest
+
+from stages.params import MIRRORS, to_config
+
+
+def _norm(annotation) -> str:
+    """Annotations as text, typing aliases spelled like the builtins (Tuple -> tuple)."""
+    text = str(annotation)
+    for alias in ("Tuple", "List", "Dict"):
+        text = text.replace(alias + "[", alias.lower() + "[")
+    return text
+
+
+@pytest.mark.parametrize("mirror", list(MIRRORS), ids=lambda m: m.__name__)
+def test_mirror_matches_library(mirror):
+    module, name, left_out = MIRRORS[mirror]
+    lib = getattr(importlib.import_module(module), name)
+    lib_fields = {f.name: f for f in dataclasses.fields(lib) if f.name not in left_out}
+    ours = {f.name: f for f in dataclasses.fields(mirror)}
+    assert list(ours) == list(lib_fields), f"{mirror.__name__} fields differ from {module}.{name}"
+    for k, f in lib_fields.items():
+        assert ours[k].default == f.default, f"{mirror.__name__}.{k}: {ours[k].default!r} != {f.default!r}"
+        assert _norm(ours[k].type) == _norm(f.type), f"{mirror.__name__}.{k}: type {ours[k].type} != {f.type}"
+    # and the conversion builds the library object with the same values
+    cfg = to_config(mirror(), lib)
+    assert all(getattr(cfg, k) == v for k, v in dataclasses.asdict(mirror()).items())
+
+
+def test_stage_modules_import_without_torch():
+    """`cobgs status` / a cached `cobgs run` import every stage module: keep torch out."""
+    code = ("import sys; from stages.registry import load_registry; load_registry(); "
+            "bad = [m for m in ('torch', 'numpy', 'cv2', 'pycolmap') if m in sys.modules]; "
+            "print(','.join(bad))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == ""
