@@ -11,7 +11,7 @@ STAMP  := $(VENV)/.cobgs-installed
 TORCH_SPEC ?= torch==2.13.0
 PYTEST_ARGS ?=
 
-.PHONY: install build test demo bench report clean help
+.PHONY: install build test demo bench report clean help chromium
 
 help:
 	@echo "make demo    run the embedded demo workflow (installs and builds first)"
@@ -30,7 +30,14 @@ install: $(STAMP)
 build: install
 	$(VENV)/bin/cobgs build
 
-test: build
+# Headless Chromium for the report's browser tests (Debian's package, ~25 s once, root only);
+# without it those tests skip, saying why.
+chromium:
+	@test -x /usr/bin/chromium || [ "$$(id -u)" != 0 ] || DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium >/dev/null 2>&1 \
+	  || { apt-get update -q >/dev/null && DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium >/dev/null; } \
+	  || echo "note: could not install chromium; the browser tests will be skipped"
+
+test: build chromium
 	$(PY) -m pytest -m "not slow and not gpu" $(PYTEST_ARGS)
 
 demo: build

@@ -1,1 +1,26 @@
-"""HTML result reports built from pipeline cache manifests."""
+"""HTML result reports built from a workflow's pipeline cache (``cobgs report``).
+
+    from reports import build_report
+    index = build_report("workflows/demo.toml", out_dir="runs/reports/demo")
+
+Modules: :mod:`~reports.collect` reads the cache, :mod:`~reports.results` turns it into
+records, :mod:`~reports.tables`, :mod:`~reports.pictures` and :mod:`~reports.plots` render
+them, :mod:`~reports.paper` holds the quoted paper numbers, :mod:`~reports.builder` writes
+the folder. Imports are lazy so that ``import reports`` stays cheap.
+"""
+
+from __future__ import annotations
+
+__all__ = ["build_report", "ReportError"]
+
+
+def __getattr__(name):
+    if name == "build_report":
+        from .builder import build_report
+
+        return build_report
+    if name == "ReportError":
+        from .errors import ReportError
+
+        return ReportError
+    raise AttributeError(f"module 'reports' has no attribute {name!r}")

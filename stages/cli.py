@@ -20,6 +20,7 @@ PROVIDERS = (
     "stages.workflow_cmd",
     "stages.export_cmd",
     "stages.onnx_cmd",
+    "stages.report_cmd",
 )
 
 

@@ -1,0 +1,274 @@
+"""Read a workflow's results back from the pipeline cache (nothing is run or written).
+
+Everything the report shows comes from here: the state of every task
+(:func:`pipeline.entries`) and the small JSON files the stages leave in their artifacts
+(the layouts are documented in stages/_common.py). Artifacts are found by *name*
+(``metrics``, ``refined``, ``segmentation``, ``scene``, ``dataset``, ``heldout``) through
+the workflow's graph, so the report follows the stages wherever the DAG puts them.
+
+A result whose chain is incomplete keeps a :class:`Problem` naming the first task that
+failed (or that never ran) and its log, so the report can show the gap instead of a number.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Optional
+
+from .errors import ReportError
+
+#: artifact -> the JSON file that describes it
+DESCRIPTORS = {"metrics": "metrics.json", "refined": "refine.json", "segmentation": "segment.json",
+               "scene": "train.json", "dataset": "dataset.json", "heldout": "heldout.json"}
+
+
+def read_artifact_json(folder: Path, name: str, owner: str) -> dict:
+    """``folder/name`` as JSON; a clear :class:`ReportError` naming ``owner`` otherwise."""
+    path = Path(folder) / name
+    try:
+        with open(path, encoding="utf-8") as f:
+            data = json.load(f)
+    except FileNotFoundError:
+        raise ReportError(f"{owner}: {path} is missing although the cache entry is complete "
+                          "(run `cobgs cache verify --fix`, then rerun the workflow)") from None
+    except (OSError, ValueError) as exc:
+        raise ReportError(f"{owner}: {path} is unreadable: {exc}") from None
+    if not isinstance(data, dict):
+        raise ReportError(f"{owner}: {path} should hold a JSON object, got {type(data).__name__}")
+    return data
+
+
+@dataclass
+class Task:
+    """One stage x item of the workflow as the cache knows it."""
+
+    stage: str
+    item: Any  # pipeline.Item
+    state: str  # done | failed | corrupt | stale | missing
+    key: Optional[str]
+    reasons: list[str]
+    manifest: Optional[dict]
+    entry_dir: Optional[Path]
+    log_path: Optional[Path]
+
+    @property
+    def item_id(self) -> str:
+        return self.item.label
+
+    @property
+    def values(self) -> dict:
+        return dict(self.item.values)
+
+    def out(self, artifact: str) -> Optional[Path]:
+        """The folder of a finished output artifact, or None."""
+        if self.state != "done" or not self.manifest or self.entry_dir is None:
+            return None
+        rec = self.manifest.get("outputs", {}).get(artifact)
+        return None if rec is None else self.entry_dir / rec["path"]
+
+    @property
+    def error(self) -> str:
+        if self.state == "failed" and self.manifest:
+            return str((self.manifest.get("error") or {}).get("summary", "failed (no summary recorded)"))
+        return "; ".join(self.reasons)
+
+
+@dataclass
+class Problem:
+    """Why a result has no numbers: the first task of its chain that is not done."""
+
+    stage: str
+    item_id: str
+    state: str
+    message: str
+    log_path: Optional[Path]
+
+
+@dataclass
+class Result:
+    """One scene x method x object: its metrics row and what the report draws from it."""
+
+    scene: str
+    method: str
+    object: str
+    row: Optional[dict] = None  # metrics.json "row"
+    per_view: dict = field(default_factory=dict)  # view -> {iou, acc, biou, ...}
+    skipped: dict = field(default_factory=dict)  # view -> reason
+    psnr_per_view: dict = field(default_factory=dict)
+    refine: Optional[dict] = None  # refine.json
+    refine_params: Optional[dict] = None  # the refine task's resolved params
+    refine_dir: Optional[Path] = None
+    segment: Optional[dict] = None  # segment.json
+    segment_dir: Optional[Path] = None
+    tasks: dict = field(default_factory=dict)  # stage -> Task of this item's chain
+    problem: Optional[Problem] = None
+
+    @property
+    def ok(self) -> bool:
+        return self.row is not None
+
+    @property
+    def method_kind(self) -> str:
+        """"cobgs", "nosplit", "sa3d", "flashsplat" (from the refine params or the row)."""
+        if self.refine_params and "method" in self.refine_params:
+            return str(self.refine_params["method"])
+        return str((self.row or {}).get("method_kind") or (self.refine or {}).get("method") or "")
+
+
+@dataclass
+class Heldout:
+    folder: Path
+    info: dict  # heldout.json
+
+
+@dataclass
+class Scene:
+    name: str
+    dataset: Optional[dict] = None  # dataset.json
+    train: Optional[dict] = None  # train.json
+    train_dir: Optional[Path] = None
+    train_task: Optional[Task] = None
+    heldout: dict = field(default_factory=dict)  # object -> Heldout
+
+    @property
+    def protocol(self) -> str:
+        return str((self.dataset or {}).get("protocol", ""))
+
+
+@dataclass
+class RunData:
+    workflow: Any  # pipeline.Workflow
+    cache_dir: Path
+    tasks: list[Task]
+    results: list[Result]
+    scenes: dict[str, Scene]
+    methods: list[str]  # in workflow order
+
+    @property
+    def failed(self) -> list[Task]:
+        return [t for t in self.tasks if t.state in ("failed", "corrupt")]
+
+    @property
+    def not_done(self) -> list[Task]:
+        return [t for t in self.tasks if t.state != "done"]
+
+    def counts(self) -> dict[str, int]:
+        out: dict[str, int] = {}
+        for t in self.tasks:
+            out[t.state] = out.get(t.state, 0) + 1
+        return out
+
+
+def _tasks(workflow, cache_dir: Path) -> list[Task]:
+    from pipeline import entries
+
+    out = []
+    for rec in entries(workflow, cache_dir):
+        out.append(Task(stage=rec.stage, item=rec.item, state=rec.state, key=rec.key, reasons=list(rec.reasons),
+                        manifest=rec.manifest, entry_dir=rec.entry_dir, log_path=rec.log_path))
+    return out
+
+
+def _axis_names(workflow, axis: str, parent_value: Optional[str] = None) -> list[str]:
+    if axis not in workflow.axes:
+        return []
+    return workflow.axes[axis].names(parent_value)
+
+
+def collect(workflow, cache_dir: os.PathLike | str) -> RunData:
+    """Everything the report needs about ``workflow`` (a loaded :class:`pipeline.Workflow`)
+    from the cache at ``cache_dir``."""
+    cache_dir = Path(cache_dir)
+    tasks = _tasks(workflow, cache_dir)
+    producer = workflow.graph.producer
+    by_stage: dict[str, dict[Any, Task]] = {}
+    for t in tasks:
+        by_stage.setdefault(t.stage, {})[t.item] = t
+
+    def task_for(artifact: str, item) -> Optional[Task]:
+        stage = producer.get(artifact)
+        if stage is None:
+            return None
+        return by_stage.get(stage, {}).get(item.project(workflow.levels[stage]))
+
+    def load(task: Optional[Task], artifact: str) -> tuple[Optional[dict], Optional[Path]]:
+        folder = task.out(artifact) if task is not None else None
+        if folder is None:
+            return None, None
+        return read_artifact_json(folder, DESCRIPTORS[artifact], f"{task.stage}[{task.item_id}]"), folder
+
+    scenes: dict[str, Scene] = {}
+    for name in _axis_names(workflow, "scene"):
+        sc = Scene(name)
+        for t in by_stage.get(producer.get("dataset", ""), {}).values():
+            if t.values.get("scene") == name:
+                sc.dataset, _ = load(t, "dataset")
+        for t in by_stage.get(producer.get("scene", ""), {}).values():
+            if t.values.get("scene") == name:
+                sc.train_task = t
+                sc.train, sc.train_dir = load(t, "scene")
+        for t in by_stage.get(producer.get("heldout", ""), {}).values():
+            if t.values.get("scene") == name:
+                info, folder = load(t, "heldout")
+                if info is not None:
+                    sc.heldout[t.values.get("object", "")] = Heldout(folder, info)
+        scenes[name] = sc
+
+    results = []
+    metrics_stage = producer.get("metrics")
+    if metrics_stage is not None:
+        chain = [s for s in workflow.graph.order if s in workflow.graph.ancestors([metrics_stage])]
+        for mt in by_stage.get(metrics_stage, {}).values():
+            v = mt.values
+            r = Result(scene=v.get("scene", ""), method=v.get("method", ""), object=v.get("object", ""))
+            for s in chain:
+                t = by_stage.get(s, {}).get(mt.item.project(workflow.levels[s]))
+                if t is not None:
+                    r.tasks[s] = t
+            r.problem = _first_problem(r.tasks, chain)
+            metrics, _ = load(mt, "metrics")
+            if metrics is not None:
+                r.row = dict(metrics.get("row") or {})
+                details = metrics.get("details") or {}
+                r.per_view = dict(details.get("per_view") or {})
+                r.skipped = dict(details.get("skipped") or {})
+                r.psnr_per_view = dict(metrics.get("psnr_per_view") or {})
+            rt = task_for("refined", mt.item)
+            r.refine, r.refine_dir = load(rt, "refined")
+            if rt is not None and rt.manifest is not None and rt.state == "done":
+                r.refine_params = dict(rt.manifest.get("params") or {})
+            st = task_for("segmentation", mt.item)
+            r.segment, r.segment_dir = load(st, "segmentation")
+            results.append(r)
+    order = _order(workflow)
+    results.sort(key=lambda r: (order["scene"].get(r.scene, 1e9), order["method"].get(r.method, 1e9),
+                                order["object"].get((r.scene, r.object), 1e9), r.scene, r.method, r.object))
+    return RunData(workflow=workflow, cache_dir=cache_dir, tasks=tasks, results=results, scenes=scenes,
+                   methods=_axis_names(workflow, "method"))
+
+
+def _first_problem(tasks: dict, chain: list[str]) -> Optional[Problem]:
+    """The earliest failed task of the chain; else the earliest one that is not done."""
+    pending = [tasks[s] for s in chain if s in tasks and tasks[s].state != "done"]
+    if not pending:
+        return None
+    failed = [t for t in pending if t.state in ("failed", "corrupt")]
+    t = (failed or pending)[0]
+    return Problem(stage=t.stage, item_id=t.item_id, state=t.state, message=t.error or t.state,
+                   log_path=t.log_path if t.state == "failed" else None)
+
+
+def _order(workflow) -> dict[str, dict]:
+    scenes = _axis_names(workflow, "scene")
+    objects: dict = {}
+    if "object" in workflow.axes:
+        ax = workflow.axes["object"]
+        for s in scenes:
+            for i, o in enumerate(ax.names(s) if ax.parent else ax.names()):
+                objects[(s, o)] = i
+    return {"scene": {s: i for i, s in enumerate(scenes)},
+            "method": {m: i for i, m in enumerate(_axis_names(workflow, "method"))},
+            "object": objects}

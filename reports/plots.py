@@ -1,0 +1,215 @@
+"""Plots of the report, drawn with matplotlib (Agg) into SVG files.
+
+Each function takes plain numbers that were measured by the run (nothing is fitted or
+extrapolated) and writes one figure; the caller decides what to say when there is no data.
+SVGs carry no date and use a fixed id salt, so rebuilding a report gives identical files.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+
+REFERENCE_COLOR = "#1b4f8a"
+PALETTE = ("#d1495b", "#edae49", "#66a182", "#8d6cab", "#2e86ab", "#a0522d", "#6c757d", "#e07a5f")
+STAGE_COLORS = {"dataset": "#bcbcbc", "sfm": "#9e9e9e", "train": "#6c757d", "masks": "#c9b37e",
+                "heldout": "#dcdcdc", "refine": REFERENCE_COLOR, "segment": "#66a182", "evaluate": "#edae49",
+                "summary": "#8d6cab"}
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg", force=True)
+    import matplotlib.pyplot as plt
+
+    plt.rcParams.update({
+        # Text stays text (smaller files, selectable, twice as fast to write); the page's
+        # sans-serif fallbacks render it, no font file is needed.
+        "svg.hashsalt": "cobgs-report", "svg.fonttype": "none", "font.size": 8.5,
+        "font.family": ["DejaVu Sans", "sans-serif"],
+        "axes.spines.top": False, "axes.spines.right": False, "axes.titlesize": 9,
+        "axes.titleweight": "bold", "axes.labelsize": 8.5, "legend.fontsize": 8, "legend.frameon": False,
+        "xtick.labelsize": 8, "ytick.labelsize": 8, "axes.grid": True, "grid.color": "#e6e6e6",
+        "grid.linewidth": 0.6, "axes.axisbelow": True, "figure.dpi": 100,
+    })
+    return plt
+
+
+def _save(fig, path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, format="svg", metadata={"Date": None})
+    plt.close(fig)
+
+
+def method_colors(methods: Sequence[str], reference: Optional[str]) -> dict[str, str]:
+    """One colour per method, the same in every plot; the reference method in blue."""
+    out, k = {}, 0
+    for m in methods:
+        if m == reference:
+            out[m] = REFERENCE_COLOR
+        else:
+            out[m] = PALETTE[k % len(PALETTE)]
+            k += 1
+    return out
+
+
+def iou_biou(path: Path, methods: Sequence[str], iou: Sequence[Optional[float]], biou: Sequence[Optional[float]],
+             points: dict, colors: dict) -> bool:
+    """Grouped bars of mIoU and mBIoU (%) per method; per-scene means as dots."""
+    if not any(v is not None for v in list(iou) + list(biou)):
+        return False
+    plt = _plt()
+    n = len(methods)
+    fig, ax = plt.subplots(figsize=(max(4.0, 0.7 * n + 1.5), 2.8), layout="constrained")
+    x = np.arange(n)
+    w = 0.38
+    for off, vals, name, hatch in ((-w / 2, iou, "mIoU", None), (w / 2, biou, "mBIoU", "///")):
+        h = [100.0 * v if v is not None else 0.0 for v in vals]
+        bars = ax.bar(x + off, h, w, color=[colors[m] for m in methods], edgecolor="white", hatch=hatch,
+                      alpha=1.0 if hatch is None else 0.65, label=name)
+        for b, v in zip(bars, vals):
+            if v is not None:
+                ax.annotate(f"{100 * v:.1f}", (b.get_x() + b.get_width() / 2, b.get_height()), ha="center",
+                            va="bottom", fontsize=7, xytext=(0, 1), textcoords="offset points")
+    for i, m in enumerate(methods):
+        for a, b in points.get(m, []):
+            if a is not None:
+                ax.plot(i - w / 2, 100 * a, "o", ms=2.5, color="black", alpha=0.55, zorder=3)
+            if b is not None:
+                ax.plot(i + w / 2, 100 * b, "o", ms=2.5, color="black", alpha=0.55, zorder=3)
+    ax.set_xticks(x, methods, rotation=20 if n > 4 else 0, ha="right" if n > 4 else "center")
+    ax.set_ylabel("%")
+    ax.set_ylim(0, 105)
+    from matplotlib.patches import Patch
+
+    ax.legend(handles=[Patch(facecolor="#888", label="mIoU"), Patch(facecolor="#888", alpha=0.65, hatch="///",
+                                                                      edgecolor="white", label="mBIoU")],
+              loc="lower right", bbox_to_anchor=(1.0, 1.0), ncol=2, borderaxespad=0.2)
+    ax.set_title("Segmentation accuracy per method", loc="left")
+    _save(fig, path)
+    return True
+
+
+def psnr(path: Path, methods: Sequence[str], values: Sequence[Optional[float]], vanilla: Optional[float],
+         colors: dict) -> bool:
+    """Horizontal bars of the refined scene's held-out PSNR per method, vanilla as a line."""
+    if not any(v is not None for v in values):
+        return False
+    plt = _plt()
+    n = len(methods)
+    fig, ax = plt.subplots(figsize=(5.0, 0.32 * n + 1.2), layout="constrained")
+    y = np.arange(n)[::-1]
+    vals = [v if v is not None else np.nan for v in values]
+    ax.barh(y, vals, 0.62, color=[colors[m] for m in methods])
+    finite = [v for v in vals if np.isfinite(v)] + ([vanilla] if vanilla is not None else [])
+    lo, hi = min(finite), max(finite)
+    pad = max(0.25, 0.15 * (hi - lo))
+    ax.set_xlim(lo - 3 * pad, hi + 2 * pad)
+    for yi, v in zip(y, vals):
+        if np.isfinite(v):
+            txt = f"{v:.2f}" + (f" ({v - vanilla:+.2f})" if vanilla is not None else "")
+            ax.annotate(txt, (v, yi), xytext=(3, 0), textcoords="offset points", va="center", fontsize=7)
+    if vanilla is not None:
+        ax.axvline(vanilla, color="black", ls="--", lw=0.9)
+        ax.annotate(f"vanilla {vanilla:.2f}", (vanilla, n - 0.4), xytext=(3, 0), textcoords="offset points",
+                    fontsize=7, va="bottom")
+    ax.set_yticks(y, methods)
+    ax.set_xlabel("PSNR on held-out views (dB)")
+    ax.grid(axis="y", visible=False)
+    ax.set_title("Texture quality per method (vs the vanilla scene)", loc="left")
+    _save(fig, path)
+    return True
+
+
+def time_breakdown(path: Path, bars: Sequence[tuple[str, dict]], stages: Sequence[str]) -> bool:
+    """Stacked horizontal bars of wall time (s) per stage; ``bars`` = [(label, {stage: s})]."""
+    if not bars or not any(any(v for v in d.values()) for _, d in bars):
+        return False
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(6.4, 0.34 * len(bars) + 1.5), layout="constrained")
+    y = np.arange(len(bars))[::-1]
+    left = np.zeros(len(bars))
+    for s in stages:
+        vals = np.array([d.get(s, 0.0) or 0.0 for _, d in bars])
+        if not vals.any():
+            continue
+        ax.barh(y, vals, 0.62, left=left, color=STAGE_COLORS.get(s, "#999"), label=s, edgecolor="white",
+                linewidth=0.5)
+        left += vals
+    for yi, tot in zip(y, left):
+        ax.annotate(f"{tot:.1f} s", (tot, yi), xytext=(3, 0), textcoords="offset points", va="center", fontsize=7)
+    ax.set_xlim(0, left.max() * 1.15)
+    ax.set_yticks(y, [b[0] for b in bars])
+    ax.set_xlabel("wall time (s)")
+    ax.grid(axis="y", visible=False)
+    fig.legend(loc="outside lower center", ncol=min(8, len(ax.get_legend_handles_labels()[0])))
+    ax.set_title("Wall time by stage (summed over the tasks of each row)", loc="left")
+    _save(fig, path)
+    return True
+
+
+def delta_sweep(path: Path, groups: Sequence[tuple[str, Sequence[tuple[float, float, float]]]]) -> bool:
+    """Paper Fig. 7 from a δ sweep: ambiguous and total Gaussians after refinement vs δ.
+
+    Args:
+        groups: [(label, [(delta, ambiguous, total), ...])], one line per scene / object.
+    """
+    groups = [(g, sorted(pts)) for g, pts in groups if len(pts) >= 2]
+    if not groups:
+        return False
+    plt = _plt()
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(7.0, 2.6), layout="constrained")
+    for k, (label, pts) in enumerate(groups):
+        d = [p[0] for p in pts]
+        c = PALETTE[k % len(PALETTE)] if len(groups) > 1 else REFERENCE_COLOR
+        a1.plot(d, [p[1] for p in pts], "o-", color=c, ms=3.5, label=label)
+        a2.plot(d, [p[2] for p in pts], "s-", color=c, ms=3.5, label=label)
+    a1.set_title("ambiguous Gaussians (score < δ)")
+    a2.set_title("total Gaussians after refinement")
+    for a in (a1, a2):
+        a.set_xlabel("δ")
+    if len(groups) > 1:
+        a2.legend(loc="best")
+    _save(fig, path)
+    return True
+
+
+def score_curves(path: Path, panels: Sequence[tuple[str, Sequence[tuple[str, np.ndarray]], Optional[float]]]
+                 ) -> bool:
+    """Per mask stage, how many Gaussians a threshold δ would call ambiguous (stage-mean
+    score < δ), from the scores one run recorded; the run's own δ as a dashed line.
+
+    Args:
+        panels: [(title, [(stage label, scores [N] float)], delta used)].
+    """
+    panels = [p for p in panels if p[1]]
+    if not panels:
+        return False
+    plt = _plt()
+    n = min(len(panels), 4)
+    fig, axes = plt.subplots(1, n, figsize=(2.9 * n + 0.6, 2.9), squeeze=False, layout="constrained")
+    grid = np.linspace(0.0, 1.0, 201)
+    cmap = plt.get_cmap("viridis")
+    most = max(len(p[1]) for p in panels[:n])
+    for ax, (title, curves, delta) in zip(axes[0], panels[:n]):
+        for i, (label, s) in enumerate(curves):
+            s = np.sort(np.asarray(s, np.float64))
+            ax.plot(grid, np.searchsorted(s, grid, side="left"), color=cmap(i / max(1, most - 1)), lw=1.2,
+                    label=label)
+        if delta is not None:
+            ax.axvline(delta, color="black", ls="--", lw=0.8)
+            ax.text(delta, 0.97, f"δ = {delta:g} ", transform=ax.get_xaxis_transform(), fontsize=7,
+                    va="top", ha="right")
+        ax.set_title(title)
+        ax.set_xlabel("threshold δ")
+    axes[0][0].set_ylabel("Gaussians with score < δ")
+    longest = max(panels[:n], key=lambda p: len(p[1]))
+    handles = [plt.Line2D([], [], color=cmap(i / max(1, most - 1)), lw=1.2) for i in range(most)]
+    fig.legend(handles, [c[0] for c in longest[1]], loc="outside lower center", ncol=min(6, most), fontsize=7)
+    _save(fig, path)
+    return True

@@ -1,0 +1,405 @@
+"""From collected run data to the report's records: method descriptions, the result tables
+(by method, by scene x method, by object), the quoted paper numbers beside them, and the
+data of the plots. Numbers are averaged exactly as the summary stage does
+(:func:`cobgs.evaluate.aggregate`: over objects within a scene, then over scenes).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Optional
+
+from . import paper
+from .collect import Result, RunData, Task
+from .fmt import finite
+
+KIND_LABELS = {"cobgs": "COB-GS", "nosplit": "labels only, no split", "sa3d": "SA3D-GS", "flashsplat": "FlashSplat"}
+METRICS = ("iou", "acc", "biou", "psnr", "psnr_vanilla", "psnr_delta", "num_gaussians", "num_gaussians_vanilla",
+           "object_gaussians", "refine_s", "splits", "pruned")
+# The params section of the refine stage each method kind reads.
+_SECTIONS = {"cobgs": "cobgs", "nosplit": "cobgs", "sa3d": "sa3d", "flashsplat": "flashsplat"}
+
+LogHref = Callable[[Optional[Task]], Optional[str]]
+
+
+@dataclass
+class MethodInfo:
+    """A method axis value as the report names it.
+
+    Attributes:
+        name: the axis value.
+        kind: the refine stage's ``method`` param (cobgs, nosplit, sa3d, flashsplat).
+        options: params that differ from the refine stage's defaults (``bgtr=false``).
+        role: "reference" (the COB-GS run the others are compared with), "variant"
+            (another COB-GS configuration: ablation rows, δ sweeps) or "peer".
+        paper: the paper's method it is (:func:`reports.paper.paper_method`), or None.
+    """
+
+    name: str
+    kind: str = ""
+    options: list[str] = field(default_factory=list)
+    role: str = "peer"
+    paper: Optional[tuple] = None
+
+    @property
+    def kind_label(self) -> str:
+        return KIND_LABELS.get(self.kind, self.kind or "?")
+
+    @property
+    def config(self) -> str:
+        return ", ".join(self.options) if self.options else "defaults"
+
+
+def _flat(d, prefix: str = "") -> dict:
+    out = {}
+    for k, v in (d or {}).items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(_flat(v, key + "."))
+        else:
+            out[key] = v
+    return out
+
+
+def _value_text(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    return "none" if v is None else str(v)
+
+
+def refine_defaults(workflow) -> dict:
+    """The refine stage's default params as JSON (what an option differs from)."""
+    from pipeline.params import to_json
+
+    stage = workflow.graph.producer.get("refined")
+    if stage is None:
+        return {}
+    return to_json(workflow.stages[stage].params())
+
+
+def options_of(kind: str, params: Optional[dict], defaults: dict) -> list[str]:
+    if not params:
+        return []
+    section = _SECTIONS.get(kind)
+    got, base = _flat(params), _flat(defaults)
+    keep = [k for k in got if k not in ("method",) and (k.split(".")[0] == section or "." not in k)]
+    return [f"{k.split('.', 1)[-1]}={_value_text(got[k])}" for k in keep if got[k] != base.get(k)]
+
+
+def method_infos(data: RunData) -> dict[str, MethodInfo]:
+    defaults = refine_defaults(data.workflow)
+    infos = {m: MethodInfo(m) for m in data.methods}
+    seen: dict[str, set] = {}
+    for r in data.results:
+        info = infos.setdefault(r.method, MethodInfo(r.method))
+        if r.refine_params is None:
+            continue
+        opts = options_of(r.method_kind, r.refine_params, defaults)
+        if r.method not in seen:
+            info.kind, info.options = r.method_kind, opts
+            info.paper = paper.paper_method(r.method_kind, r.refine_params)
+        seen.setdefault(r.method, set()).add(tuple(opts))
+    for m, variants in seen.items():
+        if len(variants) > 1:  # per-scene overrides: say so rather than pick one
+            infos[m].options = infos[m].options + ["(varies by scene)"]
+            infos[m].paper = None
+    ref = reference_method(infos)
+    for m, info in infos.items():
+        info.role = "reference" if m == ref else ("variant" if info.kind in ("cobgs", "nosplit") else "peer")
+    return infos
+
+
+def reference_method(infos: dict[str, MethodInfo]) -> Optional[str]:
+    """The COB-GS item with default options, else the first COB-GS item, else the first."""
+    for pick in (lambda i: i.kind == "cobgs" and not i.options, lambda i: i.kind == "cobgs", lambda i: True):
+        for m, info in infos.items():
+            if info.kind and pick(info):
+                return m
+    return next(iter(infos), None)
+
+
+# -- result records ----------------------------------------------------------------------
+def _peak_rss(r: Result) -> Optional[float]:
+    t = r.tasks.get("refine")
+    if t is None:
+        prod = [s for s, tt in r.tasks.items() if tt.manifest and "refined" in (tt.manifest.get("outputs") or {})]
+        t = r.tasks.get(prod[0]) if prod else None
+    return finite((t.manifest or {}).get("peak_rss_bytes")) if t is not None and t.state == "done" else None
+
+
+def _status(results: list[Result], log_href: LogHref) -> tuple[str, list[str], Optional[str], str]:
+    """(text, classes, href, title) of the status of a group of results."""
+    ok = [r for r in results if r.ok]
+    if len(ok) == len(results):
+        return "complete", ["ok"], None, ""
+    bad = next(r for r in results if not r.ok)
+    p = bad.problem
+    if p is None:
+        return "no metrics", ["missing"], None, ""
+    what = f"{p.state}: {p.stage}"
+    text = what if not ok else f"{len(ok)} of {len(results)} done; {what}"
+    cls = ["failed"] if p.state in ("failed", "corrupt") else ["missing"]
+    task = bad.tasks.get(p.stage)
+    return text, cls, log_href(task) if p.state == "failed" else None, f"{p.stage}[{p.item_id}]: {p.message}"
+
+
+def _aggregate(rows: list[dict], by: tuple[str, ...]) -> list[dict]:
+    from cobgs.evaluate import aggregate
+
+    return aggregate(rows, METRICS, by=by, within="scene", over="object")
+
+
+def _rows(results: list[Result]) -> list[dict]:
+    out = []
+    for r in results:
+        if r.ok:
+            row = dict(r.row)
+            row.update(scene=r.scene, method=r.method, object=r.object)
+            out.append(row)
+    return out
+
+
+def object_records(data: RunData, infos: dict, log_href: LogHref) -> list[dict]:
+    recs = []
+    for r in data.results:
+        row = r.row or {}
+        status, cls, href, title = _status([r], log_href)
+        amb = finite(row.get("ambiguous_final"))
+        recs.append({
+            "scene": r.scene, "method": r.method, "object": r.object, "status": status,
+            "iou": row.get("iou"), "acc": row.get("acc"), "biou": row.get("biou"), "views": row.get("views"),
+            "psnr": row.get("psnr"), "psnr_delta": row.get("psnr_delta"), "num_gaussians": row.get("num_gaussians"),
+            "splits": row.get("splits"), "pruned": row.get("pruned"),
+            "ambiguous_final": amb if amb is not None and amb >= 0 else None,
+            "refine_s": row.get("refine_s"), "peak_rss": _peak_rss(r) if r.ok else None,
+            "_class": {"status": cls, "method": _ref_class(infos, r.method)},
+            "_href": {"status": href} if href else {},
+            "_title": {"status": title, "method": infos[r.method].config if r.method in infos else "",
+                       "views": _skipped_title(r)},
+            "_row_class": [] if r.ok else ["incomplete"], "_nobest": not r.ok,
+        })
+    return recs
+
+
+def _skipped_title(r: Result) -> str:
+    if not r.skipped:
+        return ""
+    items = list(r.skipped.items())
+    text = "; ".join(f"{v}: {why}" for v, why in items[:8])
+    return f"skipped {len(items)} view(s): {text}" + (" ..." if len(items) > 8 else "")
+
+
+def _scene_task(data: RunData, scene: str) -> str:
+    """The NVOS task / LERF-mask scene a workflow scene stands for (paper lookups)."""
+    ds = data.scenes.get(scene)
+    spec = (ds.dataset or {}) if ds else {}
+    if spec.get("protocol") == "nvos":
+        return str((spec.get("nvos") or {}).get("task") or scene)
+    if spec.get("protocol") == "lerf_mask":
+        src = spec.get("source") or ""
+        base = Path(src).name.lower() if src else ""
+        return base if base in paper.LERF_SCENES else scene.lower()
+    return scene
+
+
+def scene_method_records(data: RunData, infos: dict, log_href: LogHref) -> list[dict]:
+    groups: dict[tuple, list[Result]] = {}
+    for r in data.results:
+        groups.setdefault((r.scene, r.method), []).append(r)
+    recs = []
+    for (scene, method), rs in groups.items():
+        agg = _aggregate(_rows(rs), ("scene", "method"))
+        rec = dict(agg[0]) if agg else {"scene": scene, "method": method}
+        status, cls, href, title = _status(rs, log_href)
+        peaks = [p for p in (_peak_rss(r) for r in rs if r.ok) if p is not None]
+        info = infos.get(method, MethodInfo(method))
+        rec.update(scene=scene, method=method, config=info.config, status=status,
+                   objects=sum(r.ok for r in rs), objects_total=len(rs), peak_rss=max(peaks) if peaks else None,
+                   _class={"status": cls, "method": _ref_class(infos, method)}, _href={"status": href} if href else {},
+                   _title={"status": title}, _sub={"method": _method_sub(info)},
+                   _nobest=not all(r.ok for r in rs), _row_class=[f"role-{info.role}"])
+        rec["_text"] = {"objects": f"{rec['objects']} of {len(rs)}" if rec["objects"] < len(rs) else str(len(rs))}
+        _paper_scene(data, rec, info)
+        recs.append(rec)
+    return recs
+
+
+def _paper_scene(data: RunData, rec: dict, info: MethodInfo) -> None:
+    protocol = data.scenes[rec["scene"]].protocol if rec["scene"] in data.scenes else ""
+    task = _scene_task(data, rec["scene"])
+    if protocol == "nvos":
+        q = paper.nvos_psnr_quote(task, info.paper)
+        if q is not None:
+            rec["paper_psnr"] = q.values["psnr"]
+            rec["_text"]["paper_psnr"] = f"{q.values['psnr']:.2f} ({q.values['psnr_vanilla']:.2f})"
+            rec["_title"]["paper_psnr"] = (f"quoted, {q.source}: {q.label} on {task}; in brackets the "
+                                           "paper's vanilla scene")
+    elif protocol == "lerf_mask":
+        q = paper.lerf_quote(task, info.paper)
+        if q is not None:
+            rec["paper_iou"], rec["paper_biou"] = q.values["iou"] / 100.0, q.values["biou"] / 100.0
+            rec["_title"]["paper_iou"] = rec["_title"]["paper_biou"] = f"quoted, {q.source}: {q.label} on {task}"
+
+
+def _ref_class(infos: dict, method: str) -> list[str]:
+    return ["ref"] if method in infos and infos[method].role == "reference" else []
+
+
+def _method_sub(info: MethodInfo) -> str:
+    return info.kind_label + ("" if not info.options else " · " + info.config)
+
+
+def method_records(data: RunData, infos: dict, log_href: LogHref) -> tuple[list[dict], list[str]]:
+    """Per method over every scene; also the notes the paper columns need."""
+    notes: list[str] = []
+    scenes = list(data.scenes)
+    recs = []
+    for method in data.methods:
+        rs = [r for r in data.results if r.method == method]
+        if not rs:
+            continue
+        agg = _aggregate(_rows(rs), ("method",))
+        rec = dict(agg[0]) if agg else {"method": method}
+        status, cls, href, title = _status(rs, log_href)
+        peaks = [p for p in (_peak_rss(r) for r in rs if r.ok) if p is not None]
+        info = infos.get(method, MethodInfo(method))
+        done_scenes = sorted({r.scene for r in rs if r.ok}, key=scenes.index)
+        rec.update(method=method, kind=info.kind_label, config=info.config, status=status,
+                   scenes=len(done_scenes), peak_rss=max(peaks) if peaks else None,
+                   objects=sum(r.ok for r in rs), _class={"status": cls, "method": _ref_class(infos, method)},
+                   _href={"status": href} if href else {},
+                   _title={"status": title}, _sub={"method": _method_sub(info)},
+                   _nobest=len(done_scenes) < len(scenes),
+                   _row_class=[f"role-{info.role}"])
+        rec["_text"] = {"scenes": f"{len(done_scenes)} of {len(scenes)}" if len(done_scenes) < len(scenes)
+                        else str(len(scenes))}
+        protocols = {data.scenes[s].protocol for s in done_scenes}
+        q = paper.nvos_quote(info.paper) if protocols == {"nvos"} else None
+        if q is not None:
+            rec["paper_iou"], rec["paper_acc"] = q.values["iou"] / 100.0, q.values["acc"] / 100.0
+            tasks = sorted({_scene_task(data, s) for s in done_scenes})
+            src = f"quoted, {q.source}: {q.label}"
+            if len(tasks) < len(paper.NVOS_TASKS):
+                src += f"; this run covers {len(tasks)} of the {len(paper.NVOS_TASKS)} tasks, not comparable as a mean"
+                rec["_class"]["paper_iou"] = rec["_class"]["paper_acc"] = ["partial"]
+            rec["_title"]["paper_iou"] = rec["_title"]["paper_acc"] = src
+        recs.append(rec)
+    if any("paper_iou" in r for r in recs):
+        notes.append("Columns marked † are quoted from the paper (authors' runs on an RTX 3090), "
+                     "not measured here; they never take part in best-value marking.")
+    return recs, notes
+
+
+def scene_records(data: RunData) -> list[dict]:
+    recs = []
+    for name, sc in data.scenes.items():
+        t, spec = sc.train or {}, sc.dataset or {}
+        ev = t.get("eval") or {}
+        recs.append({"scene": name, "kind": spec.get("kind"), "protocol": spec.get("protocol"),
+                     "scene_type": spec.get("scene_type"),
+                     "views": len(spec.get("views") or []) or None, "test_views": len(spec.get("test_views") or [])
+                     if spec else None, "objects": ", ".join(spec.get("objects") or []),
+                     "iterations": t.get("iterations"), "num_gaussians": t.get("num_gaussians"),
+                     "train_s": t.get("wall_s"), "psnr": ev.get("psnr"), "ssim": ev.get("ssim"),
+                     "status": sc.train_task.state if sc.train_task else "not in workflow"})
+    return recs
+
+
+# -- plot data ---------------------------------------------------------------------------
+def stage_time_bars(data: RunData) -> tuple[list[tuple[str, dict]], list[str]]:
+    """[(label, {stage: wall s})]: one bar for the stages shared by every method, one per
+    method (its own tasks), and the order of the stages."""
+    wf = data.workflow
+    shared: dict = {}
+    per: dict = {m: {} for m in data.methods}
+    for t in data.tasks:
+        if t.state != "done" or not t.manifest:
+            continue
+        w = finite(t.manifest.get("wall_s")) or 0.0
+        m = t.values.get("method")
+        target = per.setdefault(m, {}) if m is not None else shared
+        target[t.stage] = target.get(t.stage, 0.0) + w
+    bars = [("shared (data, SfM, training, masks)", shared)] if shared else []
+    bars += [(m, per[m]) for m in data.methods if per.get(m)]
+    return bars, list(wf.graph.order)
+
+
+def delta_groups(data: RunData, infos: dict) -> list[tuple[str, list[tuple[float, float, float]]]]:
+    """COB-GS results that differ only in δ, as (label, [(δ, ambiguous, total)]) per scene x
+    object: the paper's Fig. 7. Empty when the workflow has no such sweep."""
+    groups: dict[tuple, dict] = {}
+    for r in data.results:
+        if not r.ok or r.refine is None or infos.get(r.method, MethodInfo(r.method)).kind != "cobgs":
+            continue
+        d = finite(r.refine.get("delta"))
+        if d is None:
+            continue
+        opts = tuple(o for o in infos[r.method].options if not o.startswith("delta="))
+        amb = finite(r.refine.get("ambiguous_final"))
+        if amb is None or amb < 0:
+            masks = [s for s in r.refine.get("stages") or [] if s.get("kind") == "mask" and s.get("ambiguous", -1) >= 0]
+            amb = float(masks[-1]["ambiguous"]) if masks else None
+        total = finite(r.refine.get("num_gaussians_end"))
+        if amb is None or total is None:
+            continue
+        groups.setdefault((r.scene, r.object, opts), {})[d] = (d, amb, total)
+    out = []
+    for (scene, obj, opts), pts in groups.items():
+        if len(pts) >= 2:
+            label = f"{scene} / {obj}" + (f" ({', '.join(opts)})" if opts else "")
+            out.append((label, list(pts.values())))
+    return out
+
+
+def score_panels(data: RunData, method: Optional[str], limit: int = 4):
+    """Stage-mean scores of every mask stage of ``method``'s results (stage_scores.npz)."""
+    import numpy as np
+
+    panels, skipped = [], 0
+    for r in data.results:
+        if r.method != method or not r.ok or r.refine_dir is None:
+            continue
+        f = Path(r.refine_dir) / "stage_scores.npz"
+        if not f.is_file():
+            continue
+        if len(panels) >= limit:
+            skipped += 1
+            continue
+        with np.load(f) as z:
+            names = sorted(z.files, key=lambda k: int(k.split("_")[-1]) if k.split("_")[-1].isdigit() else 0)
+            curves = [(f"after mask stage {i + 1}", z[k]) for i, k in enumerate(names) if z[k].size]
+        panels.append((f"{r.scene} / {r.object}", curves, finite((r.refine or {}).get("delta"))))
+    return panels, skipped
+
+
+def refine_stage_records(data: RunData, method: Optional[str]) -> list[dict]:
+    """The per-stage statistics refine.json records for ``method`` (ambiguous, splits, ...)."""
+    recs = []
+    for r in data.results:
+        if r.method != method or r.refine is None:
+            continue
+        for s in r.refine.get("stages") or []:
+            amb = s.get("ambiguous", -1)
+            large = s.get("ambiguous_large", -1)
+            recs.append({"scene": r.scene, "object": r.object, "index": s.get("index"), "kind": s.get("kind"),
+                         "iterations": s.get("iterations"), "g_start": s.get("gaussians_start"),
+                         "g_end": s.get("gaussians_end"), "ambiguous": amb if amb is not None and amb >= 0 else None,
+                         "ambiguous_large": large if large is not None and large >= 0 else None,
+                         "split": s.get("split"), "pruned": s.get("pruned"), "loss": s.get("mean_loss"),
+                         "wall_s": s.get("wall_s")})
+    return recs
+
+
+def task_records(data: RunData, log_href: LogHref) -> list[dict]:
+    recs = []
+    for i, t in enumerate(data.tasks):
+        m = t.manifest or {}
+        href = log_href(t) if t.state in ("done", "failed") else None
+        recs.append({"order": i, "stage": t.stage, "item": t.item_id, "state": t.state, "key": t.key or "",
+                     "version": m.get("version"), "wall_s": m.get("wall_s"), "cpu_s": m.get("cpu_s"),
+                     "peak_rss": m.get("peak_rss_bytes"), "host": m.get("host"), "device": m.get("device"),
+                     "started": m.get("started"), "log": "log" if href else "",
+                     "_href": {"log": href} if href else {}, "_class": {"state": [t.state]},
+                     "_title": {"key": t.key or "", "state": t.error}})
+    return recs

@@ -1,0 +1,38 @@
+"""``cobgs report WORKFLOW [--out DIR] [--cache-dir D] [--set K=V]...``: the HTML report.
+
+Builds one self-contained folder (``index.html`` + assets, relative links, no network)
+from the workflow's cache entries alone, so any finished run, or a partly failed one, can
+be re-reported at any time. The builder lives in ``reports/`` and is imported only when
+the command runs (``cobgs --help`` stays fast).
+"""
+
+from __future__ import annotations
+
+
+def register(sub) -> None:
+    p = sub.add_parser("report", help="build the HTML report of a workflow from its cache",
+                       description="Build the HTML result report of a workflow from the cache "
+                       "manifests and artifacts (nothing is recomputed). Default folder: "
+                       "runs/reports/<workflow name>.")
+    p.add_argument("workflow", help="workflow TOML file")
+    p.add_argument("--out", help="report folder (replaced if it holds an older report)")
+    p.add_argument("--cache-dir", help="cache folder (default: $COBGS_CACHE_DIR, else ./runs/cache)")
+    p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
+                   help="the same overrides the run used (they select its cache entries)")
+    p.set_defaults(func=_report)
+
+
+def _report(args) -> int:
+    import sys
+
+    from pipeline import PipelineError
+    from reports import build_report
+
+    try:
+        index = build_report(args.workflow, out_dir=args.out, cache_dir=args.cache_dir, sets=args.sets,
+                             stream=sys.stdout)
+    except PipelineError as exc:  # bad workflow or --set: the engine's message names the key
+        print(f"cobgs report: error: {exc}", file=sys.stderr)
+        return 2
+    print(f"open file://{index.resolve()}")
+    return 0

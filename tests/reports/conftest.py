@@ -1,0 +1,42 @@
+"""Fixtures of the report tests: a recorded run (real engine, toy stages) and its report,
+each built once per session because every test only reads them."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+HERE = Path(__file__).resolve().parent
+if str(HERE) not in sys.path:  # the fixture stages must import the same way everywhere
+    sys.path.insert(0, str(HERE))
+
+import report_fixture_run as fixture_run  # noqa: E402
+
+
+class Recorded:
+    """A finished fixture run: its workflow file, cache and stage registry."""
+
+    def __init__(self, folder: Path, **workflow_kw):
+        self.folder = folder
+        self.workflow, self.cache = fixture_run.run(folder, **workflow_kw)
+        self.registry = fixture_run.registry()
+
+    def build(self, out: Path, **kw) -> Path:
+        from reports import build_report
+
+        return build_report(self.workflow, out_dir=out, cache_dir=self.cache, registry=self.registry, **kw)
+
+
+@pytest.fixture(scope="session")
+def recorded(tmp_path_factory) -> Recorded:
+    """Two scenes, five methods (COB-GS, two ablation rows, two peers); the FlashSplat
+    refine of s2/ball fails on purpose, so its segment and evaluate never run."""
+    return Recorded(tmp_path_factory.mktemp("recorded"))
+
+
+@pytest.fixture(scope="session")
+def report(recorded, tmp_path_factory) -> Path:
+    """index.html of the recorded run's report (built once, read by many tests)."""
+    return recorded.build(tmp_path_factory.mktemp("report") / "report")

@@ -1,0 +1,262 @@
+"""The builder on a recorded run (no browser): numbers as measured, failures with their
+logs, gaps shown as gaps, quoted paper numbers labelled, a self-contained folder written
+atomically, and the ``cobgs report`` command."""
+
+from __future__ import annotations
+
+import json
+import re
+from html.parser import HTMLParser
+from pathlib import Path
+
+import pytest
+
+from reports import ReportError
+from reports.builder import MARKER
+
+
+class Links(HTMLParser):
+    """Every src / href of a page, and the text of each table cell by (table id, row)."""
+
+    def __init__(self):
+        super().__init__()
+        self.urls: list[str] = []
+        self.rows: dict[str, list[list[tuple[str, dict]]]] = {}
+        self._table = None
+        self._row = None
+        self._cell = None
+        self._in_sub = False  # the small second line of a cell (method options) is not its text
+
+    def handle_starttag(self, tag, attrs):
+        a = dict(attrs)
+        if tag == "span" and a.get("class") == "sub":
+            self._in_sub = True
+        for k in ("src", "href"):
+            if a.get(k) is not None:
+                self.urls.append(a[k])
+        if tag == "table":
+            self._table = a.get("id")
+        elif tag == "tr" and self._table:
+            self._row = []
+        elif tag == "td" and self._row is not None:
+            self._cell = ["", a]
+
+    def handle_data(self, data):
+        if self._cell is not None and not self._in_sub:
+            self._cell[0] += data
+
+    def handle_endtag(self, tag):
+        if tag == "span":
+            self._in_sub = False
+        if tag == "td" and self._cell is not None:
+            self._row.append((self._cell[0].strip(), self._cell[1]))
+            self._cell = None
+        elif tag == "tr" and self._row is not None:
+            if self._row:
+                self.rows.setdefault(self._table, []).append(self._row)
+            self._row = None
+        elif tag == "table":
+            self._table = None
+
+
+def parse(index: Path) -> Links:
+    p = Links()
+    p.feed(index.read_text(encoding="utf-8"))
+    return p
+
+
+def metrics_rows(recorded) -> list[dict]:
+    rows = []
+    for f in sorted((recorded.cache / "entries" / "evaluate").glob("*/out/metrics.json")):
+        rows.append(json.loads(f.read_text())["row"])
+    return rows
+
+
+def test_method_means_are_the_measured_ones(recorded, report):
+    """mIoU per method = mean over scenes of the mean over objects of evaluate's rows."""
+    rows = metrics_rows(recorded)
+    assert len(rows) == 14  # 15 items, one refine failed
+    record = json.loads((report.parent / MARKER).read_text())
+    by_method = {r["method"]: r for r in record["by_method"]}
+    for method in ("cobgs", "no_bgtr", "nosplit", "flashsplat"):
+        scene_means = []
+        for scene in ("s1", "s2"):
+            ious = [r["iou"] for r in rows if r["method"] == method and r["scene"] == scene]
+            if ious:
+                scene_means.append(sum(ious) / len(ious))
+        assert by_method[method]["iou"] == pytest.approx(sum(scene_means) / len(scene_means), abs=1e-12)
+    assert by_method["flashsplat"]["scenes"] == 1  # s2 has no result: not averaged in as zero
+
+
+def test_summary_table_marks_best_and_shows_percentages(report):
+    rows = parse(report).rows["t-method"]
+    methods = [r[0][0] for r in rows]
+    assert methods == ["cobgs", "no_bgtr", "delta_03", "nosplit", "flashsplat"]
+    miou = [r[2] for r in rows]  # Method, Scenes, mIoU, ...
+    assert "best" in miou[0][1]["class"] and miou[0][0] == "100.00"
+    assert not any("best" in c[1].get("class", "") for c in miou[1:])
+    # the incomplete method (1 of 2 scenes) never takes a best mark and says why
+    assert rows[-1][1][0] == "1 of 2"
+    assert "failed: refine" in rows[-1][-1][0]
+
+
+def test_failure_is_listed_with_its_log_copied_into_the_report(report):
+    html = report.read_text(encoding="utf-8")
+    assert "simulated failure of s2/flashsplat/ball" in html
+    logs = [u for u in parse(report).urls if u.startswith("logs/") and "-failed" in u]
+    assert logs, "no link to the failure log"
+    text = (report.parent / logs[0]).read_text()
+    assert "about to fail on purpose" in text and "RuntimeError" in text
+
+
+def test_gaps_show_as_gaps_not_numbers(report):
+    p = parse(report)
+    obj_rows = {(r[0][0], r[1][0], r[2][0]): r for r in p.rows["t-object"]}
+    failed = obj_rows[("s2", "flashsplat", "ball")]
+    assert [c[0] for c in failed[3:6]] == ["", "", ""]  # IoU, Acc, BIoU: empty, not 0
+    assert "failed: refine" in failed[-1][0]
+    html = report.read_text(encoding="utf-8")
+    assert "waits on refine[s2/flashsplat/ball]" in html
+    assert "failed at refine" in html  # its row in the picture grid
+
+
+def test_report_is_self_contained(report):
+    root = report.parent
+    urls = parse(report).urls
+    assert urls
+    for u in urls:
+        if u.startswith("#"):
+            continue
+        assert not re.match(r"^[a-z]+:", u) and not u.startswith("/"), f"non-relative link {u}"
+        assert (root / u).is_file(), f"dangling link {u}"
+    for f in list(root.rglob("*.html")) + list(root.rglob("*.css")) + list(root.rglob("*.js")) + \
+            list(root.rglob("*.svg")):
+        text = f.read_text(encoding="utf-8")
+        # SVGs name their XML namespaces with http URLs; nothing may be *loaded* from one
+        text = re.sub(r'xmlns(:\w+)?="http[^"]*"', "", text)
+        text = re.sub(r'<!DOCTYPE[^>]*>', "", text)
+        assert not re.search(r"(src|href|url)\s*[=(]\s*[\"']?(https?:)?//", text), f"remote reference in {f}"
+
+
+def test_pictures_and_plots_exist(report):
+    root = report.parent
+    for name in ("iou_biou", "psnr", "time", "delta_sweep", "scores"):
+        assert (root / "plots" / f"{name}.svg").stat().st_size > 1000
+    for method in ("cobgs", "no_bgtr", "delta_03", "nosplit", "flashsplat"):
+        for kind in ("pred", "overlay", "crop", "object", "removed"):
+            assert (root / "img" / "s1" / "ball" / "v000" / method / f"{kind}.png").is_file()
+    assert (root / "img" / "s1" / "ball" / "v000" / "gt.png").is_file()
+    assert not (root / "img" / "s2" / "ball" / "v000" / "flashsplat").exists()  # failed: nothing drawn
+
+
+def test_overlay_counts_agree_with_the_evaluate_stage(recorded, report):
+    """FP / FN pixels under each picture are those evaluate counted on that view."""
+    html = report.read_text(encoding="utf-8")
+    per = {}
+    for f in (recorded.cache / "entries" / "evaluate").glob("*/out/metrics.json"):
+        m = json.loads(f.read_text())
+        r = m["row"]
+        per[(r["scene"], r["method"], r["object"])] = m["details"]["per_view"]["v000"]
+    section = html[html.index('id="pic-s1_ball'):]
+    section = section[:section.index("</article>")]
+    for method in ("cobgs", "no_bgtr", "nosplit"):
+        s = per[("s1", method, "ball")]
+        row = section[section.index(f'<span class="mname">{method}</span>'):]
+        m = re.search(r"FP ([\d\u2009]+) px · FN ([\d\u2009]+) px", row)
+        assert (int(m.group(1).replace("\u2009", "")), int(m.group(2).replace("\u2009", ""))) == (s["fp"], s["fn"])
+
+
+def test_paper_numbers_appear_only_where_the_protocol_and_method_match(tmp_path_factory):
+    from conftest import Recorded
+
+    rec = Recorded(tmp_path_factory.mktemp("nvos"), protocol="nvos", fail_on="", scenes=("fern", "trex"))
+    index = rec.build(tmp_path_factory.mktemp("nvos_report") / "r")
+    record = json.loads((index.parent / MARKER).read_text())
+    by = {r["method"]: r for r in record["by_method"]}
+    assert by["cobgs"]["paper_iou"] == pytest.approx(0.921) and by["cobgs"]["paper_acc"] == pytest.approx(0.986)
+    assert by["nosplit"]["paper_iou"] == pytest.approx(0.912)  # paper Table 5, first row
+    assert by["flashsplat"]["paper_iou"] == pytest.approx(0.918)
+    assert "paper_iou" not in by["delta_03"] and "paper_iou" not in by["no_bgtr"]
+    p = parse(index)
+    heads = index.read_text(encoding="utf-8")
+    assert "paper mIoU †" in heads and "quoted from the paper" in heads
+    cobgs = next(r for r in p.rows["t-method"] if r[0][0] == "cobgs")
+    quoted = [c for c in cobgs if "quoted" in c[1].get("class", "")]
+    assert [c[0] for c in quoted] == ["92.1", "98.6"]
+    assert all("best" not in c[1]["class"] for c in quoted)
+    assert all("partial" in c[1]["class"] for c in quoted)  # 2 of the 8 NVOS tasks
+    assert "covers 2 of the 8 tasks" in quoted[0][1]["title"]
+    # per scene: Table 4 PSNR for COB-GS (joint) and the mask-only row
+    scene_rows = {(r[0][0], r[1][0]): r for r in p.rows["t-scene"]}
+    assert any(c[0] == "24.29 (24.26)" for c in scene_rows[("fern", "cobgs")])
+    assert any(c[0] == "23.35 (24.68)" for c in scene_rows[("trex", "no_bgtr")])
+
+
+def test_exact_protocol_has_no_paper_columns(report):
+    assert "paper mIoU" not in report.read_text(encoding="utf-8")
+
+
+def test_rebuild_replaces_an_old_report_atomically(recorded, report, tmp_path, monkeypatch):
+    import shutil
+
+    import reports.builder as B
+
+    out = tmp_path / "r"
+    shutil.copytree(report.parent, out)
+    (out / "stale.txt").write_text("from an older report")
+    recorded.build(out)
+    assert not (out / "stale.txt").exists() and (out / "index.html").is_file()
+
+    def crash(*a, **k):  # dies after tables and pictures are written, before the page
+        raise RuntimeError("disk full (simulated)")
+
+    monkeypatch.setattr(B, "_plots", crash)
+    before = (out / "index.html").read_bytes()
+    with pytest.raises(RuntimeError, match="simulated"):
+        recorded.build(out)
+    assert (out / "index.html").read_bytes() == before  # the old report is untouched
+    assert [p.name for p in tmp_path.iterdir()] == ["r"]  # no temporary folder left behind
+
+
+def test_refuses_to_replace_a_folder_that_is_not_a_report(recorded, tmp_path):
+    out = tmp_path / "precious"
+    out.mkdir()
+    (out / "thesis.tex").write_text("x")
+    with pytest.raises(ReportError, match="not a cobgs report"):
+        recorded.build(out)
+    assert (out / "thesis.tex").read_text() == "x"
+
+
+def test_missing_cache_is_a_clear_error(recorded, tmp_path):
+    from reports import build_report
+
+    with pytest.raises(ReportError, match="cache folder .* does not exist"):
+        build_report(recorded.workflow, out_dir=tmp_path / "r", cache_dir=tmp_path / "nope",
+                     registry=recorded.registry)
+
+
+def test_never_run_workflow_reports_missing_everything(recorded, tmp_path):
+    (tmp_path / "cache").mkdir()
+    from reports import build_report
+
+    index = build_report(recorded.workflow, out_dir=tmp_path / "r", cache_dir=tmp_path / "cache",
+                         registry=recorded.registry)
+    html = index.read_text(encoding="utf-8")
+    assert "nothing has run yet" in html and "0 of 0" not in html
+    record = json.loads((index.parent / MARKER).read_text())
+    assert record["counts"] == {"missing": 50} or set(record["counts"]) == {"missing"}
+
+
+def test_cli(recorded, tmp_path, monkeypatch, capsys):
+    from stages.cli import main
+
+    monkeypatch.setenv("COBGS_BUILTIN_STAGES", "0")
+    monkeypatch.setenv("COBGS_STAGE_MODULES", "report_fixture_run")
+    out = tmp_path / "cli"
+    rc = main(["report", str(recorded.workflow), "--cache-dir", str(recorded.cache), "--out", str(out)])
+    assert rc == 0 and (out / "index.html").is_file()
+    assert f"file://{(out / 'index.html').resolve()}" in capsys.readouterr().out
+    rc = main(["report", str(recorded.workflow), "--cache-dir", str(tmp_path / "absent"), "--out", str(out)])
+    assert rc == 1 and "does not exist" in capsys.readouterr().err
+    rc = main(["report", str(recorded.workflow), "--cache-dir", str(recorded.cache), "--set", "refine.nope=1"])
+    assert rc == 2 and "nope" in capsys.readouterr().err

@@ -1,0 +1,175 @@
+"""Builder pieces without a cache or a browser: tables, best values, formatting, quoted
+paper numbers, method options and the picture composition."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from reports import fmt, paper
+from reports.pictures import FN_RGB, FP_RGB, crop_window, overlay, resize_nearest, slug
+from reports.results import options_of
+from reports.tables import Column, best_indices, build_table
+
+
+# -- best values -------------------------------------------------------------------------
+def test_best_indices_max_min_and_ties():
+    assert best_indices([0.5, 0.9, 0.7], "max") == {1}
+    assert best_indices([0.5, 0.9, 0.7], "min") == {0}
+    assert best_indices([0.9, 0.5, 0.9], "max") == {0, 2}
+
+
+def test_best_indices_ignores_missing_and_never_marks_a_lone_or_uniform_value():
+    assert best_indices([None, float("nan"), 0.3, "n/a"], "max") == set()  # one measured value
+    assert best_indices([0.4, 0.4, 0.4], "max") == set()  # nothing singled out
+    assert best_indices([None, 0.2, float("nan"), 0.1], "max") == {1}
+
+
+def _cells(table, key):
+    i = [c.key for c in table.columns].index(key)
+    return [row.cells[i] for row in table.rows]
+
+
+def test_table_marks_best_per_group_and_skips_incomplete_rows_and_quoted_columns():
+    cols = [Column("scene", "Scene", numeric=False), Column("iou", "mIoU", fmt.pct, better="max"),
+            Column("t", "Time", fmt.seconds, better="min"), Column("paper", "paper", quoted=True, better="max")]
+    recs = [
+        {"scene": "a", "iou": 0.80, "t": 2.0, "paper": 0.99},
+        {"scene": "a", "iou": 0.90, "t": 3.0, "paper": 0.10},
+        {"scene": "a", "iou": 0.95, "t": 1.0, "_nobest": True},  # incomplete: never best
+        {"scene": "b", "iou": 0.50, "t": 4.0},
+        {"scene": "b", "iou": 0.70, "t": 5.0},
+    ]
+    t = build_table("t", "caption", cols, recs, group_by="scene")
+    best_iou = ["best" in c.classes for c in _cells(t, "iou")]
+    assert best_iou == [False, True, False, False, True]
+    assert ["best" in c.classes for c in _cells(t, "t")] == [True, False, False, True, False]
+    assert not any("best" in c.classes for c in _cells(t, "paper"))
+    assert all("quoted" in c.classes for c in _cells(t, "paper"))
+
+
+def test_table_cells_sort_by_raw_value_and_leave_missing_empty():
+    t = build_table("t", "c", [Column("iou", "mIoU", fmt.pct)], [{"iou": 0.123456}, {"iou": None},
+                                                                 {"iou": float("nan")}])
+    cells = _cells(t, "iou")
+    assert cells[0].text == "12.35" and cells[0].sort == pytest.approx(0.123456)
+    assert [c.text for c in cells[1:]] == ["", ""] and [c.sort for c in cells[1:]] == ["", ""]
+
+
+def test_column_rejects_an_unknown_direction():
+    with pytest.raises(ValueError, match="better"):
+        Column("x", "X", better="higher")
+
+
+# -- formatting --------------------------------------------------------------------------
+@pytest.mark.parametrize("fn", [fmt.pct, fmt.db, fmt.count, fmt.seconds, fmt.nbytes, fmt.timestamp])
+def test_formatters_never_invent_a_number(fn):
+    for missing in (None, float("nan"), float("inf"), "x", True):
+        assert fn(missing) == ""
+
+
+def test_formatters():
+    assert fmt.pct(0.92134) == "92.13" and fmt.quoted_pct(92.1) == "92.1"
+    assert fmt.db(0.04, signed=True) == "+0.04" and fmt.db(-1.234) == "-1.23"
+    assert fmt.count(12345) == "12\u2009345"
+    assert fmt.seconds(0.25) == "250 ms" and fmt.seconds(8.44) == "8.4 s" and fmt.seconds(125) == "2 min 05 s"
+    assert fmt.nbytes(2.5 * 1024 ** 3) == "2.5 GiB" and fmt.nbytes(512) == "512 B"
+
+
+# -- quoted paper numbers ----------------------------------------------------------------
+DEFAULT_COBGS = {"delta": None, "bags": True, "bgtr": True, "raem": "released", "score": "count",
+                 "stage_length_views": 2.0, "seed": 0}
+
+
+def _params(**cobgs):
+    return {"method": "cobgs", "cobgs": {**DEFAULT_COBGS, **cobgs}}
+
+
+def test_paper_method_identifies_cobgs_and_its_table5_rows():
+    assert paper.paper_method("cobgs", _params()) == ("cobgs", (True, True, True))
+    assert paper.paper_method("cobgs", _params(bgtr=False)) == ("cobgs", (True, False, True))
+    assert paper.paper_method("cobgs", _params(raem="off", bgtr=False)) == ("cobgs", (True, False, False))
+    assert paper.paper_method("cobgs", _params(raem="paper")) == ("cobgs", (True, True, True))
+    # a δ-sweep item or another score is not the paper's method: no quoted number for it
+    assert paper.paper_method("cobgs", _params(delta=0.3)) is None
+    assert paper.paper_method("cobgs", _params(score="weighted")) is None
+    assert paper.paper_method("sa3d", None) == ("sa3d",)
+
+
+def test_nvos_quotes_match_the_paper_tables():
+    q = paper.nvos_quote(paper.paper_method("cobgs", _params()))
+    assert q.values == {"iou": 92.1, "acc": 98.6} and "Table 1" in q.source
+    assert paper.nvos_quote(("flashsplat",)).values == {"iou": 91.8, "acc": 98.6}
+    assert paper.nvos_quote(("sa3d",)).values == {"iou": 90.7, "acc": 98.3}
+    assert paper.nvos_quote(("nosplit",)).values == {"iou": 91.2, "acc": 98.3}  # Table 5, row 1
+    assert paper.nvos_quote(("cobgs", (True, True, False))).values == {"iou": 91.9, "acc": 98.4}
+    assert paper.nvos_quote(("cobgs", (True, False, True))) is None  # not a row of Table 5
+    assert paper.nvos_quote(None) is None
+
+
+def test_psnr_and_lerf_quotes():
+    joint = paper.nvos_psnr_quote("trex", ("cobgs", (True, True, True)))
+    assert joint.values == {"psnr": 24.97, "psnr_vanilla": 24.68}
+    assert paper.nvos_psnr_quote("trex", ("cobgs", (True, False, True))).values["psnr"] == 23.35  # M.O
+    assert paper.nvos_psnr_quote("trex", ("flashsplat",)) is None
+    assert paper.nvos_psnr_quote("lego", ("cobgs", (True, True, True))) is None
+    assert paper.lerf_quote("Teatime", ("cobgs", (True, True, True))).values == {"iou": 77.2, "biou": 72.8}
+    assert paper.lerf_quote("teatime", ("sa3d",)) is None
+
+
+# -- method options ----------------------------------------------------------------------
+def test_options_list_only_what_differs_from_the_defaults_in_the_method_section():
+    defaults = {"method": "cobgs", "scene_type": "auto", "cobgs": {"bgtr": True, "delta": None},
+                "sa3d": {"lr": 1.0}}
+    got = {"method": "cobgs", "scene_type": "auto", "cobgs": {"bgtr": False, "delta": 0.3}, "sa3d": {"lr": 2.0}}
+    assert options_of("cobgs", got, defaults) == ["bgtr=false", "delta=0.3"]
+    assert options_of("sa3d", {**got, "method": "sa3d"}, defaults) == ["lr=2.0"]
+    assert options_of("cobgs", defaults, defaults) == []
+
+
+# -- pictures ----------------------------------------------------------------------------
+def test_overlay_paints_false_positives_and_negatives_apart():
+    img = np.full((6, 6, 3), 100, np.uint8)
+    gt = np.zeros((6, 6), bool)
+    gt[1:4, 1:4] = True
+    pred = np.zeros((6, 6), bool)
+    pred[2:5, 2:5] = True
+    out = overlay(img, gt, pred).astype(int)
+    fp, fn, tp = (4, 4), (1, 1), (2, 2)
+    assert np.argmax(out[fp]) == int(np.argmax(FP_RGB)) and np.argmax(out[fn]) == int(np.argmax(FN_RGB))
+    assert tuple(out[tp]) == (100, 100, 100)  # true positives keep the image
+    assert out[5, 0].max() < 100  # context is dimmed
+
+
+def test_crop_window_goes_where_errors_are_and_stays_inside():
+    gt = np.zeros((60, 90), bool)
+    gt[10:50, 10:80] = True
+    err = np.zeros_like(gt)
+    err[45:50, 70:80] = True
+    top, left, size = crop_window(gt, [err])
+    assert size == 20 and 0 <= top <= 40 and 0 <= left <= 70
+    assert top <= 45 and top + size >= 50 and left <= 70 and left + size >= 80
+    # no error at all: the window is centred on the GT outline, both sides in view
+    t2, l2, s2 = crop_window(gt, [np.zeros_like(gt)])
+    assert 0 <= t2 <= 40 and 0 <= l2 <= 70
+    assert 0.2 < gt[t2:t2 + s2, l2:l2 + s2].mean() < 0.8
+
+
+def test_resize_nearest_matches_the_protocol_sampling():
+    from cobgs.evaluate import resize_nearest as protocol_resize
+
+    rng = np.random.default_rng(0)
+    m = rng.random((13, 17)) > 0.5
+    ours = resize_nearest(m, (40, 31))
+    theirs = protocol_resize(m.astype(np.uint8) * 255, 40, 31) > 128
+    assert np.array_equal(ours, theirs)
+
+
+def test_slug_keeps_names_apart():
+    assert slug("ball") == "ball"
+    a, b = slug("green apple"), slug("green_apple")
+    assert a != b and "/" not in a and " " not in a
+    assert not math.isnan(len(slug("../x")))
+    assert ".." not in slug("../x").split("-")[0]
