@@ -102,3 +102,39 @@ def three_gaussians():
     mask[:, :16] = True
     view = View(camera=cam, image=torch.zeros(H, W, 3), name="cam", masks={"obj": mask})
     return model, view
+
+
+def synthetic_surface_points(preset: str, seed: int, views, n_points: int, rng_seed: int = 0, **overrides):
+    """Surface points of a synthetic scene seen by ``views``: the "perfect SfM" start.
+
+    Rays through random pixels of the training views are cast against the generator's
+    exact geometry (:func:`cobgs.data.synth_render.make_caster`); each hit becomes a
+    point coloured by the image pixel it came from. ``preset``, ``seed`` and
+    ``overrides`` (e.g. ``width_px``) must be those the scene was generated with.
+
+    Returns:
+        (xyz [P, 3] float32, rgb [P, 3] float32), P <= n_points (misses dropped).
+    """
+    from cobgs.data.synth_render import make_caster
+    from cobgs.data.synthetic import build_scene
+
+    _, geometry, _ = build_scene(preset, seed, **overrides)
+    caster = make_caster(geometry)
+    g = np.random.default_rng(rng_seed)
+    per_view = int(math.ceil(n_points / len(views)))
+    xyz, rgb = [], []
+    for v in views:
+        cam = v.camera
+        px = g.random((per_view, 2)) * np.array([cam.width, cam.height])
+        d_cam = np.stack([(px[:, 0] - cam.cx) / cam.fx, (px[:, 1] - cam.cy) / cam.fy, np.ones(per_view)], 1)
+        c2w = cam.c2w.double().numpy()
+        d = d_cam @ c2w[:3, :3].T
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        o = c2w[:3, 3]
+        t, which = caster.first_hit(o, d)
+        ok = np.isfinite(t) & (which >= 0)
+        xyz.append(o + t[ok, None] * d[ok])
+        ij = np.floor(px[ok]).astype(int)
+        rgb.append(v.image.numpy()[ij[:, 1], ij[:, 0]])
+    return (torch.from_numpy(np.concatenate(xyz)[:n_points]).float(),
+            torch.from_numpy(np.concatenate(rgb)[:n_points]).float())
