@@ -50,6 +50,7 @@ __all__ = [
     "run_flashsplat_multi",
     "flashsplat_votes",
     "run_method",
+    "make_config",
 ]
 
 METHODS = ("cobgs", "nosplit", "sa3d", "flashsplat")
@@ -128,7 +129,8 @@ def run_sa3d(
     _check(views, masks)
     t0 = time.perf_counter()
     n = len(model)
-    labels_px = [pixel_labels_from_mask(m, v.height, v.width, f"mask of view {v.name!r}")
+    dev = model.device
+    labels_px = [pixel_labels_from_mask(m, v.height, v.width, f"mask of view {v.name!r}").to(dev)
                  for m, v in zip(masks, views)]
     stats: list[StageStats] = []
     with PeakMemory() as mem:
@@ -136,9 +138,9 @@ def run_sa3d(
         # Adam's moments aligned (GaussianModel.keep edits the optimizer too).
         work = GaussianModel(*(model.data[k].detach() for k in ("means", "log_scales", "quats", "opacity_logits",
                                                                   "sh0")),
-                             torch.zeros(n, 0, 3), active_sh_degree=0)
-        work.add_extra("sa3d_label", torch.zeros(n), fill=0.0)
-        work.add_extra("source_index", torch.arange(n), fill=-1)
+                             torch.zeros(n, 0, 3, device=dev), active_sh_degree=0)
+        work.add_extra("sa3d_label", torch.zeros(n, device=dev), fill=0.0)
+        work.add_extra("source_index", torch.arange(n, device=dev), fill=-1)
         opt = work.make_adam({"sa3d_label": config.lr}, eps=config.adam_eps)
         rng = torch.Generator().manual_seed(config.seed)
         bar = None
@@ -170,8 +172,8 @@ def run_sa3d(
         finally:
             if bar is not None:
                 bar.close()
-        fg = torch.zeros(n, dtype=torch.bool)
-        label = torch.full((n,), float("-inf"))
+        fg = torch.zeros(n, dtype=torch.bool, device=dev)
+        label = torch.full((n,), float("-inf"), device=dev)
         src = work.data["source_index"]
         label[src] = work.data["sa3d_label"].detach()
         fg[src[work.data["sa3d_label"].detach() > config.threshold]] = True
@@ -181,7 +183,8 @@ def run_sa3d(
         # Gaussians removed after the first pass keep −inf (they are background).
         out_model.add_extra("sa3d_label", label, fill=0.0)
     return RefineResult(method="sa3d", object_name=object_name, model=out_model, foreground=fg, background=~fg,
-                        mask_values=torch.ones(n), stages=stats, num_gaussians_start=n, num_gaussians_end=n,
+                        mask_values=torch.ones(n, device=dev), stages=stats, num_gaussians_start=n,
+                        num_gaussians_end=n,
                         wall_s=time.perf_counter() - t0, peak_mem_bytes=mem.peak_bytes,
                         config=dataclasses.asdict(config))
 
@@ -197,14 +200,14 @@ def flashsplat_votes(
     from .rasterize import rasterize
 
     m = model
-    acc = torch.zeros(len(m), num_labels, dtype=torch.float64)
+    acc = torch.zeros(len(m), num_labels, dtype=torch.float64, device=m.device)
     means, quats, scales, opac = (t.detach() for t in (m.means, m.quats, m.scales, m.opacities))
-    feats = torch.zeros(len(m), 1)
+    feats = torch.zeros(len(m), 1, device=m.device)
     with torch.no_grad():
         for v, lab in zip(views, pixel_labels):
             cam = v.camera
             out = rasterize(means, quats, scales, opac, feats, cam.viewmat, cam.K, int(cam.width), int(cam.height),
-                            pixel_labels=lab, num_labels=num_labels, backend=backend)
+                            pixel_labels=lab.to(m.device), num_labels=num_labels, backend=backend)
             acc += out.label_weights.to(torch.float64)
     return acc
 
@@ -237,8 +240,8 @@ def run_flashsplat(
     st = StageStats(kind="flashsplat_vote", index=0, iterations=len(views), gaussians_start=n, gaussians_end=n,
                     wall_s=wall)
     return RefineResult(method="flashsplat", object_name=object_name, model=out_model, foreground=fg,
-                        background=~fg, mask_values=torch.ones(n), stages=[st], num_gaussians_start=n,
-                        num_gaussians_end=n, wall_s=wall, peak_mem_bytes=mem.peak_bytes,
+                        background=~fg, mask_values=torch.ones(n, device=fg.device), stages=[st],
+                        num_gaussians_start=n, num_gaussians_end=n, wall_s=wall, peak_mem_bytes=mem.peak_bytes,
                         config=dataclasses.asdict(config))
 
 
@@ -289,10 +292,33 @@ def run_flashsplat_multi(
         st = StageStats(kind="flashsplat_vote", index=0, iterations=len(use_views), gaussians_start=n,
                         gaussians_end=n, wall_s=wall)
         res[name] = RefineResult(method="flashsplat", object_name=name, model=out_model, foreground=fg,
-                                 background=~fg, mask_values=torch.ones(n), stages=[st], num_gaussians_start=n,
-                                 num_gaussians_end=n, wall_s=wall, peak_mem_bytes=mem.peak_bytes,
+                                 background=~fg, mask_values=torch.ones(n, device=fg.device), stages=[st],
+                                 num_gaussians_start=n, num_gaussians_end=n, wall_s=wall,
+                                 peak_mem_bytes=mem.peak_bytes,
                                  config=dataclasses.asdict(config) | {"objects": names})
     return res
+
+
+_CONFIGS = {"cobgs": RefineConfig, "nosplit": RefineConfig, "sa3d": SA3DConfig, "flashsplat": FlashSplatConfig}
+
+
+def make_config(method: str, params: Optional[Mapping] = None):
+    """The config dataclass of ``method`` from plain parameters (e.g. a workflow's TOML).
+
+    Args:
+        method: one of :data:`METHODS`.
+        params: field name → value; unknown names raise :class:`InputError`.
+    """
+    if method not in _CONFIGS:
+        raise InputError(f"unknown method {method!r} (expected one of {METHODS})")
+    cls = _CONFIGS[method]
+    params = dict(params or {})
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(params) - names)
+    if unknown:
+        raise InputError(f"unknown {cls.__name__} parameter(s) {unknown} for method {method!r}; "
+                         f"expected some of {sorted(names)}")
+    return cls(**params)
 
 
 def run_method(
@@ -319,7 +345,7 @@ def run_method(
         object_name: recorded in the result.
         progress: tqdm bar.
     """
-    defaults = {"cobgs": RefineConfig, "nosplit": RefineConfig, "sa3d": SA3DConfig, "flashsplat": FlashSplatConfig}
+    defaults = _CONFIGS
     if method not in defaults:
         raise InputError(f"unknown method {method!r} (expected one of {METHODS})")
     cfg = defaults[method]() if config is None else config

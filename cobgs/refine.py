@@ -20,6 +20,15 @@ The schedule, with V training views and stages of 2V iterations::
   leave children with label 0.5 that no later stage trains. With RAEM "off" it ends with
   neither.
 
+Label learning rate and stage length: Adam moves a logit by at most about lr per step,
+so a label needs ≳ ln 9 / 0.1 ≈ 22 steps from 0 to pass the 0.9 foreground threshold; a
+stage of 2V iterations allows that only when V ≳ 11. Children of the last split (reset to
+label 0.5) get exactly one MASK stage, so scenes with very few views leave them unlabelled
+unless ``stage_length_views`` is raised.
+
+The texture optimizer starts with zero Adam moments (the baseline's optimizer state is
+not part of a 3DGS PLY); its first steps therefore move each parameter by about its lr.
+
 Views are drawn at random without replacement, the queue refilled every V iterations;
 all randomness comes from private generators seeded by ``RefineConfig.seed``. Both Adam
 optimizers (labels, texture) live for the whole run and are edited with the model at
@@ -67,6 +76,7 @@ __all__ = [
     "refine",
     "refine_scene",
     "refine_objects",
+    "apply_raem",
     "MultiObjectResult",
     "masks_for",
     "FG_THRESHOLD",
@@ -230,7 +240,7 @@ class Refiner:
         self.config = c = config
         self.extent = float(extent)
         self.background = torch.as_tensor(background, dtype=torch.float32).reshape(3)
-        self.pixel_labels = [pixel_labels_from_mask(m, v.height, v.width, f"mask of view {v.name!r}")
+        self.pixel_labels = [pixel_labels_from_mask(m, v.height, v.width, f"mask of view {v.name!r}").to(model.device)
                              for m, v in zip(masks, self.views)]
         if all(bool((p < 0).all()) for p in self.pixel_labels):
             raise InputError("no view has an annotated mask pixel for this object")
@@ -250,7 +260,7 @@ class Refiner:
         self.view_rng = torch.Generator().manual_seed(c.seed)
         self.split_rng = torch.Generator().manual_seed(c.seed + 1)
         self.queue: list[int] = []
-        self.scores = ScoreAccumulator(len(model))
+        self.scores = ScoreAccumulator(len(model), model.device)
         self.iteration = 0
 
     @property
@@ -282,7 +292,7 @@ class Refiner:
         """One TEXTURE iteration on view ``i``: photometric loss, geometry/colour update."""
         c, view = self.config, self.views[i]
         out = render(self.model, view.camera, self.background, backend=c.backend)
-        loss = photometric_loss(out.image, view.image, c.ssim_weight)
+        loss = photometric_loss(out.image, view.image.to(out.image.device), c.ssim_weight)
         loss.backward()
         with torch.no_grad():
             self.texture_opt.step()
@@ -453,6 +463,53 @@ def refine_scene(model: GaussianModel, scene: Scene, object_name: str, config: R
         raise InputError(f"object {object_name!r} has no masks in this scene (objects: {scene.object_names})")
     return refine(model, scene.train, masks_for(scene.train, object_name), scene.extent, config,
                   background=scene.background, object_name=object_name, **kw)
+
+
+def apply_raem(
+    result: RefineResult,
+    variant: str,
+    views: Sequence[View] = (),
+    footprint_px: Optional[float] = None,
+    method: Optional[str] = None,
+) -> RefineResult:
+    """RAEM applied after a run made with ``raem="off"``: the same result as running with
+    ``raem=variant`` (pruning is the last edit and changes no label), without rerunning.
+
+    Lets one refinement give the RAEM ablation rows (off / released / paper).
+
+    Args:
+        result: a COB-GS result with ``config["raem"] == "off"`` and recorded scores.
+        variant: "off", "released" or "paper".
+        views: training views (cameras for "paper").
+        footprint_px: the "paper" threshold (default: the run's ``raem_footprint_px``).
+        method: label of the new result (default: the input's).
+
+    Returns:
+        a new :class:`RefineResult` (the input is not modified).
+    """
+    cfg = result.config
+    if cfg.get("raem") != "off" or not result.stage_scores:
+        raise InputError('apply_raem needs a result of a run with raem="off" and record_scores=True')
+    scores = result.stage_scores[-1]
+    if scores.shape[0] != len(result.model):
+        raise InputError("the last stage's scores do not match the model (was it edited after the run?)")
+    amb = scores < cfg["threshold"]
+    fp = cfg["raem_footprint_px"] if footprint_px is None else footprint_px
+    t0 = time.perf_counter()
+    prune = raem_prune_mask(result.model, amb, variant, [v.camera for v in views], fp)
+    m = result.model.clone()
+    m.keep(~prune)
+    logits = m.data[cfg["label_name"]]
+    fg, bg = _label_sets(logits)
+    stages = [dataclasses.replace(s) for s in result.stages]
+    stages[-1].pruned = int(prune.sum())
+    stages[-1].gaussians_end = len(m)
+    return dataclasses.replace(
+        result, method=method or result.method, model=m, foreground=fg, background=bg,
+        mask_values=torch.sigmoid(logits.detach()), stages=stages, num_gaussians_end=len(m),
+        wall_s=result.wall_s + time.perf_counter() - t0,
+        config=dict(cfg, raem=variant, raem_footprint_px=fp),
+    )
 
 
 # -- multi-object ---------------------------------------------------------------------------

@@ -189,11 +189,12 @@ class ScoreAccumulator:
         n: number of Gaussians (the accumulator must be reset after any structural edit).
     """
 
-    def __init__(self, n: int):
+    def __init__(self, n: int, device: torch.device | str = "cpu"):
+        self.device = torch.device(device)
         self.reset(n)
 
     def reset(self, n: int) -> None:
-        self.sum = torch.zeros(n, dtype=torch.float64)
+        self.sum = torch.zeros(n, dtype=torch.float64, device=self.device)
         self.iterations = 0
 
     def add(self, scores: Tensor) -> None:
@@ -201,7 +202,7 @@ class ScoreAccumulator:
         if scores.shape != self.sum.shape:
             raise InputError(f"scores must be [{self.sum.shape[0]}] (Gaussians at the last reset), "
                              f"got {list(scores.shape)}")
-        self.sum += scores.detach().to(torch.float64)
+        self.sum += scores.detach().to(self.sum.device, torch.float64)
         self.iterations += 1
 
     def mean(self, length: Optional[int] = None) -> Tensor:

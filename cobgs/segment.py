@@ -133,7 +133,8 @@ def object_index(multi: MultiObjectResult, name: str) -> Tensor:
     return torch.nonzero(multi.model.data[OBJECT_ID] == k + 1, as_tuple=False)[:, 0]
 
 
-def export_objects(multi: MultiObjectResult, out_dir: os.PathLike | str, extras: Sequence[str] = ()) -> dict[str, Path]:
+def export_objects(multi: MultiObjectResult, out_dir: os.PathLike | str,
+                   extras: Sequence[str] = ()) -> dict[str, Path]:
     """Per-object PLYs (label > 0.9 of each object) and the scene with every object
     removed (label < 0.1 for all objects), from one multi-object run.
 
@@ -177,7 +178,7 @@ def render_object_mask(
     fg = torch.nonzero(result.foreground, as_tuple=False)[:, 0]
     cam = camera.to(result.model.device)
     if fg.numel() == 0:
-        z = torch.zeros(cam.height, cam.width)
+        z = torch.zeros(cam.height, cam.width, device=result.model.device)
         return z if soft else z.bool()
     m = result.model
     with torch.no_grad():

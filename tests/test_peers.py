@@ -133,3 +133,15 @@ def test_run_method_dispatch_and_errors():
         run_method("sa3d", model, views, masks, extent, config=RefineConfig())
     with pytest.raises(InputError):
         run_flashsplat(model, views, masks[:1])
+
+
+def test_make_config():
+    from cobgs.peers import make_config
+
+    assert make_config("sa3d", {"lr": 0.5}) == SA3DConfig(lr=0.5)
+    assert make_config("cobgs", {"raem": "paper", "delta": 0.6}) == RefineConfig(raem="paper", delta=0.6)
+    assert make_config("flashsplat") == FlashSplatConfig()
+    with pytest.raises(InputError, match="unknown"):
+        make_config("sa3d", {"learning_rate": 1.0})
+    with pytest.raises(InputError, match="unknown method"):
+        make_config("saga")

@@ -359,3 +359,24 @@ def test_refine_input_errors():
         refine(model, views, masks_for(views, "ball"), -1.0, progress=False)
     with pytest.raises(InputError):
         refine(model, [], [], extent, progress=False)
+
+
+@pytest.mark.parametrize("variant", ["released", "paper"])
+def test_apply_raem_matches_running_with_raem(variant):
+    from cobgs.refine import apply_raem
+
+    model, views, extent = tiny_scene(n_views=3)
+    base = RefineConfig(mask_stages=2, stage_length_views=2, raem_footprint_px=2.0)
+    off = refine(model, views, masks_for(views, "ball"), extent, dataclasses.replace(base, raem="off"),
+                 progress=False)
+    direct = refine(model, views, masks_for(views, "ball"), extent, dataclasses.replace(base, raem=variant),
+                    progress=False)
+    post = apply_raem(off, variant, views)
+    assert direct.stages[-1].pruned > 0
+    assert post.stages[-1].pruned == direct.stages[-1].pruned and len(post.model) == len(direct.model)
+    for k in direct.model.data:
+        assert torch.equal(post.model.data[k].detach(), direct.model.data[k].detach()), k
+    assert torch.equal(post.foreground, direct.foreground) and post.config["raem"] == variant
+    assert off.stages[-1].pruned == 0 and len(off.model) > len(post.model)  # input untouched
+    with pytest.raises(InputError):
+        apply_raem(direct, "paper", views)
