@@ -2,7 +2,10 @@
 
 The dataset spec names the protocol:
   exact      held-out views against the dataset's exact masks (synthetic scenes, Blender
-             alpha); views where the object is not visible are skipped and listed;
+             alpha), compared with the object's *visible* predicted mask (occluders block
+             it, as in the GT; cobgs.evaluate explains); the released object-only render's
+             scores are kept as ``iou_object_only`` etc.; views where the object is not
+             visible are skipped and listed;
   nvos       the held-out target view against the full-resolution GT (prediction resized
              NEAREST, both > 128); IoU and accuracy;
   lerf_mask  every annotated test view of this prompt; IoU and boundary IoU averaged over
@@ -67,20 +70,23 @@ def _run(ctx, inputs):
     missing = sorted(set(test) - set(seg["views"]))
     if missing:
         raise StageInputError(f"segment did not render held-out view(s) {missing[:5]}")
-    preds = _read_preds(seg_dir / "pred_masks", list(test))
     protocol = spec["protocol"]
+    preds = _read_preds(seg_dir / "pred_masks", list(test))
     row: dict = {"protocol": protocol, "scene": spec["scene"], "method": ctx.item["method"],
                  "object": ctx.item["object"], "dataset_object": obj, "method_kind": ref["method"]}
     details: dict = {}
     if protocol == "exact":
         gts = {n: (v.masks[obj].cpu().numpy() if obj in v.masks else None) for n, v in test.items()}
-        r = E.exact_scores(preds, gts, skip_empty_gt=p.skip_empty_gt, boundary_ratio=p.boundary_ratio)
-        row.update(iou=r["iou"], acc=r["acc"], biou=r["biou"], views=r["views"])
-        details.update(per_view=r["per_view"], skipped=r["skipped"])
+        visible = _read_preds(seg_dir / "pred_visible", list(test))
+        r = E.exact_scores(visible, gts, skip_empty_gt=p.skip_empty_gt, boundary_ratio=p.boundary_ratio)
+        o = E.exact_scores(preds, gts, skip_empty_gt=p.skip_empty_gt, boundary_ratio=p.boundary_ratio)
+        row.update(iou=r["iou"], acc=r["acc"], biou=r["biou"], views=r["views"], mask_render="visible",
+                   iou_object_only=o["iou"], acc_object_only=o["acc"], biou_object_only=o["biou"])
+        details.update(per_view=r["per_view"], skipped=r["skipped"], per_view_object_only=o["per_view"])
     elif protocol == "nvos":
         task = spec["nvos"]
         s = E.compare_masks(preds[task["target"]], E.read_mask_u8(task["gt_mask"]), p.boundary_ratio)
-        row.update(iou=s.iou, acc=s.acc, biou=s.biou, views=1, task=task["task"])
+        row.update(iou=s.iou, acc=s.acc, biou=s.biou, views=1, task=task["task"], mask_render="object_only")
         details.update(per_view={task["target"]: s.to_json()}, skipped={})
     elif protocol == "lerf_mask":
         gt = spec["lerf_mask"]
@@ -88,7 +94,8 @@ def _run(ctx, inputs):
         if not paths:
             raise StageInputError(f"LERF-mask: no GT file for prompt {obj!r} (prompts: {gt['prompts']})")
         r = E.lerf_prompt_scores(preds, paths, gt["test_views"], p.boundary_ratio)
-        row.update(iou=r["iou"], acc=r["acc"], biou=r["biou"], views=r["views"], prompt=obj)
+        row.update(iou=r["iou"], acc=r["acc"], biou=r["biou"], views=r["views"], prompt=obj,
+                   mask_render="object_only")
         details.update(per_view=r["per_view"], skipped=r["skipped"])
     else:
         row.update(iou=float("nan"), acc=float("nan"), biou=float("nan"), views=0)
@@ -122,7 +129,7 @@ def _run(ctx, inputs):
 
 
 STAGE = Stage(
-    name="evaluate", version=1, run=_run, inputs=("dataset", "poses", "scene", "refined", "segmentation"),
+    name="evaluate", version=2, run=_run, inputs=("dataset", "poses", "scene", "refined", "segmentation"),
     outputs=("metrics",), params=EvaluateParams, level=("scene", "method", "object"),
     resources=Resources(cpus=1),
     description="protocol metrics (exact GT, NVOS, LERF-mask) and PSNR vs the vanilla scene",

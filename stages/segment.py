@@ -3,7 +3,10 @@
 Output ``segmentation``:
   object.ply, background.ply   the object's Gaussians and the scene with the object removed,
                                standard 3DGS layout (no extras: any splat viewer opens them)
-  pred_masks/<view>.png        predicted object mask (foreground Gaussians' mask channel > 0.5)
+  pred_masks/<view>.png        predicted object mask as the released evaluation renders it: the
+                               object's Gaussians alone, mask channel > 0.5 (NVOS, LERF-mask)
+  pred_visible/<view>.png      the object's visible mask: every Gaussian rendered, occluders
+                               block the object (the exact-GT protocol; cobgs.evaluate)
   render/<view>.png            the refined scene (texture quality vs the vanilla scene)
   object/<view>.png            the object alone
   removed/<view>.png           the scene without the object
@@ -44,6 +47,7 @@ def _run(ctx, inputs):
 
     from cobgs.ply import load_ply, save_ply
     from cobgs.refine_result import RefineResult
+    from cobgs.evaluate import visible_object_mask
     from cobgs.segment import extract, render_object_mask, render_object_rgb, render_removed_rgb
     from cobgs.render import render_image
 
@@ -74,6 +78,8 @@ def _run(ctx, inputs):
     for v in ctx.progress(views, desc=f"segment[{ctx.item.label}]", unit="view"):
         mask = render_object_mask(result, v.camera, threshold=p.mask_threshold, backend=p.backend)
         write_png(ctx.out_dir / "pred_masks" / f"{v.name}.png", mask.cpu().numpy())
+        visible = visible_object_mask(result, v.camera, threshold=p.mask_threshold, backend=p.backend)
+        write_png(ctx.out_dir / "pred_visible" / f"{v.name}.png", visible.cpu().numpy())
         write_png(ctx.out_dir / "render" / f"{v.name}.png",
                   render_image(model, v.camera, bg, backend=p.backend).clamp(0, 1).cpu().numpy())
         write_png(ctx.out_dir / "object" / f"{v.name}.png",
@@ -86,6 +92,7 @@ def _run(ctx, inputs):
            "background_gaussians": len(rest_model), "extract_ms": extract_ms,
            "render_s": render_s, "views": [v.name for v in views],
            "files": {"object": "object.ply", "background": "background.ply", "pred_masks": "pred_masks",
+                     "pred_visible": "pred_visible",
                      "render": "render", "object_renders": "object", "removed_renders": "removed"}}
     write_json(ctx.out_dir / "segment.json", out)
     ctx.note(object_gaussians=len(obj_model), background_gaussians=len(rest_model), extract_ms=extract_ms,
@@ -94,7 +101,7 @@ def _run(ctx, inputs):
 
 
 STAGE = Stage(
-    name="segment", version=1, run=_run, inputs=("dataset", "poses", "scene", "refined"),
+    name="segment", version=2, run=_run, inputs=("dataset", "poses", "scene", "refined"),
     outputs=("segmentation",), params=SegmentParams, level=("scene", "method", "object"), uses_device=True,
     resources=Resources(cpus=2),
     description="object / background PLYs and held-out renders (mask, scene, object, removal)",

@@ -26,7 +26,7 @@ from pipeline import Resources, Stage
 
 from ._common import read_json, write_json
 
-METRICS = ("iou", "acc", "biou", "psnr", "psnr_vanilla", "psnr_delta", "num_gaussians", "object_gaussians",
+METRICS = ("iou", "acc", "biou", "iou_object_only", "biou_object_only", "psnr", "psnr_vanilla", "psnr_delta", "num_gaussians", "object_gaussians",
            "refine_s", "refine_peak_mem_bytes", "extract_ms")
 
 
