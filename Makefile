@@ -42,9 +42,12 @@ test: build chromium
 
 demo: build
 	$(VENV)/bin/cobgs run workflows/demo.toml
+	$(VENV)/bin/cobgs export workflows/demo.toml --to runs/demo
 
 bench: build
 	$(VENV)/bin/cobgs run workflows/synthetic_bench.toml
+	$(VENV)/bin/cobgs export workflows/synthetic_bench.toml --to runs/synthetic_bench
+	@echo "micro-benchmarks (run one by one): $$(ls tests/benchmarks/bm_*.py | tr '\n' ' ')"
 
 report: build
 	$(VENV)/bin/cobgs report workflows/demo.toml

@@ -98,11 +98,43 @@ def _run(args) -> int:
     for m in rec["missing"]:
         print(f"  not exported: {m['stage']} {m['item'] or '(workflow)'} ({m['state']})", file=sys.stderr)
     plys = [c["file"] for c in rec["copied"] if c["file"].endswith(".ply")]
-    print(f"exported {len(rec['copied'])} files ({len(plys)} PLYs) to {os.path.abspath(args.to)}")
+    dest = os.path.abspath(args.to)
+    print(f"exported {len(rec['copied'])} files ({len(plys)} PLYs) to {dest}")
+    _print_summary(os.path.join(dest, "summary.json"), dest)
     if not rec["copied"]:
         print("nothing to export: run the workflow first (`cobgs run ...`)", file=sys.stderr)
         return 1
     return 1 if rec["missing"] else 0
+
+
+def _print_summary(path: str, dest: str) -> None:
+    """The per-method means and where the files are, for a human at the terminal."""
+    import json
+    import math
+
+    if not os.path.isfile(path):
+        return
+    with open(path, encoding="utf-8") as f:
+        data = json.load(f)
+
+    def fmt(v, spec):
+        return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, spec)
+
+    print(f"\n{'method':<14} {'mIoU':>7} {'mBIoU':>7} {'mAcc':>7} {'obj-only':>8} {'PSNR dB':>8} {'vanilla':>8}"
+          "  objects")
+    for r in data.get("by_method", []):
+        print(f"{r['method']:<14} {fmt(r.get('iou'), '.4f'):>7} {fmt(r.get('biou'), '.4f'):>7} "
+              f"{fmt(r.get('acc'), '.4f'):>7} {fmt(r.get('iou_object_only'), '.4f'):>8} "
+              f"{fmt(r.get('psnr'), '.2f'):>8} "
+              f"{fmt(r.get('psnr_vanilla'), '.2f'):>8}  {r.get('objects')}")
+    for s in data.get("scenes", []):
+        print(f"scene {s['scene']}: {s['num_gaussians']} Gaussians, held-out PSNR "
+              f"{fmt(s.get('psnr'), '.2f')} dB ({s['test_views']} views)")
+    print("mIoU: the object's visible mask (exact GT) or the protocol's render (NVOS, LERF-mask); "
+          "obj-only: the released object-only render")
+    print(f"summary: {os.path.join(dest, 'summary.csv')} (rows), by_method.csv, timings.csv")
+    print(f"PLYs:    {dest}/<scene>/scene.ply, {dest}/<scene>/<method>/<object>/"
+          "{refined,object,background}.ply")
 
 
 def register(sub) -> None:
