@@ -179,6 +179,10 @@ def _tables(data: RunData, infos: dict, logs: _Logs) -> dict:
         [Column("scene", "Scene", numeric=False), Column("method", "Method", numeric=False),
          Column("object", "Object", numeric=False), Column("iou", "IoU", fmt.pct, better="max"),
          Column("acc", "Acc", fmt.pct, better="max"), Column("biou", "BIoU", fmt.pct, better="max"),
+         *([Column("iou_object_only", "IoU obj. only", fmt.pct,
+                   title="IoU of the object rendered alone (the released evaluation render), for reference; "
+                         "the IoU column scores the visible mask")] if any(
+             r.get("iou_object_only") is not None for r in recs) else []),
          Column("views", "Views", fmt.count, title="held-out views evaluated (hover for skipped ones)"),
          Column("psnr", "PSNR", fmt.db, better="max"), Column("psnr_delta", "ΔPSNR", lambda v: fmt.db(v, signed=True)),
          Column("num_gaussians", "Gaussians", fmt.count), Column("splits", "Splits", fmt.count),
@@ -201,6 +205,15 @@ def _tables(data: RunData, infos: dict, logs: _Logs) -> dict:
 
 
 # -- pictures ----------------------------------------------------------------------------
+#: segment's mask folder per ``mask_render`` of an evaluate row: the overlay must show the
+#: mask that was scored (exact protocol: the visible mask; NVOS / LERF-mask: object only)
+MASK_FOLDERS = {"visible": "pred_visible", "object_only": "pred_masks"}
+
+
+def scored_mask_folder(row: Optional[dict]) -> str:
+    return MASK_FOLDERS.get(str((row or {}).get("mask_render", "object_only")), "pred_masks")
+
+
 def _pictures(data: RunData, infos: dict, root: Path) -> list[PictureSet]:
     ref = R.reference_method(infos)
     order = ([ref] if ref else []) + [m for m in data.methods if m != ref]
@@ -236,6 +249,10 @@ def _pictures(data: RunData, infos: dict, root: Path) -> list[PictureSet]:
                     break
         if view is None:
             continue
+        if any((r.row or {}).get("mask_render") == "visible" for r in rs.values()):
+            notes.append("Predicted masks are the object's visible part (every Gaussian rendered, so "
+                         "occluders hide the object as they do in the ground truth): the mask the "
+                         "evaluate stage scored for this protocol.")
         ps = PictureSet(scene=scene, object=obj, view=view, notes=notes, id=slug(f"{scene}/{obj}"))
         preds, renders = {}, {}
         for m in order:
@@ -246,7 +263,7 @@ def _pictures(data: RunData, infos: dict, root: Path) -> list[PictureSet]:
             pv = r.per_view.get(view) or {}
             mp.iou, mp.biou = fmt.finite(pv.get("iou")), fmt.finite(pv.get("biou"))
             if r.segment_dir is not None:
-                f = Path(r.segment_dir) / "pred_masks" / f"{view}.png"
+                f = Path(r.segment_dir) / scored_mask_folder(r.row) / f"{view}.png"
                 if f.is_file():
                     preds[m] = read_mask(f)
                 for kind in ("object", "removed"):
@@ -345,6 +362,13 @@ def _write(data: RunData, root: Path, sets: list[str]) -> None:
                              "log": logs(t) if t.state == "failed" else None, "key": t.key})
     waiting = [{"stage": t.stage, "item": t.item_id, "state": t.state, "message": t.error}
                for t in data.tasks if t.state in ("missing", "stale")]
+    skipped: dict = {}  # the protocol's own gaps (no / empty GT), the same for every method
+    for r in data.results:
+        for view, why in r.skipped.items():
+            skipped.setdefault((r.scene, r.object), {})[view] = why
+    eval_gaps = [{"scene": sc, "object": ob, "views": len(v), "reasons": ", ".join(
+        f"{n}× {why}" for why, n in sorted(_count(v.values()).items())), "names": ", ".join(sorted(v))}
+        for (sc, ob), v in skipped.items()]
     run = meta.run_metadata(data, sets)
     env_info = meta.report_environment()
     shutil.copytree(PACKAGE_DIR / "static", root / "static")
@@ -352,7 +376,7 @@ def _write(data: RunData, root: Path, sets: list[str]) -> None:
     ctx = {
         "run": run, "env": env_info, "infos": infos, "reference": ref, "tables": tables, "pictures": pictures,
         "plots": plots, "stage_table": stage_table, "task_table": task_table, "failures": failures,
-        "waiting": waiting, "stages": meta.stage_records(data), "kind_labels": KIND_LABELS,
+        "waiting": waiting, "eval_gaps": eval_gaps, "stages": meta.stage_records(data), "kind_labels": KIND_LABELS,
         "methods": data.methods, "n_results": len(data.results), "n_ok": sum(r.ok for r in data.results),
         "scenes": list(data.scenes),
     }
@@ -364,6 +388,13 @@ def _write(data: RunData, root: Path, sets: list[str]) -> None:
               "failures": failures, "plots": plots}
     (root / MARKER).write_text(json.dumps(record, indent=1, default=str) + "\n", encoding="utf-8")
     (root / "index.html").write_text(html, encoding="utf-8")  # last: the page is the report
+
+
+def _count(values) -> dict:
+    out: dict = {}
+    for v in values:
+        out[v] = out.get(v, 0) + 1
+    return out
 
 
 def _plain(records: list[dict]) -> list[dict]:

@@ -35,7 +35,7 @@ class Links(HTMLParser):
             if a.get(k) is not None:
                 self.urls.append(a[k])
         if tag == "table":
-            self._table = a.get("id")
+            self._table = a.get("id") or "_"  # tables without an id share "_"
         elif tag == "tr" and self._table:
             self._row = []
         elif tag == "td" and self._row is not None:
@@ -117,6 +117,8 @@ def test_gaps_show_as_gaps_not_numbers(report):
     assert "failed: refine" in failed[-1][0]
     html = report.read_text(encoding="utf-8")
     assert "waits on refine[s2/flashsplat/ball]" in html
+    gaps = parse(report).rows["_"]
+    assert ["s1", "box", "1", "1× empty GT", "v004"] in [[c[0] for c in r] for r in gaps]
     assert "failed at refine" in html  # its row in the picture grid
 
 
@@ -150,7 +152,8 @@ def test_pictures_and_plots_exist(report):
 
 
 def test_overlay_counts_agree_with_the_evaluate_stage(recorded, report):
-    """FP / FN pixels under each picture are those evaluate counted on that view."""
+    """FP / FN pixels under each picture are those evaluate counted on that view (from the
+    mask it scored: the visible one here, not the object-only render)."""
     html = report.read_text(encoding="utf-8")
     per = {}
     for f in (recorded.cache / "entries" / "evaluate").glob("*/out/metrics.json"):
