@@ -19,8 +19,9 @@ from typing import Iterable, Optional
 from . import fmt, results as R
 from .collect import RunData, Task, collect
 from .errors import ReportError
-from .pictures import KIND_LABELS, MethodPictures, PictureSet, compose, read_mask, read_rgb, slug
-from .tables import Column, build_table
+from .gallery import picture_sets
+from .pictures import KIND_LABELS, slug
+from .sections import detail_tables, result_tables
 
 MARKER = "report.json"
 REPORT_FORMAT = "cobgs-report"
@@ -126,160 +127,6 @@ class _Logs:
         return self.done[src]
 
 
-# -- tables ------------------------------------------------------------------------------
-def _cols_metrics() -> list[Column]:
-    return [
-        Column("iou", "mIoU", fmt.pct, better="max", title="mean IoU (%): over objects, then scenes"),
-        Column("acc", "mAcc", fmt.pct, better="max", title="mean pixel accuracy (%)"),
-        Column("biou", "mBIoU", fmt.pct, better="max", title="mean boundary IoU (%), width 2% of the diagonal"),
-        Column("psnr", "PSNR", fmt.db, better="max", title="refined scene, held-out views (dB)"),
-        Column("psnr_delta", "ΔPSNR", lambda v: fmt.db(v, signed=True), better="max",
-               title="refined minus vanilla scene PSNR on the same views (dB)"),
-        Column("num_gaussians", "Gaussians", fmt.count, title="scene size after the method (mean over objects)"),
-        Column("refine_s", "Refine time", fmt.seconds, better="min", title="wall time of the method per object"),
-        Column("peak_rss", "Peak RSS", fmt.nbytes,
-               title="peak resident memory of the process that ran the refine task (host memory, max over "
-                     "objects; with --jobs 1 this includes the driver's own footprint, so it is not ranked)"),
-    ]
-
-
-def _quoted(key: str, label: str, pct: bool = True) -> Column:
-    return Column(key, label + " †", (lambda v: fmt.pct(v, 1)) if pct else fmt.db, quoted=True,
-                  title="quoted from the paper, not measured here")
-
-
-def _tables(data: RunData, infos: dict, logs: _Logs) -> dict:
-    by_method, notes = R.method_records(data, infos, logs)
-    by_scene = R.scene_method_records(data, infos, logs)
-    paper_m = [c for c in (_quoted("paper_iou", "paper mIoU"), _quoted("paper_acc", "paper mAcc"))
-               if any(c.key in r for r in by_method)]
-    paper_s = [c for c in (_quoted("paper_iou", "paper mIoU"), _quoted("paper_biou", "paper mBIoU"),
-                           _quoted("paper_psnr", "paper PSNR", pct=False)) if any(c.key in r for r in by_scene)]
-    if paper_s and not notes:
-        notes = ["Columns marked † are quoted from the paper (authors' runs on an RTX 3090), not measured "
-                 "here; they never take part in best-value marking."]
-    status = Column("status", "Status", numeric=False)
-    t_method = build_table(
-        "t-method", "Results by method: mean over objects within a scene, then over scenes",
-        [Column("method", "Method", numeric=False, title="method item; below: its kind and the options that "
-                "differ from the refine stage's defaults"), Column("scenes", "Scenes", fmt.count)]
-        + _cols_metrics() + paper_m + [status], by_method,
-        notes=notes + ["Best values are shaded and bold (among methods with every scene done; "
-                       "not marked when all are equal)."])
-    t_scene = build_table(
-        "t-scene", "Results per scene × method (mean over the scene's objects); best per scene marked",
-        [Column("scene", "Scene", numeric=False), Column("method", "Method", numeric=False),
-         Column("objects", "Objects", fmt.count)] + _cols_metrics() + paper_s + [status], by_scene,
-        group_by="scene", notes=[n for n in notes if paper_s])
-    recs = R.object_records(data, infos, logs)
-    for r in recs:  # best values per (scene, object): objects differ too much to compare across
-        r["_group"] = f"{r['scene']}/{r['object']}"
-    t_object = build_table(
-        "t-object", "Per object: the evaluate stage's numbers and the refinement's Gaussian bookkeeping",
-        [Column("scene", "Scene", numeric=False), Column("method", "Method", numeric=False),
-         Column("object", "Object", numeric=False), Column("iou", "IoU", fmt.pct, better="max"),
-         Column("acc", "Acc", fmt.pct, better="max"), Column("biou", "BIoU", fmt.pct, better="max"),
-         *([Column("iou_object_only", "IoU obj. only", fmt.pct,
-                   title="IoU of the object rendered alone (the released evaluation render), for reference; "
-                         "the IoU column scores the visible mask")] if any(
-             r.get("iou_object_only") is not None for r in recs) else []),
-         Column("views", "Views", fmt.count, title="held-out views evaluated (hover for skipped ones)"),
-         Column("psnr", "PSNR", fmt.db, better="max"), Column("psnr_delta", "ΔPSNR", lambda v: fmt.db(v, signed=True)),
-         Column("num_gaussians", "Gaussians", fmt.count), Column("splits", "Splits", fmt.count),
-         Column("pruned", "Pruned", fmt.count),
-         Column("ambiguous_final", "Ambiguous", fmt.count, title="Gaussians with score < δ at the end, before RAEM"),
-         Column("refine_s", "Refine time", fmt.seconds, better="min"), Column("peak_rss", "Peak RSS", fmt.nbytes),
-         status], recs, group_by="_group")
-    t_scenes = build_table(
-        "t-scenes", "Scenes: data and the baseline 3DGS every method starts from",
-        [Column("scene", "Scene", numeric=False), Column("kind", "Kind", numeric=False),
-         Column("protocol", "Protocol", numeric=False), Column("scene_type", "Type", numeric=False),
-         Column("views", "Views", fmt.count), Column("test_views", "Held out", fmt.count),
-         Column("objects", "Objects", numeric=False), Column("iterations", "Iterations", fmt.count),
-         Column("num_gaussians", "Gaussians", fmt.count), Column("train_s", "Train time", fmt.seconds),
-         Column("psnr", "PSNR", fmt.db, title="vanilla scene, held-out views (dB)"),
-         Column("ssim", "SSIM", lambda v: "" if fmt.finite(v) is None else f"{v:.4f}"),
-         Column("status", "Training", numeric=False)], R.scene_records(data))
-    return {"method": t_method, "scene": t_scene, "object": t_object, "scenes": t_scenes,
-            "raw": {"by_method": by_method, "by_scene_method": by_scene}}
-
-
-# -- pictures ----------------------------------------------------------------------------
-#: segment's mask folder per ``mask_render`` of an evaluate row: the overlay must show the
-#: mask that was scored (exact protocol: the visible mask; NVOS / LERF-mask: object only)
-MASK_FOLDERS = {"visible": "pred_visible", "object_only": "pred_masks"}
-
-
-def scored_mask_folder(row: Optional[dict]) -> str:
-    return MASK_FOLDERS.get(str((row or {}).get("mask_render", "object_only")), "pred_masks")
-
-
-def _pictures(data: RunData, infos: dict, root: Path) -> list[PictureSet]:
-    ref = R.reference_method(infos)
-    order = ([ref] if ref else []) + [m for m in data.methods if m != ref]
-    sets = []
-    pairs = []
-    for r in data.results:
-        if (r.scene, r.object) not in pairs:
-            pairs.append((r.scene, r.object))
-    for scene, obj in pairs:
-        rs = {r.method: r for r in data.results if r.scene == scene and r.object == obj}
-        held = data.scenes[scene].heldout.get(obj) if scene in data.scenes else None
-        notes = []
-        view, image, gt = None, None, None
-        if held is not None:
-            views = held.info.get("views") or []
-            with_gt = [v for v in views if v.get("gt")]
-            pick = (with_gt or views or [None])[0]
-            if pick is not None:
-                view = pick["name"]
-                image = read_rgb(held.folder / pick["image"])
-                gt = read_mask(held.folder / pick["gt"]) if pick.get("gt") else None
-                notes.append(f"Held-out view {view}: the first of the {len(with_gt)} held-out view(s) with a "
-                             f"ground-truth mask that the heldout stage wrote (not chosen by result).")
-                if gt is None:
-                    notes.append("No ground-truth mask for this view: no error overlay or crop.")
-        else:
-            notes.append("No held-out image or ground truth: the heldout stage has not run for this object "
-                         f"(`cobgs run {data.workflow.path} --only heldout`); predicted masks and renders only.")
-            for m in order:
-                seg = rs[m].segment if m in rs else None
-                if seg and seg.get("views"):
-                    view = sorted(seg["views"])[0]
-                    break
-        if view is None:
-            continue
-        if any((r.row or {}).get("mask_render") == "visible" for r in rs.values()):
-            notes.append("Predicted masks are the object's visible part (every Gaussian rendered, so "
-                         "occluders hide the object as they do in the ground truth): the mask the "
-                         "evaluate stage scored for this protocol.")
-        ps = PictureSet(scene=scene, object=obj, view=view, notes=notes, id=slug(f"{scene}/{obj}"))
-        preds, renders = {}, {}
-        for m in order:
-            if m not in rs:
-                continue
-            r = rs[m]
-            mp = MethodPictures(m, infos[m].kind_label if m in infos else m)
-            pv = r.per_view.get(view) or {}
-            mp.iou, mp.biou = fmt.finite(pv.get("iou")), fmt.finite(pv.get("biou"))
-            if r.segment_dir is not None:
-                f = Path(r.segment_dir) / scored_mask_folder(r.row) / f"{view}.png"
-                if f.is_file():
-                    preds[m] = read_mask(f)
-                for kind in ("object", "removed"):
-                    f = Path(r.segment_dir) / kind / f"{view}.png"
-                    if f.is_file():
-                        renders.setdefault(m, {})[kind] = read_rgb(f)
-            if m not in preds:
-                p = r.problem
-                mp.note = f"{p.state} at {p.stage}" if p else "no segmentation of this view"
-            ps.methods.append(mp)
-        base = f"img/{slug(scene)}/{slug(obj)}/{slug(view)}"
-        compose(ps, image, gt, preds, renders, root / base, base)
-        sets.append(ps)
-    return sets
-
-
 # -- plots -------------------------------------------------------------------------------
 def _plots(data: RunData, infos: dict, by_method: list[dict], by_scene: list[dict], root: Path) -> dict:
     from . import plots as P
@@ -333,28 +180,10 @@ def _write(data: RunData, root: Path, sets: list[str]) -> None:
     logs = _Logs(root)
     infos = R.method_infos(data)
     ref = R.reference_method(infos)
-    tables = _tables(data, infos, logs)
-    pictures = _pictures(data, infos, root)
+    tables = result_tables(data, infos, logs)
+    pictures = picture_sets(data, infos, root)
     plots = _plots(data, infos, tables["raw"]["by_method"], tables["raw"]["by_scene_method"], root)
-    stage_table = build_table(
-        "t-refine-stages", f"Refinement stages of {ref}: ambiguous Gaussians and splits per stage",
-        [Column("scene", "Scene", numeric=False), Column("object", "Object", numeric=False),
-         Column("index", "Stage", fmt.count), Column("kind", "Kind", numeric=False),
-         Column("iterations", "Iterations", fmt.count), Column("g_start", "Gaussians in", fmt.count),
-         Column("g_end", "Gaussians out", fmt.count), Column("ambiguous", "Ambiguous", fmt.count),
-         Column("ambiguous_large", "Ambiguous, splittable", fmt.count), Column("split", "Split", fmt.count),
-         Column("pruned", "Pruned", fmt.count),
-         Column("loss", "Mean loss", lambda v: "" if fmt.finite(v) is None else f"{v:.4f}"),
-         Column("wall_s", "Time", fmt.seconds)], R.refine_stage_records(data, ref))
-    task_table = build_table(
-        "t-tasks", "Every task of the workflow: state, cache key, cost",
-        [Column("order", "#", fmt.count), Column("stage", "Stage", numeric=False),
-         Column("item", "Item", numeric=False), Column("state", "State", numeric=False),
-         Column("key", "Cache key", fmt.short_key, numeric=False), Column("version", "v", fmt.count),
-         Column("wall_s", "Wall", fmt.seconds), Column("cpu_s", "CPU", fmt.seconds),
-         Column("peak_rss", "Peak RSS", fmt.nbytes), Column("host", "Host", numeric=False),
-         Column("device", "Device", numeric=False), Column("started", "Started", fmt.timestamp),
-         Column("log", "Log", numeric=False)], R.task_records(data, logs))
+    stage_table, task_table = detail_tables(data, ref, logs)
     failures = []
     for t in data.tasks:
         if t.state in ("failed", "corrupt"):

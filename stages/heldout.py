@@ -16,7 +16,6 @@ Output ``heldout``:
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 from pipeline import Resources, Stage
 

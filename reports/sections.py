@@ -1,0 +1,113 @@
+"""Which columns each table of the report shows, in which order, formatted how.
+
+The records come from :mod:`reports.results`; this module only lays them out.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+from . import fmt, results as R
+from .collect import RunData
+from .tables import Column, Table, build_table
+
+
+def _cols_metrics() -> list[Column]:
+    return [
+        Column("iou", "mIoU", fmt.pct, better="max", title="mean IoU (%): over objects, then scenes"),
+        Column("acc", "mAcc", fmt.pct, better="max", title="mean pixel accuracy (%)"),
+        Column("biou", "mBIoU", fmt.pct, better="max", title="mean boundary IoU (%), width 2% of the diagonal"),
+        Column("psnr", "PSNR", fmt.db, better="max", title="refined scene, held-out views (dB)"),
+        Column("psnr_delta", "ΔPSNR", lambda v: fmt.db(v, signed=True), better="max",
+               title="refined minus vanilla scene PSNR on the same views (dB)"),
+        Column("num_gaussians", "Gaussians", fmt.count, title="scene size after the method (mean over objects)"),
+        Column("refine_s", "Refine time", fmt.seconds, better="min", title="wall time of the method per object"),
+        Column("peak_rss", "Peak RSS", fmt.nbytes,
+               title="peak resident memory of the process that ran the refine task (host memory, max over "
+                     "objects; with --jobs 1 this includes the driver's own footprint, so it is not ranked)"),
+    ]
+
+
+def _quoted(key: str, label: str, pct: bool = True) -> Column:
+    return Column(key, label + " †", (lambda v: fmt.pct(v, 1)) if pct else fmt.db, quoted=True,
+                  title="quoted from the paper, not measured here")
+
+
+def result_tables(data: RunData, infos: dict, logs: R.LogHref) -> dict:
+    by_method, notes = R.method_records(data, infos, logs)
+    by_scene = R.scene_method_records(data, infos, logs)
+    paper_m = [c for c in (_quoted("paper_iou", "paper mIoU"), _quoted("paper_acc", "paper mAcc"))
+               if any(c.key in r for r in by_method)]
+    paper_s = [c for c in (_quoted("paper_iou", "paper mIoU"), _quoted("paper_biou", "paper mBIoU"),
+                           _quoted("paper_psnr", "paper PSNR", pct=False)) if any(c.key in r for r in by_scene)]
+    if paper_s and not notes:
+        notes = ["Columns marked † are quoted from the paper (authors' runs on an RTX 3090), not measured "
+                 "here; they never take part in best-value marking."]
+    status = Column("status", "Status", numeric=False)
+    t_method = build_table(
+        "t-method", "Results by method: mean over objects within a scene, then over scenes",
+        [Column("method", "Method", numeric=False, title="method item; below: its kind and the options that "
+                "differ from the refine stage's defaults"), Column("scenes", "Scenes", fmt.count)]
+        + _cols_metrics() + paper_m + [status], by_method,
+        notes=notes + ["Best values are shaded and bold (among methods with every scene done; "
+                       "not marked when all are equal)."])
+    t_scene = build_table(
+        "t-scene", "Results per scene × method (mean over the scene's objects); best per scene marked",
+        [Column("scene", "Scene", numeric=False), Column("method", "Method", numeric=False),
+         Column("objects", "Objects", fmt.count)] + _cols_metrics() + paper_s + [status], by_scene,
+        group_by="scene", notes=[n for n in notes if paper_s])
+    recs = R.object_records(data, infos, logs)
+    for r in recs:  # best values per (scene, object): objects differ too much to compare across
+        r["_group"] = f"{r['scene']}/{r['object']}"
+    t_object = build_table(
+        "t-object", "Per object: the evaluate stage's numbers and the refinement's Gaussian bookkeeping",
+        [Column("scene", "Scene", numeric=False), Column("method", "Method", numeric=False),
+         Column("object", "Object", numeric=False), Column("iou", "IoU", fmt.pct, better="max"),
+         Column("acc", "Acc", fmt.pct, better="max"), Column("biou", "BIoU", fmt.pct, better="max"),
+         *([Column("iou_object_only", "IoU obj. only", fmt.pct,
+                   title="IoU of the object rendered alone (the released evaluation render), for reference; "
+                         "the IoU column scores the visible mask")] if any(
+             r.get("iou_object_only") is not None for r in recs) else []),
+         Column("views", "Views", fmt.count, title="held-out views evaluated (hover for skipped ones)"),
+         Column("psnr", "PSNR", fmt.db, better="max"), Column("psnr_delta", "ΔPSNR", lambda v: fmt.db(v, signed=True)),
+         Column("num_gaussians", "Gaussians", fmt.count), Column("splits", "Splits", fmt.count),
+         Column("pruned", "Pruned", fmt.count),
+         Column("ambiguous_final", "Ambiguous", fmt.count, title="Gaussians with score < δ at the end, before RAEM"),
+         Column("refine_s", "Refine time", fmt.seconds, better="min"), Column("peak_rss", "Peak RSS", fmt.nbytes),
+         status], recs, group_by="_group")
+    t_scenes = build_table(
+        "t-scenes", "Scenes: data and the baseline 3DGS every method starts from",
+        [Column("scene", "Scene", numeric=False), Column("kind", "Kind", numeric=False),
+         Column("protocol", "Protocol", numeric=False), Column("scene_type", "Type", numeric=False),
+         Column("views", "Views", fmt.count), Column("test_views", "Held out", fmt.count),
+         Column("objects", "Objects", numeric=False), Column("iterations", "Iterations", fmt.count),
+         Column("num_gaussians", "Gaussians", fmt.count), Column("train_s", "Train time", fmt.seconds),
+         Column("psnr", "PSNR", fmt.db, title="vanilla scene, held-out views (dB)"),
+         Column("ssim", "SSIM", lambda v: "" if fmt.finite(v) is None else f"{v:.4f}"),
+         Column("status", "Training", numeric=False)], R.scene_records(data))
+    return {"method": t_method, "scene": t_scene, "object": t_object, "scenes": t_scenes,
+            "raw": {"by_method": by_method, "by_scene_method": by_scene}}
+
+
+def detail_tables(data: RunData, ref: Optional[str], logs: R.LogHref) -> tuple[Table, Table]:
+    """The per-stage statistics of the reference method's refinement, and every task."""
+    stage_table = build_table(
+        "t-refine-stages", f"Refinement stages of {ref}: ambiguous Gaussians and splits per stage",
+        [Column("scene", "Scene", numeric=False), Column("object", "Object", numeric=False),
+         Column("index", "Stage", fmt.count), Column("kind", "Kind", numeric=False),
+         Column("iterations", "Iterations", fmt.count), Column("g_start", "Gaussians in", fmt.count),
+         Column("g_end", "Gaussians out", fmt.count), Column("ambiguous", "Ambiguous", fmt.count),
+         Column("ambiguous_large", "Ambiguous, splittable", fmt.count), Column("split", "Split", fmt.count),
+         Column("pruned", "Pruned", fmt.count),
+         Column("loss", "Mean loss", lambda v: "" if fmt.finite(v) is None else f"{v:.4f}"),
+         Column("wall_s", "Time", fmt.seconds)], R.refine_stage_records(data, ref))
+    task_table = build_table(
+        "t-tasks", "Every task of the workflow: state, cache key, cost",
+        [Column("order", "#", fmt.count), Column("stage", "Stage", numeric=False),
+         Column("item", "Item", numeric=False), Column("state", "State", numeric=False),
+         Column("key", "Cache key", fmt.short_key, numeric=False), Column("version", "v", fmt.count),
+         Column("wall_s", "Wall", fmt.seconds), Column("cpu_s", "CPU", fmt.seconds),
+         Column("peak_rss", "Peak RSS", fmt.nbytes), Column("host", "Host", numeric=False),
+         Column("device", "Device", numeric=False), Column("started", "Started", fmt.timestamp),
+         Column("log", "Log", numeric=False)], R.task_records(data, logs))
+    return stage_table, task_table
