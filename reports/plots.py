@@ -97,7 +97,8 @@ def iou_biou(path: Path, methods: Sequence[str], iou: Sequence[Optional[float]],
 
 def psnr(path: Path, methods: Sequence[str], values: Sequence[Optional[float]], vanilla: Optional[float],
          colors: dict) -> bool:
-    """Horizontal bars of the refined scene's held-out PSNR per method, vanilla as a line."""
+    """Each method's held-out PSNR as a dot on a stem from the vanilla scene's PSNR (dashed):
+    the stem is the change, and no bar pretends the axis starts at zero."""
     if not any(v is not None for v in values):
         return False
     plt = _plt()
@@ -105,18 +106,24 @@ def psnr(path: Path, methods: Sequence[str], values: Sequence[Optional[float]], 
     fig, ax = plt.subplots(figsize=(5.0, 0.32 * n + 1.2), layout="constrained")
     y = np.arange(n)[::-1]
     vals = [v if v is not None else np.nan for v in values]
-    ax.barh(y, vals, 0.62, color=[colors[m] for m in methods])
+    for yi, v, m in zip(y, vals, methods):
+        if not np.isfinite(v):
+            continue
+        if vanilla is not None:
+            ax.plot([vanilla, v], [yi, yi], color=colors[m], lw=2.2, solid_capstyle="butt")
+        ax.plot([v], [yi], "o", color=colors[m], ms=6)
+        txt = f"{v:.2f}" + (f" ({v - vanilla:+.2f})" if vanilla is not None else "")
+        right = vanilla is None or v >= vanilla
+        ax.annotate(txt, (v, yi), xytext=(6 if right else -6, 0), textcoords="offset points", va="center",
+                    ha="left" if right else "right", fontsize=7)
     finite = [v for v in vals if np.isfinite(v)] + ([vanilla] if vanilla is not None else [])
     lo, hi = min(finite), max(finite)
-    pad = max(0.25, 0.15 * (hi - lo))
-    ax.set_xlim(lo - 3 * pad, hi + 2 * pad)
-    for yi, v in zip(y, vals):
-        if np.isfinite(v):
-            txt = f"{v:.2f}" + (f" ({v - vanilla:+.2f})" if vanilla is not None else "")
-            ax.annotate(txt, (v, yi), xytext=(3, 0), textcoords="offset points", va="center", fontsize=7)
+    pad = max(0.3, 0.35 * (hi - lo))
+    ax.set_xlim(lo - pad, hi + pad)
+    ax.set_ylim(-0.7, n - 0.3)
     if vanilla is not None:
         ax.axvline(vanilla, color="black", ls="--", lw=0.9)
-        ax.annotate(f"vanilla {vanilla:.2f}", (vanilla, n - 0.4), xytext=(3, 0), textcoords="offset points",
+        ax.annotate(f"vanilla {vanilla:.2f}", (vanilla, n - 0.45), xytext=(3, 0), textcoords="offset points",
                     fontsize=7, va="bottom")
     ax.set_yticks(y, methods)
     ax.set_xlabel("PSNR on held-out views (dB)")
@@ -147,8 +154,8 @@ def time_breakdown(path: Path, bars: Sequence[tuple[str, dict]], stages: Sequenc
     ax.set_yticks(y, [b[0] for b in bars])
     ax.set_xlabel("wall time (s)")
     ax.grid(axis="y", visible=False)
-    fig.legend(loc="outside lower center", ncol=min(8, len(ax.get_legend_handles_labels()[0])))
-    ax.set_title("Wall time by stage (summed over the tasks of each row)", loc="left")
+    fig.legend(loc="outside right upper")
+    fig.suptitle("Wall time by stage (summed over the tasks of each row)", fontsize=9, fontweight="bold")
     _save(fig, path)
     return True
 
@@ -207,9 +214,13 @@ def score_curves(path: Path, panels: Sequence[tuple[str, Sequence[tuple[str, np.
                     va="top", ha="right")
         ax.set_title(title)
         ax.set_xlabel("threshold δ")
-    axes[0][0].set_ylabel("Gaussians with score < δ")
+        # Most Gaussians score near 1 (unambiguous, or unseen): a log scale keeps the
+        # few hundred near δ readable next to the jump at 1.
+        ax.set_yscale("symlog", linthresh=10)
+        ax.set_ylim(bottom=0)
+    axes[0][0].set_ylabel("Gaussians with score < δ (log)")
     longest = max(panels[:n], key=lambda p: len(p[1]))
     handles = [plt.Line2D([], [], color=cmap(i / max(1, most - 1)), lw=1.2) for i in range(most)]
-    fig.legend(handles, [c[0] for c in longest[1]], loc="outside lower center", ncol=min(6, most), fontsize=7)
+    fig.legend(handles, [c[0] for c in longest[1]], loc="outside right upper", fontsize=7)
     _save(fig, path)
     return True

@@ -321,7 +321,7 @@ def stage_time_bars(data: RunData) -> tuple[list[tuple[str, dict]], list[str]]:
         m = t.values.get("method")
         target = per.setdefault(m, {}) if m is not None else shared
         target[t.stage] = target.get(t.stage, 0.0) + w
-    bars = [("shared (data, SfM, training, masks)", shared)] if shared else []
+    bars = [("shared by all methods", shared)] if shared else []
     bars += [(m, per[m]) for m in data.methods if per.get(m)]
     return bars, list(wf.graph.order)
 
@@ -369,7 +369,7 @@ def score_panels(data: RunData, method: Optional[str], limit: int = 4):
             continue
         with np.load(f) as z:
             names = sorted(z.files, key=lambda k: int(k.split("_")[-1]) if k.split("_")[-1].isdigit() else 0)
-            curves = [(f"after mask stage {i + 1}", z[k]) for i, k in enumerate(names) if z[k].size]
+            curves = [(f"mask stage {i + 1}", z[k]) for i, k in enumerate(names) if z[k].size]
         panels.append((f"{r.scene} / {r.object}", curves, finite((r.refine or {}).get("delta"))))
     return panels, skipped
 
