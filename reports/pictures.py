@@ -27,7 +27,11 @@ from .errors import ReportError
 FP_RGB = (230, 75, 53)  # false positive: predicted, not in GT
 FN_RGB = (77, 187, 213)  # false negative: in GT, missed
 CROP_RGB = (255, 221, 0)
-MAX_WIDTH_PX = 720  # pictures wider than this are downscaled for the page
+# Pictures wider than this are downscaled for the page (the grid shows them ~170 px wide,
+# the comparison ~540 px): a LERF-mask workflow has dozens of prompts x methods, and the
+# report must stay small enough to mail. Boundary detail lives in the full-resolution crop.
+MAX_WIDTH_PX = 480
+JPEG_QUALITY = 90  # photographs (held-out view, object alone / removed); masks and overlays stay PNG
 CROP_DISPLAY_PX = 240
 THRESHOLD_U8 = 128  # as cobgs.evaluate: "> 128 of 255"
 
@@ -81,12 +85,17 @@ def resize_rgb(img: np.ndarray, shape: tuple[int, int], nearest: bool = False) -
 
 
 def write_png(path: Path, img: np.ndarray) -> None:
+    """PNG, or JPEG when ``path`` ends in .jpg."""
     from PIL import Image
 
     path.parent.mkdir(parents=True, exist_ok=True)
     if img.dtype == np.bool_:
         img = img.astype(np.uint8) * 255
-    Image.fromarray(np.ascontiguousarray(img)).save(path, optimize=False, compress_level=6)
+    im = Image.fromarray(np.ascontiguousarray(img))
+    if path.suffix == ".jpg":
+        im.save(path, quality=JPEG_QUALITY)
+    else:
+        im.save(path, optimize=False, compress_level=6)
 
 
 def display_shape(shape: tuple[int, int]) -> tuple[int, int]:
@@ -96,21 +105,36 @@ def display_shape(shape: tuple[int, int]) -> tuple[int, int]:
     return max(1, round(h * MAX_WIDTH_PX / w)), MAX_WIDTH_PX
 
 
-def overlay(image: np.ndarray, gt: np.ndarray, pred: np.ndarray) -> np.ndarray:
-    """The held-out image dimmed outside the object, FP and FN painted in two colours.
+def paint(image: np.ndarray, tp: np.ndarray, fp: np.ndarray, fn: np.ndarray) -> np.ndarray:
+    """The image dimmed outside the object, FP and FN painted in two colours.
 
     Args:
-        image: [H, W, 3] uint8, the GT's size.
-        gt, pred: [H, W] bool.
+        image: [H, W, 3] uint8.
+        tp, fp, fn: [H, W] bool (FP and FN win over TP where a shrunk map has both).
     """
     f = image.astype(np.float32)
     grey = f.mean(axis=2, keepdims=True)
     out = 0.45 * (0.5 * f + 0.5 * grey)  # context only: dim, half desaturated
-    tp = gt & pred
     out[tp] = f[tp]
-    for m, rgb in ((pred & ~gt, FP_RGB), (gt & ~pred, FN_RGB)):
+    for m, rgb in ((fp, FP_RGB), (fn, FN_RGB)):
         out[m] = 0.15 * f[m] + 0.85 * np.asarray(rgb, np.float32)
     return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+
+
+def overlay(image: np.ndarray, gt: np.ndarray, pred: np.ndarray) -> np.ndarray:
+    """:func:`paint` of a prediction against its GT (all [H, W], the GT's size)."""
+    return paint(image, gt & pred, pred & ~gt, gt & ~pred)
+
+
+def shrink_any(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Downscale a bool mask so that a pixel is set when *any* pixel it covers is: a
+    one-pixel error on a 4000-pixel-wide GT stays visible in a 480-pixel picture."""
+    from PIL import Image
+
+    if mask.shape == tuple(shape):
+        return mask
+    im = Image.fromarray(mask.astype(np.uint8) * 255).resize((shape[1], shape[0]), resample=Image.BOX)
+    return np.asarray(im) > 0
 
 
 def _edges(m: np.ndarray) -> np.ndarray:
@@ -233,7 +257,7 @@ def compose(ps: PictureSet, image: Optional[np.ndarray], gt: Optional[np.ndarray
 
     ref_shape = gt.shape if gt is not None else (image.shape[:2] if image is not None else None)
     if image is not None:
-        ps.files["image"] = put("image.png", resize_rgb(image, display_shape(image.shape)))
+        ps.files["image"] = put("image.jpg", resize_rgb(image, display_shape(image.shape)))
     if gt is not None:
         ps.gt_size = gt.shape
         ps.files["gt"] = put("gt.png", resize_nearest(gt, display_shape(gt.shape)))
@@ -243,6 +267,10 @@ def compose(ps: PictureSet, image: Optional[np.ndarray], gt: Optional[np.ndarray
     fitted = {m: resize_nearest(p, gt.shape) for m, p in preds.items()} if gt is not None else {}
     if gt is not None and fitted:
         ps.crop = crop_window(gt, [(p ^ gt) for p in fitted.values()])
+    if gt is not None:
+        dshape = display_shape(gt.shape)
+        back_d = resize_rgb(back, dshape)
+        scale = dshape[1] / gt.shape[1]
     for mp in ps.methods:
         d = slug(mp.method)
         if mp.method in preds:
@@ -251,16 +279,19 @@ def compose(ps: PictureSet, image: Optional[np.ndarray], gt: Optional[np.ndarray
             mp.files["pred"] = put(f"{d}/pred.png", resize_nearest(resize_nearest(p, shape), display_shape(shape)))
         if mp.method in fitted:
             p = fitted[mp.method]
-            mp.fp_px, mp.fn_px = int(np.count_nonzero(p & ~gt)), int(np.count_nonzero(gt & ~p))
-            ov = overlay(back, gt, p)
+            tp, fp, fn = gt & p, p & ~gt, gt & ~p
+            mp.fp_px, mp.fn_px = int(np.count_nonzero(fp)), int(np.count_nonzero(fn))
             top, left, size = ps.crop
-            mp.files["crop"] = put(f"{d}/crop.png", crop_display(ov, top, left, size))
-            disp = resize_rgb(ov, display_shape(ov.shape))
-            s = disp.shape[1] / ov.shape[1]
-            disp = draw_box(disp, round(top * s), round(left * s), max(2, round(size * s)),
+            win = (slice(top, top + size), slice(left, left + size))
+            mp.files["crop"] = put(f"{d}/crop.png", crop_display(paint(back[win], tp[win], fp[win], fn[win]),
+                                                                 0, 0, size))
+            # The page-size overlay is painted at page size from error maps shrunk with
+            # "any", so that thin boundary errors do not average away.
+            disp = paint(back_d, resize_nearest(tp, dshape), shrink_any(fp, dshape), shrink_any(fn, dshape))
+            disp = draw_box(disp, round(top * scale), round(left * scale), max(2, round(size * scale)),
                             max(1, round(disp.shape[1] / 240)))
             mp.files["overlay"] = put(f"{d}/overlay.png", disp)
         for kind in ("object", "removed"):
             r = renders.get(mp.method, {}).get(kind)
             if r is not None:
-                mp.files[kind] = put(f"{d}/{kind}.png", resize_rgb(r, display_shape(r.shape)))
+                mp.files[kind] = put(f"{d}/{kind}.jpg", resize_rgb(r, display_shape(r.shape)))

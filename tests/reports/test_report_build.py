@@ -145,8 +145,8 @@ def test_pictures_and_plots_exist(report):
     for name in ("iou_biou", "psnr", "time", "delta_sweep", "scores"):
         assert (root / "plots" / f"{name}.svg").stat().st_size > 1000
     for method in ("cobgs", "no_bgtr", "delta_03", "nosplit", "flashsplat"):
-        for kind in ("pred", "overlay", "crop", "object", "removed"):
-            assert (root / "img" / "s1" / "ball" / "v000" / method / f"{kind}.png").is_file()
+        for kind in ("pred.png", "overlay.png", "crop.png", "object.jpg", "removed.jpg"):
+            assert (root / "img" / "s1" / "ball" / "v000" / method / kind).is_file()
     assert (root / "img" / "s1" / "ball" / "v000" / "gt.png").is_file()
     assert not (root / "img" / "s2" / "ball" / "v000" / "flashsplat").exists()  # failed: nothing drawn
 

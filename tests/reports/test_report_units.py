@@ -173,3 +173,24 @@ def test_slug_keeps_names_apart():
     assert a != b and "/" not in a and " " not in a
     assert not math.isnan(len(slug("../x")))
     assert ".." not in slug("../x").split("-")[0]
+
+
+def test_thin_errors_survive_the_page_size_overlay(tmp_path):
+    """A one-pixel-wide false positive on a GT four times wider than the page picture
+    still shows in the overlay, and the counts are the full-resolution ones."""
+    from PIL import Image
+
+    from reports.pictures import MAX_WIDTH_PX, MethodPictures, PictureSet, compose
+
+    h, w = 300, 4 * MAX_WIDTH_PX
+    gt = np.zeros((h, w), bool)
+    gt[100:200, 600:1200] = True
+    pred = gt.copy()
+    pred[100:200, 1200] = True
+    ps = PictureSet("s", "o", "v", methods=[MethodPictures("m", "M")])
+    compose(ps, np.full((h // 4, w // 4, 3), 120, np.uint8), gt, {"m": pred}, {}, tmp_path, "x")
+    assert (ps.methods[0].fp_px, ps.methods[0].fn_px) == (100, 0)
+    ov = np.asarray(Image.open(tmp_path / "m" / "overlay.png")).astype(int)
+    assert ov.shape[1] == MAX_WIDTH_PX
+    red = np.abs(ov - np.array(FP_RGB)).sum(axis=2) < 60
+    assert red[25:50].any() and red.sum() >= 20
