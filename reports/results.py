@@ -267,14 +267,15 @@ def method_records(data: RunData, infos: dict, log_href: LogHref) -> tuple[list[
         info = infos.get(method, MethodInfo(method))
         done_scenes = sorted({r.scene for r in rs if r.ok}, key=scenes.index)
         rec.update(method=method, kind=info.kind_label, config=info.config, status=status,
-                   scenes=len(done_scenes), peak_rss=max(peaks) if peaks else None,
+                   scenes=len(done_scenes), objects_total=len(rs), peak_rss=max(peaks) if peaks else None,
                    objects=sum(r.ok for r in rs), _class={"status": cls, "method": _ref_class(infos, method)},
                    _href={"status": href} if href else {},
                    _title={"status": title}, _sub={"method": _method_sub(info)},
-                   _nobest=len(done_scenes) < len(scenes),
-                   _row_class=[f"role-{info.role}"])
+                   # a mean over fewer scenes or objects is not comparable: never "best"
+                   _nobest=not all(r.ok for r in rs), _row_class=[f"role-{info.role}"])
         rec["_text"] = {"scenes": f"{len(done_scenes)} of {len(scenes)}" if len(done_scenes) < len(scenes)
-                        else str(len(scenes))}
+                        else str(len(scenes)),
+                        "objects": f"{rec['objects']} of {len(rs)}" if rec["objects"] < len(rs) else str(len(rs))}
         protocols = {data.scenes[s].protocol for s in done_scenes}
         q = paper.nvos_quote(info.paper) if protocols == {"nvos"} else None
         if q is not None:

@@ -47,10 +47,11 @@ def result_tables(data: RunData, infos: dict, logs: R.LogHref) -> dict:
     t_method = build_table(
         "t-method", "Results by method: mean over objects within a scene, then over scenes",
         [Column("method", "Method", numeric=False, title="method item; below: its kind and the options that "
-                "differ from the refine stage's defaults"), Column("scenes", "Scenes", fmt.count)]
+                "differ from the refine stage's defaults"), Column("scenes", "Scenes", fmt.count),
+         Column("objects", "Objects", fmt.count, title="scene x object items with metrics")]
         + _cols_metrics() + paper_m + [status], by_method,
-        notes=notes + ["Best values are shaded and bold (among methods with every scene done; "
-                       "not marked when all are equal)."])
+        notes=notes + ["Best values are shaded and bold, among methods with every scene and object "
+                       "done (a mean over fewer is not comparable); not marked when all are equal."])
     t_scene = build_table(
         "t-scene", "Results per scene × method (mean over the scene's objects); best per scene marked",
         [Column("scene", "Scene", numeric=False), Column("method", "Method", numeric=False),

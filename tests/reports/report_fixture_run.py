@@ -7,8 +7,9 @@ amount, and evaluate *measures* IoU / accuracy / boundary IoU of those predictio
 plain numpy, so every number the report shows is computed from the fixture's own masks.
 The engine writes the manifests, logs, failure records and cache keys for real.
 
-One refine task fails on purpose (``fail_on``), so the report has a failure with a log and
-downstream tasks that never ran.
+Two refine tasks fail on purpose (``fail_on``): FlashSplat on s2 (a method missing a whole
+scene) and the no-split peer on s1/box (a method with every scene but not every object),
+so the report has failures with logs and downstream tasks that never ran.
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ refine = {{ cobgs = {{ bgtr = false }} }}
 [axes.method.delta_03]
 refine = {{ cobgs = {{ delta = 0.3 }} }}
 [axes.method.nosplit]
-refine = {{ method = "nosplit" }}
+refine = {{ method = "nosplit", fail_on = "{fail_on}" }}
 [axes.method.flashsplat]
 refine = {{ method = "flashsplat", fail_on = "{fail_on}" }}
 
@@ -59,7 +60,7 @@ refine = {{ method = "flashsplat", fail_on = "{fail_on}" }}
 """
 
 
-def write_workflow(folder: Path, protocol: str = "exact", fail_on: str = "s2/flashsplat/ball",
+def write_workflow(folder: Path, protocol: str = "exact", fail_on: str = "s2/flashsplat/ball,s1/nosplit/box",
                    scenes: tuple[str, str] = ("s1", "s2")) -> Path:
     path = Path(folder) / "fixture.toml"
     path.write_text(WORKFLOW.format(protocol=protocol, fail_on=fail_on, scene1=scenes[0], scene2=scenes[1]))
@@ -175,7 +176,7 @@ class RefineParams:
 
 def run_refine(ctx, inputs):
     p = ctx.params
-    if ctx.item.id == p.fail_on:
+    if ctx.item.id in p.fail_on.split(","):
         print("fixture refine: about to fail on purpose")
         raise RuntimeError(f"fixture: simulated failure of {ctx.item.id}")
     method = ctx.item["method"]

@@ -75,7 +75,7 @@ def metrics_rows(recorded) -> list[dict]:
 def test_method_means_are_the_measured_ones(recorded, report):
     """mIoU per method = mean over scenes of the mean over objects of evaluate's rows."""
     rows = metrics_rows(recorded)
-    assert len(rows) == 14  # 15 items, one refine failed
+    assert len(rows) == 13  # 15 items, two refines failed
     record = json.loads((report.parent / MARKER).read_text())
     by_method = {r["method"]: r for r in record["by_method"]}
     for method in ("cobgs", "no_bgtr", "nosplit", "flashsplat"):
@@ -86,18 +86,23 @@ def test_method_means_are_the_measured_ones(recorded, report):
                 scene_means.append(sum(ious) / len(ious))
         assert by_method[method]["iou"] == pytest.approx(sum(scene_means) / len(scene_means), abs=1e-12)
     assert by_method["flashsplat"]["scenes"] == 1  # s2 has no result: not averaged in as zero
+    assert by_method["nosplit"]["scenes"] == 2 and by_method["nosplit"]["objects"] == 2
 
 
 def test_summary_table_marks_best_and_shows_percentages(report):
     rows = parse(report).rows["t-method"]
     methods = [r[0][0] for r in rows]
     assert methods == ["cobgs", "no_bgtr", "delta_03", "nosplit", "flashsplat"]
-    miou = [r[2] for r in rows]  # Method, Scenes, mIoU, ...
+    miou = [r[3] for r in rows]  # Method, Scenes, Objects, mIoU, ...
     assert "best" in miou[0][1]["class"] and float(miou[0][0]) == max(float(c[0]) for c in miou)
     assert not any("best" in c[1].get("class", "") for c in miou[1:])
-    # the incomplete method (1 of 2 scenes) never takes a best mark and says why
-    assert rows[-1][1][0] == "1 of 2"
-    assert "failed: refine" in rows[-1][-1][0]
+    # incomplete methods never take a best mark and say why: a scene missing (flashsplat),
+    # or every scene but not every object (nosplit, whose mean covers fewer objects)
+    cols = [c[0] for c in rows[-1]]
+    assert cols[1:3] == ["1 of 2", "2 of 3"] and "failed: refine" in cols[-1]
+    nosplit = [c[0] for c in rows[3]]
+    assert nosplit[1:3] == ["2", "2 of 3"] and "failed: refine" in nosplit[-1]
+    assert not any("best" in c[1].get("class", "") for r in rows[3:] for c in r)
 
 
 def test_failure_is_listed_with_its_log_copied_into_the_report(report):
