@@ -134,21 +134,25 @@ def _plots(data: RunData, infos: dict, by_method: list[dict], by_scene: list[dic
     ref = R.reference_method(infos)
     methods = [r["method"] for r in by_method]
     colors = P.method_colors(data.methods, ref)
-    out: dict = dict.fromkeys(("iou_biou", "psnr", "time", "delta_sweep", "scores", "scores_skipped"))
+    out: dict = dict.fromkeys(("iou_biou", "psnr", "time", "delta_sweep", "scores", "scores_skipped", "incomplete"))
     pts = {m: [(r.get("iou"), r.get("biou")) for r in by_scene if r["method"] == m and r.get("objects")]
            for m in methods}
     if len(data.scenes) < 2:
         pts = {}
+    # "*": the method misses some scene or object, so its mean covers fewer (as in the table)
+    labels = [r["method"] + ("*" if r.get("_nobest") else "") for r in by_method]
+    out["incomplete"] = [r["method"] for r in by_method if r.get("_nobest")]
     if P.iou_biou(root / "plots/iou_biou.svg", methods, [fmt.finite(r.get("iou")) for r in by_method],
-                  [fmt.finite(r.get("biou")) for r in by_method], pts, colors):
+                  [fmt.finite(r.get("biou")) for r in by_method], pts, colors, labels):
         out["iou_biou"] = "plots/iou_biou.svg"
     vanilla = fmt.finite(_mean([r.get("psnr_vanilla") for r in by_method]))
-    if P.psnr(root / "plots/psnr.svg", methods, [fmt.finite(r.get("psnr")) for r in by_method], vanilla, colors):
+    if P.psnr(root / "plots/psnr.svg", methods, [fmt.finite(r.get("psnr")) for r in by_method], vanilla, colors,
+              labels):
         out["psnr"] = "plots/psnr.svg"
     bars, stages = R.stage_time_bars(data)
     if P.time_breakdown(root / "plots/time.svg", bars, stages):
         out["time"] = "plots/time.svg"
-    if P.delta_sweep(root / "plots/delta_sweep.svg", R.delta_groups(data, infos)):
+    if P.delta_sweep(root / "plots/delta_sweep.svg", R.delta_groups(data, infos), R.FIXED_DELTA):
         out["delta_sweep"] = "plots/delta_sweep.svg"
     panels, skipped = R.score_panels(data, ref)
     if P.score_curves(root / "plots/scores.svg", panels):

@@ -59,8 +59,9 @@ def method_colors(methods: Sequence[str], reference: Optional[str]) -> dict[str,
 
 
 def iou_biou(path: Path, methods: Sequence[str], iou: Sequence[Optional[float]], biou: Sequence[Optional[float]],
-             points: dict, colors: dict) -> bool:
-    """Grouped bars of mIoU and mBIoU (%) per method; per-scene means as dots."""
+             points: dict, colors: dict, labels: Optional[Sequence[str]] = None) -> bool:
+    """Grouped bars of mIoU and mBIoU (%) per method; per-scene means as dots. ``labels``
+    replace the method names on the axis (e.g. marked as incomplete)."""
     if not any(v is not None for v in list(iou) + list(biou)):
         return False
     plt = _plt()
@@ -82,7 +83,7 @@ def iou_biou(path: Path, methods: Sequence[str], iou: Sequence[Optional[float]],
                 ax.plot(i - w / 2, 100 * a, "o", ms=2.5, color="black", alpha=0.55, zorder=3)
             if b is not None:
                 ax.plot(i + w / 2, 100 * b, "o", ms=2.5, color="black", alpha=0.55, zorder=3)
-    ax.set_xticks(x, methods, rotation=20 if n > 4 else 0, ha="right" if n > 4 else "center")
+    ax.set_xticks(x, labels or methods, rotation=20 if n > 4 else 0, ha="right" if n > 4 else "center")
     ax.set_ylabel("%")
     ax.set_ylim(0, 105)
     from matplotlib.patches import Patch
@@ -96,7 +97,7 @@ def iou_biou(path: Path, methods: Sequence[str], iou: Sequence[Optional[float]],
 
 
 def psnr(path: Path, methods: Sequence[str], values: Sequence[Optional[float]], vanilla: Optional[float],
-         colors: dict) -> bool:
+         colors: dict, labels: Optional[Sequence[str]] = None) -> bool:
     """Each method's held-out PSNR as a dot on a stem from the vanilla scene's PSNR (dashed):
     the stem is the change, and no bar pretends the axis starts at zero."""
     if not any(v is not None for v in values):
@@ -125,7 +126,7 @@ def psnr(path: Path, methods: Sequence[str], values: Sequence[Optional[float]], 
         ax.axvline(vanilla, color="black", ls="--", lw=0.9)
         ax.annotate(f"vanilla {vanilla:.2f}", (vanilla, n - 0.45), xytext=(3, 0), textcoords="offset points",
                     fontsize=7, va="bottom")
-    ax.set_yticks(y, methods)
+    ax.set_yticks(y, labels or methods)
     ax.set_xlabel("PSNR on held-out views (dB)")
     ax.grid(axis="y", visible=False)
     ax.set_title("Texture quality per method (vs the vanilla scene)", loc="left")
@@ -160,28 +161,35 @@ def time_breakdown(path: Path, bars: Sequence[tuple[str, dict]], stages: Sequenc
     return True
 
 
-def delta_sweep(path: Path, groups: Sequence[tuple[str, Sequence[tuple[float, float, float]]]]) -> bool:
+def delta_sweep(path: Path, groups: Sequence[tuple[str, Sequence[tuple]]], fixed_delta: float = 0.5) -> bool:
     """Paper Fig. 7 from a δ sweep: ambiguous and total Gaussians after refinement vs δ.
 
     Args:
-        groups: [(label, [(delta, ambiguous, total), ...])], one line per scene / object.
+        groups: [(label, [(delta, ambiguous under its own δ, total, ambiguous under
+            ``fixed_delta`` or None), ...])], one line per scene / object.
     """
     groups = [(g, sorted(pts)) for g, pts in groups if len(pts) >= 2]
     if not groups:
         return False
     plt = _plt()
-    fig, (a1, a2) = plt.subplots(1, 2, figsize=(7.0, 2.6), layout="constrained")
+    fig, (a1, a2) = plt.subplots(1, 2, figsize=(7.4, 2.7), layout="constrained")
     for k, (label, pts) in enumerate(groups):
         d = [p[0] for p in pts]
         c = PALETTE[k % len(PALETTE)] if len(groups) > 1 else REFERENCE_COLOR
-        a1.plot(d, [p[1] for p in pts], "o-", color=c, ms=3.5, label=label)
+        a1.plot(d, [p[1] for p in pts], "o-", color=c, ms=3.5,
+                label="score < its own δ" + (f" ({label})" if len(groups) > 1 else ""))
+        fixed = [(p[0], p[3]) for p in pts if p[3] is not None]
+        if len(fixed) >= 2:
+            a1.plot([f[0] for f in fixed], [f[1] for f in fixed], "o--", color=c, ms=3.5, mfc="white",
+                    label=f"score < {fixed_delta:g}, last mask stage" + (f" ({label})" if len(groups) > 1 else ""))
         a2.plot(d, [p[2] for p in pts], "s-", color=c, ms=3.5, label=label)
-    a1.set_title("ambiguous Gaussians (score < δ)")
+    a1.set_title("ambiguous Gaussians at the end")
     a2.set_title("total Gaussians after refinement")
+    a1.legend(loc="best", fontsize=7)
     for a in (a1, a2):
-        a.set_xlabel("δ")
+        a.set_xlabel("δ of the run")
     if len(groups) > 1:
-        a2.legend(loc="best")
+        a2.legend(loc="best", fontsize=7)
     _save(fig, path)
     return True
 

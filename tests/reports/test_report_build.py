@@ -268,3 +268,26 @@ def test_cli(recorded, tmp_path, monkeypatch, capsys):
     assert rc == 1 and "does not exist" in capsys.readouterr().err
     rc = main(["report", str(recorded.workflow), "--cache-dir", str(recorded.cache), "--set", "refine.nope=1"])
     assert rc == 2 and "nope" in capsys.readouterr().err
+
+
+def test_delta_sweep_points_are_the_recorded_counts(recorded):
+    """Fig. 7's points: each run's own ambiguous count and size from refine.json, and the
+    fixed-δ count recomputed from its last mask stage's scores."""
+    import numpy as np
+
+    from pipeline import load_workflow
+    from reports.collect import collect
+    from reports.results import FIXED_DELTA, delta_groups, method_infos
+
+    data = collect(load_workflow(recorded.workflow, recorded.registry, []), recorded.cache)
+    groups = dict(delta_groups(data, method_infos(data)))
+    assert set(groups) == {"s1 / ball", "s1 / box", "s2 / ball"}  # cobgs (δ 0.5) + delta_03
+    for r in data.results:
+        if r.method not in ("cobgs", "delta_03") or not r.ok:
+            continue
+        pts = {p[0]: p for p in groups[f"{r.scene} / {r.object}"]}
+        d, own, total, fixed = pts[r.refine["delta"]]
+        with np.load(r.refine_dir / "stage_scores.npz") as z:
+            last = z[f"stage_{len(z.files) - 1}"]
+        assert (own, total) == (r.refine["ambiguous_final"], r.refine["num_gaussians_end"])
+        assert fixed == np.count_nonzero(last < FIXED_DELTA)
