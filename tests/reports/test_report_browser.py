@@ -95,9 +95,15 @@ def test_comparison_toggle_and_slider(page):
     assert page.eval(f"document.querySelector('{box} .cmp-tag.right').textContent") == "nosplit"
     page.click(f"{box} button[data-kind='crop']")
     assert left() == data["cobgs"]["crop"] and right() == data["nosplit"]["crop"]
-    # the images the toggle switched to are loaded, not broken
-    page.eval("new Promise(r => setTimeout(r, 300))")
-    assert page.eval(f"document.querySelector('{box} img.cmp-right').naturalWidth") > 0
+    # the image the toggle switched to loads (waits for it: the machine may be busy)
+    loaded = page.eval(f"""new Promise(done => {{
+        const img = document.querySelector('{box} img.cmp-right');
+        if (img.complete) return done(img.naturalWidth);
+        img.addEventListener('load', () => done(img.naturalWidth));
+        img.addEventListener('error', () => done(0));
+        setTimeout(() => done(-1), 10000);
+    }})""")
+    assert loaded > 0
     page.eval(f"(function(){{var r=document.querySelector('{box} input.cmp-range'); r.value=20;"
               f"r.dispatchEvent(new Event('input'));}})()")
     assert page.eval(f"document.querySelector('{box} img.cmp-right').style.clipPath") == "inset(0px 0px 0px 20%)"
