@@ -186,3 +186,69 @@ def test_export_copies_the_ply_layout(tiny, tmp_path):
             assert (out / "tiny" / method / "ball" / f).is_file(), (method, f)
     rec = json.loads((out / "export.json").read_text())
     assert rec["missing"] == [] and len(rec["copied"]) >= 15
+
+
+def test_noisy_masks_source(tiny, tmp_path):
+    """An object value can name the same dataset object with another mask source."""
+    import cv2
+    import numpy as np
+
+    path, cache, wf, _ = tiny
+    noisy = tmp_path / "noisy.toml"
+    noisy.write_text(path.read_text() + '[axes.object.tiny.ball_noisy]\nmask = "ball"\n'
+                     'masks = { source = "noisy", noise = { drop_rate = 0.2, morph_rate = 1.0, seed = 3 } }\n')
+    wf2, summary, log = _run(noisy, cache, only=("masks",))
+    assert summary.exit_code == 0, log
+    states = _states(summary)
+    assert states[("masks", "tiny/ball_noisy")] == "done" and states[("masks", "tiny/ball")] == "cached"
+    clean = _entry(wf2, cache, "masks", "tiny/ball").output("masks")
+    dirty = _entry(wf2, cache, "masks", "tiny/ball_noisy").output("masks")
+    info = json.loads((dirty / "masks.json").read_text())
+    recs = info["noise"]["records"]
+    assert info["source"] == "noisy" and info["object"] == "ball" and set(recs) == {p.stem for p in clean.glob("*.png")}
+    assert any(r["dropped"] for r in recs.values()) and all(r["dropped"] or r["morph_px"] for r in recs.values())
+    changed = sum(not np.array_equal(cv2.imread(str(f), 0), cv2.imread(str(dirty / f.name), 0))
+                  for f in clean.glob("*.png"))
+    assert changed == len(recs)  # every mask was dropped or eroded / dilated
+    assert sorted(info["empty"]) == sorted(k for k, r in recs.items() if r["dropped"])
+
+
+def test_device_enters_the_keys_of_computing_stages_only(tiny):
+    path, cache, _, _ = tiny
+    _, dry, _ = _run(path, cache, sets=["device=cuda"], dry_run=True)
+    notes = {(dry.plan.tasks[i].stage.name, dry.plan.tasks[i].item.id): (o.state, o.note)
+             for i, o in dry.outcomes.items()}
+    assert notes[("dataset", "tiny")][0] == "cached"
+    for stage, item in (("sfm", "tiny"), ("train", "tiny"), ("masks", "tiny/ball"),
+                        ("refine", "tiny/cobgs/ball"), ("segment", "tiny/cobgs/ball")):
+        state, note = notes[(stage, item)]
+        assert state == "would run" and "device changed" in note, (stage, note)
+
+
+def test_sfm_failure_names_the_images_that_did_not_register(tiny, tmp_path):
+    """A folder of images without poses (kind "images"): SfM runs; two noise images cannot
+    register, and the failed task's message names them."""
+    import shutil
+
+    import cv2
+    import numpy as np
+
+    path, cache, wf, _ = tiny
+    src = _entry(wf, cache, "dataset", "tiny").output("dataset") / "scene" / "images"
+    images = tmp_path / "capture" / "images"
+    images.mkdir(parents=True)
+    for f in sorted(src.glob("*.png"))[:8]:
+        shutil.copy(f, images / f.name)
+    rng = np.random.default_rng(0)
+    for name in ("zz_noise_a.png", "zz_noise_b.png"):
+        cv2.imwrite(str(images / name), rng.integers(0, 256, (120, 160, 3), dtype=np.uint8))
+    wpath = tmp_path / "capture.toml"
+    wpath.write_text(f'[workflow]\nstages = ["sfm"]\n[params.sfm.options]\ncamera_model = "SIMPLE_PINHOLE"\n'
+                     f'num_threads = 2\n[axes.scene.capture]\nkind = "images"\npath = "{images.parent}"\n')
+    wf2, summary, log = _run(wpath, tmp_path / "cache")
+    assert summary.exit_code == 1
+    states = _states(summary)
+    assert states[("dataset", "capture")] == "done" and states[("sfm", "capture")] == "failed"
+    failed = next(o for o in summary.outcomes.values() if o.state == "failed")
+    text = Path(failed.log_path).read_text()
+    assert "zz_noise_a.png" in text and "zz_noise_b.png" in text and "registered 8 of 10" in text
