@@ -219,8 +219,24 @@ def _write(data: RunData, root: Path, sets: list[str]) -> None:
               "by_method": _plain(tables["raw"]["by_method"]),
               "by_scene_method": _plain(tables["raw"]["by_scene_method"]),
               "failures": failures, "plots": plots}
+    for name, recs in tables["raw"].items():  # the tables as data, for an appendix's own typesetting
+        _write_csv(root / "data" / f"{name}.csv", _plain(recs))
     (root / MARKER).write_text(json.dumps(record, indent=1, default=str) + "\n", encoding="utf-8")
     (root / "index.html").write_text(html, encoding="utf-8")  # last: the page is the report
+
+
+def _write_csv(path: Path, rows: list[dict]) -> None:
+    import csv
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    keys: list[str] = []
+    for r in rows:
+        keys += [k for k, v in r.items() if k not in keys and not isinstance(v, (dict, list))]
+    with open(path, "w", newline="", encoding="utf-8") as f:
+        w = csv.DictWriter(f, fieldnames=keys, extrasaction="ignore")
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: "" if r.get(k) is None else r.get(k) for k in keys})
 
 
 def _count(values) -> dict:

@@ -87,7 +87,7 @@ def result_tables(data: RunData, infos: dict, logs: R.LogHref) -> dict:
          Column("ssim", "SSIM", lambda v: "" if fmt.finite(v) is None else f"{v:.4f}"),
          Column("status", "Training", numeric=False)], R.scene_records(data))
     return {"method": t_method, "scene": t_scene, "object": t_object, "scenes": t_scenes,
-            "raw": {"by_method": by_method, "by_scene_method": by_scene}}
+            "raw": {"by_method": by_method, "by_scene_method": by_scene, "by_object": recs}}
 
 
 def detail_tables(data: RunData, ref: Optional[str], logs: R.LogHref) -> tuple[Table, Table]:
