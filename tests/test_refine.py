@@ -380,3 +380,14 @@ def test_apply_raem_matches_running_with_raem(variant):
     assert off.stages[-1].pruned == 0 and len(off.model) > len(post.model)  # input untouched
     with pytest.raises(InputError):
         apply_raem(direct, "paper", views)
+
+
+def test_peak_memory_sees_an_allocation_after_a_free():
+    from cobgs.refine_result import PeakMemory
+
+    big = torch.ones(40_000_000)  # 160 MB allocated and freed: stays in the process
+    del big
+    with PeakMemory() as mem:
+        x = torch.ones(25_000_000)  # 100 MB
+        x += 1
+    assert 80 * 2**20 < mem.peak_bytes < 400 * 2**20
