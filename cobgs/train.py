@@ -398,6 +398,24 @@ class Trainer:
         self.load_state_dict(state)
 
 
+def load_model(path: os.PathLike | str) -> GaussianModel:
+    """The Gaussians of a training checkpoint (``.pt``) or of a PLY file."""
+    path = Path(path)
+    if path.suffix.lower() == ".ply":
+        from .ply import load_ply
+
+        return load_ply(path)
+    if not path.is_file():
+        raise DataError("checkpoint not found", path)
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=False)
+        return GaussianModel.from_state_dict(state["model"])
+    except (KeyError, TypeError) as e:
+        raise DataError(f"not a cobgs training checkpoint (no model state): {e}", path) from e
+    except Exception as e:  # torch raises several types for corrupt files
+        raise DataError(f"unreadable checkpoint: {e}", path) from e
+
+
 def save_atomic(obj, path: os.PathLike | str) -> Path:
     """``torch.save`` into a temporary file in the same folder, then rename into place."""
     path = Path(path)
@@ -496,7 +514,7 @@ def train(
             rec = {"it": it, "loss": info["loss"], "psnr": info["psnr"], "num_gaussians": len(trainer.model)}
             history.append(rec)
             if bar is not None:
-                bar.set_postfix(loss=f"{ema_loss:.4f}", psnr=f"{info['psnr']:.2f}", n=len(trainer.model))
+                bar.set_postfix(loss=f"{ema_loss:.4f}", psnr=f"{info['psnr']:.2f}", n=str(len(trainer.model)))
         if bar is not None:
             bar.update(1)
         if checkpoint_dir is not None and config.checkpoint_interval_its > 0 and it % config.checkpoint_interval_its == 0:

@@ -10,7 +10,7 @@ from cobgs.data.scene import View, make_scene
 from cobgs.errors import InputError
 from cobgs.gaussians import GaussianModel
 from cobgs.render import render
-from cobgs.train import Trainer, TrainConfig, evaluate, expon_lr, train
+from cobgs.train import Trainer, TrainConfig, evaluate, expon_lr, load_model, train
 
 
 def _orbit_camera(i, n, w, h, radius=3.0):
@@ -163,6 +163,8 @@ def test_deterministic_and_resume_is_exact(tiny_scene, tmp_path):
     for k in a.model.data:
         assert torch.equal(a.model.data[k], c.model.data[k]), k
     assert c.model.active_sh_degree == a.model.active_sh_degree
+    m = load_model(tmp_path / "a" / "ckpt_final.pt")
+    assert all(torch.equal(m.data[k], a.model.data[k]) for k in a.model.data)
     other = _cfg(densify_grad_threshold_ndc=1e-3)
     with pytest.raises(InputError, match="densify_grad_threshold_ndc"):
         train(tiny_scene, other, resume=tmp_path / "a" / "ckpt_20.pt", progress=False)
