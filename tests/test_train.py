@@ -63,7 +63,8 @@ def _cfg(**kw):
 
 def test_schedule_scaling_and_lr():
     s = TrainConfig(iterations=7000).schedule()
-    assert (s.densify_from, s.densify_until, s.densify_interval) == (117, 3500, 23)
+    assert (s.densify_from, s.densify_until, s.densify_interval) == (117, 3500, 100)
+    assert TrainConfig(iterations=7000, scale_densify_interval=True).schedule().densify_interval == 23
     assert (s.opacity_reset_interval, s.sh_degree_interval, s.position_lr_decay) == (700, 233, 7000)
     full = TrainConfig(iterations=7000, scale_schedule=False).schedule()
     assert (full.densify_until, full.densify_interval, full.position_lr_decay) == (15000, 100, 30000)
