@@ -29,6 +29,7 @@ class TrainOptions:
     iterations: int = 30_000
     seed: int = 0
     scale_schedule: bool = True
+    scale_densify_interval: bool = False
     reference_iterations: int = 30_000
     sh_degree: int = 3
     sh_degree_interval_its: int = 1_000
