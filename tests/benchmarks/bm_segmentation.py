@@ -20,7 +20,8 @@ Scenes (``--scenes``):
   on ``--max-test-views`` evenly spaced views of ``transforms_test``, at 800/``--lego-downscale``.
 
 Baselines: 3DGS (:func:`cobgs.train.train`) for ``--train-iters`` iterations with the
-schedule compressed to that length and at most ``--max-gaussians`` Gaussians, SH degree
+whole schedule compressed to that length (densification interval included,
+``scale_densify_interval=True``) and at most ``--max-gaussians`` Gaussians, SH degree
 ``--sh-degree``. Synthetic scenes start from ``--init-points`` surface points of the exact
 geometry seen by the training views (a stand-in for SfM points, no SfM run); lego starts
 from random points in the 3DGS NeRF-synthetic cube, as 3DGS does.
@@ -154,9 +155,10 @@ def load_scene(args, name: str):
 
 
 def baseline(args, name, scene, init_spec, scene_key):
-    cfg = TrainConfig(iterations=args.train_iters, sh_degree=args.sh_degree, max_gaussians=args.max_gaussians,
-                      random_init_points=args.init_points, seed=0)
-    key = key_of(dict(scene_key, train=dataclasses.asdict(cfg), init=args.init_points))
+    explicit = dict(iterations=args.train_iters, sh_degree=args.sh_degree, max_gaussians=args.max_gaussians,
+                    random_init_points=args.init_points, seed=0, scale_densify_interval=True)
+    cfg = TrainConfig(**explicit)
+    key = key_of(dict(scene_key, train=explicit))
     path = Path(args.workdir) / "baselines" / f"{scene_key['scene']}_{key}.pt"
     if path.is_file():
         d = torch.load(path, weights_only=False)
@@ -252,9 +254,12 @@ def table(name, objects, per_obj, vanilla, rows) -> str:
 
 
 def delta_sweep(args, scene, obj, scene_type, model, cache_dir: Path) -> str:
+    ref = args.sweep_ref_delta
     lines = [f"### δ sweep ({args.sweep_scene}, {obj}; COB-GS with RAEM off)", "",
-             "| δ | ambiguous (final, before RAEM) | large ambiguous (first → last stage) | total Gaussians | "
-             "mBIoU | mIoU |", "|---|---|---|---|---|---|"]
+             "Ambiguous = final stage-mean score below the threshold, before RAEM; counted at the run's own δ and "
+             f"at a fixed reference δ = {ref} (same yardstick for every run); large = above the split size.", "",
+             f"| δ | ambiguous (own δ) | ambiguous (δ = {ref}) | large ambiguous, own δ (first → last stage) | "
+             "total Gaussians | mBIoU | mIoU |", "|---|---|---|---|---|---|---|"]
     for d in args.deltas:
         f = cache_dir / f"sweep_{obj}_{d}.json"
         if f.is_file():
@@ -265,10 +270,13 @@ def delta_sweep(args, scene, obj, scene_type, model, cache_dir: Path) -> str:
                          background=scene.background, object_name=obj, progress=args.progress)
             ev = evaluate_masks(res, scene.test, masks_for(scene.test, obj))
             mstages = [s for s in res.stages if s.kind == "mask"]
+            final = res.stage_scores[-1]
             m = {"ambiguous": res.ambiguous_final, "large_first": mstages[0].ambiguous_large,
-                 "large_last": mstages[-1].ambiguous_large, "n": len(res.model), "biou": ev["biou"], "iou": ev["iou"]}
+                 "large_last": mstages[-1].ambiguous_large, "n": len(res.model), "biou": ev["biou"], "iou": ev["iou"],
+                 "ambiguous_at": {str(t): int((final < t).sum()) for t in (0.3, 0.5, 0.7, 0.9, ref)}}
             f.write_text(json.dumps(m))
-        lines.append(f"| {d} | {m['ambiguous']} | {m['large_first']} → {m['large_last']} | {m['n']} | "
+        at_ref = m.get("ambiguous_at", {}).get(str(ref), "n/a")
+        lines.append(f"| {d} | {m['ambiguous']} | {at_ref} | {m['large_first']} → {m['large_last']} | {m['n']} | "
                      f"{100 * m['biou']:.2f} | {100 * m['iou']:.2f} |")
     return "\n".join(lines)
 
@@ -317,6 +325,7 @@ def main(argv=None):
     ap.add_argument("--flashsplat-bias", type=float, default=0.0)
     ap.add_argument("--sweep-scene", default="forward_noisy")
     ap.add_argument("--deltas", default="0.3,0.5,0.7,0.9")
+    ap.add_argument("--sweep-ref-delta", type=float, default=0.5)
     ap.add_argument("--no-sweep", action="store_true")
     ap.add_argument("--seg-n", type=int, default=500_000)
     ap.add_argument("--seg-reps", type=int, default=21)
