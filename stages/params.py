@@ -66,9 +66,9 @@ class TrainOptions:
 
 @dataclass(frozen=True)
 class RefineOptions:
-    """Mirror of :class:`cobgs.refine.RefineConfig` (the released COB-GS behaviour)."""
+    """Mirror of :class:`cobgs.refine.RefineConfig` (the released COB-GS behaviour), without
+    ``scene_type``: the refine stage sets it (``refine.scene_type``, default: the dataset's)."""
 
-    scene_type: str = "forward"
     delta: Optional[float] = None
     mask_stages: Optional[int] = None
     stage_length_views: float = 2.0
@@ -183,7 +183,7 @@ class SfmOptionsParams:
 #: mirror -> (library module, class, fields the mirror leaves out on purpose)
 MIRRORS = {
     TrainOptions: ("cobgs.train", "TrainConfig", ()),
-    RefineOptions: ("cobgs.refine", "RefineConfig", ()),
+    RefineOptions: ("cobgs.refine", "RefineConfig", ("scene_type",)),
     SA3DOptions: ("cobgs.peers", "SA3DConfig", ()),
     FlashSplatOptions: ("cobgs.peers", "FlashSplatConfig", ()),
     TwoStageOptions: ("cobgs.masks.two_stage", "TwoStageConfig", ()),

@@ -33,7 +33,8 @@ class RefineParams:
     """Attributes:
         method: "cobgs" (ablations through ``cobgs``), "nosplit", "sa3d", "flashsplat".
         scene_type: "auto" (the dataset's: forward-facing or 360°), "forward" or "360";
-            it sets ``cobgs.scene_type`` (δ and the number of stages).
+            the scene type of :class:`cobgs.refine.RefineConfig` (default δ and number of
+            stages).
         cobgs: COB-GS parameters (also the no-split peer's, with its switches forced off).
         sa3d: SA3D-GS parameters.
         flashsplat: FlashSplat parameters.
@@ -118,7 +119,7 @@ def _run(ctx, inputs):
 
 
 STAGE = Stage(
-    name="refine", version=1, run=_run, inputs=("dataset", "poses", "scene", "masks"), outputs=("refined",),
+    name="refine", version=2, run=_run, inputs=("dataset", "poses", "scene", "masks"), outputs=("refined",),
     params=RefineParams, level=("scene", "method", "object"), uses_device=True, resources=Resources(cpus=2),
     description="COB-GS (or an ablation row / a peer) on one object: labels, splits, refined scene",
 )
