@@ -148,6 +148,35 @@ def _logger(key: str, log_path: Path) -> tuple[logging.Logger, logging.Handler]:
     return log, handler
 
 
+_DIST_OF_MODULE: Optional[Mapping[str, list[str]]] = None
+_DIST_VERSION: dict[str, str] = {}
+
+
+def loaded_distributions() -> dict[str, str]:
+    """Versions of the installed distributions whose top-level modules this process has
+    imported (so a stage's manifest names the torch / numpy / ... it actually ran with;
+    the standard library is not a distribution and is left out)."""
+    global _DIST_OF_MODULE
+    from importlib import metadata
+
+    if _DIST_OF_MODULE is None:
+        try:
+            _DIST_OF_MODULE = metadata.packages_distributions()
+        except Exception:  # noqa: BLE001 - a broken site-packages entry must not fail a run
+            _DIST_OF_MODULE = {}
+    out: dict[str, str] = {}
+    tops = {name.partition(".")[0] for name in list(sys.modules)}
+    for top in tops:
+        for dist in _DIST_OF_MODULE.get(top, ()):
+            if dist not in _DIST_VERSION:
+                try:
+                    _DIST_VERSION[dist] = metadata.version(dist)
+                except Exception:  # noqa: BLE001
+                    _DIST_VERSION[dist] = "unknown"
+            out[dist] = _DIST_VERSION[dist]
+    return dict(sorted(out.items(), key=lambda kv: kv[0].lower()))
+
+
 def _base_manifest(job: Job, measures: dict) -> dict[str, Any]:
     return {
         "format": MANIFEST_FORMAT,
@@ -164,6 +193,7 @@ def _base_manifest(job: Job, measures: dict) -> dict[str, Any]:
         "pid": os.getpid(),
         "python": platform.python_version(),
         "package_version": job.package_version,
+        "dependencies": loaded_distributions(),
         "executor": job.executor,
         "workflow": job.workflow,
         "log": LOG,

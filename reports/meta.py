@@ -1,6 +1,6 @@
 """Run metadata: what ran, where, when, with which versions and params (from the manifests),
-plus the environment the report itself was built in (labelled as such: the manifests
-record the package version and Python, not the versions of every dependency)."""
+plus the environment the report itself was built in (labelled as such). Manifests record
+the versions of the distributions each task imported; the report lists them per run."""
 
 from __future__ import annotations
 
@@ -65,8 +65,21 @@ def run_metadata(data: RunData, sets: list[str]) -> dict:
         "executors": _distinct(m.get("executor") for m in mans),
         "python": _distinct((m.get("python") or "").split()[0] if m.get("python") else None for m in mans),
         "package_versions": _distinct(m.get("package_version") for m in mans),
+        "dependencies": run_dependencies(mans),
         "counts": data.counts(),
     }
+
+
+def run_dependencies(mans: list[dict]) -> list[tuple[str, str]]:
+    """Per distribution the stages imported, the versions recorded in the manifests (older
+    entries, written before manifests recorded them, contribute nothing)."""
+    seen: dict[str, list[str]] = {}
+    for m in mans:
+        deps = m.get("dependencies")
+        if isinstance(deps, dict):
+            for name, version in deps.items():
+                seen.setdefault(str(name), []).append(str(version))
+    return [(name, _distinct(versions)) for name, versions in sorted(seen.items(), key=lambda kv: kv[0].lower())]
 
 
 def _axis_values(wf, axis: str) -> list[str]:

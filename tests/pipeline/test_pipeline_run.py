@@ -61,6 +61,11 @@ def test_manifest_records_the_run(toy):
     assert m["inputs"]["data"] == {"stage": "load", "key": upstream.key,
                                    "sha256": upstream.manifest["outputs"]["data"]["sha256"]}
     assert m["device"] == "cpu" and m["package_version"] == "t" and m["host"]
+    # The distributions the task process had imported, with their versions (pytest is
+    # imported in this process; the standard library is not a distribution).
+    from importlib import metadata
+    assert m["dependencies"].get("pytest") == metadata.version("pytest")
+    assert "os" not in m["dependencies"] and "json" not in m["dependencies"]
     assert m["started"] <= m["finished"] and m["wall_s"] >= 0 and m["cpu_s"] >= 0
     assert m["peak_rss_bytes"] > 1 << 20 and m["peak_rss_scope"] == "task"
     assert m["extra"] == {"iterations_done": 20}

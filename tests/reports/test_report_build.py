@@ -291,3 +291,16 @@ def test_delta_sweep_points_are_the_recorded_counts(recorded):
             last = z[f"stage_{len(z.files) - 1}"]
         assert (own, total) == (r.refine["ambiguous_final"], r.refine["num_gaussians_end"])
         assert fixed == np.count_nonzero(last < FIXED_DELTA)
+
+
+def test_metadata_lists_the_dependency_versions_the_tasks_recorded(recorded, report):
+    from importlib import metadata
+
+    recorded_versions = {}
+    for f in (recorded.cache / "entries").glob("*/*/manifest.json"):
+        recorded_versions.update(json.loads(f.read_text()).get("dependencies", {}))
+    assert recorded_versions.get("pytest") == metadata.version("pytest")
+    html = report.read_text(encoding="utf-8")
+    section = html.split("Dependency versions the run used", 1)[1].split("Package versions at report time", 1)[0]
+    assert 'class="data plain versions run-deps"' in section
+    assert f"<code>pytest</code></td><td>{metadata.version('pytest')}</td>" in section
