@@ -21,6 +21,7 @@
 #include "../common/checks.h"
 #include "../common/gs_math.h"
 #include "../common/parallel_cpu.h"
+#include "../common/simd_cpu.h"
 
 namespace cobgs {
 namespace blend_detail {
@@ -80,24 +81,67 @@ void prepare(const T* m2, const T* co, const T* op, int64_t n, GaussPrep<T>* pre
 #endif
 constexpr int kPrefetchAhead = 8;
 
-// Lane masks as 32-bit integers (-1 / 0). GCC 12 does not vectorise row loops whose
-// conditions are combined as `bool` (it sizes the vectors for 8-bit lanes); with int32
-// masks and -fno-trapping-math it if-converts and vectorises them.
-inline int32_t mask32(bool c) { return c ? int32_t(-1) : int32_t(0); }
+// Tile-list entries grouped by Gaussian: a stable counting sort of flat_ids. Per-entry
+// results (gradients, label statistics) are written to slot[j] instead of j, so that each
+// Gaussian's entries lie contiguously, in list order, in slots start[g] .. start[g + 1].
+// The per-Gaussian reduction then runs in parallel over Gaussians, streams its input, and
+// sums every Gaussian's entries in ascending list order whatever the thread count.
+struct EntrySlots {
+  int64_t* start;  // [n + 1]
+  int64_t* slot;   // [m]
+  int64_t* count;  // [2 n] scratch
+  // Buffers of the calling thread (call outside the parallel region).
+  static EntrySlots buffers(int64_t m, int64_t n) {
+    return {reusable_buffer<int64_t, 10>(size_t(n) + 1), reusable_buffer<int64_t, 11>(size_t(m)),
+            reusable_buffer<int64_t, 12>(2 * size_t(n))};
+  }
+};
 
-// Sum of lanes [0, nx) (nx a multiple of 4) in a fixed order: four interleaved partial
-// sums, then a pairwise combination. Short dependency chains, and the same result
-// whatever the thread schedule or SIMD width.
-template <typename T>
-inline T lane_sum(const T* lanes, int nx) {
-  T part[4] = {T(0), T(0), T(0), T(0)};
-  for (int b = 0; b < nx; b += 4)
-    for (int k = 0; k < 4; ++k) part[k] += lanes[b + k];
-  return (part[0] + part[1]) + (part[2] + part[3]);
+// Fills the grouping of `ids` [m] (values in 0..n-1). Called inside a parallel region by
+// every thread (orphaned worksharing; ends with a barrier). Two fixed halves of the list
+// are counted and placed in parallel; the slots do not depend on the thread count.
+inline void group_entries(const int32_t* ids, int64_t m, int64_t n, const EntrySlots& e) {
+  const int64_t half = m / 2;
+#pragma omp for schedule(static)
+  for (int h = 0; h < 2; ++h) {
+    int64_t* c = e.count + h * n;
+    std::fill(c, c + n, int64_t(0));
+    const int64_t lo = h == 0 ? 0 : half, hi = h == 0 ? half : m;
+    for (int64_t j = lo; j < hi; ++j) ++c[ids[j]];
+  }
+#pragma omp single
+  {
+    int64_t run = 0;
+    int64_t* c0 = e.count;
+    int64_t* c1 = e.count + n;
+    for (int64_t g = 0; g < n; ++g) {
+      const int64_t a = c0[g], b = c1[g];
+      e.start[g] = run;
+      c0[g] = run;      // cursor of the first half
+      c1[g] = run + a;  // cursor of the second half
+      run += a + b;
+    }
+    e.start[n] = run;
+  }  // implicit barrier
+#pragma omp for schedule(static)
+  for (int h = 0; h < 2; ++h) {
+    int64_t* cur = e.count + h * n;
+    const int64_t lo = h == 0 ? 0 : half, hi = h == 0 ? half : m;
+    for (int64_t j = lo; j < hi; ++j) e.slot[j] = cur[ids[j]]++;
+  }
 }
 
-// Up to this many labels, the label statistics use vectorised per-lane sums.
-constexpr int kLaneLabels = 4;
+// Tiles in decreasing order of list length (ties: tile index), the order the dynamic
+// schedule hands them out: the long tiles start first, so no thread is left with one
+// long tile at the end while the other idles. Results do not depend on the order.
+inline const int64_t* tile_order(const int64_t* off, int64_t n_tiles) {
+  int64_t* order = reusable_buffer<int64_t, 14>(size_t(n_tiles));
+  for (int64_t t = 0; t < n_tiles; ++t) order[t] = t;
+  std::stable_sort(order, order + n_tiles, [off](int64_t a, int64_t b) {
+    return off[a + 1] - off[a] > off[b + 1] - off[b];
+  });
+  return order;
+}
 
 // Shapes, dtypes and the consistency of the tile lists shared by both passes.
 inline void check_blend_inputs(const at::Tensor& means2d, const at::Tensor& conics,

@@ -152,18 +152,20 @@ struct Projection {
   int radius;    // ceil(3 sqrt(λmax)), 0 when culled
 };
 
-// Camera-space covariance W Σ Wᵀ of a Gaussian, Σ = R_q diag(s²) R_qᵀ.
-// Also returns M = R_q diag(s) and the normalised quaternion (for the backward pass).
+// Factor G = W M of the camera-space covariance W Σ Wᵀ = G Gᵀ of a Gaussian, where
+// Σ = M Mᵀ and M = R_q diag(s). Also returns M's rotation R_q and the normalised
+// quaternion (for the backward pass). Working with the factor (27 products) instead of
+// forming Σ and W Σ Wᵀ (about 110) is the same matrix up to rounding.
 template <typename T>
-HOST_DEVICE inline Mat3<T> camera_covariance(const Camera<T>& cam, const T* q, const T* s,
-                                             Mat3<T>& M, T qn[4], T& qnorm) {
+HOST_DEVICE inline Mat3<T> covariance_factor(const Camera<T>& cam, const T* q, const T* s,
+                                             Mat3<T>& Rq, T qn[4], T& qnorm) {
   qnorm = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
   for (int i = 0; i < 4; ++i) qn[i] = q[i] / qnorm;
-  const Mat3<T> Rq = quat_to_rotmat(qn[0], qn[1], qn[2], qn[3]);
+  Rq = quat_to_rotmat(qn[0], qn[1], qn[2], qn[3]);
+  Mat3<T> M;
   for (int i = 0; i < 3; ++i)
     for (int j = 0; j < 3; ++j) M.m[i][j] = Rq.m[i][j] * s[j];
-  const Mat3<T> sigma = matmul(M, transpose(M));
-  return matmul(matmul(cam.R, sigma), transpose(cam.R));
+  return matmul(cam.R, M);
 }
 
 // Jacobian entries of the pinhole projection at the clamped tx/tz, ty/tz (3DGS).
@@ -189,19 +191,18 @@ HOST_DEVICE inline Jacobian<T> projection_jacobian(const Camera<T>& cam, const V
   return J;
 }
 
-// 2D covariance entries (a, b, c) = J Σc Jᵀ + 0.3 I.
+// 2D covariance entries (a, b, c) = J Σc Jᵀ + 0.3 I = P Pᵀ + 0.3 I with P = J G (2x3);
+// J row 0 = (j00, 0, j02), row 1 = (0, j11, j12).
 template <typename T>
-HOST_DEVICE inline void covariance_2d(const Jacobian<T>& J, const Mat3<T>& S, T& a, T& b,
-                                      T& c) {
-  // Rows of J·Σc (J row 0 = (j00, 0, j02), row 1 = (0, j11, j12)).
-  T r0[3], r1[3];
+HOST_DEVICE inline void covariance_2d(const Jacobian<T>& J, const Mat3<T>& G, T P[2][3], T& a,
+                                      T& b, T& c) {
   for (int k = 0; k < 3; ++k) {
-    r0[k] = J.j00 * S.m[0][k] + J.j02 * S.m[2][k];
-    r1[k] = J.j11 * S.m[1][k] + J.j12 * S.m[2][k];
+    P[0][k] = J.j00 * G.m[0][k] + J.j02 * G.m[2][k];
+    P[1][k] = J.j11 * G.m[1][k] + J.j12 * G.m[2][k];
   }
-  a = r0[0] * J.j00 + r0[2] * J.j02 + T(kLowpass);
-  b = r0[1] * J.j11 + r0[2] * J.j12;
-  c = r1[1] * J.j11 + r1[2] * J.j12 + T(kLowpass);
+  a = P[0][0] * P[0][0] + P[0][1] * P[0][1] + P[0][2] * P[0][2] + T(kLowpass);
+  b = P[0][0] * P[1][0] + P[0][1] * P[1][1] + P[0][2] * P[1][2];
+  c = P[1][0] * P[1][0] + P[1][1] * P[1][1] + P[1][2] * P[1][2] + T(kLowpass);
 }
 
 // Forward projection and culling of one Gaussian.
@@ -214,13 +215,13 @@ HOST_DEVICE inline Projection<T> project_gaussian(const Camera<T>& cam, const T*
   const Vec3<T> p = matvec(cam.R, Vec3<T>{mean[0], mean[1], mean[2]});
   const Vec3<T> pc{p.x + cam.t.x, p.y + cam.t.y, p.z + cam.t.z};
   if (!(pc.z > near_plane)) return out;
-  Mat3<T> M;
+  Mat3<T> Rq;
   T qn[4], qnorm;
-  const Mat3<T> S = camera_covariance(cam, quat, scale, M, qn, qnorm);
+  const Mat3<T> G = covariance_factor(cam, quat, scale, Rq, qn, qnorm);
   if (!(qnorm > T(0))) return out;
   const Jacobian<T> J = projection_jacobian(cam, pc);
-  T a, b, c;
-  covariance_2d(J, S, a, b, c);
+  T P[2][3], a, b, c;
+  covariance_2d(J, G, P, a, b, c);
   const T det = a * c - b * b;
   if (!(is_finite(a) && is_finite(b) && is_finite(c) && is_finite(det)) || !(det > T(0)))
     return out;
@@ -257,12 +258,12 @@ HOST_DEVICE inline void project_gaussian_vjp(const Camera<T>& cam, const T* mean
                                              T* v_quat, T* v_scale) {
   const Vec3<T> p = matvec(cam.R, Vec3<T>{mean[0], mean[1], mean[2]});
   const Vec3<T> pc{p.x + cam.t.x, p.y + cam.t.y, p.z + cam.t.z};
-  Mat3<T> M;
+  Mat3<T> Rq;
   T qn[4], qnorm;
-  const Mat3<T> S = camera_covariance(cam, quat, scale, M, qn, qnorm);
+  const Mat3<T> G = covariance_factor(cam, quat, scale, Rq, qn, qnorm);
   const Jacobian<T> J = projection_jacobian(cam, pc);
-  T a, b, c;
-  covariance_2d(J, S, a, b, c);
+  T P[2][3], a, b, c;
+  covariance_2d(J, G, P, a, b, c);
   const T det = a * c - b * b;
   const T ca = c / det, cb = -b / det, cc = a / det;
 
@@ -279,23 +280,17 @@ HOST_DEVICE inline void project_gaussian_vjp(const Camera<T>& cam, const T* mean
   // Symmetric gradient V of the 2x2 covariance (b appears twice in the matrix).
   const T V00 = va, V01 = T(0.5) * vb, V11 = vc;
 
-  // cov2d = J Σc Jᵀ:  dL/dΣc = Jᵀ V J,  dL/dJ = 2 V J Σc.
-  // J as 2x3: [[j00, 0, j02], [0, j11, j12]].
-  const T Jm[2][3] = {{J.j00, T(0), J.j02}, {T(0), J.j11, J.j12}};
-  const T Vm[2][2] = {{V00, V01}, {V01, V11}};
-  T VJ[2][3];
-  for (int i = 0; i < 2; ++i)
-    for (int k = 0; k < 3; ++k) VJ[i][k] = Vm[i][0] * Jm[0][k] + Vm[i][1] * Jm[1][k];
-  Mat3<T> vS;
-  for (int i = 0; i < 3; ++i)
-    for (int k = 0; k < 3; ++k) vS.m[i][k] = Jm[0][i] * VJ[0][k] + Jm[1][i] * VJ[1][k];
+  // cov2d = P Pᵀ with P = J G:  dL/dP = 2 V P,  dL/dJ = dL/dP Gᵀ,  dL/dG = Jᵀ dL/dP.
+  T vP[2][3];
+  for (int k = 0; k < 3; ++k) {
+    vP[0][k] = T(2) * (V00 * P[0][k] + V01 * P[1][k]);
+    vP[1][k] = T(2) * (V01 * P[0][k] + V11 * P[1][k]);
+  }
+  // Only the four non-constant entries of J: (0, 0), (0, 2), (1, 1), (1, 2).
   T vJ[2][3];
   for (int i = 0; i < 2; ++i)
-    for (int k = 0; k < 3; ++k) {
-      T s = T(0);
-      for (int l = 0; l < 3; ++l) s += VJ[i][l] * S.m[l][k];
-      vJ[i][k] = T(2) * s;
-    }
+    for (int m = 0; m < 3; ++m)
+      vJ[i][m] = vP[i][0] * G.m[m][0] + vP[i][1] * G.m[m][1] + vP[i][2] * G.m[m][2];
   // J entries as functions of the camera-space mean (with the 3DGS clamp).
   vtz += -cam.fx * iz * iz * vJ[0][0] - cam.fy * iz * iz * vJ[1][1];
   if (J.clamp_x) {
@@ -317,18 +312,21 @@ HOST_DEVICE inline void project_gaussian_vjp(const Camera<T>& cam, const T* mean
   v_mean[1] += vm.y;
   v_mean[2] += vm.z;
 
-  // Σc = R Σ Rᵀ → dL/dΣ = Rᵀ vS R;  Σ = M Mᵀ → dL/dM = 2 dL/dΣ M.
-  const Mat3<T> vSigma = matmul(matmul(Rt, vS), cam.R);
-  const Mat3<T> vMhalf = matmul(vSigma, M);  // dL/dM = 2 · vMhalf
+  // G = W M → dL/dM = Wᵀ dL/dG.
+  Mat3<T> vG;
+  for (int k = 0; k < 3; ++k) {
+    vG.m[0][k] = J.j00 * vP[0][k];
+    vG.m[1][k] = J.j11 * vP[1][k];
+    vG.m[2][k] = J.j02 * vP[0][k] + J.j12 * vP[1][k];
+  }
+  const Mat3<T> vM = matmul(Rt, vG);
   // M = R_q diag(s):  dL/dR_q[i][j] = dL/dM[i][j] s[j],  dL/ds[j] = Σ_i dL/dM[i][j] R_q[i][j].
-  const Mat3<T> Rq = quat_to_rotmat(qn[0], qn[1], qn[2], qn[3]);
   Mat3<T> vRq;
   for (int j = 0; j < 3; ++j) {
     T vs = T(0);
     for (int i = 0; i < 3; ++i) {
-      const T g = T(2) * vMhalf.m[i][j];
-      vRq.m[i][j] = g * scale[j];
-      vs += g * Rq.m[i][j];
+      vRq.m[i][j] = vM.m[i][j] * scale[j];
+      vs += vM.m[i][j] * Rq.m[i][j];
     }
     v_scale[j] += vs;
   }

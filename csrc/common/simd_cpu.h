@@ -1,0 +1,97 @@
+// Fixed-width lane vectors for the CPU blending kernels (GCC/Clang vector extensions).
+//
+// A block is 8 consecutive pixels of one tile row; the kernels process a row segment as
+// one or two whole blocks with these types. The vector extensions are portable: the same
+// source compiles to SSE2 in the baseline build (two 4-wide halves per float block) and to
+// AVX2 in the AVX2 clone, and both compute exactly the same lane-wise IEEE operations
+// (no FMA contraction: -ffp-contract=off), so the two builds are bit-identical. Lane-wise
+// ternaries `m ? a : b` need an integer mask vector with the same lane size as a and b.
+//
+// Loads and stores go through memcpy (unaligned-safe, no aliasing questions); compilers
+// turn them into single vector moves.
+//
+// Instruction-set versions. A kernel written once in a multiply-included header is
+// compiled in several namespaces, each between COBGS_BEGIN_ISA_* and COBGS_END_ISA (every
+// function defined in between gets that target), with COBGS_ISA_LEVEL 0 (baseline),
+// 1 (AVX2) or 2 (AVX-512 on 256-bit vectors: 32 registers and mask registers). The
+// helpers that differ per instruction set (any, bits, min_with, gauss_exp) come from
+// simd_isa_cpu.h, included the same way. All versions compute bit-identical results.
+#pragma once
+
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+
+#include "cpu_isa.h"
+
+#if COBGS_AVX2_CLONES
+#include <immintrin.h>
+#endif
+
+#if COBGS_AVX2_CLONES && defined(__clang__)
+#define COBGS_BEGIN_ISA_AVX2 \
+  _Pragma("clang attribute push(__attribute__((target(\"avx2\"))), apply_to = function)")
+#define COBGS_BEGIN_ISA_AVX512                                                              \
+  _Pragma(                                                                                  \
+      "clang attribute push(__attribute__((target(\"avx2,avx512f,avx512vl,avx512dq,avx512bw\"))), apply_to = function)")
+#define COBGS_END_ISA _Pragma("clang attribute pop")
+#elif COBGS_AVX2_CLONES
+#define COBGS_BEGIN_ISA_AVX2 _Pragma("GCC push_options") _Pragma("GCC target(\"avx2\")")
+#define COBGS_BEGIN_ISA_AVX512 \
+  _Pragma("GCC push_options") _Pragma("GCC target(\"avx2,avx512f,avx512vl,avx512dq,avx512bw\")")
+#define COBGS_END_ISA _Pragma("GCC pop_options")
+#endif
+
+namespace cobgs {
+namespace simd {
+
+constexpr int kLanes = 8;
+
+typedef int32_t VI __attribute__((vector_size(32)));  // 8 x int32 (ranks, labels, masks)
+
+template <typename T>
+struct Lanes;
+
+template <>
+struct Lanes<float> {
+  typedef float V __attribute__((vector_size(32)));
+  typedef int32_t M __attribute__((vector_size(32)));  // lane masks: -1 / 0
+};
+
+template <>
+struct Lanes<double> {
+  typedef double V __attribute__((vector_size(64)));
+  typedef int64_t M __attribute__((vector_size(64)));
+};
+
+template <typename Vec>
+inline Vec load(const void* p) {
+  Vec v;
+  std::memcpy(&v, p, sizeof(Vec));
+  return v;
+}
+
+template <typename Vec>
+inline void store(void* p, const Vec& v) {
+  std::memcpy(p, &v, sizeof(Vec));
+}
+
+template <typename Vec, typename S>
+inline Vec splat(S s) {
+  return Vec{} + s;  // 0 + s is exact
+}
+
+// int32 lanes <-> the mask type of T's lanes (sign extension / truncation keep -1 and 0).
+inline Lanes<float>::M to_mask(VI m, float) { return m; }
+inline Lanes<double>::M to_mask(VI m, double) { return __builtin_convertvector(m, Lanes<double>::M); }
+inline VI to_i32(Lanes<float>::M m) { return m; }
+inline VI to_i32(Lanes<double>::M m) { return __builtin_convertvector(m, VI); }
+
+// Sum of the 8 lanes in a fixed pairwise order (the same in every build).
+template <typename V>
+inline auto hsum(const V& v) -> decltype(v[0] + v[0]) {
+  return ((v[0] + v[1]) + (v[2] + v[3])) + ((v[4] + v[5]) + (v[6] + v[7]));
+}
+
+}  // namespace simd
+}  // namespace cobgs
