@@ -218,6 +218,7 @@ def evaluate_masks(
     skip_empty_gt: bool = True,
     boundary_ratio: float = 0.02,
     backend: str = "native",
+    visible: bool = False,
 ) -> dict:
     """IoU, accuracy and boundary IoU of the rendered object mask on held-out views.
 
@@ -228,6 +229,13 @@ def evaluate_masks(
         skip_empty_gt: skip views whose GT is empty (object out of view), as the
             LERF-mask protocol does; counted in ``skipped``.
         boundary_ratio: boundary width ratio of the boundary IoU (SPEC §5).
+        visible: predict the object's *visible* pixels
+            (:func:`cobgs.evaluate.visible_object_mask`: every Gaussian rendered, the
+            object's with their mask value, the others with 0, so occluders hide it) instead
+            of the released object-only render (:func:`render_object_mask`, SPEC §2), which
+            also predicts the parts another object hides. Use it whenever the GT masks are
+            visible-pixel masks (synthetic scenes, NeRF-synthetic alpha): there the
+            object-only render counts every occluded object pixel as a false positive.
 
     Returns:
         {"iou", "acc", "biou": means over the evaluated views (nan if none), "views":
@@ -240,7 +248,12 @@ def evaluate_masks(
         if gt is None or (skip_empty_gt and not bool(gt.any())):
             skipped.append(v.name)
             continue
-        pred = render_object_mask(result, v.camera, backend=backend).cpu().numpy()
+        if visible:
+            from .evaluate import visible_object_mask
+
+            pred = visible_object_mask(result, v.camera, backend=backend).cpu().numpy()
+        else:
+            pred = render_object_mask(result, v.camera, backend=backend).cpu().numpy()
         g = gt.cpu().numpy().astype(bool) if isinstance(gt, Tensor) else np.asarray(gt, bool)
         per[v.name] = {"iou": iou(pred, g), "acc": accuracy(pred, g), "biou": boundary_iou(pred, g, boundary_ratio)}
     out = {"views": len(per), "skipped": skipped, "per_view": per}

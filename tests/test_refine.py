@@ -391,3 +391,26 @@ def test_peak_memory_sees_an_allocation_after_a_free():
         x = torch.ones(25_000_000)  # 100 MB
         x += 1
     assert 80 * 2**20 < mem.peak_bytes < 400 * 2**20
+
+
+def test_final_scores_are_full_stage_means_over_split_children():
+    """RAEM decides on the last MASK stage's scores: every Gaussian there — split children
+    included — must have a full stage of per-view scores (accumulator reset at the split,
+    not carried over, divided by the stage length), with "unseen" adding 1 per view."""
+    model, view = three_gaussians()
+    masks = [view.masks["obj"]]
+    # One view, 3 iterations per stage, no texture stage: geometry is fixed, so each
+    # Gaussian's stage mean must equal its single-view score exactly.
+    cfg = RefineConfig(mask_stages=2, stage_length_views=3, bgtr=False, raem="off", split_size_fraction=0.0,
+                       delta=0.5)
+    r = refine(model, [view], masks, 10.0, cfg, progress=False)
+    first, last = [s for s in r.stages if s.kind == "mask"]
+    assert first.split == 1  # B (score ~0) is split; A (inside) and C (unseen) are not
+    assert len(r.model) == 4 and r.stage_scores[-1].shape == (4,)
+    out = render_label_mask(r.model, view.camera, torch.sigmoid(r.model.data[LABEL].detach()),
+                            pixel_labels_from_mask(masks[0], view.height, view.width))
+    expect = view_scores(out.label_counts)
+    assert torch.allclose(r.stage_scores[-1], expect, atol=1e-6)
+    # A and C are the first two rows (kept), the children follow; C is unseen: exactly 1.
+    assert r.stage_scores[-1][0] == pytest.approx(1.0) and r.stage_scores[-1][1] == 1.0
+    assert last.ambiguous == int((expect < 0.5).sum())

@@ -123,3 +123,32 @@ def test_evaluate_masks_metrics_and_skips():
     assert keep_empty["views"] == 2
     none = evaluate_masks(r, views, [None] * 3)
     assert none["views"] == 0 and math.isnan(none["iou"])
+
+
+def test_evaluate_masks_visible_mode_lets_occluders_hide_the_object():
+    """With visible-pixel GT the object-only render counts hidden object pixels as false
+    positives; ``visible=True`` renders the occluder (with mask value 0) in front."""
+    from cobgs.camera import Camera
+    from cobgs.data.scene import View
+    from cobgs.gaussians import GaussianModel
+
+    W = H = 32
+    cam = Camera(K=torch.tensor([[50.0, 0, 16.0], [0, 50.0, 16.0], [0, 0, 1]]), viewmat=torch.eye(4),
+                 width=W, height=H, name="cam")
+    # object: a wide flat disc at z = 3; occluder: an opaque disc covering its right half at z = 2
+    means = torch.tensor([[0.0, 0.0, 3.0], [0.45, 0.0, 2.0]])
+    log_scales = torch.log(torch.tensor([[0.4, 0.4, 0.01], [0.25, 0.6, 0.01]]))
+    model = GaussianModel(means, log_scales, torch.tensor([[1.0, 0, 0, 0]] * 2), torch.full((2,), 8.0),
+                          torch.zeros(2, 1, 3), torch.zeros(2, 0, 3))
+    r = _result(model, torch.tensor([True, False]), torch.tensor([False, True]))
+    from cobgs.evaluate import visible_object_mask
+
+    amodal = render_object_mask(r, cam)
+    vis = visible_object_mask(r, cam)
+    assert amodal.sum() > vis.sum() > 0  # the occluder hides part of the object
+    gt = vis.clone()  # the visible-pixel GT
+    view = View(camera=cam, image=torch.zeros(H, W, 3), name="cam", masks={"obj": gt})
+    ev_vis = evaluate_masks(r, [view], [gt], visible=True)
+    ev_obj = evaluate_masks(r, [view], [gt])
+    assert ev_vis["iou"] == pytest.approx(1.0)
+    assert ev_obj["iou"] == pytest.approx(gt.sum().item() / amodal.sum().item()) and ev_obj["iou"] < 0.95
