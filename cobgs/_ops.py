@@ -3,9 +3,10 @@
 The C++ library (``csrc/``, built by :mod:`cobgs._build` on first use) defines the op
 schemas and CPU kernels; this module adds what is registered from Python:
 
-* autograd for ``project`` and ``blend`` via ``torch.library.register_autograd``, whose
-  backward calls the separate ``project_bwd`` / ``blend_bwd`` ops (no double backward);
-* shape-only fake kernels for all five ops via ``torch.library.register_fake``, so the
+* autograd for ``project``, ``blend`` and ``sh_colors`` via
+  ``torch.library.register_autograd``, whose backward calls the separate ``project_bwd`` /
+  ``blend_bwd`` / ``sh_colors_bwd`` ops (no double backward);
+* shape-only fake kernels for all seven ops via ``torch.library.register_fake``, so the
   ops work under FakeTensor / ``torch.compile`` (``bin_tiles`` has a data-dependent size).
 """
 
@@ -115,6 +116,31 @@ def _register() -> None:
 
     lib.register_autograd("cobgs::blend", blend_backward, setup_context=blend_setup)
 
+    @lib.register_fake("cobgs::sh_colors")
+    def _sh_colors_fake(means, sh0, shN, center, degree):
+        return means.new_empty(means.shape[0], sh0.shape[2])
+
+    @lib.register_fake("cobgs::sh_colors_bwd")
+    def _sh_colors_bwd_fake(means, sh0, shN, center, degree, v_colors):
+        return torch.empty_like(means), torch.empty_like(sh0), torch.empty_like(shN)
+
+    def sh_setup(ctx, inputs, output):
+        means, sh0, shN, center, degree = inputs
+        ctx.save_for_backward(means, sh0, shN, center)
+        ctx.degree = degree
+
+    def sh_backward(ctx, v_colors):
+        means, sh0, shN, center = ctx.saved_tensors
+        v_means, v_sh0, v_shN = torch.ops.cobgs.sh_colors_bwd(
+            means, sh0, shN, center, ctx.degree, v_colors.contiguous())
+        if ctx.degree == 0:
+            # Degree 0 reads neither the means nor shN: no gradient at all (not zeros), as
+            # the Python colour, so that Adam keeps no state for shN before it is used.
+            v_means = v_shN = None
+        return v_means, v_sh0, v_shN, None, None
+
+    lib.register_autograd("cobgs::sh_colors", sh_backward, setup_context=sh_setup)
+
 
 def _or_zeros(grad: Optional[Tensor], shape, like: Tensor) -> Tensor:
     if grad is None:
@@ -153,6 +179,25 @@ def blend(means2d, conics, opacities, features, background, tile_offsets, flat_i
                                  opacities.contiguous(), features.contiguous(),
                                  background.contiguous(), tile_offsets, flat_ids, width, height,
                                  pixel_labels, num_labels)
+
+
+def sh_colors(means, sh0, shN, center, degree: int) -> Tensor:
+    """Native ``cobgs::sh_colors``: 3DGS view-dependent colour max(SH(d) + 0.5, 0).
+
+    The same numbers as :meth:`cobgs.gaussians.GaussianModel.colors` (oracle: the
+    pure-PyTorch :func:`cobgs.sh.sh_to_color`), up to float rounding; gradients flow to
+    means (through the direction), sh0 and shN.
+
+    Args:
+        means: [N, 3]; sh0: [N, 1, C]; shN: [N, M, C] with M >= (degree + 1)² - 1;
+        center: [3] camera centre (converted to the dtype of means); degree: 0..3.
+
+    Returns:
+        [N, C] colours.
+    """
+    ensure_loaded()
+    return torch.ops.cobgs.sh_colors(means.contiguous(), sh0.contiguous(), shN.contiguous(),
+                                     center.to(means).contiguous(), int(degree))
 
 
 def rasterize_native(means, quats, scales, opacities, features, viewmat, K, width, height,

@@ -29,4 +29,11 @@ TORCH_LIBRARY(cobgs, m) {
       "Tensor background, Tensor tile_offsets, Tensor flat_ids, Tensor transmittance, "
       "Tensor n_contrib, Tensor v_image, Tensor v_transmittance) -> (Tensor v_means2d, "
       "Tensor v_conics, Tensor v_opacities, Tensor v_features, Tensor v_background)");
+  // csrc/sh/sh.h
+  m.def(
+      "sh_colors(Tensor means, Tensor sh0, Tensor shN, Tensor center, int degree) "
+      "-> Tensor colors");
+  m.def(
+      "sh_colors_bwd(Tensor means, Tensor sh0, Tensor shN, Tensor center, int degree, "
+      "Tensor v_colors) -> (Tensor v_means, Tensor v_sh0, Tensor v_shN)");
 }

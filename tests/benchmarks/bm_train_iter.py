@@ -1,0 +1,155 @@
+"""Time of one 3DGS training iteration (render + loss + backward + Adam) with cobgs.train.
+
+Usage::
+
+    .venv/bin/python tests/benchmarks/bm_train_iter.py                     # fern 1/8
+    .venv/bin/python tests/benchmarks/bm_train_iter.py --ply /tmp/cobgs_bm_train/fern.ply
+    .venv/bin/python tests/benchmarks/bm_train_iter.py --scene lego --ply /tmp/cobgs_bm_train/lego.ply
+
+Scene: fern at 1/8 (504x378; SfM from ``--sfm-dir``, default the folder bm_train.py
+writes, made with pycolmap when absent) or lego at 200x200. Model: a trained PLY
+(``--ply``; default ``/tmp/cobgs_bm_train/<scene>.ply`` when it exists), else the
+scene's own initialisation (SfM points, few Gaussians: printed, and not representative
+of a trained scene). All SH degrees are active (degree 3), as after the first 3k
+iterations of the recipe.
+
+The iteration is :meth:`cobgs.train.Trainer.step` with densification and opacity reset
+switched off (the trainer is placed past ``densify_until``), so every timed iteration
+does the same work. Its parts are timed separately on the same views: SH colour,
+rasterize forward, loss (0.8 L1 + 0.2 (1 - SSIM)) forward, backward (loss and
+rasterizer), Adam step. The SH colour is the native ``cobgs::sh_colors`` op that
+:func:`cobgs.render.render` uses on the CPU. Wall and process CPU time (all threads) are reported, with the
+load average: on a machine shared with other jobs the wall time includes waiting for a
+core.
+
+Target (issue 10): a full iteration on fern 1/8 <= 120 ms (2 threads).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "2")
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # see bm_rasterize.py
+
+import torch  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+SHARED = Path(os.environ.get("COBGS_SHARED_DATA", REPO.parent / "shared" / "data"))
+BM_OUT = Path("/tmp/cobgs_bm_train")
+
+
+class Clock:
+    def __enter__(self):
+        self.wall0, self.cpu0 = time.perf_counter(), time.process_time()
+        return self
+
+    def __exit__(self, *exc):
+        self.wall = time.perf_counter() - self.wall0
+        self.cpu = time.process_time() - self.cpu0
+
+
+def load_scene(kind: str, sfm_dir: Path):
+    if kind == "lego":
+        from cobgs.data.blender import read_blender
+
+        return read_blender(SHARED / "nerf_synthetic_lego", downscale=4, background=(1.0, 1.0, 1.0))
+    from cobgs.data.colmap import read_colmap
+
+    if not (sfm_dir / "sparse" / "0").is_dir():
+        from cobgs.sfm import SfmOptions, run_sfm
+
+        run_sfm(SHARED / "llff_fern" / "images_8", sfm_dir, SfmOptions(matcher="exhaustive"))
+    return read_colmap(sfm_dir, test_every=8)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--scene", choices=["fern", "lego"], default="fern")
+    ap.add_argument("--ply", type=Path, default=None)
+    ap.add_argument("--sfm-dir", type=Path, default=BM_OUT / "fern_sfm")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--reps", type=int, default=10, help="timed iterations")
+    args = ap.parse_args(argv)
+    torch.set_num_threads(args.threads)
+
+    from cobgs.losses import l1_loss, ssim
+    from cobgs.train import Trainer, TrainConfig, load_model
+
+    scene = load_scene(args.scene, args.sfm_dir)
+    ply = args.ply if args.ply is not None else BM_OUT / f"{args.scene}.ply"
+    model = load_model(ply) if ply.is_file() else None
+    config = TrainConfig(iterations=30_000)
+    trainer = Trainer(scene, config, model)
+    trainer.model.active_sh_degree = trainer.model.sh_degree
+    # Past densify_until: no densification, opacity reset or statistics; plain steps.
+    trainer.iteration = max(trainer.sched.densify_until, 15_000) + 1
+    view0 = scene.train[0]
+    w, h = int(view0.camera.width), int(view0.camera.height)
+    print(f"scene {args.scene} {w}x{h}, {len(scene.train)} training views, model "
+          f"{ply if ply.is_file() else 'initialisation (no trained PLY: not representative)'}"
+          f", {len(trainer.model)} Gaussians, SH degree {trainer.model.active_sh_degree}, "
+          f"threads {args.threads}, OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}")
+
+    for _ in range(2):  # warm-up (extension load, allocator)
+        trainer.step()
+    load0 = os.getloadavg()
+    steps = []
+    for _ in range(args.reps):
+        with Clock() as c:
+            trainer.step()
+        steps.append(c)
+
+    # The parts, on the same kind of views, with the trainer's own model and optimizer.
+    from cobgs import _ops
+    from cobgs.render import render
+
+    model, opt = trainer.model, trainer.optimizer
+    parts = {k: [] for k in ("sh colour", "rasterize fwd", "loss fwd", "backward", "adam")}
+    for i in range(args.reps):
+        view = scene.train[i % len(scene.train)]
+        cam = view.camera
+        with Clock() as c_sh:
+            feats = _ops.sh_colors(model.data["means"], model.data["sh0"], model.data["shN"],
+                                   cam.center, model.active_sh_degree)  # as render() does
+        with Clock() as c_r:
+            out = render(model, cam, trainer.background, features=feats)
+            out.means2d.retain_grad()
+        with Clock() as c_l:
+            img = out.image
+            loss = (1 - config.ssim_weight) * l1_loss(img, view.image) + \
+                config.ssim_weight * (1 - ssim(img, view.image))
+        with Clock() as c_b:
+            loss.backward()
+        with Clock() as c_a:
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+        for k, c in zip(parts, (c_sh, c_r, c_l, c_b, c_a)):
+            parts[k].append(c)
+
+    def med(cs, attr):
+        return 1000 * statistics.median(getattr(c, attr) for c in cs)
+
+    print(f"full iteration (Trainer.step): wall {med(steps, 'wall'):.1f} ms, CPU "
+          f"{med(steps, 'cpu'):.1f} ms (all threads), median of {args.reps}")
+    total_w = total_c = 0.0
+    for k, cs in parts.items():
+        total_w += med(cs, "wall")
+        total_c += med(cs, "cpu")
+        print(f"  {k:14s} wall {med(cs, 'wall'):7.1f} ms   CPU {med(cs, 'cpu'):7.1f} ms")
+    print(f"  {'sum of parts':14s} wall {total_w:7.1f} ms   CPU {total_c:7.1f} ms")
+    print(f"load average {load0[0]:.1f} -> {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs; "
+          f"target (issue 10): full iteration <= 120 ms wall on fern 1/8")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
