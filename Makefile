@@ -43,10 +43,12 @@ test: build chromium
 demo: build
 	$(VENV)/bin/cobgs run workflows/demo.toml
 	$(VENV)/bin/cobgs export workflows/demo.toml --to runs/demo
+	$(VENV)/bin/cobgs report workflows/demo.toml
 
 bench: build
 	$(VENV)/bin/cobgs run workflows/synthetic_bench.toml
 	$(VENV)/bin/cobgs export workflows/synthetic_bench.toml --to runs/synthetic_bench
+	$(VENV)/bin/cobgs report workflows/synthetic_bench.toml
 	@echo "micro-benchmarks (run one by one): $$(ls tests/benchmarks/bm_*.py | tr '\n' ' ')"
 
 report: build
