@@ -7,11 +7,18 @@ this task rather than of its whole life; the baseline it already had resident is
 Where the reset is refused the lifetime ``ru_maxrss`` is reported and the manifest says so
 (``peak_rss_scope = "process"``). Subprocesses the stage starts are reported apart, as the
 largest peak among the children it waited for (``children_peak_rss_bytes``).
+
+GPU memory: when the task's process has PyTorch loaded with CUDA initialised, the peak
+memory allocated by PyTorch's caching allocator on the current device during the task is
+recorded as ``gpu_peak_bytes`` (the counters are reset at the start when CUDA is already
+initialised; a task that initialises CUDA itself starts from zero anyway). The engine never
+imports torch: a task that did not use it records ``null``.
 """
 
 from __future__ import annotations
 
 import resource
+import sys
 import time
 from typing import Any, Optional
 
@@ -36,6 +43,37 @@ def _reset_hwm() -> bool:
         return False
 
 
+def _torch_cuda():
+    """``torch.cuda`` when the process has already imported torch and initialised CUDA."""
+    torch = sys.modules.get("torch")
+    cuda = getattr(torch, "cuda", None)
+    try:
+        if cuda is not None and cuda.is_initialized():
+            return cuda
+    except Exception:  # noqa: BLE001 - a broken CUDA runtime must not fail the task record
+        pass
+    return None
+
+
+def _reset_gpu_peak() -> None:
+    cuda = _torch_cuda()
+    if cuda is not None:
+        try:
+            cuda.reset_peak_memory_stats()
+        except Exception:  # noqa: BLE001
+            pass
+
+
+def _gpu_peak_bytes() -> Optional[int]:
+    cuda = _torch_cuda()
+    if cuda is None:
+        return None
+    try:
+        return int(cuda.max_memory_allocated())
+    except Exception:  # noqa: BLE001
+        return None
+
+
 class Meter:
     """Start on construction; :meth:`stop` returns the manifest's measurement fields."""
 
@@ -43,6 +81,7 @@ class Meter:
         self._scope = "task" if _reset_hwm() and _vm_hwm_bytes() is not None else "process"
         self._self0 = resource.getrusage(resource.RUSAGE_SELF)
         self._child0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+        _reset_gpu_peak()
         self._t0 = time.perf_counter()
         self.started = time.time()
 
@@ -63,4 +102,5 @@ class Meter:
             "peak_rss_bytes": peak,
             "peak_rss_scope": self._scope,
             "children_peak_rss_bytes": child_peak,
+            "gpu_peak_bytes": _gpu_peak_bytes(),
         }

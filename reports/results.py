@@ -120,12 +120,28 @@ def reference_method(infos: dict[str, MethodInfo]) -> Optional[str]:
 
 
 # -- result records ----------------------------------------------------------------------
-def _peak_rss(r: Result) -> Optional[float]:
+def _refine_task(r: Result):
     t = r.tasks.get("refine")
     if t is None:
         prod = [s for s, tt in r.tasks.items() if tt.manifest and "refined" in (tt.manifest.get("outputs") or {})]
         t = r.tasks.get(prod[0]) if prod else None
-    return finite((t.manifest or {}).get("peak_rss_bytes")) if t is not None and t.state == "done" else None
+    return t if t is not None and t.state == "done" else None
+
+
+def _peak_rss(r: Result) -> Optional[float]:
+    t = _refine_task(r)
+    return finite((t.manifest or {}).get("peak_rss_bytes")) if t is not None else None
+
+
+def _peak_gpu(r: Result) -> Optional[float]:
+    """Peak GPU memory of the refine task (PyTorch's allocator; None for CPU runs)."""
+    t = _refine_task(r)
+    return finite((t.manifest or {}).get("gpu_peak_bytes")) if t is not None else None
+
+
+def _max_or_none(values) -> Optional[float]:
+    vals = [v for v in values if v is not None]
+    return max(vals) if vals else None
 
 
 def _status(results: list[Result], log_href: LogHref) -> tuple[str, list[str], Optional[str], str]:
@@ -174,6 +190,7 @@ def object_records(data: RunData, infos: dict, log_href: LogHref) -> list[dict]:
             "splits": row.get("splits"), "pruned": row.get("pruned"),
             "ambiguous_final": amb if amb is not None and amb >= 0 else None,
             "refine_s": row.get("refine_s"), "peak_rss": _peak_rss(r) if r.ok else None,
+            "peak_gpu": _peak_gpu(r) if r.ok else None,
             "_class": {"status": cls, "method": _ref_class(infos, r.method)},
             "_href": {"status": href} if href else {},
             "_title": {"status": title, "method": infos[r.method].config if r.method in infos else "",
@@ -217,6 +234,7 @@ def scene_method_records(data: RunData, infos: dict, log_href: LogHref) -> list[
         info = infos.get(method, MethodInfo(method))
         rec.update(scene=scene, method=method, config=info.config, status=status,
                    objects=sum(r.ok for r in rs), objects_total=len(rs), peak_rss=max(peaks) if peaks else None,
+                   peak_gpu=_max_or_none(_peak_gpu(r) for r in rs if r.ok),
                    _class={"status": cls, "method": _ref_class(infos, method)}, _href={"status": href} if href else {},
                    _title={"status": title}, _sub={"method": _method_sub(info)},
                    _nobest=not all(r.ok for r in rs), _row_class=[f"role-{info.role}"])
@@ -268,6 +286,7 @@ def method_records(data: RunData, infos: dict, log_href: LogHref) -> tuple[list[
         done_scenes = sorted({r.scene for r in rs if r.ok}, key=scenes.index)
         rec.update(method=method, kind=info.kind_label, config=info.config, status=status,
                    scenes=len(done_scenes), objects_total=len(rs), peak_rss=max(peaks) if peaks else None,
+                   peak_gpu=_max_or_none(_peak_gpu(r) for r in rs if r.ok),
                    objects=sum(r.ok for r in rs), _class={"status": cls, "method": _ref_class(infos, method)},
                    _href={"status": href} if href else {},
                    _title={"status": title}, _sub={"method": _method_sub(info)},
@@ -418,7 +437,8 @@ def task_records(data: RunData, log_href: LogHref) -> list[dict]:
         href = log_href(t) if t.state in ("done", "failed") else None
         recs.append({"order": i, "stage": t.stage, "item": t.item_id, "state": t.state, "key": t.key or "",
                      "version": m.get("version"), "wall_s": m.get("wall_s"), "cpu_s": m.get("cpu_s"),
-                     "peak_rss": m.get("peak_rss_bytes"), "host": m.get("host"), "device": m.get("device"),
+                     "peak_rss": m.get("peak_rss_bytes"), "peak_gpu": m.get("gpu_peak_bytes"),
+                     "host": m.get("host"), "device": m.get("device"),
                      "started": m.get("started"), "log": "log" if href else "",
                      "_href": {"log": href} if href else {}, "_class": {"state": [t.state]},
                      "_title": {"key": t.key or "", "state": t.error}})

@@ -12,7 +12,21 @@ from .collect import RunData
 from .tables import Column, Table, build_table
 
 
-def _cols_metrics() -> list[Column]:
+def _gpu_col(*record_lists) -> list[Column]:
+    """A "Peak GPU" column only when some task ran on a GPU and recorded its peak."""
+    if any(r.get("peak_gpu") is not None for recs in record_lists for r in recs):
+        return [Column("peak_gpu", "Peak GPU", fmt.nbytes,
+                       title="peak memory of PyTorch's CUDA allocator during the refine task (max over objects)")]
+    return []
+
+
+def _task_gpu_col(tasks: list[dict]) -> list[Column]:
+    if any(t.get("peak_gpu") is not None for t in tasks):
+        return [Column("peak_gpu", "Peak GPU", fmt.nbytes, title="PyTorch CUDA allocator peak during the task")]
+    return []
+
+
+def _cols_metrics(*record_lists) -> list[Column]:
     return [
         Column("iou", "mIoU", fmt.pct, better="max", title="mean IoU (%): over objects, then scenes"),
         Column("acc", "mAcc", fmt.pct, better="max", title="mean pixel accuracy (%)"),
@@ -25,7 +39,7 @@ def _cols_metrics() -> list[Column]:
         Column("peak_rss", "Peak RSS", fmt.nbytes,
                title="peak resident memory of the process that ran the refine task (host memory, max over "
                      "objects; with --jobs 1 this includes the driver's own footprint, so it is not ranked)"),
-    ]
+    ] + _gpu_col(*record_lists)
 
 
 def _quoted(key: str, label: str, pct: bool = True) -> Column:
@@ -49,13 +63,13 @@ def result_tables(data: RunData, infos: dict, logs: R.LogHref) -> dict:
         [Column("method", "Method", numeric=False, title="method item; below: its kind and the options that "
                 "differ from the refine stage's defaults"), Column("scenes", "Scenes", fmt.count),
          Column("objects", "Objects", fmt.count, title="scene x object items with metrics")]
-        + _cols_metrics() + paper_m + [status], by_method,
+        + _cols_metrics(by_method) + paper_m + [status], by_method,
         notes=notes + ["Best values are shaded and bold, among methods with every scene and object "
                        "done (a mean over fewer is not comparable); not marked when all are equal."])
     t_scene = build_table(
         "t-scene", "Results per scene × method (mean over the scene's objects); best per scene marked",
         [Column("scene", "Scene", numeric=False), Column("method", "Method", numeric=False),
-         Column("objects", "Objects", fmt.count)] + _cols_metrics() + paper_s + [status], by_scene,
+         Column("objects", "Objects", fmt.count)] + _cols_metrics(by_scene) + paper_s + [status], by_scene,
         group_by="scene", notes=[n for n in notes if paper_s])
     recs = R.object_records(data, infos, logs)
     for r in recs:  # best values per (scene, object): objects differ too much to compare across
@@ -74,8 +88,8 @@ def result_tables(data: RunData, infos: dict, logs: R.LogHref) -> dict:
          Column("num_gaussians", "Gaussians", fmt.count), Column("splits", "Splits", fmt.count),
          Column("pruned", "Pruned", fmt.count),
          Column("ambiguous_final", "Ambiguous", fmt.count, title="Gaussians with score < δ at the end, before RAEM"),
-         Column("refine_s", "Refine time", fmt.seconds, better="min"), Column("peak_rss", "Peak RSS", fmt.nbytes),
-         status], recs, group_by="_group")
+         Column("refine_s", "Refine time", fmt.seconds, better="min"), Column("peak_rss", "Peak RSS", fmt.nbytes)]
+        + _gpu_col(recs) + [status], recs, group_by="_group")
     t_scenes = build_table(
         "t-scenes", "Scenes: data and the baseline 3DGS every method starts from",
         [Column("scene", "Scene", numeric=False), Column("kind", "Kind", numeric=False),
@@ -102,13 +116,14 @@ def detail_tables(data: RunData, ref: Optional[str], logs: R.LogHref) -> tuple[T
          Column("pruned", "Pruned", fmt.count),
          Column("loss", "Mean loss", lambda v: "" if fmt.finite(v) is None else f"{v:.4f}"),
          Column("wall_s", "Time", fmt.seconds)], R.refine_stage_records(data, ref))
+    tasks = R.task_records(data, logs)
     task_table = build_table(
         "t-tasks", "Every task of the workflow: state, cache key, cost",
         [Column("order", "#", fmt.count), Column("stage", "Stage", numeric=False),
          Column("item", "Item", numeric=False), Column("state", "State", numeric=False),
          Column("key", "Cache key", fmt.short_key, numeric=False), Column("version", "v", fmt.count),
          Column("wall_s", "Wall", fmt.seconds), Column("cpu_s", "CPU", fmt.seconds),
-         Column("peak_rss", "Peak RSS", fmt.nbytes), Column("host", "Host", numeric=False),
+         Column("peak_rss", "Peak RSS", fmt.nbytes)] + _task_gpu_col(tasks) + [Column("host", "Host", numeric=False),
          Column("device", "Device", numeric=False), Column("started", "Started", fmt.timestamp),
-         Column("log", "Log", numeric=False)], R.task_records(data, logs))
+         Column("log", "Log", numeric=False)], tasks)
     return stage_table, task_table

@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import json
 import shutil
+import sys
 from dataclasses import dataclass
 
 import pytest
@@ -362,3 +363,28 @@ def test_read_api_for_reports(toy):
         toy.load(["train.fail_on=beta", "evaluate.threshold=0.1"]), toy.cache)}
     st = recs[("evaluate", "alpha/full")]
     assert st.state == "stale" and st.reasons == ["params changed (threshold: 0.5 -> 0.1)"]
+
+
+def test_meter_records_gpu_peak_only_when_the_task_used_cuda(monkeypatch):
+    """The engine never imports torch; it reads the allocator peak of a process that
+    already has CUDA initialised (a stand-in module here: no GPU on the CI machine)."""
+    import types
+
+    from pipeline.measure import Meter
+
+    monkeypatch.delitem(sys.modules, "torch", raising=False)
+    assert Meter().stop()["gpu_peak_bytes"] is None  # torch never loaded: nothing to read
+
+    calls = []
+    cuda = types.SimpleNamespace(
+        is_initialized=lambda: True,
+        reset_peak_memory_stats=lambda: calls.append("reset"),
+        max_memory_allocated=lambda: 123 << 20,
+    )
+    monkeypatch.setitem(sys.modules, "torch", types.SimpleNamespace(cuda=cuda))
+    m = Meter()
+    assert calls == ["reset"]
+    assert m.stop()["gpu_peak_bytes"] == 123 << 20
+
+    cuda.is_initialized = lambda: False  # torch loaded, CUDA never initialised (CPU task)
+    assert Meter().stop()["gpu_peak_bytes"] is None and calls == ["reset"]

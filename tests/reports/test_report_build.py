@@ -304,3 +304,22 @@ def test_metadata_lists_the_dependency_versions_the_tasks_recorded(recorded, rep
     section = html.split("Dependency versions the run used", 1)[1].split("Package versions at report time", 1)[0]
     assert 'class="data plain versions run-deps"' in section
     assert f"<code>pytest</code></td><td>{metadata.version('pytest')}</td>" in section
+
+
+def test_gpu_peak_column_only_when_tasks_recorded_one(recorded, report, tmp_path):
+    import shutil
+
+    from reports import build_report
+
+    assert "Peak GPU" not in report.read_text(encoding="utf-8")  # a CPU run: no empty column
+    cache = tmp_path / "cache"
+    shutil.copytree(recorded.cache, cache)
+    for f in (cache / "entries" / "refine").glob("*/manifest.json"):
+        m = json.loads(f.read_text())
+        m["gpu_peak_bytes"] = 3 << 30
+        f.write_text(json.dumps(m))
+    index = build_report(recorded.workflow, out_dir=tmp_path / "r", cache_dir=cache, registry=recorded.registry)
+    rows = parse(index).rows
+    html = index.read_text(encoding="utf-8")
+    assert html.count(">Peak GPU<") >= 3  # by method, by scene, per object, tasks
+    assert any(cell == "3.0 GiB" for row in rows["t-method"] for cell, _ in row)
