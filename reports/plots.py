@@ -90,8 +90,10 @@ def iou_biou(path: Path, methods: Sequence[str], iou: Sequence[Optional[float]],
 
     ax.legend(handles=[Patch(facecolor="#888", label="mIoU"), Patch(facecolor="#888", alpha=0.65, hatch="///",
                                                                       edgecolor="white", label="mBIoU")],
-              loc="lower right", bbox_to_anchor=(1.0, 1.0), ncol=2, borderaxespad=0.2)
-    ax.set_title("Segmentation accuracy per method", loc="left")
+              loc="lower left", bbox_to_anchor=(0.0, 1.0), ncol=2, borderaxespad=0.2, fontsize=8)
+    # The legend sits on its own line above the axes, the title above it (a narrow figure
+    # with few methods has no room for both side by side).
+    ax.set_title("Segmentation accuracy per method", loc="left", pad=22)
     _save(fig, path)
     return True
 
