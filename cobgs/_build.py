@@ -46,6 +46,13 @@ CSRC = Path(__file__).resolve().parents[1] / "csrc"
 CFLAGS = ["-O3", "-fopenmp", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math"]
 LDFLAGS = ["-fopenmp"]
 
+
+def _cflags() -> List[str]:
+    """CFLAGS, plus -DCOBGS_PROFILE when $COBGS_PROFILE is set (phase timers and pair
+    counters printed at exit, csrc/common/prof_cpu.h; a separate cached build)."""
+    flag = os.environ.get("COBGS_PROFILE", "")
+    return CFLAGS + (["-DCOBGS_PROFILE"] if flag not in ("", "0") else [])
+
 _lock = threading.Lock()
 _loaded: Optional[str] = None
 
@@ -76,7 +83,7 @@ def build_key() -> str:
     for path in _source_files():
         h.update(str(path.relative_to(CSRC)).encode() + b"\0" + path.read_bytes() + b"\0")
     h.update(json.dumps({
-        "cflags": CFLAGS, "ldflags": LDFLAGS, "torch": torch.__version__,
+        "cflags": _cflags(), "ldflags": LDFLAGS, "torch": torch.__version__,
         "python": list(sys.version_info[:2]), "machine": platform.machine(),
         "cxx": os.environ.get("CXX", ""),
     }, sort_keys=True).encode())
@@ -134,7 +141,7 @@ def _compile(name: str, root: Path, final: Path, verbose: bool) -> None:
     tmp = Path(tempfile.mkdtemp(prefix=f"{name}.build-", dir=root))
     sources = [str(p) for p in _source_files() if p.suffix == ".cpp"]
     args = json.dumps({"name": name, "sources": sources, "build_dir": str(tmp),
-                       "cflags": CFLAGS, "ldflags": LDFLAGS})
+                       "cflags": _cflags(), "ldflags": LDFLAGS})
     env = dict(os.environ)
     env["PATH"] = str(Path(sys.executable).parent) + os.pathsep + env.get("PATH", "")
     if verbose:

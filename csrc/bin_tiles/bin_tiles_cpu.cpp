@@ -15,6 +15,7 @@
 #include "../common/checks.h"
 #include "../common/gs_math.h"
 #include "../common/parallel_cpu.h"
+#include "../common/prof_cpu.h"
 
 namespace cobgs {
 namespace {
@@ -78,8 +79,12 @@ void bin_tiles_kernel(const at::Tensor& means2d, const at::Tensor& radii,
   const T* d = depths.data_ptr<T>();
   const int32_t* r = radii.data_ptr<int32_t>();
 
+  COBGS_PROF_COUNT(kCallsBin, 1);
   std::vector<Key> keys;
   std::vector<int32_t> order;
+#ifdef COBGS_PROFILE
+  auto* sort_scope = new prof::Scope(prof::kBinSort);
+#endif
   keys.reserve(n);
   order.reserve(n);
   for (int64_t i = 0; i < n; ++i) {
@@ -90,6 +95,10 @@ void bin_tiles_kernel(const at::Tensor& means2d, const at::Tensor& radii,
     order.push_back(static_cast<int32_t>(i));
   }
   radix_sort(keys, order);
+#ifdef COBGS_PROFILE
+  delete sort_scope;
+#endif
+  COBGS_PROF_SCOPE(kBinLists);  // (the master thread only)
 
   const size_t nv = order.size();
   std::vector<Rect> rects(nv);

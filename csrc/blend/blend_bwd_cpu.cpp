@@ -37,6 +37,7 @@ struct BwdArgs {
   int C, S, width, height, tiles_x;
   const int64_t* slot;      // entry -> gradient slot (group_entries)
   T* slot_grad;             // [M, S] gradient slots
+  uint8_t* slot_hit;        // [M]: 1 when the slot holds gradients, 0 when it is unset
 };
 
 // Per-thread state of the tile (structure of arrays, channel-major where per channel).
@@ -52,6 +53,11 @@ struct BwdScratch {
   std::vector<T> rest;   // R per channel and pixel
   std::vector<T> vcol;   // dL/dimage per channel and pixel
   std::vector<T> acc_f;  // per-lane dL/df sums of the current entry, [C][8]
+  // Per-lane sums of the current entry per block column b (0, 1): Σ v_power and
+  // Σ dy·v_power (dx is fixed per column, so the conic and mean gradients follow from
+  // these at the end of the entry).
+  alignas(64) T acc_p[2][8];
+  alignas(64) T acc_q[2][8];
 
   explicit BwdScratch(int C)
       : rest(size_t(kTilePixels) * C), vcol(size_t(kTilePixels) * C),
@@ -127,7 +133,8 @@ void blend_backward(const at::Tensor& means2d, const at::Tensor& conics,
   const T* opacity_ptr = opacities.data_ptr<T>();
   // One slot per tile-list entry, written only by the thread owning the tile (no atomics),
   // entries grouped by Gaussian; reduced per Gaussian in list order (deterministic).
-  T* slot_grad = reusable_buffer<T, 4>(size_t(m) * S);  // every slot written by its tile
+  T* slot_grad = reusable_buffer<T, 4>(size_t(m) * S);  // slots with slot_hit set are written
+  uint8_t* slot_hit = reusable_buffer<uint8_t, 5>(size_t(m));  // every entry written
   const EntrySlots slots = EntrySlots::buffers(m, n);
   const int64_t* order = tile_order(tile_offsets.data_ptr<int64_t>(), n_tiles);
 
@@ -148,25 +155,38 @@ void blend_backward(const at::Tensor& means2d, const at::Tensor& conics,
   a.tiles_x = tiles_x;
   a.slot = slots.slot;
   a.slot_grad = slot_grad;
+  a.slot_hit = slot_hit;
   const BackwardTileFn<T> tile_fn = pick_backward_tile(T(0), C);
   T* vm = v_means2d.data_ptr<T>();
   T* vco = v_conics.data_ptr<T>();
   T* vo = v_opacities.data_ptr<T>();
   T* vf = v_features.data_ptr<T>();
 
+  COBGS_PROF_COUNT(kCallsBwd, 1);
 #pragma omp parallel num_threads(cpu_threads())
   {
-    prepare<T>(m2_ptr, conic_ptr, opacity_ptr, n, prep);  // ends with a barrier
-    group_entries(a.ids, m, n, slots);                    // ends with a barrier
+    {
+      COBGS_PROF_SCOPE(kBwdPrepare);
+      prepare<T>(m2_ptr, conic_ptr, opacity_ptr, n, prep);  // ends with a barrier
+    }
+    {
+      COBGS_PROF_SCOPE(kBwdGroup);
+      group_entries(a.ids, m, n, slots);  // ends with a barrier
+    }
     BwdScratch<T> scratch(C);  // on the stack: its alignas holds
+    {
+      COBGS_PROF_SCOPE(kBwdTiles);
 #pragma omp for schedule(dynamic, 1)
-    for (int64_t k = 0; k < n_tiles; ++k) tile_fn(a, order[k], scratch);
+      for (int64_t k = 0; k < n_tiles; ++k) tile_fn(a, order[k], scratch);
+    }
     // Per Gaussian: the sum of its entries' gradients in list order.
+    COBGS_PROF_SCOPE(kBwdReduce);
     std::vector<T> sum(S);
 #pragma omp for schedule(static)
     for (int64_t g = 0; g < n; ++g) {
       std::fill(sum.begin(), sum.end(), T(0));
       for (int64_t e = slots.start[g]; e < slots.start[g + 1]; ++e) {
+        if (!slot_hit[e]) continue;  // the entry contributed nothing: its slot is unset
         const T* src = slot_grad + e * S;
         for (int q = 0; q < S; ++q) sum[q] += src[q];
       }
@@ -183,6 +203,7 @@ void blend_backward(const at::Tensor& means2d, const at::Tensor& conics,
   const T* tr = a.trans;
   const T* vimg = a.v_image;
   // image = ... + T_final · background.
+  COBGS_PROF_SCOPE(kBwdBackground);
   T* vb = v_background.data_ptr<T>();
   const int64_t pixels = int64_t(width) * height;
   for (int c = 0; c < C; ++c) {

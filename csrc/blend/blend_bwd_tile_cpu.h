@@ -48,35 +48,45 @@ void backward_tile(const BwdArgs<T>& a, int64_t tile, BwdScratch<T>& s) {
   for (int b = 0; b < 2; ++b)
     for (int k = 0; k < simd::kLanes; ++k)
       px_centre[b][k] = T(x0 + b * simd::kLanes + k) + T(0.5);
-  // Per-lane gradient sums of the current entry (all zero between entries).
-  V acc_mx = zero, acc_my = zero, acc_ca = zero, acc_cb = zero, acc_cc = zero, acc_op = zero;
+  // Per-lane gradient sums of the current entry (all zero between entries): Σ dy²·v_power,
+  // Σ G·v_alpha, per channel Σ α T dL/dC, and per block column s.acc_p / s.acc_q.
+  V acc_r = zero, acc_op = zero;
   T* acc_f = s.acc_f.data();
-  // Entries behind every pixel's last contributor have nothing to do: zero slots.
-  for (int64_t j = lo + max_last; j < hi; ++j)
-    std::fill(a.slot_grad + a.slot[j] * S, a.slot_grad + a.slot[j] * S + S, T(0));
+  for (int b = 0; b < 2; ++b) {
+    store(s.acc_p[b], zero);
+    store(s.acc_q[b], zero);
+  }
+  // Entries behind every pixel's last contributor have nothing to do: unset slots.
+  for (int64_t j = lo + max_last; j < hi; ++j) a.slot_hit[a.slot[j]] = 0;
 
+  COBGS_PROF_LOCAL(n_blocks);
+  COBGS_PROF_LOCAL(n_blocks_exp);
+  COBGS_PROF_LOCAL(n_blended);
   for (int64_t rank = max_last - 1; rank >= 0; --rank) {
     const int64_t j = lo + rank;
     if (rank >= kPrefetchAhead) {
       const int32_t ahead = a.ids[j - kPrefetchAhead];
       COBGS_PREFETCH(&a.prep[ahead]);
       COBGS_PREFETCH(a.feat + int64_t(ahead) * C);
+      COBGS_PREFETCH_W(a.slot_grad + a.slot[j - kPrefetchAhead] * S);
     }
-    T* dst = a.slot_grad + a.slot[j] * S;
+    const int64_t slot = a.slot[j];
     const int32_t gi = a.ids[j];
     const GaussPrep<T> g = a.prep[gi];
     const int gx0 = std::max(x0, g.x0), gx1 = std::min(x1, g.x1);
     const int gy0 = std::max(y0, g.y0), gy1 = std::min(y1, g.y1);
     if (gx0 >= gx1 || gy0 >= gy1) {
-      std::fill(dst, dst + S, T(0));
+      a.slot_hit[slot] = 0;
       continue;
     }
     const T* f = a.feat + int64_t(gi) * C;
     const int b0 = (gx0 - x0) / simd::kLanes, b1 = (gx1 - 1 - x0) / simd::kLanes;
     const int32_t rank32 = static_cast<int32_t>(rank);
     const VI rank_v = simd::splat<VI>(rank32);
-    // Phase 1: exp and the blend mask of every block of the box (independent blocks, no
-    // data-dependent branches: the out-of-order core overlaps their exp chains).
+    // Phase 1a: the exponent and the mask of pixels where the forward may have blended
+    // this entry (in front of the pixel's last contributor, power within the bound) of
+    // every block of the box; only blocks with some such pixel are kept (compacted
+    // without a branch), so exp is never evaluated outside the ellipse.
     int nblk = 0;
     for (int py = gy0; py < gy1; ++py) {
       const T dy = (T(py) + T(0.5)) - g.my;
@@ -89,31 +99,41 @@ void backward_tile(const BwdArgs<T>& a, int64_t tile, BwdScratch<T>& s) {
         // decision, recomputed bit for bit).
         const V dx = px_centre[b] - g.mx;
         const V power = T(-0.5) * (g.ca * dx * dx + cc_dy_dy) - g.cb * dx * dy;
-        const V gauss = gauss_exp(power);
-        const V alpha = min_with(alpha_max, g.o * gauss);
-        const M ok = simd::to_mask(rank_v < load<VI>(s.last + p), T(0)) & (power <= zero) &
-                     (power >= g.power_reject) & (alpha >= alpha_min);
-        store(s.blk_gauss + nblk * simd::kLanes, gauss);
-        store(s.blk_ok + nblk * simd::kLanes, simd::to_i32(ok));
-        s.blk_pix[nblk++] = p;
+        const VI ok = simd::to_i32(simd::to_mask(rank_v < load<VI>(s.last + p), T(0)) &
+                                   (power <= zero) & (power >= g.power_reject));
+        store(s.blk_gauss + nblk * simd::kLanes, power);
+        store(s.blk_ok + nblk * simd::kLanes, ok);
+        s.blk_pix[nblk] = p;
+        nblk += any(ok);
+        COBGS_PROF_ADD(n_blocks, 1);
       }
+    }
+    COBGS_PROF_ADD(n_blocks_exp, nblk);
+    // Phase 1b: exp of the kept blocks (independent iterations without branches: the
+    // out-of-order core overlaps their exp chains).
+    for (int i = 0; i < nblk; ++i) {
+      T* gb = s.blk_gauss + i * simd::kLanes;
+      store(gb, gauss_exp(load<V>(gb)));
     }
     // Phase 2: gradients of the blended pixels.
     bool entry_hit = false;  // the accumulators hold something (all zero otherwise)
     for (int i = 0; i < nblk; ++i) {
-      const VI ok32 = load<VI>(s.blk_ok + i * simd::kLanes);
-      if (!any(ok32)) continue;
-      entry_hit = true;
-      const int p = s.blk_pix[i];
-      const M ok = simd::to_mask(ok32, T(0));
-      const T dy = (T(y0 + p / kTileSize) + T(0.5)) - g.my;
-      const V dx = px_centre[(p % kTileSize) / simd::kLanes] - g.mx;
       const V gauss = load<V>(s.blk_gauss + i * simd::kLanes);
       const V o_g = g.o * gauss;
       const V alpha = min_with(alpha_max, o_g);
+      // The forward's decision, recomputed bit for bit.
+      const M ok = simd::to_mask(load<VI>(s.blk_ok + i * simd::kLanes), T(0)) &
+                   (alpha >= alpha_min);
+      if (!any(simd::to_i32(ok))) continue;
+      entry_hit = true;
+      COBGS_PROF_ADD(n_blended, __builtin_popcount(bits(simd::to_i32(ok))));
+      const int p = s.blk_pix[i];
+      const T dy = (T(y0 + p / kTileSize) + T(0.5)) - g.my;
+      const int col = (p % kTileSize) / simd::kLanes;  // block column
       const V one_minus = one - alpha;
       const V t_after = load<V>(s.Tp + p);
-      const V t_front = t_after / one_minus;  // T in front of this Gaussian
+      const V inv_om = one / one_minus;  // one division for both quotients below
+      const V t_front = t_after * inv_om;  // T in front of this Gaussian
       store(s.Tp + p, ok ? t_front : t_after);
       // Per channel: dL/df = α T dL/dC, Σ_c (f_c - R_c) dL/dC_c, then R ← α f + (1 - α) R.
       V dot = zero;
@@ -130,33 +150,52 @@ void backward_tile(const BwdArgs<T>& a, int64_t tile, BwdScratch<T>& s) {
       // dL/dα → opacity, conic and mean (no gradient where the 0.99 clamp is active);
       // a zero v_alpha makes every term below zero.
       const M ok_grad = ok & (o_g <= alpha_max);
-      const V v_alpha = ok_grad ? t_front * dot - load<V>(s.vtt + p) / one_minus : zero;
+      const V v_alpha = ok_grad ? t_front * dot - load<V>(s.vtt + p) * inv_om : zero;
       const V v_power = o_g * v_alpha;
       acc_op += gauss * v_alpha;
-      acc_ca += T(-0.5) * dx * dx * v_power;
-      acc_cb += -dx * dy * v_power;
-      acc_cc += (T(-0.5) * dy * dy) * v_power;
-      // d = pixel - mean, so d(power)/d(mean) = -d(power)/d(d).
-      acc_mx += (g.ca * dx + g.cb * dy) * v_power;
-      acc_my += (g.cb * dx + g.cc * dy) * v_power;
+      // power = -0.5 (a dx² + c dy²) - b dx dy with dx fixed per lane of a block column
+      // and dy fixed per row: per-lane sums of v_power and dy·v_power per column, and of
+      // dy²·v_power, give every conic and mean gradient at the end of the entry.
+      store(s.acc_p[col], load<V>(s.acc_p[col]) + v_power);
+      store(s.acc_q[col], load<V>(s.acc_q[col]) + dy * v_power);
+      acc_r += (dy * dy) * v_power;
     }
     if (!entry_hit) {
-      std::fill(dst, dst + S, T(0));
+      a.slot_hit[slot] = 0;
       continue;
     }
-    dst[kMx] = simd::hsum(acc_mx);
-    dst[kMy] = simd::hsum(acc_my);
-    dst[kCa] = simd::hsum(acc_ca);
-    dst[kCb] = simd::hsum(acc_cb);
-    dst[kCc] = simd::hsum(acc_cc);
+    T* dst = a.slot_grad + slot * S;
+    a.slot_hit[slot] = 1;
+    {
+      const V dx0 = px_centre[0] - g.mx, dx1 = px_centre[1] - g.mx;
+      const V p0 = load<V>(s.acc_p[0]), p1 = load<V>(s.acc_p[1]);
+      const V q0 = load<V>(s.acc_q[0]), q1 = load<V>(s.acc_q[1]);
+      const T s_dx = simd::hsum(dx0 * p0 + dx1 * p1);            // Σ dx v_power
+      const T s_dy = simd::hsum(q0 + q1);                        // Σ dy v_power
+      const T s_dxdx = simd::hsum(dx0 * dx0 * p0 + dx1 * dx1 * p1);
+      const T s_dxdy = simd::hsum(dx0 * q0 + dx1 * q1);
+      dst[kCa] = T(-0.5) * s_dxdx;
+      dst[kCb] = -s_dxdy;
+      dst[kCc] = T(-0.5) * simd::hsum(acc_r);
+      // d = pixel - mean, so d(power)/d(mean) = -d(power)/d(d).
+      dst[kMx] = g.ca * s_dx + g.cb * s_dy;
+      dst[kMy] = g.cb * s_dx + g.cc * s_dy;
+      for (int b = 0; b < 2; ++b) {
+        store(s.acc_p[b], zero);
+        store(s.acc_q[b], zero);
+      }
+    }
     dst[kOp] = simd::hsum(acc_op);
-    acc_mx = acc_my = acc_ca = acc_cb = acc_cc = acc_op = zero;
+    acc_r = acc_op = zero;
     for (int c = 0; c < C; ++c) {
       T* af = acc_f + c * simd::kLanes;
       dst[kFeat + c] = simd::hsum(load<V>(af));
       std::fill(af, af + simd::kLanes, T(0));
     }
   }
+  COBGS_PROF_COUNT(kBwdBlocks, n_blocks);
+  COBGS_PROF_COUNT(kBwdBlocksExp, n_blocks_exp);
+  COBGS_PROF_COUNT(kBwdBlended, n_blended);
 }
 
 

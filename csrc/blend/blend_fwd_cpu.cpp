@@ -150,9 +150,13 @@ void blend_forward(const at::Tensor& means2d, const at::Tensor& conics,
   int32_t* cnt = labels ? label_counts.data_ptr<int32_t>() : nullptr;
   float* wts = labels ? label_weights.data_ptr<float>() : nullptr;
 
+  COBGS_PROF_COUNT(kCallsFwd, 1);
 #pragma omp parallel num_threads(cpu_threads())
   {
-    prepare<T>(m2_ptr, conic_ptr, opacity_ptr, n, prep);  // ends with a barrier
+    {
+      COBGS_PROF_SCOPE(kFwdPrepare);
+      prepare<T>(m2_ptr, conic_ptr, opacity_ptr, n, prep);  // ends with a barrier
+    }
     if (labels) {
       group_entries(a.ids, m, n, slots);  // ends with a barrier
 #pragma omp for schedule(static)
@@ -162,9 +166,13 @@ void blend_forward(const at::Tensor& means2d, const at::Tensor& conics,
       }
     }
     FwdScratch<T> scratch(C);  // on the stack: its alignas holds
+    {
+      COBGS_PROF_SCOPE(kFwdTiles);
 #pragma omp for schedule(dynamic, 1)
-    for (int64_t k = 0; k < n_tiles; ++k) tile_fn(a, order[k], scratch);
+      for (int64_t k = 0; k < n_tiles; ++k) tile_fn(a, order[k], scratch);
+    }
     if (labels) {
+      COBGS_PROF_SCOPE(kFwdLabels);
       // Per Gaussian: its slots in list order.
 #pragma omp for schedule(static)
       for (int64_t g = 0; g < n; ++g) {

@@ -51,6 +51,10 @@ void forward_tile(const FwdArgs<T>& a, int64_t tile, FwdScratch<T>& s) {
     lane_w[l] = zero;
   }
 
+  COBGS_PROF_LOCAL(n_entries);
+  COBGS_PROF_LOCAL(n_blocks);
+  COBGS_PROF_LOCAL(n_blocks_exp);
+  COBGS_PROF_LOCAL(n_blended);
   const int64_t lo = a.off[tile], hi = a.off[tile + 1];
   for (int64_t j = lo; j < hi && active > 0; ++j) {
     if (j + kPrefetchAhead < hi) {
@@ -70,10 +74,12 @@ void forward_tile(const FwdArgs<T>& a, int64_t tile, FwdScratch<T>& s) {
     // pixels lie outside the conservative box (the exact test rejects them) or outside
     // the image (done).
     const int b0 = (gx0 - x0) / simd::kLanes, b1 = (gx1 - 1 - x0) / simd::kLanes;
-    // Phase 1: α and the candidate mask of every block of the box, in a loop without
-    // data-dependent branches, so the out-of-order core overlaps the blocks' exp chains
-    // (one block alone is latency-bound). Blocks of one entry are distinct pixels, so
-    // reading the state here before phase 2 updates it is exact.
+    COBGS_PROF_ADD(n_entries, 1);
+    // Phase 1a: the exponent and the candidate mask (pixel live, power within the bound
+    // below which α < 1/255 for sure) of every block of the box; only blocks with some
+    // candidate are kept (compacted without a branch), so exp is never evaluated on a
+    // block outside the ellipse. Blocks of one entry are distinct pixels, so reading the
+    // state here before phase 2 updates it is exact.
     int nblk = 0;
     for (int py = gy0; py < gy1; ++py) {
       // Rows whose pixels in the box have all stopped cost nothing.
@@ -88,22 +94,31 @@ void forward_tile(const FwdArgs<T>& a, int64_t tile, FwdScratch<T>& s) {
         // power = -0.5 (a dx² + c dy²) - b dx dy.
         const V dx = px_centre[b] - g.mx;
         const V power = T(-0.5) * (g.ca * dx * dx + cc_dy_dy) - g.cb * dx * dy;
-        const V alpha = min_with(alpha_max, g.o * gauss_exp(power));
-        const M cand = simd::to_mask(~load<VI>(s.done + p), T(0)) & (power <= zero) &
-                       (power >= g.power_reject) & (alpha >= alpha_min);
-        store(s.blk_alpha + nblk * simd::kLanes, alpha);
-        store(s.blk_cand + nblk * simd::kLanes, simd::to_i32(cand));
-        s.blk_pix[nblk++] = p;
+        const VI cand = simd::to_i32(simd::to_mask(~load<VI>(s.done + p), T(0)) &
+                                     (power <= zero) & (power >= g.power_reject));
+        store(s.blk_alpha + nblk * simd::kLanes, power);
+        store(s.blk_cand + nblk * simd::kLanes, cand);
+        s.blk_pix[nblk] = p;
+        nblk += any(cand);
+        COBGS_PROF_ADD(n_blocks, 1);
       }
+    }
+    COBGS_PROF_ADD(n_blocks_exp, nblk);
+    // Phase 1b: α = min(0.99, o·exp(power)) of the kept blocks: independent iterations
+    // without branches, so the out-of-order core overlaps their exp chains (one block
+    // alone is latency-bound).
+    for (int i = 0; i < nblk; ++i) {
+      T* ab = s.blk_alpha + i * simd::kLanes;
+      store(ab, min_with(alpha_max, g.o * gauss_exp(load<V>(ab))));
     }
     // Phase 2: blend the candidates, front to back per pixel.
     bool entry_hit = false;  // the label lane sums hold something to flush
     for (int i = 0; i < nblk; ++i) {
-      const VI cand32 = load<VI>(s.blk_cand + i * simd::kLanes);
-      if (!any(cand32)) continue;
-      const int p = s.blk_pix[i];
-      const M cand = simd::to_mask(cand32, T(0));
       const V alpha = load<V>(s.blk_alpha + i * simd::kLanes);
+      const M cand = simd::to_mask(load<VI>(s.blk_cand + i * simd::kLanes), T(0)) &
+                     (alpha >= alpha_min);
+      if (!any(simd::to_i32(cand))) continue;
+      const int p = s.blk_pix[i];
       const V t_old = load<V>(s.Tp + p);
       const V test_t = t_old * (one - alpha);
       const M low = test_t < t_min;  // not blended; the pixel stops
@@ -115,7 +130,8 @@ void forward_tile(const FwdArgs<T>& a, int64_t tile, FwdScratch<T>& s) {
         active -= __builtin_popcount(sb);
         live[p / kTileSize] &= ~(sb << (p % kTileSize));
       }
-      if (!any(blend)) continue;
+      if (!any(simd::to_i32(blend))) continue;
+      COBGS_PROF_ADD(n_blended, __builtin_popcount(bits(simd::to_i32(blend))));
       store(s.Tp + p, blend ? test_t : t_old);
       const V w = blend ? alpha * t_old : zero;  // α·T of the blended pixels
       for (int c = 0; c < C; ++c) {
@@ -157,6 +173,10 @@ void forward_tile(const FwdArgs<T>& a, int64_t tile, FwdScratch<T>& s) {
     }
   }
 
+  COBGS_PROF_COUNT(kFwdEntries, n_entries);
+  COBGS_PROF_COUNT(kFwdBlocks, n_blocks);
+  COBGS_PROF_COUNT(kFwdBlocksExp, n_blocks_exp);
+  COBGS_PROF_COUNT(kFwdBlended, n_blended);
   for (int py = y0; py < y1; ++py)
     for (int px = x0; px < x1; ++px) {
       const int p = (py - y0) * kTileSize + (px - x0);

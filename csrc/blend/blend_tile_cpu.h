@@ -21,6 +21,7 @@
 #include "../common/checks.h"
 #include "../common/gs_math.h"
 #include "../common/parallel_cpu.h"
+#include "../common/prof_cpu.h"
 #include "../common/simd_cpu.h"
 
 namespace cobgs {
@@ -76,8 +77,10 @@ void prepare(const T* m2, const T* co, const T* op, int64_t n, GaussPrep<T>* pre
 // prefetcher cannot guess these scattered addresses.
 #if defined(__GNUC__) || defined(__clang__)
 #define COBGS_PREFETCH(ptr) __builtin_prefetch(ptr)
+#define COBGS_PREFETCH_W(ptr) __builtin_prefetch(ptr, 1)  // for writing
 #else
 #define COBGS_PREFETCH(ptr) ((void)0)
+#define COBGS_PREFETCH_W(ptr) ((void)0)
 #endif
 constexpr int kPrefetchAhead = 8;
 

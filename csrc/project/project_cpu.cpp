@@ -6,6 +6,7 @@
 #include "../common/checks.h"
 #include "../common/gs_math.h"
 #include "../common/parallel_cpu.h"
+#include "../common/prof_cpu.h"
 
 namespace cobgs {
 namespace {
@@ -54,17 +55,22 @@ void project_kernel(const at::Tensor& means, const at::Tensor& quats, const at::
   T* d = depths.data_ptr<T>();
   int32_t* r = radii.data_ptr<int32_t>();
   const T near = static_cast<T>(near_plane);
-#pragma omp parallel for schedule(static) num_threads(cpu_threads())
-  for (int64_t i = 0; i < n; ++i) {
-    const auto p = math::project_gaussian<T>(cam, m + 3 * i, q + 4 * i, s + 3 * i, near);
-    if (!p.visible) continue;
-    m2[2 * i] = p.mx;
-    m2[2 * i + 1] = p.my;
-    co[3 * i] = p.ca;
-    co[3 * i + 1] = p.cb;
-    co[3 * i + 2] = p.cc;
-    d[i] = p.depth;
-    r[i] = p.radius;
+  COBGS_PROF_COUNT(kCallsProject, 1);
+#pragma omp parallel num_threads(cpu_threads())
+  {
+    COBGS_PROF_SCOPE(kProject);
+#pragma omp for schedule(static)
+    for (int64_t i = 0; i < n; ++i) {
+      const auto p = math::project_gaussian<T>(cam, m + 3 * i, q + 4 * i, s + 3 * i, near);
+      if (!p.visible) continue;
+      m2[2 * i] = p.mx;
+      m2[2 * i + 1] = p.my;
+      co[3 * i] = p.ca;
+      co[3 * i + 1] = p.cb;
+      co[3 * i + 2] = p.cc;
+      d[i] = p.depth;
+      r[i] = p.radius;
+    }
   }
 }
 
@@ -88,12 +94,17 @@ void project_bwd_kernel(const at::Tensor& means, const at::Tensor& quats,
   T* om = v_means.data_ptr<T>();
   T* oq = v_quats.data_ptr<T>();
   T* os = v_scales.data_ptr<T>();
-#pragma omp parallel for schedule(static) num_threads(cpu_threads())
-  for (int64_t i = 0; i < n; ++i) {
-    if (r[i] <= 0) continue;
-    math::project_gaussian_vjp<T>(cam, m + 3 * i, q + 4 * i, s + 3 * i, vm2[2 * i],
-                                  vm2[2 * i + 1], vco[3 * i], vco[3 * i + 1], vco[3 * i + 2],
-                                  vd[i], om + 3 * i, oq + 4 * i, os + 3 * i);
+  COBGS_PROF_COUNT(kCallsProjectBwd, 1);
+#pragma omp parallel num_threads(cpu_threads())
+  {
+    COBGS_PROF_SCOPE(kProjectBwd);
+#pragma omp for schedule(static)
+    for (int64_t i = 0; i < n; ++i) {
+      if (r[i] <= 0) continue;
+      math::project_gaussian_vjp<T>(cam, m + 3 * i, q + 4 * i, s + 3 * i, vm2[2 * i],
+                                    vm2[2 * i + 1], vco[3 * i], vco[3 * i + 1],
+                                    vco[3 * i + 2], vd[i], om + 3 * i, oq + 4 * i, os + 3 * i);
+    }
   }
 }
 

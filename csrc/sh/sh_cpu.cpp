@@ -8,6 +8,7 @@
 
 #include "../common/checks.h"
 #include "../common/parallel_cpu.h"
+#include "../common/prof_cpu.h"
 #include "../common/sh_math.h"
 
 namespace cobgs {
@@ -54,6 +55,8 @@ template <typename T>
 void sh_forward(const T* means, const T* sh0, const T* shN, const T* center, int64_t n,
                 int64_t M, int C, int degree, T* out) {
   const int K = (degree + 1) * (degree + 1);
+  COBGS_PROF_COUNT(kCallsSh, 1);
+  COBGS_PROF_SCOPE(kShFwd);  // (the master thread only)
 #pragma omp parallel for schedule(static) num_threads(cpu_threads())
   for (int64_t i = 0; i < n; ++i) {
     T Y[sh::kMaxCoeffs];
@@ -78,6 +81,8 @@ void sh_backward(const T* means, const T* sh0, const T* shN, const T* center, in
                  int64_t M, int C, int degree, const T* v_col, T* v_means, T* v_sh0,
                  T* v_shN) {
   const int K = (degree + 1) * (degree + 1);
+  COBGS_PROF_COUNT(kCallsShBwd, 1);
+  COBGS_PROF_SCOPE(kShBwd);  // (the master thread only)
 #pragma omp parallel for schedule(static) num_threads(cpu_threads())
   for (int64_t i = 0; i < n; ++i) {
     T Y[sh::kMaxCoeffs], dir[3], norm = T(0), nc = T(1);
