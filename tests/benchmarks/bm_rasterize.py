@@ -24,6 +24,26 @@ Forward = the ``cobgs.rasterize`` call with inputs requiring grad (projection, b
 blending, autograd bookkeeping); backward = ``loss.backward()`` for a fixed random
 linear loss on image and alpha. The label-statistics overhead is the native forward with
 a binary ``pixel_labels`` image relative to the same forward without.
+
+Floor model (printed next to the achieved times). Pairs *evaluated*: (Gaussian, pixel)
+pairs whose pixel centre lies in the Gaussian's α >= 1/255 bounding box (from its conic
+and opacity) inside a tile whose list holds it — what any exact kernel has to test. Pairs
+*contributing*: pairs actually blended (from the label counts). FLOPs per pair, counted
+on the formulas of csrc/common/gs_math.h (every add, mul, compare, min/max, division):
+
+* forward, per evaluated pair 37 (power 8, exp 24, α 2, tests 3); per contributing pair
+  4 + 2C (transmittance, weight, colour);
+* backward, per evaluated pair 37 (the forward's decision recomputed); per contributing
+  pair 15 + 9C (T in front, dL/df, R update, dL/dα, conic/mean/opacity sums);
+* projection ~170 per visible Gaussian forward, ~420 backward (estimates).
+
+Peak: float32 GEMM (torch.mm 384x384, best of 30) on one thread, times the thread count:
+the machine's FMA peak, an upper bound for kernels that, like these, use separate
+multiplies and adds (-ffp-contract=off). The floor time is FLOPs / peak; the ratio
+achieved / floor says how far the kernels are from compute-bound. CPU time is compared
+with FLOPs / peak-per-thread.
+
+Targets (issue 10): forward + backward <= 60 ms wall (2 threads, 504x378, 100k).
 """
 
 from __future__ import annotations
@@ -104,6 +124,63 @@ def median_ms(clocks, attr="wall"):
     return 1000 * statistics.median(getattr(c, attr) for c in clocks)
 
 
+FLOP_FWD_EVAL, FLOP_BWD_EVAL = 37, 37
+FLOP_PROJ_FWD, FLOP_PROJ_BWD = 170, 420
+
+
+def flop_fwd_contrib(c: int) -> int:
+    return 4 + 2 * c
+
+
+def flop_bwd_contrib(c: int) -> int:
+    return 15 + 9 * c
+
+
+def count_evaluated(m2, co, opac, tile_offsets, ids, width, height) -> int:
+    """Pairs evaluated (see the module docstring) of one render's projection and tiles."""
+    ts = 16
+    tiles_x = (width + ts - 1) // ts
+    counts = tile_offsets[1:] - tile_offsets[:-1]
+    tile = torch.repeat_interleave(torch.arange(counts.numel()), counts)
+    g = ids.long()
+    a, b, c = co[g, 0], co[g, 1], co[g, 2]
+    o = opac.double()[g]
+    det = a * c - b * b
+    L = torch.log(255.0 * o)
+    two_l = 2.0 * L
+    ok = (o >= 1 / 255) & (det > 0) & (a > 0) & (two_l > 0)
+    hx = torch.sqrt((two_l * c / det).clamp_min(0))
+    hy = torch.sqrt((two_l * a / det).clamp_min(0))
+    mx, my = m2[g, 0], m2[g, 1]
+    tx0 = (tile % tiles_x) * ts
+    ty0 = (tile // tiles_x) * ts
+    x0 = torch.maximum(torch.ceil(mx - 0.5 - hx), tx0.double())
+    x1 = torch.minimum(torch.floor(mx - 0.5 + hx) + 1, (tx0 + ts).clamp(max=width).double())
+    y0 = torch.maximum(torch.ceil(my - 0.5 - hy), ty0.double())
+    y1 = torch.minimum(torch.floor(my - 0.5 + hy) + 1, (ty0 + ts).clamp(max=height).double())
+    area = (x1 - x0).clamp_min(0) * (y1 - y0).clamp_min(0)
+    return int(torch.where(ok, area, torch.zeros_like(area)).sum())
+
+
+def peak_gflops_per_thread() -> float:
+    """float32 GEMM rate on one thread (best of 30), in GFLOP/s."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        a, b = torch.randn(384, 384), torch.randn(384, 384)
+        for _ in range(5):
+            a @ b
+        best = float("inf")
+        for _ in range(30):
+            t = time.perf_counter()
+            for _ in range(4):
+                a @ b
+            best = min(best, (time.perf_counter() - t) / 4)
+    finally:
+        torch.set_num_threads(before)
+    return 2 * 384 ** 3 / best / 1e9
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--n", type=int, default=100_000)
@@ -121,8 +198,10 @@ def main(argv=None) -> int:
     vis = out.radii > 0
     from cobgs import _ops
 
-    _, flat_ids = _ops.bin_tiles(out.means2d, out.radii, out.depths, W, H)
+    tile_offsets, flat_ids = _ops.bin_tiles(out.means2d, out.radii, out.depths, W, H)
     contributions = int(out.label_counts.sum())
+    evaluated = count_evaluated(out.means2d.detach().double(), out.conics.detach().double(),
+                                tensors[3], tile_offsets, flat_ids, W, H)
     print(f"scene: N = {args.n}, {W}x{H}, seed {args.seed}, threads {args.threads}, "
           f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}, torch {torch.__version__}")
     print(f"  visible {int(vis.sum())}, mean radius {out.radii[vis].float().mean():.2f} px, "
@@ -130,6 +209,8 @@ def main(argv=None) -> int:
     print(f"  candidate pairs per pixel {flat_ids.numel() * 256 / (W * H):.1f}, blended "
           f"contributions per pixel {contributions / (W * H):.1f}, mean alpha "
           f"{out.alpha.mean():.3f}")
+    print(f"  pairs evaluated (α >= 1/255 box within the tile) {evaluated / 1e6:.2f} M "
+          f"({evaluated / (W * H):.1f} per pixel), pairs contributing {contributions / 1e6:.2f} M")
 
     load0 = os.getloadavg()[0]
     nat_f, nat_b, nat_fl, nat_fn = [], [], [], []
@@ -151,6 +232,28 @@ def main(argv=None) -> int:
     print(f"native    CPU time  forward {cf:.1f} ms   backward {cb:.1f} ms   total "
           f"{cf + cb:.1f} ms (all threads; load average {load0:.1f} -> "
           f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs)")
+    # Floor model (module docstring), measured under the same load.
+    C = tensors[4].shape[1]
+    n_vis = int(vis.sum())
+    flop_f = (evaluated * FLOP_FWD_EVAL + contributions * flop_fwd_contrib(C)
+              + n_vis * FLOP_PROJ_FWD)
+    flop_b = (evaluated * FLOP_BWD_EVAL + contributions * flop_bwd_contrib(C)
+              + n_vis * FLOP_PROJ_BWD)
+    peak1 = peak_gflops_per_thread()
+    peak = peak1 * args.threads
+    ff, fb = flop_f / peak / 1e6, flop_b / peak / 1e6  # ms at the machine peak
+    print(f"floor model: {FLOP_FWD_EVAL} + {FLOP_BWD_EVAL} FLOP per evaluated pair, "
+          f"{flop_fwd_contrib(C)} + {flop_bwd_contrib(C)} per contributing pair (fwd + bwd), "
+          f"{flop_f / 1e6:.0f} + {flop_b / 1e6:.0f} MFLOP")
+    print(f"  peak (float32 GEMM, in-run) {peak1:.1f} GFLOP/s per thread x {args.threads} = "
+          f"{peak:.1f} GFLOP/s -> floor forward {ff:.2f} ms, backward {fb:.2f} ms, total "
+          f"{ff + fb:.2f} ms")
+    print(f"  achieved / floor: wall {(nf + nb) / (ff + fb):.1f}x (forward {nf / ff:.1f}x, "
+          f"backward {nb / fb:.1f}x); CPU time {(cf + cb) / (args.threads * (ff + fb)):.1f}x "
+          f"(CPU {cf + cb:.1f} ms vs {args.threads * (ff + fb):.2f} ms of one thread at peak)")
+    print(f"  target (issue 10): forward + backward <= 60 ms wall: "
+          f"{'met' if nf + nb <= 60 else 'not met'} in this run ({nf + nb:.1f} ms, load "
+          f"average {os.getloadavg()[0]:.1f}); CPU time / threads {(cf + cb) / args.threads:.1f} ms")
     plain, with_labels = median_ms(nat_fn), median_ms(nat_fl)
     print(f"label statistics: forward {plain:.1f} ms -> {with_labels:.1f} ms with labels "
           f"(+{100 * (with_labels / plain - 1):.1f}% wall; CPU time "
