@@ -6,7 +6,7 @@ schemas and CPU kernels; this module adds what is registered from Python:
 * autograd for ``project``, ``blend`` and ``sh_colors`` via
   ``torch.library.register_autograd``, whose backward calls the separate ``project_bwd`` /
   ``blend_bwd`` / ``sh_colors_bwd`` ops (no double backward);
-* shape-only fake kernels for all seven ops via ``torch.library.register_fake``, so the
+* shape-only fake kernels for all eight ops via ``torch.library.register_fake``, so the
   ops work under FakeTensor / ``torch.compile`` (``bin_tiles`` has a data-dependent size).
 """
 
@@ -141,6 +141,10 @@ def _register() -> None:
 
     lib.register_autograd("cobgs::sh_colors", sh_backward, setup_context=sh_setup)
 
+    @lib.register_fake("cobgs::gauss_blur")
+    def _gauss_blur_fake(x, g):
+        return torch.empty_like(x)
+
 
 def _or_zeros(grad: Optional[Tensor], shape, like: Tensor) -> Tensor:
     if grad is None:
@@ -198,6 +202,19 @@ def sh_colors(means, sh0, shN, center, degree: int) -> Tensor:
     ensure_loaded()
     return torch.ops.cobgs.sh_colors(means.contiguous(), sh0.contiguous(), shN.contiguous(),
                                      center.to(means).contiguous(), int(degree))
+
+
+def is_loaded() -> bool:
+    """Whether the native ops are loaded in this process (never triggers a build)."""
+    return _ready
+
+
+def gauss_blur(x: Tensor, g: Tensor) -> Tensor:
+    """Native ``cobgs::gauss_blur`` (no autograd): the separable zero-padded blur of
+    :func:`cobgs.losses._blur`, vertical then horizontal, for x [B, K, H, W] and an
+    odd-length kernel g [n]."""
+    ensure_loaded()
+    return torch.ops.cobgs.gauss_blur(x.contiguous(), g.to(x.dtype).contiguous())
 
 
 def rasterize_native(means, quats, scales, opacities, features, viewmat, K, width, height,

@@ -34,6 +34,11 @@ def _to_nchw(img: Tensor, name: str) -> Tensor:
 
 def _blur(t: Tensor, g: Tensor) -> Tensor:
     """Separable zero-padded Gaussian blur of every channel of [B, K, H, W]."""
+    if t.device.type == "cpu" and not (torch.is_grad_enabled() and t.requires_grad):
+        from . import _ops
+
+        if _ops.is_loaded():  # the native op, when the rasterizer already loaded it
+            return _ops.gauss_blur(t, g)
     k, n = t.shape[1], g.shape[0]
     pad = n // 2
     t = F.conv2d(t, g.view(1, 1, n, 1).expand(k, 1, n, 1), padding=(pad, 0), groups=k)

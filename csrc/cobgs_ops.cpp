@@ -36,4 +36,6 @@ TORCH_LIBRARY(cobgs, m) {
   m.def(
       "sh_colors_bwd(Tensor means, Tensor sh0, Tensor shN, Tensor center, int degree, "
       "Tensor v_colors) -> (Tensor v_means, Tensor v_sh0, Tensor v_shN)");
+  // csrc/blur/blur.h
+  m.def("gauss_blur(Tensor x, Tensor g) -> Tensor");
 }
