@@ -15,6 +15,7 @@ namespace cobgs {
 namespace {
 
 constexpr double kNormMin = 1e-12;  // as GaussianModel.colors: d / max(|d|, 1e-12)
+constexpr int kMaxChannels = 16;    // per-Gaussian channel values live in registers
 
 void check_sh_inputs(const at::Tensor& means, const at::Tensor& sh0, const at::Tensor& shN,
                      const at::Tensor& center, int64_t degree) {
@@ -27,7 +28,8 @@ void check_sh_inputs(const at::Tensor& means, const at::Tensor& sh0, const at::T
   TORCH_CHECK(means.dim() == 2, "means must have shape [N, 3], got ", means.sizes());
   TORCH_CHECK(sh0.dim() == 3, "sh0 must have shape [N, 1, C], got ", sh0.sizes());
   const int64_t n = means.size(0), c = sh0.size(2);
-  TORCH_CHECK(c >= 1, "sh0 must have at least one channel, got ", sh0.sizes());
+  TORCH_CHECK(c >= 1 && c <= kMaxChannels, "sh0 must have 1..", kMaxChannels,
+              " channels, got ", sh0.sizes());
   COBGS_CHECK_SHAPE(means, n, 3);
   COBGS_CHECK_SHAPE(sh0, n, 1, c);
   COBGS_CHECK_SHAPE(shN, n, -1, c);
@@ -67,11 +69,14 @@ void sh_forward(const T* means, const T* sh0, const T* shN, const T* center, int
     }
     const T* c0 = sh0 + i * C;
     const T* cn = shN + i * M * C;
+    T v[kMaxChannels];
+    for (int ch = 0; ch < C; ++ch) v[ch] = c0[ch] * T(sh::kC0);
+    // Coefficients in memory order (k outer); each channel still sums k = 0, 1, ...
+    for (int k = 1; k < K; ++k)
+      for (int ch = 0; ch < C; ++ch) v[ch] += Y[k] * cn[(k - 1) * C + ch];
     for (int ch = 0; ch < C; ++ch) {
-      T v = c0[ch] * T(sh::kC0);
-      for (int k = 1; k < K; ++k) v += Y[k] * cn[(k - 1) * C + ch];
-      v += T(0.5);
-      out[i * C + ch] = v < T(0) ? T(0) : v;  // clamp_min(0); NaN stays NaN
+      const T u = v[ch] + T(0.5);
+      out[i * C + ch] = u < T(0) ? T(0) : u;  // clamp_min(0); NaN stays NaN
     }
   }
 }
@@ -94,17 +99,25 @@ void sh_backward(const T* means, const T* sh0, const T* shN, const T* center, in
     const T* cn = shN + i * M * C;
     T* g0 = v_sh0 + i * C;
     T* gn = v_shN + i * M * C;
-    T w[sh::kMaxCoeffs] = {};  // Σ_ch c_k[ch] · dL/dv[ch]
+    T w[sh::kMaxCoeffs];  // Σ_ch c_k[ch] · dL/dv[ch]
+    T v[kMaxChannels], g[kMaxChannels];
+    for (int ch = 0; ch < C; ++ch) v[ch] = c0[ch] * T(sh::kC0);
+    for (int k = 1; k < K; ++k)
+      for (int ch = 0; ch < C; ++ch) v[ch] += Y[k] * cn[(k - 1) * C + ch];
     for (int ch = 0; ch < C; ++ch) {
-      T v = c0[ch] * T(sh::kC0);
-      for (int k = 1; k < K; ++k) v += Y[k] * cn[(k - 1) * C + ch];
-      v += T(0.5);
-      const T g = v >= T(0) ? v_col[i * C + ch] : T(0);  // clamp_min's gradient mask
-      g0[ch] = g * T(sh::kC0);
-      for (int k = 1; k < K; ++k) {
-        gn[(k - 1) * C + ch] = g * Y[k];
-        w[k] += cn[(k - 1) * C + ch] * g;
+      // clamp_min's gradient mask (the gradient passes where v + 0.5 >= 0)
+      g[ch] = v[ch] + T(0.5) >= T(0) ? v_col[i * C + ch] : T(0);
+      g0[ch] = g[ch] * T(sh::kC0);
+    }
+    for (int k = 1; k < K; ++k) {
+      const T* ck = cn + (k - 1) * C;
+      T* gk = gn + (k - 1) * C;
+      T wk = T(0);
+      for (int ch = 0; ch < C; ++ch) {
+        gk[ch] = g[ch] * Y[k];
+        wk += ck[ch] * g[ch];
       }
+      w[k] = wk;
     }
     for (int64_t k = (K - 1) * C; k < M * C; ++k) gn[k] = T(0);
     if (degree == 0) {
