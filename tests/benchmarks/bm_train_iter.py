@@ -9,8 +9,12 @@ Usage::
 Scene: fern at 1/8 (504x378; SfM from ``--sfm-dir``, default the folder bm_train.py
 writes, made with pycolmap when absent) or lego at 200x200. Model: a trained PLY
 (``--ply``; default ``/tmp/cobgs_bm_train/<scene>.ply`` when it exists), else the
-scene's own initialisation (SfM points, few Gaussians: printed, and not representative
-of a trained scene). All SH degrees are active (degree 3), as after the first 3k
+scene's own initialisation (SfM points, few large Gaussians: not representative of a
+trained scene), or with ``--proxy N`` a stand-in for a trained model: every initial
+Gaussian split into children sampled inside it (scales shrunk so the children fill
+its volume), N in all, opacities uniform in [0.2, 0.9], random SH rest coefficients.
+The proxy only approximates a trained scene's cost; the printed model line says which
+was used. All SH degrees are active (degree 3), as after the first 3k
 iterations of the recipe.
 
 The iteration is :meth:`cobgs.train.Trainer.step` with densification and opacity reset
@@ -28,7 +32,7 @@ Target (issue 10): a full iteration on fern 1/8 <= 120 ms (2 threads).
 from __future__ import annotations
 
 import argparse
-import dataclasses
+import math
 import os
 import statistics
 import sys
@@ -71,11 +75,35 @@ def load_scene(kind: str, sfm_dir: Path):
     return read_colmap(sfm_dir, test_every=8)
 
 
+def proxy_model(init, n: int, seed: int = 0):
+    """A trained-size stand-in: ``init``'s Gaussians split into ``n`` children."""
+    from cobgs.gaussians import GaussianModel, inverse_sigmoid
+
+    g = torch.Generator().manual_seed(seed)
+    d = {k: v.detach() for k, v in init.data.items()}
+    m = d["means"].shape[0]
+    parent = torch.randint(0, m, (n,), generator=g)
+    k = n / m
+    scales = torch.exp(d["log_scales"][parent])
+    rot = init.rotations.detach()[parent]
+    from cobgs.gaussians import quat_to_rotmat
+
+    offs = torch.einsum("nij,nj->ni", quat_to_rotmat(rot), scales * torch.randn(n, 3, generator=g))
+    means = d["means"][parent] + offs
+    log_scales = d["log_scales"][parent] - math.log(k) / 3.0
+    opac = 0.2 + 0.7 * torch.rand(n, generator=g)
+    shN = 0.05 * torch.randn(n, d["shN"].shape[1], 3, generator=g)
+    return GaussianModel(means=means, log_scales=log_scales, quats=d["quats"][parent],
+                         opacity_logits=inverse_sigmoid(opac), sh0=d["sh0"][parent], shN=shN)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scene", choices=["fern", "lego"], default="fern")
     ap.add_argument("--ply", type=Path, default=None)
     ap.add_argument("--sfm-dir", type=Path, default=BM_OUT / "fern_sfm")
+    ap.add_argument("--proxy", type=int, default=0,
+                    help="without a trained PLY: split the initial model into this many")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--reps", type=int, default=10, help="timed iterations")
     args = ap.parse_args(argv)
@@ -89,13 +117,17 @@ def main(argv=None) -> int:
     model = load_model(ply) if ply.is_file() else None
     config = TrainConfig(iterations=30_000)
     trainer = Trainer(scene, config, model)
+    what = str(ply) if ply.is_file() else "initialisation (no trained PLY: not representative)"
+    if model is None and args.proxy > 0:
+        trainer = Trainer(scene, config, proxy_model(trainer.model, args.proxy))
+        what = f"proxy: initialisation split into {args.proxy} (no trained PLY)"
     trainer.model.active_sh_degree = trainer.model.sh_degree
     # Past densify_until: no densification, opacity reset or statistics; plain steps.
     trainer.iteration = max(trainer.sched.densify_until, 15_000) + 1
     view0 = scene.train[0]
     w, h = int(view0.camera.width), int(view0.camera.height)
     print(f"scene {args.scene} {w}x{h}, {len(scene.train)} training views, model "
-          f"{ply if ply.is_file() else 'initialisation (no trained PLY: not representative)'}"
+          f"{what}"
           f", {len(trainer.model)} Gaussians, SH degree {trainer.model.active_sh_degree}, "
           f"threads {args.threads}, OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}")
 
