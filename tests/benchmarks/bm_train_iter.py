@@ -150,8 +150,11 @@ def main(argv=None) -> int:
         view = scene.train[i % len(scene.train)]
         cam = view.camera
         with Clock() as c_sh:
-            feats = _ops.sh_colors(model.data["means"], model.data["sh0"], model.data["shN"],
-                                   cam.center, model.active_sh_degree)  # as render() does
+            if hasattr(_ops, "sh_colors"):  # as render() does
+                feats = _ops.sh_colors(model.data["means"], model.data["sh0"],
+                                       model.data["shN"], cam.center, model.active_sh_degree)
+            else:  # an older checkout (before the native SH op), for comparisons
+                feats = model.colors(cam.center)
         with Clock() as c_r:
             out = render(model, cam, trainer.background, features=feats)
             out.means2d.retain_grad()
