@@ -134,20 +134,29 @@ def main(argv=None) -> int:
     for _ in range(2):  # warm-up (extension load, allocator)
         trainer.step()
     load0 = os.getloadavg()
+    # Record the views the timed steps draw, so the parts below are timed on the same ones
+    # (the cost of a view varies with how much of the scene it sees).
+    seen = []
+    draw = trainer._next_view
+
+    def recording_next_view():
+        seen.append(draw())
+        return seen[-1]
+
+    trainer._next_view = recording_next_view
     steps = []
     for _ in range(args.reps):
         with Clock() as c:
             trainer.step()
         steps.append(c)
 
-    # The parts, on the same kind of views, with the trainer's own model and optimizer.
+    # The parts, on the same views, with the trainer's own model and optimizer.
     from cobgs import _ops
     from cobgs.render import render
 
     model, opt = trainer.model, trainer.optimizer
     parts = {k: [] for k in ("sh colour", "rasterize fwd", "loss fwd", "backward", "adam")}
-    for i in range(args.reps):
-        view = scene.train[i % len(scene.train)]
+    for view in seen:
         cam = view.camera
         with Clock() as c_sh:
             if hasattr(_ops, "sh_colors"):  # as render() does
