@@ -101,6 +101,11 @@ void project_bwd_kernel(const at::Tensor& means, const at::Tensor& quats,
 #pragma omp for schedule(static)
     for (int64_t i = 0; i < n; ++i) {
       if (r[i] <= 0) continue;
+      // A Gaussian that received no gradient (e.g. behind opaque pixels everywhere in
+      // this view) contributes zero: skip the recomputation (outputs start at zero).
+      if (vm2[2 * i] == T(0) && vm2[2 * i + 1] == T(0) && vco[3 * i] == T(0) &&
+          vco[3 * i + 1] == T(0) && vco[3 * i + 2] == T(0) && vd[i] == T(0))
+        continue;
       math::project_gaussian_vjp<T>(cam, m + 3 * i, q + 4 * i, s + 3 * i, vm2[2 * i],
                                     vm2[2 * i + 1], vco[3 * i], vco[3 * i + 1],
                                     vco[3 * i + 2], vd[i], om + 3 * i, oq + 4 * i, os + 3 * i);

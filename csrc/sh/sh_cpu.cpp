@@ -6,6 +6,8 @@
 
 #include <torch/library.h>
 
+#include <algorithm>
+
 #include "../common/checks.h"
 #include "../common/parallel_cpu.h"
 #include "../common/prof_cpu.h"
@@ -90,6 +92,16 @@ void sh_backward(const T* means, const T* sh0, const T* shN, const T* center, in
   COBGS_PROF_SCOPE(kShBwd);  // (the master thread only)
 #pragma omp parallel for schedule(static) num_threads(cpu_threads())
   for (int64_t i = 0; i < n; ++i) {
+    T* g0 = v_sh0 + i * C;
+    T* gn = v_shN + i * M * C;
+    bool any_grad = false;
+    for (int ch = 0; ch < C; ++ch) any_grad |= v_col[i * C + ch] != T(0);
+    if (!any_grad) {  // e.g. a Gaussian hidden in this view: every gradient is zero
+      std::fill(g0, g0 + C, T(0));
+      std::fill(gn, gn + M * C, T(0));
+      v_means[3 * i] = v_means[3 * i + 1] = v_means[3 * i + 2] = T(0);
+      continue;
+    }
     T Y[sh::kMaxCoeffs], dir[3], norm = T(0), nc = T(1);
     if (degree > 0) {
       nc = direction(means + 3 * i, center, dir, norm);
@@ -97,8 +109,6 @@ void sh_backward(const T* means, const T* sh0, const T* shN, const T* center, in
     }
     const T* c0 = sh0 + i * C;
     const T* cn = shN + i * M * C;
-    T* g0 = v_sh0 + i * C;
-    T* gn = v_shN + i * M * C;
     T w[sh::kMaxCoeffs];  // Σ_ch c_k[ch] · dL/dv[ch]
     T v[kMaxChannels], g[kMaxChannels];
     for (int ch = 0; ch < C; ++ch) v[ch] = c0[ch] * T(sh::kC0);
