@@ -137,6 +137,29 @@ void blend_backward(const at::Tensor& means2d, const at::Tensor& conics,
   uint8_t* slot_hit = reusable_buffer<uint8_t, 5>(size_t(m));  // every entry written
   const EntrySlots slots = EntrySlots::buffers(m, n);
   const int64_t* order = tile_order(tile_offsets.data_ptr<int64_t>(), n_tiles);
+  // Per tile: how many entries of its list the pass visits (the largest n_contrib), which
+  // must lie within the list (a check that also guards the tile kernel's indexing).
+  int32_t* live = reusable_buffer<int32_t, 6>(size_t(n_tiles));
+  {
+    const int32_t* nc = n_contrib.data_ptr<int32_t>();
+    const int64_t* off = tile_offsets.data_ptr<int64_t>();
+    bool ok = true;
+    for (int64_t t = 0; t < n_tiles; ++t) {
+      const int tx0 = int(t % tiles_x) * kTileSize, ty0 = int(t / tiles_x) * kTileSize;
+      const int tx1 = std::min(tx0 + kTileSize, width), ty1 = std::min(ty0 + kTileSize, height);
+      int32_t mx = 0;
+      for (int py = ty0; py < ty1; ++py)
+        for (int px = tx0; px < tx1; ++px) {
+          const int32_t v = nc[int64_t(py) * width + px];
+          ok &= v >= 0;
+          mx = std::max(mx, v);
+        }
+      ok &= mx <= off[t + 1] - off[t];
+      live[t] = mx;
+    }
+    TORCH_CHECK(ok, "n_contrib must lie in 0 .. the length of the pixel's tile list "
+                "(the n_contrib output of the forward pass with the same tile lists)");
+  }
 
   BwdArgs<T> a;
   a.prep = prep;
@@ -171,7 +194,7 @@ void blend_backward(const at::Tensor& means2d, const at::Tensor& conics,
     }
     {
       COBGS_PROF_SCOPE(kBwdGroup);
-      group_entries(a.ids, m, n, slots);  // ends with a barrier
+      group_live_entries(a.ids, a.off, n_tiles, live, n, slots);  // ends with a barrier
     }
     BwdScratch<T> scratch(C);  // on the stack: its alignas holds
     {

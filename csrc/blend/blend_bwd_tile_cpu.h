@@ -56,8 +56,8 @@ void backward_tile(const BwdArgs<T>& a, int64_t tile, BwdScratch<T>& s) {
     store(s.acc_p[b], zero);
     store(s.acc_q[b], zero);
   }
-  // Entries behind every pixel's last contributor have nothing to do: unset slots.
-  for (int64_t j = lo + max_last; j < hi; ++j) a.slot_hit[a.slot[j]] = 0;
+  // Entries behind every pixel's last contributor have nothing to do (and no slot:
+  // group_live_entries gave slots to the first max_last entries only).
 
   COBGS_PROF_LOCAL(n_blocks);
   COBGS_PROF_LOCAL(n_blocks_exp);

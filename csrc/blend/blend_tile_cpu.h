@@ -136,6 +136,46 @@ inline void group_entries(const int32_t* ids, int64_t m, int64_t n, const EntryS
   }
 }
 
+// As group_entries, for the entries the backward pass visits only: in tile t, the first
+// live[t] entries of its list (those in front of some pixel's last contributor). The
+// other entries get no slot (slot[j] is left unset and must not be read). On scenes
+// where pixels become opaque early most of the list is behind them, and grouping and
+// reducing only the live entries saves most of that work. Deterministic as
+// group_entries: two fixed halves of the tiles, in list order.
+inline void group_live_entries(const int32_t* ids, const int64_t* off, int64_t n_tiles,
+                               const int32_t* live, int64_t n, const EntrySlots& e) {
+  const int64_t half = n_tiles / 2;
+#pragma omp for schedule(static)
+  for (int h = 0; h < 2; ++h) {
+    int64_t* c = e.count + h * n;
+    std::fill(c, c + n, int64_t(0));
+    const int64_t t0 = h == 0 ? 0 : half, t1 = h == 0 ? half : n_tiles;
+    for (int64_t t = t0; t < t1; ++t)
+      for (int64_t j = off[t]; j < off[t] + live[t]; ++j) ++c[ids[j]];
+  }
+#pragma omp single
+  {
+    int64_t run = 0;
+    int64_t* c0 = e.count;
+    int64_t* c1 = e.count + n;
+    for (int64_t g = 0; g < n; ++g) {
+      const int64_t a = c0[g], b = c1[g];
+      e.start[g] = run;
+      c0[g] = run;
+      c1[g] = run + a;
+      run += a + b;
+    }
+    e.start[n] = run;
+  }  // implicit barrier
+#pragma omp for schedule(static)
+  for (int h = 0; h < 2; ++h) {
+    int64_t* cur = e.count + h * n;
+    const int64_t t0 = h == 0 ? 0 : half, t1 = h == 0 ? half : n_tiles;
+    for (int64_t t = t0; t < t1; ++t)
+      for (int64_t j = off[t]; j < off[t] + live[t]; ++j) e.slot[j] = cur[ids[j]]++;
+  }
+}
+
 // Tiles in decreasing order of list length (ties: tile index), the order the dynamic
 // schedule hands them out: the long tiles start first, so no thread is left with one
 // long tile at the end while the other idles. Results do not depend on the order.
