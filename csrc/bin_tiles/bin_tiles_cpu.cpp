@@ -47,12 +47,23 @@ inline uint64_t depth_key(double d) {
   return k;
 }
 
+// A vector of the calling thread kept across calls (cleared, capacity kept): fresh
+// multi-megabyte allocations are zero-filled page by page by the kernel on every call.
+// `Tag` tells the buffers apart.
+template <typename V, int Tag>
+std::vector<V>& scratch() {
+  thread_local std::vector<V> buf;
+  return buf;
+}
+
 // Stable LSD radix sort of `ids` by `keys` (parallel arrays), 8 bits per pass.
 template <typename K>
 void radix_sort(std::vector<K>& keys, std::vector<int32_t>& ids) {
   const size_t n = keys.size();
-  std::vector<K> k2(n);
-  std::vector<int32_t> i2(n);
+  std::vector<K>& k2 = scratch<K, 1>();
+  std::vector<int32_t>& i2 = scratch<int32_t, 2>();
+  k2.resize(n);
+  i2.resize(n);
   for (int shift = 0; shift < static_cast<int>(8 * sizeof(K)); shift += 8) {
     size_t count[257] = {0};
     for (size_t i = 0; i < n; ++i) ++count[((keys[i] >> shift) & 0xFF) + 1];
@@ -80,8 +91,10 @@ void bin_tiles_kernel(const at::Tensor& means2d, const at::Tensor& radii,
   const int32_t* r = radii.data_ptr<int32_t>();
 
   COBGS_PROF_COUNT(kCallsBin, 1);
-  std::vector<Key> keys;
-  std::vector<int32_t> order;
+  std::vector<Key>& keys = scratch<Key, 0>();
+  std::vector<int32_t>& order = scratch<int32_t, 3>();
+  keys.clear();
+  order.clear();
 #ifdef COBGS_PROFILE
   auto* sort_scope = new prof::Scope(prof::kBinSort);
 #endif
@@ -100,27 +113,51 @@ void bin_tiles_kernel(const at::Tensor& means2d, const at::Tensor& radii,
 #endif
   COBGS_PROF_SCOPE(kBinLists);  // (the master thread only)
 
-  const size_t nv = order.size();
-  std::vector<Rect> rects(nv);
-#pragma omp parallel for schedule(static) num_threads(cpu_threads())
-  for (int64_t k = 0; k < static_cast<int64_t>(nv); ++k) {
-    const int32_t i = order[k];
-    rects[k] = tile_rect<T>(m2[2 * i], m2[2 * i + 1], r[i], tiles_x, tiles_y);
-  }
+  const int64_t nv = static_cast<int64_t>(order.size());
+  std::vector<Rect>& rects = scratch<Rect, 4>();
+  rects.resize(nv);
+  // Two fixed halves of the depth order are counted and placed in parallel; a tile's
+  // entries from the first half precede those from the second, so the lists are the same
+  // as a serial pass whatever the thread count.
+  const int64_t half = nv / 2;
+  std::vector<int64_t>& cnt = scratch<int64_t, 5>();  // [2][n_tiles]: counts, then cursors
+  cnt.assign(2 * size_t(n_tiles), 0);
   int64_t* off = tile_offsets.data_ptr<int64_t>();
-  for (size_t k = 0; k < nv; ++k) {
-    const Rect& rc = rects[k];
-    for (int ty = rc.y0; ty < rc.y1; ++ty)
-      for (int tx = rc.x0; tx < rc.x1; ++tx) ++off[int64_t(ty) * tiles_x + tx + 1];
+#pragma omp parallel num_threads(cpu_threads())
+  {
+#pragma omp for schedule(static)
+    for (int64_t k = 0; k < nv; ++k) {
+      const int32_t i = order[k];
+      rects[k] = tile_rect<T>(m2[2 * i], m2[2 * i + 1], r[i], tiles_x, tiles_y);
+    }
+#pragma omp for schedule(static)
+    for (int h = 0; h < 2; ++h) {
+      int64_t* c = cnt.data() + h * n_tiles;
+      for (int64_t k = h == 0 ? 0 : half; k < (h == 0 ? half : nv); ++k) {
+        const Rect& rc = rects[k];
+        for (int ty = rc.y0; ty < rc.y1; ++ty)
+          for (int tx = rc.x0; tx < rc.x1; ++tx) ++c[int64_t(ty) * tiles_x + tx];
+      }
+    }
   }
-  for (int64_t t = 0; t < n_tiles; ++t) off[t + 1] += off[t];
+  int64_t* c0 = cnt.data();
+  int64_t* c1 = cnt.data() + n_tiles;
+  for (int64_t t = 0; t < n_tiles; ++t) {
+    const int64_t a = c0[t], b = c1[t];
+    c0[t] = off[t];      // cursor of the first half
+    c1[t] = off[t] + a;  // cursor of the second half
+    off[t + 1] = off[t] + a + b;
+  }
   flat_ids = at::empty({off[n_tiles]}, means2d.options().dtype(at::kInt));
   int32_t* ids = flat_ids.data_ptr<int32_t>();
-  std::vector<int64_t> cursor(off, off + n_tiles);
-  for (size_t k = 0; k < nv; ++k) {
-    const Rect& rc = rects[k];
-    for (int ty = rc.y0; ty < rc.y1; ++ty)
-      for (int tx = rc.x0; tx < rc.x1; ++tx) ids[cursor[int64_t(ty) * tiles_x + tx]++] = order[k];
+#pragma omp parallel for schedule(static) num_threads(cpu_threads())
+  for (int h = 0; h < 2; ++h) {
+    int64_t* cursor = cnt.data() + h * n_tiles;
+    for (int64_t k = h == 0 ? 0 : half; k < (h == 0 ? half : nv); ++k) {
+      const Rect& rc = rects[k];
+      for (int ty = rc.y0; ty < rc.y1; ++ty)
+        for (int tx = rc.x0; tx < rc.x1; ++tx) ids[cursor[int64_t(ty) * tiles_x + tx]++] = order[k];
+    }
   }
 }
 
