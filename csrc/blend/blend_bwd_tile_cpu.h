@@ -4,6 +4,7 @@
 // NC > 0 fixes the channel count at compile time (RGB: 3, one mask label: 1), so the
 // per-channel loops unroll; NC = 0 reads it from the arguments.
 #include "../common/simd_isa_cpu.h"
+#include "blend_block_cpu.h"
 
 template <typename T, int NC>
 void backward_tile(const BwdArgs<T>& a, int64_t tile, BwdScratch<T>& s) {
@@ -97,8 +98,7 @@ void backward_tile(const BwdArgs<T>& a, int64_t tile, BwdScratch<T>& s) {
         const int p = (py - y0) * kTileSize + b * simd::kLanes;
         // Which pixels this Gaussian was blended into, and its α there (the forward's
         // decision, recomputed bit for bit).
-        const V dx = px_centre[b] - g.mx;
-        const V power = T(-0.5) * (g.ca * dx * dx + cc_dy_dy) - g.cb * dx * dy;
+        const V power = block_power<T>(g, px_centre[b], dy, cc_dy_dy);
         const VI ok = simd::to_i32(simd::to_mask(rank_v < load<VI>(s.last + p), T(0)) &
                                    (power <= zero) & (power >= g.power_reject));
         store(s.blk_gauss + nblk * simd::kLanes, power);

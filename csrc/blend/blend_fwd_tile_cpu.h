@@ -4,6 +4,7 @@
 // NC > 0 fixes the channel count at compile time (RGB: 3, one mask label: 1), so the
 // per-channel loops unroll; NC = 0 reads it from the arguments.
 #include "../common/simd_isa_cpu.h"
+#include "blend_block_cpu.h"
 
 template <typename T, int NC>
 void forward_tile(const FwdArgs<T>& a, int64_t tile, FwdScratch<T>& s) {
@@ -92,8 +93,7 @@ void forward_tile(const FwdArgs<T>& a, int64_t tile, FwdScratch<T>& s) {
         const int p = (py - y0) * kTileSize + b * simd::kLanes;
         // The per-pixel rule of 3DGS (see reference.py), in the reference's order:
         // power = -0.5 (a dx² + c dy²) - b dx dy.
-        const V dx = px_centre[b] - g.mx;
-        const V power = T(-0.5) * (g.ca * dx * dx + cc_dy_dy) - g.cb * dx * dy;
+        const V power = block_power<T>(g, px_centre[b], dy, cc_dy_dy);
         const VI cand = simd::to_i32(simd::to_mask(~load<VI>(s.done + p), T(0)) &
                                      (power <= zero) & (power >= g.power_reject));
         store(s.blk_alpha + nblk * simd::kLanes, power);

@@ -102,18 +102,10 @@ struct EntrySlots {
   }
 };
 
-// Fills the grouping of `ids` [m] (values in 0..n-1). Called inside a parallel region by
-// every thread (orphaned worksharing; ends with a barrier). Two fixed halves of the list
-// are counted and placed in parallel; the slots do not depend on the thread count.
-inline void group_entries(const int32_t* ids, int64_t m, int64_t n, const EntrySlots& e) {
-  const int64_t half = m / 2;
-#pragma omp for schedule(static)
-  for (int h = 0; h < 2; ++h) {
-    int64_t* c = e.count + h * n;
-    std::fill(c, c + n, int64_t(0));
-    const int64_t lo = h == 0 ? 0 : half, hi = h == 0 ? half : m;
-    for (int64_t j = lo; j < hi; ++j) ++c[ids[j]];
-  }
+// The middle step of the two-halves grouping below: from the per-half counts of every
+// Gaussian (e.count, two rows of n), its first slot (e.start) and each half's cursor
+// (written back into e.count). One thread does it; the others wait at the barrier.
+inline void place_two_halves(int64_t n, const EntrySlots& e) {
 #pragma omp single
   {
     int64_t run = 0;
@@ -128,6 +120,21 @@ inline void group_entries(const int32_t* ids, int64_t m, int64_t n, const EntryS
     }
     e.start[n] = run;
   }  // implicit barrier
+}
+
+// Fills the grouping of `ids` [m] (values in 0..n-1). Called inside a parallel region by
+// every thread (orphaned worksharing; ends with a barrier). Two fixed halves of the list
+// are counted and placed in parallel; the slots do not depend on the thread count.
+inline void group_entries(const int32_t* ids, int64_t m, int64_t n, const EntrySlots& e) {
+  const int64_t half = m / 2;
+#pragma omp for schedule(static)
+  for (int h = 0; h < 2; ++h) {
+    int64_t* c = e.count + h * n;
+    std::fill(c, c + n, int64_t(0));
+    const int64_t lo = h == 0 ? 0 : half, hi = h == 0 ? half : m;
+    for (int64_t j = lo; j < hi; ++j) ++c[ids[j]];
+  }
+  place_two_halves(n, e);
 #pragma omp for schedule(static)
   for (int h = 0; h < 2; ++h) {
     int64_t* cur = e.count + h * n;
@@ -153,20 +160,7 @@ inline void group_live_entries(const int32_t* ids, const int64_t* off, int64_t n
     for (int64_t t = t0; t < t1; ++t)
       for (int64_t j = off[t]; j < off[t] + live[t]; ++j) ++c[ids[j]];
   }
-#pragma omp single
-  {
-    int64_t run = 0;
-    int64_t* c0 = e.count;
-    int64_t* c1 = e.count + n;
-    for (int64_t g = 0; g < n; ++g) {
-      const int64_t a = c0[g], b = c1[g];
-      e.start[g] = run;
-      c0[g] = run;
-      c1[g] = run + a;
-      run += a + b;
-    }
-    e.start[n] = run;
-  }  // implicit barrier
+  place_two_halves(n, e);
 #pragma omp for schedule(static)
   for (int h = 0; h < 2; ++h) {
     int64_t* cur = e.count + h * n;

@@ -345,18 +345,27 @@ HOST_DEVICE inline void project_gaussian_vjp(const Camera<T>& cam, const T* mean
 // bits; measured relative error <= 8.4e-8 on [-87, 0]) that compilers can vectorise and
 // that rounds identically in scalar and SIMD code (no FMA contraction: -ffp-contract=off).
 // double: the library exp (the float64 path serves tests and gradcheck).
+// The arithmetic core of gauss_exp(float) on a clamped argument, written once for a float
+// and for a vector of floats (the SIMD twin in simd_isa_cpu.h calls it lane-wise): sets n
+// to round(x / ln 2) and returns e^r for r = x - n ln 2 (so e^x = 2^n e^r).
+template <typename V>
+HOST_DEVICE inline V exp_reduced(const V& x, V& n) {
+  const float shifter = 12582912.0f;  // 1.5 · 2^23: adding it rounds to an integer
+  n = (x * 1.44269504088896341f + shifter) - shifter;
+  const V r = (x - n * 0.693359375f) - n * -2.12194440e-4f;
+  // The degree-5 polynomial by Estrin's scheme (shorter dependency chain than Horner's).
+  const V r2 = r * r;
+  const V p01 = r * 1.6666665459e-1f + 5.0000001201e-1f;
+  const V p23 = r * 8.3334519073e-3f + 4.1665795894e-2f;
+  const V p45 = r * 1.9875691500e-4f + 1.3981999507e-3f;
+  const V p = (p01 + r2 * p23) + (r2 * r2) * p45;
+  return p * r2 + r + 1.0f;
+}
+
 HOST_DEVICE inline float gauss_exp(float x) {
   x = std::max(-87.0f, std::min(88.0f, x));
-  const float shifter = 12582912.0f;  // 1.5 · 2^23: adding it rounds to an integer
-  const float n = (x * 1.44269504088896341f + shifter) - shifter;
-  const float r = (x - n * 0.693359375f) - n * -2.12194440e-4f;
-  // The degree-5 polynomial by Estrin's scheme (shorter dependency chain than Horner's).
-  const float r2 = r * r;
-  const float p01 = r * 1.6666665459e-1f + 5.0000001201e-1f;
-  const float p23 = r * 8.3334519073e-3f + 4.1665795894e-2f;
-  const float p45 = r * 1.9875691500e-4f + 1.3981999507e-3f;
-  const float p = (p01 + r2 * p23) + (r2 * r2) * p45;
-  const float y = p * r2 + r + 1.0f;
+  float n;
+  const float y = exp_reduced(x, n);
   const int32_t bits = (static_cast<int32_t>(n) + 127) << 23;
   float scale;
   std::memcpy(&scale, &bits, sizeof(scale));

@@ -54,17 +54,8 @@ inline simd::Lanes<float>::V gauss_exp(simd::Lanes<float>::V x) {
   const V lo = simd::splat<V>(-87.0f), hi = simd::splat<V>(88.0f);
   x = min_with(hi, x);  // std::min(88, x)
   x = lo < x ? x : lo;  // std::max(-87, x)
-  const float shifter = 12582912.0f;
-  const V n = (x * 1.44269504088896341f + shifter) - shifter;
-  const V r = (x - n * 0.693359375f) - n * -2.12194440e-4f;
-  // Estrin's scheme: three independent pairs, then r² and r⁴ (a shorter dependency chain
-  // than Horner's, which bounded the throughput of blocks in flight).
-  const V r2 = r * r;
-  const V p01 = r * 1.6666665459e-1f + 5.0000001201e-1f;
-  const V p23 = r * 8.3334519073e-3f + 4.1665795894e-2f;
-  const V p45 = r * 1.9875691500e-4f + 1.3981999507e-3f;
-  const V p = (p01 + r2 * p23) + (r2 * r2) * p45;
-  const V y = p * r2 + r + 1.0f;
+  V n;
+  const V y = math::exp_reduced(x, n);  // the scalar function's core, lane-wise
   const simd::VI e = (__builtin_convertvector(n, simd::VI) + 127) << 23;
   V scale;
   std::memcpy(&scale, &e, sizeof(scale));

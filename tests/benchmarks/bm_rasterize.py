@@ -66,6 +66,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import torch  # noqa: E402
 
 import cobgs  # noqa: E402
+from _bench_util import Clock  # noqa: E402  (the script's folder is on sys.path when run as a script)
 
 W, H = 504, 378
 
@@ -93,16 +94,6 @@ def make_scene(n: int, seed: int, dtype=torch.float32):
     return tensors, labels, grad_image, grad_alpha
 
 
-class Clock:
-    """Wall time and process CPU time (all threads, user + system) of a block."""
-
-    def __enter__(self):
-        self.wall0, self.cpu0 = time.perf_counter(), time.process_time()
-        return self
-
-    def __exit__(self, *exc):
-        self.wall = time.perf_counter() - self.wall0
-        self.cpu = time.process_time() - self.cpu0
 
 
 def run_once(tensors, backend, grad_image, grad_alpha, labels=None, backward=True):

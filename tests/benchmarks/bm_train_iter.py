@@ -47,18 +47,11 @@ import torch  # noqa: E402
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _bench_util import Clock  # noqa: E402
 SHARED = Path(os.environ.get("COBGS_SHARED_DATA", REPO.parent / "shared" / "data"))
 BM_OUT = Path("/tmp/cobgs_bm_train")
 
 
-class Clock:
-    def __enter__(self):
-        self.wall0, self.cpu0 = time.perf_counter(), time.process_time()
-        return self
-
-    def __exit__(self, *exc):
-        self.wall = time.perf_counter() - self.wall0
-        self.cpu = time.process_time() - self.cpu0
 
 
 def load_scene(kind: str, sfm_dir: Path):
