@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import signal
 from pathlib import Path
 
 import pytest
@@ -11,6 +12,14 @@ import pytest
 # default spinning OpenMP workers cost 10-30x the CPU time of the work itself
 # (measured on a tiny training step: 121 ms vs 3.8 ms CPU per iteration).
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+# A test session started as a background job of a non-interactive shell (`cmd &` in a
+# script, as CI runners may do) inherits SIGINT *ignored*; then the Ctrl-C tests can
+# neither interrupt this process (_thread.interrupt_main does nothing) nor the runs they
+# start (an ignored signal stays ignored across exec). Python's own handler restores what
+# an interactive terminal gives; child processes get the default action after exec.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("COBGS_SHARED_DATA", REPO.parent / "shared" / "data"))
