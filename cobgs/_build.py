@@ -37,7 +37,11 @@ from typing import List, Optional
 
 from .errors import BuildError
 
-CSRC = Path(__file__).resolve().parents[1] / "csrc"
+# A source checkout (editable install) builds from the repository's csrc/; an installed
+# wheel carries the same files as package data in cobgs/_csrc (a link to csrc/ in the
+# repository).
+_REPO_CSRC = Path(__file__).resolve().parents[1] / "csrc"
+CSRC = _REPO_CSRC if _REPO_CSRC.is_dir() else Path(__file__).resolve().parent / "_csrc"
 # -O3 with auto-vectorisation of the per-row pixel loops, which needs
 # -fno-trapping-math (lets GCC if-convert float compares; results are unchanged in the
 # default floating-point environment). -ffp-contract=off keeps a*b+c unfused so scalar
@@ -70,7 +74,8 @@ def cache_root() -> Path:
 def _source_files() -> List[Path]:
     if not CSRC.is_dir():
         raise BuildError(f"the C++ sources of the native rasterizer were not found at {CSRC} "
-                         f"(cobgs must run from a source checkout or an editable install); "
+                         f"(a source checkout builds from csrc/, an installed wheel from cobgs/_csrc; "
+                         f"reinstall cobgs); "
                          f"use backend=\"reference\" to render without them")
     return sorted(p for p in CSRC.rglob("*") if p.suffix in (".cpp", ".h", ".cu", ".cuh"))
 

@@ -120,3 +120,29 @@ def test_cli_build_reports_the_library():
                           text=True, cwd=REPO, timeout=600)
     assert proc.returncode == 0, proc.stderr
     assert "cobgs native extension ready:" in proc.stdout and ".so" in proc.stdout
+
+
+def test_wheel_carries_the_sources_and_builds_from_them(tmp_path):
+    """A non-editable install has no csrc/ beside the package: the wheel carries the C++
+    sources as cobgs/_csrc and the JIT build finds them there, with the same build key
+    (so the same cached extension) as the source checkout."""
+    import zipfile
+
+    wheel_dir = tmp_path / "wheel"
+    subprocess.run([sys.executable, "-m", "pip", "wheel", str(REPO), "--no-deps",
+                    "--no-build-isolation", "-q", "-w", str(wheel_dir)],
+                   check=True, capture_output=True, timeout=300)
+    (wheel,) = wheel_dir.glob("cobgs-*.whl")
+    names = set(zipfile.ZipFile(wheel).namelist())
+    sources = [p.relative_to(_build.CSRC).as_posix() for p in _build._source_files()]
+    assert sources and all(f"cobgs/_csrc/{s}" in names for s in sources)
+
+    site = tmp_path / "site"
+    with zipfile.ZipFile(wheel) as z:
+        z.extractall(site)
+    code = ("import cobgs._build as b; print(b.CSRC); print(b.build_key())")
+    env = {**os.environ, "PYTHONPATH": str(site)}
+    out = subprocess.run([sys.executable, "-c", code], env=env, cwd=tmp_path, capture_output=True,
+                         text=True, timeout=120, check=True).stdout.split()
+    assert out[0] == str((site / "cobgs" / "_csrc").resolve())
+    assert out[1] == _build.build_key()
