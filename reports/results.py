@@ -230,10 +230,9 @@ def scene_method_records(data: RunData, infos: dict, log_href: LogHref) -> list[
         agg = _aggregate(_rows(rs), ("scene", "method"))
         rec = dict(agg[0]) if agg else {"scene": scene, "method": method}
         status, cls, href, title = _status(rs, log_href)
-        peaks = [p for p in (_peak_rss(r) for r in rs if r.ok) if p is not None]
         info = infos.get(method, MethodInfo(method))
         rec.update(scene=scene, method=method, config=info.config, status=status,
-                   objects=sum(r.ok for r in rs), objects_total=len(rs), peak_rss=max(peaks) if peaks else None,
+                   objects=sum(r.ok for r in rs), objects_total=len(rs), peak_rss=_max_or_none(_peak_rss(r) for r in rs if r.ok),
                    peak_gpu=_max_or_none(_peak_gpu(r) for r in rs if r.ok),
                    _class={"status": cls, "method": _ref_class(infos, method)}, _href={"status": href} if href else {},
                    _title={"status": title}, _sub={"method": _method_sub(info)},
@@ -281,11 +280,10 @@ def method_records(data: RunData, infos: dict, log_href: LogHref) -> tuple[list[
         agg = _aggregate(_rows(rs), ("method",))
         rec = dict(agg[0]) if agg else {"method": method}
         status, cls, href, title = _status(rs, log_href)
-        peaks = [p for p in (_peak_rss(r) for r in rs if r.ok) if p is not None]
         info = infos.get(method, MethodInfo(method))
         done_scenes = sorted({r.scene for r in rs if r.ok}, key=scenes.index)
         rec.update(method=method, kind=info.kind_label, config=info.config, status=status,
-                   scenes=len(done_scenes), objects_total=len(rs), peak_rss=max(peaks) if peaks else None,
+                   scenes=len(done_scenes), objects_total=len(rs), peak_rss=_max_or_none(_peak_rss(r) for r in rs if r.ok),
                    peak_gpu=_max_or_none(_peak_gpu(r) for r in rs if r.ok),
                    objects=sum(r.ok for r in rs), _class={"status": cls, "method": _ref_class(infos, method)},
                    _href={"status": href} if href else {},

@@ -12,17 +12,11 @@ from .collect import RunData
 from .tables import Column, Table, build_table
 
 
-def _gpu_col(*record_lists) -> list[Column]:
+def _gpu_col(*record_lists, title: str = "peak memory of PyTorch's CUDA allocator during the refine "
+                                         "task (max over objects)") -> list[Column]:
     """A "Peak GPU" column only when some task ran on a GPU and recorded its peak."""
     if any(r.get("peak_gpu") is not None for recs in record_lists for r in recs):
-        return [Column("peak_gpu", "Peak GPU", fmt.nbytes,
-                       title="peak memory of PyTorch's CUDA allocator during the refine task (max over objects)")]
-    return []
-
-
-def _task_gpu_col(tasks: list[dict]) -> list[Column]:
-    if any(t.get("peak_gpu") is not None for t in tasks):
-        return [Column("peak_gpu", "Peak GPU", fmt.nbytes, title="PyTorch CUDA allocator peak during the task")]
+        return [Column("peak_gpu", "Peak GPU", fmt.nbytes, title=title)]
     return []
 
 
@@ -123,7 +117,7 @@ def detail_tables(data: RunData, ref: Optional[str], logs: R.LogHref) -> tuple[T
          Column("item", "Item", numeric=False), Column("state", "State", numeric=False),
          Column("key", "Cache key", fmt.short_key, numeric=False), Column("version", "v", fmt.count),
          Column("wall_s", "Wall", fmt.seconds), Column("cpu_s", "CPU", fmt.seconds),
-         Column("peak_rss", "Peak RSS", fmt.nbytes)] + _task_gpu_col(tasks) + [Column("host", "Host", numeric=False),
+         Column("peak_rss", "Peak RSS", fmt.nbytes)] + _gpu_col(tasks, title="PyTorch CUDA allocator peak during the task") + [Column("host", "Host", numeric=False),
          Column("device", "Device", numeric=False), Column("started", "Started", fmt.timestamp),
          Column("log", "Log", numeric=False)], tasks)
     return stage_table, task_table
