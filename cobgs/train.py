@@ -99,6 +99,11 @@ class TrainConfig:
     init_opacity: float = 0.1
     # Rendering / bookkeeping.
     background: Optional[tuple[float, float, float]] = None  # None: the scene's
+    # A fresh uniform-random background colour every iteration (3DGS's ``--random_background``):
+    # a fully opaque capture can then no longer be fitted by letting a fixed black
+    # background show through semi-transparent layers; only for opaque photographs
+    # (not RGBA-composited scenes, whose targets contain the fixed background).
+    random_background: bool = False
     backend: str = "native"
     log_interval_its: int = 10
     checkpoint_interval_its: int = 0  # 0 = only at the end (when a folder is given)
@@ -167,6 +172,11 @@ class TrainResult:
     peak_rss_bytes: int = 0
 
 
+# Scene readers whose images are always RGBA composited on ``Scene.background``
+# (``transforms`` scenes may be opaque photographs or RGBA: the user decides).
+_COMPOSITED_KINDS = ("blender",)
+
+
 def expon_lr(step: int, lr_init: float, lr_final: float, max_steps: int) -> float:
     """Log-linear interpolation from ``lr_init`` (step 0) to ``lr_final`` (``max_steps``)."""
     t = min(max(step / max_steps, 0.0), 1.0)
@@ -217,6 +227,13 @@ class Trainer:
         self.view_rng = torch.Generator().manual_seed(config.seed)
         self.split_rng = torch.Generator().manual_seed(config.seed + 1)
         init_rng = torch.Generator().manual_seed(config.seed + 2)
+        self.bg_rng = torch.Generator().manual_seed(config.seed + 3)
+        if config.random_background and scene.kind in _COMPOSITED_KINDS:
+            raise InputError(
+                f"TrainConfig.random_background needs opaque photographs, but this {scene.kind!r} scene's "
+                f"images were composited on the fixed background {tuple(scene.background)}: "
+                "train it with random_background=False"
+            )
         self.model = model if model is not None else initial_model(scene, config, init_rng)
         self.optimizer = self._make_optimizer()
         self.iteration = 0
@@ -266,7 +283,8 @@ class Trainer:
         if it % s.sh_degree_interval == 0 and self.model.active_sh_degree < self.model.sh_degree:
             self.model.active_sh_degree += 1
         view = self._next_view()
-        out = render(self.model, view.camera, self.background, backend=c.backend)
+        bg = torch.rand(3, generator=self.bg_rng) if c.random_background else self.background
+        out = render(self.model, view.camera, bg, backend=c.backend)
         out.means2d.retain_grad()
         img = out.image
         l1 = l1_loss(img, view.image)
@@ -366,6 +384,7 @@ class Trainer:
             "view_queue": list(self.view_queue),
             "view_rng": self.view_rng.get_state(),
             "split_rng": self.split_rng.get_state(),
+            "bg_rng": self.bg_rng.get_state(),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -387,6 +406,8 @@ class Trainer:
         self.view_queue = list(state["view_queue"])
         self.view_rng.set_state(state["view_rng"])
         self.split_rng.set_state(state["split_rng"])
+        if "bg_rng" in state:  # absent in checkpoints written before random_background existed
+            self.bg_rng.set_state(state["bg_rng"])
 
     def save_checkpoint(self, path: os.PathLike | str) -> Path:
         """Write the full state atomically (temporary file + rename)."""

@@ -59,6 +59,7 @@ class TrainOptions:
     random_init_points: int = 100_000
     init_opacity: float = 0.1
     background: Optional[tuple[float, float, float]] = None
+    random_background: bool = False
     backend: str = "native"
     log_interval_its: int = 10
     checkpoint_interval_its: int = 0

@@ -169,3 +169,47 @@ def test_deterministic_and_resume_is_exact(tiny_scene, tmp_path):
     other = _cfg(densify_grad_threshold_ndc=1e-3)
     with pytest.raises(InputError, match="densify_grad_threshold_ndc"):
         train(tiny_scene, other, resume=tmp_path / "a" / "ckpt_20.pt", progress=False)
+
+
+def test_random_background_draws_a_colour_per_iteration_and_resumes_exactly(tiny_scene, tmp_path, monkeypatch):
+    import cobgs.train as train_mod
+
+    seen = []
+    real_render = train_mod.render
+
+    def spy(model, camera, background, **kw):
+        seen.append(torch.as_tensor(background).clone())
+        return real_render(model, camera, background, **kw)
+
+    monkeypatch.setattr(train_mod, "render", spy)
+    t = Trainer(tiny_scene, _cfg(random_background=True))
+    for _ in range(4):
+        t.step()
+    bgs = torch.stack(seen)
+    assert bgs.shape == (4, 3) and bool(((bgs >= 0) & (bgs <= 1)).all())
+    assert len({tuple(b.tolist()) for b in bgs}) == 4  # a fresh colour each iteration
+    seen.clear()
+    t = Trainer(tiny_scene, _cfg())
+    t.step()
+    t.step()
+    assert all(torch.equal(b, torch.zeros(3)) for b in seen)  # off: the scene's fixed colour
+    monkeypatch.setattr(train_mod, "render", real_render)
+
+    cfg = _cfg(random_background=True, checkpoint_interval_its=20)
+    a = train(tiny_scene, cfg, checkpoint_dir=tmp_path / "a", progress=False, evaluate_test=False)
+    c = train(tiny_scene, cfg, resume=tmp_path / "a" / "ckpt_20.pt", progress=False, evaluate_test=False)
+    fixed = train(tiny_scene, _cfg(), progress=False, evaluate_test=False)
+    for k in a.model.data:
+        assert torch.equal(a.model.data[k], c.model.data[k]), k
+    assert any(
+        a.model.data[k].shape != fixed.model.data[k].shape or not torch.equal(a.model.data[k], fixed.model.data[k])
+        for k in a.model.data
+    )
+
+
+def test_random_background_refuses_rgba_composited_scenes(tiny_scene):
+    import dataclasses
+
+    blender_like = dataclasses.replace(tiny_scene, kind="blender", background=(1.0, 1.0, 1.0))
+    with pytest.raises(InputError, match="random_background.*composited"):
+        Trainer(blender_like, _cfg(random_background=True))

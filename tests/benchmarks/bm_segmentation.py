@@ -119,6 +119,21 @@ def key_of(obj) -> str:
     return hashlib.sha256(json.dumps(obj, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
+def code_key() -> str:
+    """The code state a cached result row came from: the rasterizer's build key (every
+    csrc/ source), every Python source of the cobgs package, and this file. Part of the
+    results cache key, so rows computed by different code are never mixed in one table
+    (RESULTS_VERSION alone missed edits that nobody remembered to count)."""
+    from cobgs._build import build_key
+
+    h = hashlib.sha256(build_key().encode())
+    pkg = REPO / "cobgs"
+    for f in sorted(pkg.rglob("*.py")) + [Path(__file__).resolve()]:
+        h.update(str(f.relative_to(REPO)).encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()[:16]
+
+
 # -- scenes ---------------------------------------------------------------------------------
 def synthetic_scene(args, preset: str):
     p = resolve_preset(preset)
@@ -451,7 +466,9 @@ def main(argv=None):
     log(report[0])
     if args.only_seg_timing:
         return
-    settings_key = key_of({"results_version": RESULTS_VERSION} | {k: settings[k] for k in ("scale", "train_iters", "max_gaussians", "init_points",
+    code = code_key()
+    log("code key (library + rasterizer + this file):", code)
+    settings_key = key_of({"results_version": RESULTS_VERSION, "code": code} | {k: settings[k] for k in ("scale", "train_iters", "max_gaussians", "init_points",
                                                      "sh_degree", "stage_views", "lego_downscale",
                                                      "lego_train_every", "max_test_views", "flashsplat_bias")})
     for name in [s for s in args.scenes.split(",") if s]:
@@ -472,7 +489,7 @@ def main(argv=None):
             report.append(s)
             log(s)
     out = Path(args.workdir) / f"report_{settings_key}.md"
-    out.write_text("settings: " + json.dumps(settings) + "\n\n" + "\n\n".join(report) + "\n")
+    out.write_text("settings: " + json.dumps(settings) + f"\ncode key: {code}\n\n" + "\n\n".join(report) + "\n")
     log(f"report written to {out}")
 
 

@@ -61,7 +61,8 @@ def _load(kind: str, out: Path):
     raise SystemExit(f"unknown scene {kind!r}")
 
 
-def run(kind: str, iterations: int, out: Path, init_points: int, scale_schedule: bool, seed: int) -> dict:
+def run(kind: str, iterations: int, out: Path, init_points: int, scale_schedule: bool, seed: int,
+        random_background: bool = False) -> dict:
     from cobgs.ply import save_ply
     from cobgs.train import TrainConfig, peak_rss_bytes, train
 
@@ -71,7 +72,8 @@ def run(kind: str, iterations: int, out: Path, init_points: int, scale_schedule:
         f"[{kind}] {len(scene.train)} train / {len(scene.test)} test views at {img.shape[1]}x{img.shape[0]}, "
         f"extent {scene.extent:.3f}, SfM points {0 if scene.points is None else len(scene.points)}"
     )
-    cfg = TrainConfig(iterations=iterations, random_init_points=init_points, scale_schedule=scale_schedule, seed=seed)
+    cfg = TrainConfig(iterations=iterations, random_init_points=init_points, scale_schedule=scale_schedule, seed=seed,
+                      random_background=random_background)
     load0 = os.getloadavg()[0]
     t0, c0 = time.perf_counter(), time.process_time()
     res = train(scene, cfg, checkpoint_dir=None, progress=True)
@@ -113,11 +115,13 @@ def main(argv=None) -> None:
     ap.add_argument("--init-points", type=int, default=100_000, help="random init (lego)")
     ap.add_argument("--no-scale-schedule", action="store_true", help="run the 30k schedule truncated")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--random-background", action="store_true",
+                    help="a random background colour every iteration (opaque captures only: fern)")
     ap.add_argument("--out", type=Path, default=Path("/tmp/cobgs_bm_train"))
     a = ap.parse_args(argv)
     a.out.mkdir(parents=True, exist_ok=True)
     for kind in (["lego", "fern"] if a.scene == "all" else [a.scene]):
-        run(kind, a.iterations, a.out, a.init_points, not a.no_scale_schedule, a.seed)
+        run(kind, a.iterations, a.out, a.init_points, not a.no_scale_schedule, a.seed, a.random_background)
 
 
 if __name__ == "__main__":

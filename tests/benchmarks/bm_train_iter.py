@@ -68,6 +68,27 @@ def load_scene(kind: str, sfm_dir: Path):
     return read_colmap(sfm_dir, test_every=8)
 
 
+def scene_cost(model, camera, background) -> str:
+    """What a view of the model costs the blend: tile-list entries per pixel, how far the
+    pixels get down their lists (last contributor's rank) and how opaque they end up."""
+    from cobgs import _ops
+
+    with torch.no_grad():
+        d = model.data
+        feats = model.colors(camera.center).detach()
+        m2, con, dep, radii = _ops.project(d["means"].detach(), d["quats"].detach(), model.scales.detach(),
+                                          camera.viewmat, camera.K, camera.width, camera.height)
+        off, ids = _ops.bin_tiles(m2, radii, dep, camera.width, camera.height)
+        _, trans, n_contrib, _, _ = _ops.blend(m2, con, model.opacities.detach(), feats, background,
+                                               off, ids, camera.width, camera.height, None, 2)
+    n_tiles = off.numel() - 1
+    return (f"view {camera.name}: {int((radii > 0).sum())} Gaussians in view, "
+            f"{ids.numel() / n_tiles:.0f} tile-list entries per tile, last contributor rank per "
+            f"pixel mean {n_contrib.float().mean():.0f} (median {n_contrib.float().median():.0f}), "
+            f"final transmittance median {trans.median():.4f}, mean opacity "
+            f"{model.opacities.mean():.3f}")
+
+
 def proxy_model(init, n: int, seed: int = 0):
     """A trained-size stand-in: ``init``'s Gaussians split into ``n`` children."""
     from cobgs.gaussians import GaussianModel, inverse_sigmoid
@@ -99,6 +120,8 @@ def main(argv=None) -> int:
                     help="without a trained PLY: split the initial model into this many")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--reps", type=int, default=10, help="timed iterations")
+    ap.add_argument("--random-background", action="store_true",
+                    help="time the recipe's random-background iteration (for a PLY trained with it)")
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
 
@@ -108,7 +131,7 @@ def main(argv=None) -> int:
     scene = load_scene(args.scene, args.sfm_dir)
     ply = args.ply if args.ply is not None else BM_OUT / f"{args.scene}.ply"
     model = load_model(ply) if ply.is_file() else None
-    config = TrainConfig(iterations=30_000)
+    config = TrainConfig(iterations=30_000, random_background=args.random_background)
     trainer = Trainer(scene, config, model)
     what = str(ply) if ply.is_file() else "initialisation (no trained PLY: not representative)"
     if model is None and args.proxy > 0:
@@ -124,6 +147,7 @@ def main(argv=None) -> int:
           f", {len(trainer.model)} Gaussians, SH degree {trainer.model.active_sh_degree}, "
           f"threads {args.threads}, OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}")
 
+    print(scene_cost(trainer.model, view0.camera, trainer.background))
     for _ in range(2):  # warm-up (extension load, allocator)
         trainer.step()
     load0 = os.getloadavg()
