@@ -6,7 +6,7 @@ schemas and CPU kernels; this module adds what is registered from Python:
 * autograd for ``project``, ``blend`` and ``sh_colors`` via
   ``torch.library.register_autograd``, whose backward calls the separate ``project_bwd`` /
   ``blend_bwd`` / ``sh_colors_bwd`` ops (no double backward);
-* shape-only fake kernels for all eight ops via ``torch.library.register_fake``, so the
+* shape-only fake kernels for all nine ops via ``torch.library.register_fake``, so the
   ops work under FakeTensor / ``torch.compile`` (``bin_tiles`` has a data-dependent size).
 """
 
@@ -62,9 +62,17 @@ def _register() -> None:
         return (means2d.new_empty(_tiles(width, height) + 1, dtype=torch.int64),
                 means2d.new_empty(m, dtype=torch.int32))
 
+    @lib.register_fake("cobgs::bin_tiles_tight")
+    def _bin_tiles_tight_fake(means2d, radii, depths, conics, opacities, width, height):
+        m = lib.get_ctx().new_dynamic_size()
+        record = 64 if means2d.dtype == torch.float32 else 80  # sizeof(GaussPrep<T>)
+        return (means2d.new_empty(_tiles(width, height) + 1, dtype=torch.int64),
+                means2d.new_empty(m, dtype=torch.int32),
+                means2d.new_empty(means2d.shape[0], record, dtype=torch.uint8))
+
     @lib.register_fake("cobgs::blend")
     def _blend_fake(means2d, conics, opacities, features, background, tile_offsets,
-                    flat_ids, width, height, pixel_labels, num_labels):
+                    flat_ids, width, height, pixel_labels, num_labels, prep=None):
         rows = means2d.shape[0] if pixel_labels is not None else 0
         return (features.new_empty(height, width, features.shape[1]),
                 features.new_empty(height, width),
@@ -74,7 +82,8 @@ def _register() -> None:
 
     @lib.register_fake("cobgs::blend_bwd")
     def _blend_bwd_fake(means2d, conics, opacities, features, background, tile_offsets,
-                        flat_ids, transmittance, n_contrib, v_image, v_transmittance):
+                        flat_ids, transmittance, n_contrib, v_image, v_transmittance,
+                        prep=None):
         return (torch.empty_like(means2d), torch.empty_like(conics),
                 torch.empty_like(opacities), torch.empty_like(features),
                 torch.empty_like(background))
@@ -99,20 +108,23 @@ def _register() -> None:
 
     def blend_setup(ctx, inputs, output):
         (means2d, conics, opacities, features, background, tile_offsets, flat_ids,
-         _w, _h, _labels, _k) = inputs
+         _w, _h, _labels, _k, *rest) = inputs
+        prep = rest[0] if rest else None
+        ctx.has_prep = prep is not None
         ctx.save_for_backward(means2d, conics, opacities, features, background, tile_offsets,
-                              flat_ids, output[1], output[2])
+                              flat_ids, output[1], output[2], *([prep] if ctx.has_prep else []))
 
     def blend_backward(ctx, v_image, v_trans, _v_nc, _v_counts, _v_weights):
         (means2d, conics, opacities, features, background, tile_offsets, flat_ids, trans,
-         n_contrib) = ctx.saved_tensors
+         n_contrib, *rest) = ctx.saved_tensors
+        prep = rest[0] if ctx.has_prep else None
         h, w = trans.shape
         v_image = _or_zeros(v_image, (h, w, features.shape[1]), features)
         v_trans = _or_zeros(v_trans, (h, w), features)
         grads = torch.ops.cobgs.blend_bwd(means2d, conics, opacities, features, background,
                                           tile_offsets, flat_ids, trans, n_contrib, v_image,
-                                          v_trans)
-        return (*grads, None, None, None, None, None, None)
+                                          v_trans, prep)
+        return (*grads, None, None, None, None, None, None, None)
 
     lib.register_autograd("cobgs::blend", blend_backward, setup_context=blend_setup)
 
@@ -168,10 +180,25 @@ def bin_tiles(means2d, radii, depths, width: int, height: int) -> Tuple[Tensor, 
                                      depths.detach().contiguous(), width, height)
 
 
+def bin_tiles_tight(means2d, radii, depths, conics, opacities, width: int,
+                    height: int) -> Tuple[Tensor, Tensor, Tensor]:
+    """Native ``cobgs::bin_tiles_tight``: :func:`bin_tiles` lists without the entries that
+    cannot reach α >= 1/255 anywhere in the tile (the blended pixels, their order, the
+    image and the gradients are unchanged; ``n_contrib`` indexes the shorter lists), plus
+    ``prep``, the per-Gaussian records :func:`blend` and the backward pass then reuse."""
+    ensure_loaded()
+    return torch.ops.cobgs.bin_tiles_tight(
+        means2d.detach().contiguous(), radii.contiguous(), depths.detach().contiguous(),
+        conics.detach().contiguous(), opacities.detach().contiguous(), width, height)
+
+
 def blend(means2d, conics, opacities, features, background, tile_offsets, flat_ids,
           width: int, height: int, pixel_labels: Optional[Tensor] = None,
-          num_labels: int = 2):
+          num_labels: int = 2, prep: Optional[Tensor] = None):
     """Native ``cobgs::blend`` (see :func:`cobgs.reference.blend_reference`).
+
+    ``prep``: the third output of :func:`bin_tiles_tight` for the same means2d / conics /
+    opacities (saves recomputing it in both passes), or None.
 
     Returns image [H, W, C], transmittance [H, W], n_contrib [H, W] int32, label_counts
     [N, K] int32 and label_weights [N, K] float32 (both [0, K] without pixel_labels).
@@ -182,7 +209,7 @@ def blend(means2d, conics, opacities, features, background, tile_offsets, flat_i
     return torch.ops.cobgs.blend(means2d.contiguous(), conics.contiguous(),
                                  opacities.contiguous(), features.contiguous(),
                                  background.contiguous(), tile_offsets, flat_ids, width, height,
-                                 pixel_labels, num_labels)
+                                 pixel_labels, num_labels, prep)
 
 
 def sh_colors(means, sh0, shN, center, degree: int) -> Tensor:
@@ -221,10 +248,11 @@ def rasterize_native(means, quats, scales, opacities, features, viewmat, K, widt
                      background, pixel_labels, num_labels) -> RasterOutput:
     """:func:`cobgs.rasterize` on the native ops (inputs already validated)."""
     means2d, conics, depths, radii = project(means, quats, scales, viewmat, K, width, height)
-    tile_offsets, flat_ids = bin_tiles(means2d, radii, depths, width, height)
+    tile_offsets, flat_ids, prep = bin_tiles_tight(means2d, radii, depths, conics, opacities,
+                                                   width, height)
     image, trans, _n_contrib, counts, weights = blend(
         means2d, conics, opacities, features, background, tile_offsets, flat_ids, width,
-        height, pixel_labels, num_labels)
+        height, pixel_labels, num_labels, prep)
     has_labels = pixel_labels is not None
     return RasterOutput(image=image, alpha=1 - trans, transmittance=trans, radii=radii,
                         means2d=means2d, conics=conics, depths=depths,

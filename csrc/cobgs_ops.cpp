@@ -18,16 +18,21 @@ TORCH_LIBRARY(cobgs, m) {
   m.def(
       "bin_tiles(Tensor means2d, Tensor radii, Tensor depths, int width, int height) "
       "-> (Tensor tile_offsets, Tensor flat_ids)");
+  m.def(
+      "bin_tiles_tight(Tensor means2d, Tensor radii, Tensor depths, Tensor conics, "
+      "Tensor opacities, int width, int height) "
+      "-> (Tensor tile_offsets, Tensor flat_ids, Tensor prep)");
   // csrc/blend/blend.h
   m.def(
       "blend(Tensor means2d, Tensor conics, Tensor opacities, Tensor features, "
       "Tensor background, Tensor tile_offsets, Tensor flat_ids, int width, int height, "
-      "Tensor? pixel_labels, int num_labels) -> (Tensor image, Tensor transmittance, "
+      "Tensor? pixel_labels, int num_labels, Tensor? prep=None) -> (Tensor image, Tensor transmittance, "
       "Tensor n_contrib, Tensor label_counts, Tensor label_weights)");
   m.def(
       "blend_bwd(Tensor means2d, Tensor conics, Tensor opacities, Tensor features, "
       "Tensor background, Tensor tile_offsets, Tensor flat_ids, Tensor transmittance, "
-      "Tensor n_contrib, Tensor v_image, Tensor v_transmittance) -> (Tensor v_means2d, "
+      "Tensor n_contrib, Tensor v_image, Tensor v_transmittance, Tensor? prep=None) "
+      "-> (Tensor v_means2d, "
       "Tensor v_conics, Tensor v_opacities, Tensor v_features, Tensor v_background)");
   // csrc/sh/sh.h
   m.def(

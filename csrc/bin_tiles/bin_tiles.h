@@ -23,4 +23,15 @@ std::tuple<at::Tensor, at::Tensor> bin_tiles_cpu(const at::Tensor& means2d,
                                                  const at::Tensor& depths, int64_t width,
                                                  int64_t height);
 
+// bin_tiles with tight lists: a Gaussian is listed only in the tiles of its 3-sigma box
+// that also meet the pixel box where it can reach alpha >= 1/255 (the box blend computes
+// from conics and opacities; about half of the 3-sigma lists on trained scenes). Every
+// pixel gets exactly the blended Gaussians it gets from the bin_tiles lists, in the same
+// order, so images, transmittance and gradients are the same; n_contrib (a position in
+// the list) differs. Also returns prep [N, record size] uint8: blend's per-Gaussian
+// records, which blend and blend_bwd take instead of computing them again.
+std::tuple<at::Tensor, at::Tensor, at::Tensor> bin_tiles_tight_cpu(
+    const at::Tensor& means2d, const at::Tensor& radii, const at::Tensor& depths,
+    const at::Tensor& conics, const at::Tensor& opacities, int64_t width, int64_t height);
+
 }  // namespace cobgs

@@ -12,6 +12,7 @@
 #include <cstring>
 #include <vector>
 
+#include "../blend/blend_tile_cpu.h"
 #include "../common/checks.h"
 #include "../common/gs_math.h"
 #include "../common/parallel_cpu.h"
@@ -33,6 +34,22 @@ Rect tile_rect(T mx, T my, int32_t radius, int tiles_x, int tiles_y) {
   };
   return {clampi(std::floor((mx - r) / ts), tiles_x), clampi(std::floor((my - r) / ts), tiles_y),
           clampi(std::ceil((mx + r) / ts), tiles_x), clampi(std::ceil((my + r) / ts), tiles_y)};
+}
+
+// `rc` narrowed to the tiles that hold a pixel of the box [x0, x1) x [y0, y1) (pixel
+// indices, possibly far outside the image; empty when x0 >= x1 or y0 >= y1).
+inline Rect narrow_to_box(Rect rc, int64_t x0, int64_t x1, int64_t y0, int64_t y1) {
+  const int64_t ts = math::kTileSize;
+  auto floor_div = [ts](int64_t v) { return v >= 0 ? v / ts : -((-v + ts - 1) / ts); };
+  if (x0 >= x1 || y0 >= y1) return {rc.x0, rc.y0, rc.x0, rc.y0};
+  // Tiles floor(x0 / 16) .. floor((x1 - 1) / 16), clamped into rc.
+  auto lo = [](int32_t a, int64_t b) { return static_cast<int32_t>(b > a ? b : a); };
+  auto hi = [](int32_t a, int64_t b) { return static_cast<int32_t>(b < a ? b : a); };
+  Rect out{lo(rc.x0, floor_div(x0)), lo(rc.y0, floor_div(y0)), hi(rc.x1, floor_div(x1 - 1) + 1),
+           hi(rc.y1, floor_div(y1 - 1) + 1)};
+  if (out.x1 < out.x0) out.x1 = out.x0;
+  if (out.y1 < out.y0) out.y1 = out.y0;
+  return out;
 }
 
 // Unsigned keys whose order is the order of the (positive, finite) depths.
@@ -82,7 +99,8 @@ void radix_sort(std::vector<K>& keys, std::vector<int32_t>& ids) {
 template <typename T>
 void bin_tiles_kernel(const at::Tensor& means2d, const at::Tensor& radii,
                       const at::Tensor& depths, int tiles_x, int tiles_y,
-                      at::Tensor& tile_offsets, at::Tensor& flat_ids) {
+                      const blend_detail::GaussPrep<T>* prep, at::Tensor& tile_offsets,
+                      at::Tensor& flat_ids) {
   const int64_t n = means2d.size(0);
   const int64_t n_tiles = int64_t(tiles_x) * tiles_y;
   using Key = decltype(depth_key(T(0)));
@@ -95,6 +113,19 @@ void bin_tiles_kernel(const at::Tensor& means2d, const at::Tensor& radii,
   std::vector<int32_t>& order = scratch<int32_t, 3>();
   keys.clear();
   order.clear();
+  // Every Gaussian's tile rectangle, in index order (streaming reads of its inputs);
+  // only Gaussians that cover some tile enter the depth sort.
+  std::vector<Rect>& rect_of = scratch<Rect, 6>();
+  rect_of.resize(n);
+#pragma omp parallel for schedule(static) num_threads(cpu_threads())
+  for (int64_t i = 0; i < n; ++i) {
+    Rect rc{0, 0, 0, 0};
+    if (r[i] > 0) {
+      rc = tile_rect<T>(m2[2 * i], m2[2 * i + 1], r[i], tiles_x, tiles_y);
+      if (prep) rc = narrow_to_box(rc, prep[i].x0, prep[i].x1, prep[i].y0, prep[i].y1);
+    }
+    rect_of[i] = rc;
+  }
 #ifdef COBGS_PROFILE
   auto* sort_scope = new prof::Scope(prof::kBinSort);
 #endif
@@ -104,6 +135,8 @@ void bin_tiles_kernel(const at::Tensor& means2d, const at::Tensor& radii,
     if (r[i] <= 0) continue;
     TORCH_CHECK(d[i] > T(0) && std::isfinite(d[i]), "depths[", i,
                 "] of a visible Gaussian must be positive and finite, got ", d[i]);
+    const Rect& rc = rect_of[i];
+    if (rc.x0 >= rc.x1 || rc.y0 >= rc.y1) continue;
     keys.push_back(depth_key(d[i]));
     order.push_back(static_cast<int32_t>(i));
   }
@@ -126,10 +159,7 @@ void bin_tiles_kernel(const at::Tensor& means2d, const at::Tensor& radii,
 #pragma omp parallel num_threads(cpu_threads())
   {
 #pragma omp for schedule(static)
-    for (int64_t k = 0; k < nv; ++k) {
-      const int32_t i = order[k];
-      rects[k] = tile_rect<T>(m2[2 * i], m2[2 * i + 1], r[i], tiles_x, tiles_y);
-    }
+    for (int64_t k = 0; k < nv; ++k) rects[k] = rect_of[order[k]];
 #pragma omp for schedule(static)
     for (int h = 0; h < 2; ++h) {
       int64_t* c = cnt.data() + h * n_tiles;
@@ -161,6 +191,17 @@ void bin_tiles_kernel(const at::Tensor& means2d, const at::Tensor& radii,
   }
 }
 
+// blend's per-Gaussian records of all n Gaussians, in parallel.
+template <typename T>
+void prepare_all(const T* m2, const T* co, const T* op, int64_t n,
+                 blend_detail::GaussPrep<T>* records) {
+#pragma omp parallel num_threads(cpu_threads())
+  {
+    COBGS_PROF_SCOPE(kBinPrepare);
+    blend_detail::prepare<T>(m2, co, op, n, records);
+  }
+}
+
 }  // namespace
 
 std::tuple<at::Tensor, at::Tensor> bin_tiles_cpu(const at::Tensor& means2d,
@@ -187,12 +228,60 @@ std::tuple<at::Tensor, at::Tensor> bin_tiles_cpu(const at::Tensor& means2d,
   at::Tensor flat_ids;
 
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "cobgs::bin_tiles", [&] {
-    bin_tiles_kernel<scalar_t>(means2d, radii, depths, tiles_x, tiles_y, tile_offsets,
-                               flat_ids);
+    bin_tiles_kernel<scalar_t>(means2d, radii, depths, tiles_x, tiles_y, nullptr,
+                               tile_offsets, flat_ids);
   });
   return {tile_offsets, flat_ids};
 }
 
-TORCH_LIBRARY_IMPL(cobgs, CPU, m) { m.impl("bin_tiles", &bin_tiles_cpu); }
+std::tuple<at::Tensor, at::Tensor, at::Tensor> bin_tiles_tight_cpu(
+    const at::Tensor& means2d, const at::Tensor& radii, const at::Tensor& depths,
+    const at::Tensor& conics, const at::Tensor& opacities, int64_t width, int64_t height) {
+  COBGS_CHECK_INPUT(means2d);
+  COBGS_CHECK_INPUT(radii);
+  COBGS_CHECK_INPUT(depths);
+  COBGS_CHECK_INPUT(conics);
+  COBGS_CHECK_INPUT(opacities);
+  TORCH_CHECK(means2d.scalar_type() == at::kFloat || means2d.scalar_type() == at::kDouble,
+              "means2d must be float32 or float64, got ", means2d.scalar_type());
+  TORCH_CHECK(means2d.dim() == 2, "means2d must have shape [N, 2], got ", means2d.sizes());
+  const int64_t n = means2d.size(0);
+  TORCH_CHECK(n < (int64_t(1) << 31), "at most 2^31 - 1 Gaussians are supported, got ", n);
+  COBGS_CHECK_SHAPE(means2d, n, 2);
+  COBGS_CHECK_SHAPE(radii, n);
+  COBGS_CHECK_SHAPE(depths, n);
+  COBGS_CHECK_SHAPE(conics, n, 3);
+  COBGS_CHECK_SHAPE(opacities, n);
+  COBGS_CHECK_DTYPE(radii, at::kInt);
+  COBGS_CHECK_DTYPE(depths, means2d.scalar_type());
+  COBGS_CHECK_DTYPE(conics, means2d.scalar_type());
+  COBGS_CHECK_DTYPE(opacities, means2d.scalar_type());
+  TORCH_CHECK(width > 0 && height > 0, "width and height must be positive, got ", width,
+              " x ", height);
+  const int tiles_x = static_cast<int>((width + math::kTileSize - 1) / math::kTileSize);
+  const int tiles_y = static_cast<int>((height + math::kTileSize - 1) / math::kTileSize);
+  const int64_t n_tiles = int64_t(tiles_x) * tiles_y;
+  at::Tensor tile_offsets = at::zeros({n_tiles + 1}, means2d.options().dtype(at::kLong));
+  at::Tensor flat_ids;
+  at::Tensor prep;
+  AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "cobgs::bin_tiles_tight", [&] {
+    using Prep = blend_detail::GaussPrep<scalar_t>;
+    prep = at::empty({n, static_cast<int64_t>(sizeof(Prep))}, means2d.options().dtype(at::kByte));
+    TORCH_CHECK(reinterpret_cast<uintptr_t>(prep.data_ptr()) % alignof(Prep) == 0,
+                "the allocator returned memory aligned below ", alignof(Prep), " bytes");
+    Prep* records = reinterpret_cast<Prep*>(prep.data_ptr<uint8_t>());
+    // (No pragma here: directives inside the dispatch macro's argument are not honoured.)
+    prepare_all<scalar_t>(means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(),
+                          opacities.data_ptr<scalar_t>(), n, records);
+    bin_tiles_kernel<scalar_t>(means2d, radii, depths, tiles_x, tiles_y, records,
+                               tile_offsets, flat_ids);
+  });
+  return {tile_offsets, flat_ids, prep};
+}
+
+TORCH_LIBRARY_IMPL(cobgs, CPU, m) {
+  m.impl("bin_tiles", &bin_tiles_cpu);
+  m.impl("bin_tiles_tight", &bin_tiles_tight_cpu);
+}
 
 }  // namespace cobgs

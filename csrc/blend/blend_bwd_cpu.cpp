@@ -117,8 +117,9 @@ void blend_backward(const at::Tensor& means2d, const at::Tensor& conics,
                     const at::Tensor& background, const at::Tensor& tile_offsets,
                     const at::Tensor& flat_ids, const at::Tensor& transmittance,
                     const at::Tensor& n_contrib, const at::Tensor& v_image,
-                    const at::Tensor& v_trans, at::Tensor& v_means2d, at::Tensor& v_conics,
-                    at::Tensor& v_opacities, at::Tensor& v_features, at::Tensor& v_background) {
+                    const at::Tensor& v_trans, const GaussPrep<T>* given,
+                    at::Tensor& v_means2d, at::Tensor& v_conics, at::Tensor& v_opacities,
+                    at::Tensor& v_features, at::Tensor& v_background) {
   const int64_t n = means2d.size(0);
   const int64_t m = flat_ids.numel();
   const int C = static_cast<int>(features.size(1));
@@ -127,7 +128,8 @@ void blend_backward(const at::Tensor& means2d, const at::Tensor& conics,
   const int height = static_cast<int>(transmittance.size(0));
   const int tiles_x = (width + kTileSize - 1) / kTileSize;
   const int64_t n_tiles = int64_t(tiles_x) * ((height + kTileSize - 1) / kTileSize);
-  GaussPrep<T>* prep = reusable_buffer<GaussPrep<T>, 0>(n);  // filled in the region
+  // Filled in the region unless the caller passed the records.
+  GaussPrep<T>* prep = given ? nullptr : reusable_buffer<GaussPrep<T>, 0>(n);
   const T* m2_ptr = means2d.data_ptr<T>();
   const T* conic_ptr = conics.data_ptr<T>();
   const T* opacity_ptr = opacities.data_ptr<T>();
@@ -162,7 +164,7 @@ void blend_backward(const at::Tensor& means2d, const at::Tensor& conics,
   }
 
   BwdArgs<T> a;
-  a.prep = prep;
+  a.prep = given ? given : prep;
   a.off = tile_offsets.data_ptr<int64_t>();
   a.ids = flat_ids.data_ptr<int32_t>();
   a.feat = features.data_ptr<T>();
@@ -188,7 +190,7 @@ void blend_backward(const at::Tensor& means2d, const at::Tensor& conics,
   COBGS_PROF_COUNT(kCallsBwd, 1);
 #pragma omp parallel num_threads(cpu_threads())
   {
-    {
+    if (!given) {
       COBGS_PROF_SCOPE(kBwdPrepare);
       prepare<T>(m2_ptr, conic_ptr, opacity_ptr, n, prep);  // ends with a barrier
     }
@@ -242,7 +244,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> blend_bwd
     const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
     const at::Tensor& features, const at::Tensor& background, const at::Tensor& tile_offsets,
     const at::Tensor& flat_ids, const at::Tensor& transmittance, const at::Tensor& n_contrib,
-    const at::Tensor& v_image, const at::Tensor& v_transmittance) {
+    const at::Tensor& v_image, const at::Tensor& v_transmittance,
+    const std::optional<at::Tensor>& prep) {
   TORCH_CHECK(transmittance.dim() == 2, "transmittance must have shape [H, W], got ",
               transmittance.sizes());
   const int64_t height = transmittance.size(0), width = transmittance.size(1);
@@ -269,7 +272,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> blend_bwd
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "cobgs::blend_bwd", [&] {
     blend_backward<scalar_t>(means2d, conics, opacities, features, background, tile_offsets,
                              flat_ids, transmittance, n_contrib, v_image, v_transmittance,
-                             v_means2d, v_conics, v_opacities, v_features, v_background);
+                             given_prep<scalar_t>(prep, means2d.size(0)), v_means2d, v_conics, v_opacities, v_features, v_background);
   });
   return {v_means2d, v_conics, v_opacities, v_features, v_background};
 }

@@ -107,15 +107,17 @@ void blend_forward(const at::Tensor& means2d, const at::Tensor& conics,
                    const at::Tensor& opacities, const at::Tensor& features,
                    const at::Tensor& background, const at::Tensor& tile_offsets,
                    const at::Tensor& flat_ids, int width, int height, const int32_t* labels,
-                   int num_labels, at::Tensor& image, at::Tensor& trans, at::Tensor& n_contrib,
-                   at::Tensor& label_counts, at::Tensor& label_weights) {
+                   int num_labels, const GaussPrep<T>* given, at::Tensor& image,
+                   at::Tensor& trans, at::Tensor& n_contrib, at::Tensor& label_counts,
+                   at::Tensor& label_weights) {
   const int64_t n = means2d.size(0);
   const int64_t m = flat_ids.numel();
   const int C = static_cast<int>(features.size(1));
   const int K = num_labels;
   const int tiles_x = (width + kTileSize - 1) / kTileSize;
   const int64_t n_tiles = int64_t(tiles_x) * ((height + kTileSize - 1) / kTileSize);
-  GaussPrep<T>* prep = reusable_buffer<GaussPrep<T>, 0>(n);  // filled in the region
+  // Filled in the region unless the caller passed the records.
+  GaussPrep<T>* prep = given ? nullptr : reusable_buffer<GaussPrep<T>, 0>(n);
   const T* m2_ptr = means2d.data_ptr<T>();
   const T* conic_ptr = conics.data_ptr<T>();
   const T* opacity_ptr = opacities.data_ptr<T>();
@@ -129,7 +131,7 @@ void blend_forward(const at::Tensor& means2d, const at::Tensor& conics,
   const int64_t* order = tile_order(tile_offsets.data_ptr<int64_t>(), n_tiles);
 
   FwdArgs<T> a;
-  a.prep = prep;
+  a.prep = given ? given : prep;
   a.off = tile_offsets.data_ptr<int64_t>();
   a.ids = flat_ids.data_ptr<int32_t>();
   a.feat = features.data_ptr<T>();
@@ -153,7 +155,7 @@ void blend_forward(const at::Tensor& means2d, const at::Tensor& conics,
   COBGS_PROF_COUNT(kCallsFwd, 1);
 #pragma omp parallel num_threads(cpu_threads())
   {
-    {
+    if (!given) {
       COBGS_PROF_SCOPE(kFwdPrepare);
       prepare<T>(m2_ptr, conic_ptr, opacity_ptr, n, prep);  // ends with a barrier
     }
@@ -197,7 +199,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> blend_cpu
     const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
     const at::Tensor& features, const at::Tensor& background, const at::Tensor& tile_offsets,
     const at::Tensor& flat_ids, int64_t width, int64_t height,
-    const std::optional<at::Tensor>& pixel_labels, int64_t num_labels) {
+    const std::optional<at::Tensor>& pixel_labels, int64_t num_labels,
+    const std::optional<at::Tensor>& prep) {
   check_blend_inputs(means2d, conics, opacities, features, background, tile_offsets,
                      flat_ids, width, height);
   TORCH_CHECK(num_labels >= 1, "num_labels must be >= 1, got ", num_labels);
@@ -224,8 +227,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> blend_cpu
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "cobgs::blend", [&] {
     blend_forward<scalar_t>(means2d, conics, opacities, features, background, tile_offsets,
                             flat_ids, static_cast<int>(width), static_cast<int>(height),
-                            labels, static_cast<int>(num_labels), image, trans, n_contrib,
-                            label_counts, label_weights);
+                            labels, static_cast<int>(num_labels), given_prep<scalar_t>(prep, n),
+                            image, trans, n_contrib, label_counts, label_weights);
   });
   return {image, trans, n_contrib, label_counts, label_weights};
 }

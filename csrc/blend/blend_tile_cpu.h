@@ -15,7 +15,10 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstddef>
+#include <cstring>
 #include <limits>
+#include <optional>
 #include <vector>
 
 #include "../common/checks.h"
@@ -39,6 +42,12 @@ struct alignas(sizeof(T) == 4 ? 64 : 16) GaussPrep {
   T power_reject;          // power < this ⇒ α < 1/255 for sure (checked before exp)
   int32_t x0, x1, y0, y1;  // pixel box that can get α >= 1/255; empty if none can
 };
+
+// Bytes of a GaussPrep before its tail padding (the members leave no interior padding).
+template <typename T>
+constexpr size_t kPrepUsed = offsetof(GaussPrep<T>, y1) + sizeof(int32_t);
+static_assert(kPrepUsed<float> == 7 * sizeof(float) + 4 * sizeof(int32_t), "GaussPrep layout");
+static_assert(kPrepUsed<double> == 7 * sizeof(double) + 4 * sizeof(int32_t), "GaussPrep layout");
 
 // A per-thread buffer kept across calls (grow-only). Fresh multi-megabyte allocations
 // are mmap'ed and zero-filled page by page by the kernel on every call, which cost
@@ -72,7 +81,31 @@ void prepare(const T* m2, const T* co, const T* op, int64_t n, GaussPrep<T>* pre
     g.x1 = bb.x1;
     g.y0 = bb.y0;
     g.y1 = bb.y1;
+    // Zero the tail padding: bin_tiles_tight returns these records as a tensor, whose
+    // bytes must not depend on what the memory held before.
+    std::memset(reinterpret_cast<char*>(&g) + kPrepUsed<T>, 0, sizeof(GaussPrep<T>) - kPrepUsed<T>);
   }
+}
+
+// The records `prepare` would compute, when the caller already has them: the `prep`
+// output of `bin_tiles_tight` for the same means2d / conics / opacities (a [N, record
+// size] uint8 tensor). Returns null when absent (the pass then runs `prepare` itself).
+// Only the size is checked: records from other inputs give wrong pixels, never
+// out-of-range accesses (every box is clipped to the tile it is used in).
+template <typename T>
+const GaussPrep<T>* given_prep(const std::optional<at::Tensor>& prep, int64_t n) {
+  if (!prep.has_value()) return nullptr;
+  const at::Tensor& p = *prep;
+  const int64_t record = static_cast<int64_t>(sizeof(GaussPrep<T>));
+  TORCH_CHECK(p.device().is_cpu() && p.is_contiguous() && p.scalar_type() == at::kByte &&
+                  p.dim() == 2 && p.size(0) == n && p.size(1) == record,
+              "prep must be the prep output of bin_tiles_tight for these inputs: a contiguous "
+              "CPU uint8 tensor of shape [", n, ", ", record, "] for ", sizeof(T) == 4 ? "float32" : "float64",
+              " inputs, got ", p.scalar_type(), " of shape ", p.sizes());
+  TORCH_CHECK(reinterpret_cast<uintptr_t>(p.data_ptr()) % alignof(GaussPrep<T>) == 0,
+              "prep must be aligned to ", alignof(GaussPrep<T>), " bytes (a fresh tensor from "
+              "bin_tiles_tight, not a view)");
+  return reinterpret_cast<const GaussPrep<T>*>(p.data_ptr<uint8_t>());
 }
 
 // Software prefetch of a Gaussian a few entries ahead in the tile list: the hardware

@@ -18,7 +18,7 @@ namespace cobgs {
 namespace prof {
 
 enum Timer {
-  kProject, kProjectBwd, kBinSort, kBinLists, kFwdPrepare, kFwdTiles, kFwdLabels,
+  kProject, kProjectBwd, kBinPrepare, kBinSort, kBinLists, kFwdPrepare, kFwdTiles, kFwdLabels,
   kBwdPrepare, kBwdGroup, kBwdTiles, kBwdReduce, kBwdBackground, kShFwd, kShBwd, kNumTimers
 };
 enum Count {
@@ -40,7 +40,7 @@ struct Stats {
   }
   ~Stats() {
     static const char* tn[kNumTimers] = {
-        "project", "project_bwd", "bin_tiles: depth sort", "bin_tiles: tile lists",
+        "project", "project_bwd", "bin_tiles: prepare", "bin_tiles: depth sort", "bin_tiles: tile lists",
         "blend: prepare", "blend: tiles", "blend: label reduction", "blend_bwd: prepare",
         "blend_bwd: group entries", "blend_bwd: tiles", "blend_bwd: reduction",
         "blend_bwd: background", "sh_colors", "sh_colors_bwd"};
