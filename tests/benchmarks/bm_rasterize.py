@@ -195,8 +195,11 @@ def main(argv=None) -> int:
                                 tensors[3], tile_offsets, flat_ids, W, H)
     print(f"scene: N = {args.n}, {W}x{H}, seed {args.seed}, threads {args.threads}, "
           f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}, torch {torch.__version__}")
+    _, tight_ids, _ = _ops.bin_tiles_tight(out.means2d, out.radii, out.depths, out.conics,
+                                           tensors[3].detach(), W, H)
     print(f"  visible {int(vis.sum())}, mean radius {out.radii[vis].float().mean():.2f} px, "
-          f"tile-list entries {flat_ids.numel()}")
+          f"tile-list entries {flat_ids.numel()} (3-sigma boxes; the tight lists rasterize "
+          f"uses: {tight_ids.numel()}, {100 * tight_ids.numel() / max(1, flat_ids.numel()):.0f}%)")
     print(f"  candidate pairs per pixel {flat_ids.numel() * 256 / (W * H):.1f}, blended "
           f"contributions per pixel {contributions / (W * H):.1f}, mean alpha "
           f"{out.alpha.mean():.3f}")

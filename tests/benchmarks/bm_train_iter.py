@@ -78,12 +78,15 @@ def scene_cost(model, camera, background) -> str:
         feats = model.colors(camera.center).detach()
         m2, con, dep, radii = _ops.project(d["means"].detach(), d["quats"].detach(), model.scales.detach(),
                                           camera.viewmat, camera.K, camera.width, camera.height)
-        off, ids = _ops.bin_tiles(m2, radii, dep, camera.width, camera.height)
+        full = _ops.bin_tiles(m2, radii, dep, camera.width, camera.height)[1].numel()
+        off, ids, prep = _ops.bin_tiles_tight(m2, radii, dep, con, model.opacities.detach(),
+                                              camera.width, camera.height)
         _, trans, n_contrib, _, _ = _ops.blend(m2, con, model.opacities.detach(), feats, background,
-                                               off, ids, camera.width, camera.height, None, 2)
+                                               off, ids, camera.width, camera.height, None, 2, prep)
     n_tiles = off.numel() - 1
     return (f"view {camera.name}: {int((radii > 0).sum())} Gaussians in view, "
-            f"{ids.numel() / n_tiles:.0f} tile-list entries per tile, last contributor rank per "
+            f"{ids.numel() / n_tiles:.0f} tile-list entries per tile ({full / n_tiles:.0f} with "
+            f"3-sigma boxes), last contributor rank per "
             f"pixel mean {n_contrib.float().mean():.0f} (median {n_contrib.float().median():.0f}), "
             f"final transmittance median {trans.median():.4f}, mean opacity "
             f"{model.opacities.mean():.3f}")
