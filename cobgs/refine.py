@@ -68,6 +68,7 @@ from .refine_scores import (
 )
 from .refine_split import RAEM_VARIANTS, boundary_split, raem_prune_mask, split_candidates
 from .render import render
+from ._memory import retain_freed_memory
 from .train import TrainConfig
 
 __all__ = [
@@ -235,6 +236,7 @@ class Refiner:
             raise InputError(f"got {len(masks)} masks for {len(views)} views (one per view, None = none)")
         if not (isinstance(extent, (int, float)) and math.isfinite(extent) and extent > 0):
             raise InputError(f"extent must be a positive number, got {extent!r}")
+        retain_freed_memory()  # process-wide: see cobgs/_memory.py
         self.model = model
         self.views = list(views)
         self.config = c = config

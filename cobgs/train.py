@@ -45,6 +45,7 @@ from typing import Callable, Optional, Sequence
 import torch
 from torch import Tensor
 
+from ._memory import retain_freed_memory
 from .data.scene import Scene, View
 from .errors import DataError, InputError
 from .gaussians import GaussianModel, inverse_sigmoid
@@ -217,6 +218,7 @@ class Trainer:
     def __init__(self, scene: Scene, config: TrainConfig = TrainConfig(), model: Optional[GaussianModel] = None):
         if not scene.train:
             raise InputError("the scene has no training views")
+        retain_freed_memory()  # process-wide: see cobgs/_memory.py
         self.scene = scene
         self.config = config
         self.sched = config.schedule()
