@@ -3,7 +3,9 @@
 Peak memory is the resident-set high-water mark (``VmHWM``) of that process. Before the
 task starts the mark is reset by writing ``5`` to ``/proc/self/clear_refs`` (Linux >= 4.0),
 so a long-lived worker (the driver with ``--jobs 1``, a Ray worker) reports the peak of
-this task rather than of its whole life; the baseline it already had resident is included.
+this task rather than of its whole life; the baseline it already had resident is included
+(after returning freed heap memory to the OS, ``malloc_trim``, so that memory an earlier
+task freed but the allocator kept is not counted).
 Where the reset is refused the lifetime ``ru_maxrss`` is reported and the manifest says so
 (``peak_rss_scope = "process"``). Subprocesses the stage starts are reported apart, as the
 largest peak among the children it waited for (``children_peak_rss_bytes``).
@@ -32,6 +34,22 @@ def _vm_hwm_bytes() -> Optional[int]:
     except OSError:
         pass
     return None
+
+
+def _trim_heap() -> None:
+    """Hand memory the C allocator keeps after frees back to the OS (glibc ``malloc_trim``).
+
+    A process may keep freed memory resident on purpose (cobgs raises glibc's trim
+    threshold during training); without this, what an earlier task freed would still be
+    resident and counted in the next task's peak. A no-op elsewhere."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
 
 
 def _reset_hwm() -> bool:
@@ -78,6 +96,7 @@ class Meter:
     """Start on construction; :meth:`stop` returns the manifest's measurement fields."""
 
     def __init__(self) -> None:
+        _trim_heap()
         self._scope = "task" if _reset_hwm() and _vm_hwm_bytes() is not None else "process"
         self._self0 = resource.getrusage(resource.RUSAGE_SELF)
         self._child0 = resource.getrusage(resource.RUSAGE_CHILDREN)

@@ -55,3 +55,28 @@ def test_freed_blocks_are_reused_instead_of_faulted_in_again():
 def test_idempotent_and_reported(monkeypatch):
     first = _memory.retain_freed_memory()
     assert _memory.retain_freed_memory() is first
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc mallopt, /proc")
+def test_task_peak_excludes_memory_an_earlier_task_freed_but_the_allocator_kept():
+    # The pipeline meters each task's peak RSS from a reset high-water mark; with freed
+    # memory retained, the meter must first hand it back (malloc_trim) or the next task's
+    # peak would include it.
+    out = _run("""
+        import ctypes
+        from cobgs._memory import retain_freed_memory
+        from pipeline.measure import Meter
+        assert retain_freed_memory()
+        libc = ctypes.CDLL("libc.so.6")
+        libc.malloc.restype = ctypes.c_void_p
+        libc.free.argtypes = (ctypes.c_void_p,)
+        m = Meter()
+        p = libc.malloc(256 << 20)
+        ctypes.memset(p, 1, 256 << 20)
+        libc.free(p)
+        big = m.stop()["peak_rss_bytes"]
+        small = Meter().stop()["peak_rss_bytes"]
+        print(big >> 20, small >> 20)
+    """)
+    big, small = map(int, out.split())
+    assert big - small > 200, (big, small)
