@@ -55,9 +55,14 @@ inline T direction(const T* m, const T* c, T dir[3], T& norm) {
   return nc;
 }
 
-template <typename T>
+// CC > 0 / DEG >= 0 fix the channel count / degree at compile time (the training case,
+// RGB at degree 3: the loops unroll and the degree tests fold away); 0 / -1 read them
+// from the arguments. Every instantiation performs the same operations in the same order.
+template <typename T, int CC = 0, int DEG = -1>
 void sh_forward(const T* means, const T* sh0, const T* shN, const T* center, int64_t n,
-                int64_t M, int C, int degree, T* out) {
+                int64_t M, int C_arg, int degree_arg, T* out) {
+  const int C = CC > 0 ? CC : C_arg;
+  const int degree = DEG >= 0 ? DEG : degree_arg;
   const int K = (degree + 1) * (degree + 1);
   COBGS_PROF_COUNT(kCallsSh, 1);
   COBGS_PROF_SCOPE(kShFwd);  // (the master thread only)
@@ -83,10 +88,12 @@ void sh_forward(const T* means, const T* sh0, const T* shN, const T* center, int
   }
 }
 
-template <typename T>
+template <typename T, int CC = 0, int DEG = -1>
 void sh_backward(const T* means, const T* sh0, const T* shN, const T* center, int64_t n,
-                 int64_t M, int C, int degree, const T* v_col, T* v_means, T* v_sh0,
+                 int64_t M, int C_arg, int degree_arg, const T* v_col, T* v_means, T* v_sh0,
                  T* v_shN) {
+  const int C = CC > 0 ? CC : C_arg;
+  const int degree = DEG >= 0 ? DEG : degree_arg;
   const int K = (degree + 1) * (degree + 1);
   COBGS_PROF_COUNT(kCallsShBwd, 1);
   COBGS_PROF_SCOPE(kShBwd);  // (the master thread only)
@@ -150,10 +157,10 @@ at::Tensor sh_colors_cpu(const at::Tensor& means, const at::Tensor& sh0, const a
   const int64_t n = means.size(0), M = shN.size(1), C = sh0.size(2);
   at::Tensor out = at::empty({n, C}, means.options());
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "cobgs::sh_colors", [&] {
-    sh_forward<scalar_t>(means.data_ptr<scalar_t>(), sh0.data_ptr<scalar_t>(),
-                         shN.data_ptr<scalar_t>(), center.data_ptr<scalar_t>(), n, M,
-                         static_cast<int>(C), static_cast<int>(degree),
-                         out.data_ptr<scalar_t>());
+    auto fn = C == 3 && degree == 3 ? &sh_forward<scalar_t, 3, 3> : &sh_forward<scalar_t>;
+    fn(means.data_ptr<scalar_t>(), sh0.data_ptr<scalar_t>(), shN.data_ptr<scalar_t>(),
+       center.data_ptr<scalar_t>(), n, M, static_cast<int>(C), static_cast<int>(degree),
+       out.data_ptr<scalar_t>());
   });
   return out;
 }
@@ -171,11 +178,11 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> sh_colors_bwd_cpu(
   at::Tensor v_sh0 = at::empty_like(sh0);
   at::Tensor v_shN = at::empty_like(shN);
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "cobgs::sh_colors_bwd", [&] {
-    sh_backward<scalar_t>(means.data_ptr<scalar_t>(), sh0.data_ptr<scalar_t>(),
-                          shN.data_ptr<scalar_t>(), center.data_ptr<scalar_t>(), n, M,
-                          static_cast<int>(C), static_cast<int>(degree),
-                          v_colors.data_ptr<scalar_t>(), v_means.data_ptr<scalar_t>(),
-                          v_sh0.data_ptr<scalar_t>(), v_shN.data_ptr<scalar_t>());
+    auto fn = C == 3 && degree == 3 ? &sh_backward<scalar_t, 3, 3> : &sh_backward<scalar_t>;
+    fn(means.data_ptr<scalar_t>(), sh0.data_ptr<scalar_t>(), shN.data_ptr<scalar_t>(),
+       center.data_ptr<scalar_t>(), n, M, static_cast<int>(C), static_cast<int>(degree),
+       v_colors.data_ptr<scalar_t>(), v_means.data_ptr<scalar_t>(), v_sh0.data_ptr<scalar_t>(),
+       v_shN.data_ptr<scalar_t>());
   });
   return {v_means, v_sh0, v_shN};
 }
