@@ -6,7 +6,7 @@ schemas and CPU kernels; this module adds what is registered from Python:
 * autograd for ``project``, ``blend`` and ``sh_colors`` via
   ``torch.library.register_autograd``, whose backward calls the separate ``project_bwd`` /
   ``blend_bwd`` / ``sh_colors_bwd`` ops (no double backward);
-* shape-only fake kernels for all nine ops via ``torch.library.register_fake``, so the
+* shape-only fake kernels for all ten ops via ``torch.library.register_fake``, so the
   ops work under FakeTensor / ``torch.compile`` (``bin_tiles`` has a data-dependent size).
 """
 
@@ -157,6 +157,10 @@ def _register() -> None:
     def _gauss_blur_fake(x, g):
         return torch.empty_like(x)
 
+    @lib.register_fake("cobgs::ssim_mean_grad")
+    def _ssim_mean_grad_fake(x, y, g):
+        return x.new_empty(()), torch.empty_like(x)
+
 
 def _or_zeros(grad: Optional[Tensor], shape, like: Tensor) -> Tensor:
     if grad is None:
@@ -234,6 +238,15 @@ def sh_colors(means, sh0, shN, center, degree: int) -> Tensor:
 def is_loaded() -> bool:
     """Whether the native ops are loaded in this process (never triggers a build)."""
     return _ready
+
+
+def ssim_mean_grad(x: Tensor, y: Tensor, g: Tensor) -> Tuple[Tensor, Tensor]:
+    """Native ``cobgs::ssim_mean_grad`` (no autograd): mean SSIM of x [B, C, H, W] against
+    a fixed y and d mean / dx, with the window g — :class:`cobgs.losses._MeanSSIM`'s
+    forward and backward fused (the loss of every training iteration)."""
+    ensure_loaded()
+    dt = x.dtype
+    return torch.ops.cobgs.ssim_mean_grad(x.contiguous(), y.to(dt).contiguous(), g.to(dt).contiguous())
 
 
 def gauss_blur(x: Tensor, g: Tensor) -> Tensor:

@@ -43,4 +43,5 @@ TORCH_LIBRARY(cobgs, m) {
       "Tensor v_colors) -> (Tensor v_means, Tensor v_sh0, Tensor v_shN)");
   // csrc/blur/blur.h
   m.def("gauss_blur(Tensor x, Tensor g) -> Tensor");
+  m.def("ssim_mean_grad(Tensor x, Tensor y, Tensor g) -> (Tensor mean, Tensor grad)");
 }

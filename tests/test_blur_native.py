@@ -66,3 +66,30 @@ def test_ssim_loss_uses_it_and_agrees():
     torch.testing.assert_close(fast, slow, rtol=0, atol=1e-6)
     torch.testing.assert_close(img.grad, slow_img.grad, rtol=0,
                                atol=1e-6 * slow_img.grad.abs().max().item())
+
+
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-12), (torch.float32, 2e-6)])
+def test_fused_ssim_op_matches_the_python_analytic_path(dtype, tol):
+    from cobgs.losses import SSIM_SIGMA, SSIM_WINDOW, _MeanSSIM
+
+    g = torch.Generator().manual_seed(4)
+    x = torch.rand(2, 3, 23, 31, generator=g, dtype=torch.float64).to(dtype)  # batch of 2
+    y = torch.rand(2, 3, 23, 31, generator=g, dtype=torch.float64).to(dtype)
+    w = _gauss_1d(SSIM_WINDOW, SSIM_SIGMA, dtype, "cpu")
+    mean, grad = _ops.ssim_mean_grad(x, y, w)
+    xr = x.clone().requires_grad_()
+    ref = _MeanSSIM.apply(xr, y, w)  # the pure-PyTorch analytic forward and backward
+    ref.backward()
+    torch.testing.assert_close(mean, ref.detach(), rtol=0, atol=tol)
+    torch.testing.assert_close(grad, xr.grad, rtol=0, atol=tol * 10 * xr.grad.abs().max().item())
+
+
+def test_fused_ssim_opcheck_and_errors():
+    x = torch.rand(1, 3, 9, 11, dtype=torch.float64)
+    y = torch.rand(1, 3, 9, 11, dtype=torch.float64)
+    w = _gauss_1d(5, 1.0, torch.float64, "cpu")
+    torch.library.opcheck(torch.ops.cobgs.ssim_mean_grad, (x, y, w))
+    with pytest.raises(RuntimeError, match="y must have the shape of x"):
+        torch.ops.cobgs.ssim_mean_grad(x, y[:, :2], w)
+    with pytest.raises(RuntimeError, match="x must have shape"):
+        torch.ops.cobgs.ssim_mean_grad(x[0], y[0], w)
