@@ -52,27 +52,30 @@ void ssim_kernel(const at::Tensor& x, const at::Tensor& y, const at::Tensor& g,
   const T* bl = blurred.data_ptr<T>();
   T* dp = parts.data_ptr<T>();
   const T c1 = static_cast<T>(kC1), c2 = static_cast<T>(kC2);
+  // The mean is accumulated in double; its last bits depend on the thread count (the
+  // gradient does not use it, so training is unaffected).
   double total = 0.0;
   // Per batch item, a loop over its C·H·W positions (contiguous in every statistic).
   for (int64_t b = 0; b < B; ++b) {
     const T* s0 = bl + b * 5 * cp;
     T* d0 = dp + b * 3 * cp;
-#pragma omp parallel for simd schedule(static) reduction(+ : total) num_threads(cpu_threads())
-  for (int64_t k = 0; k < cp; ++k) {
-    const T* s = s0 + k;
-    const T mu_x = s[0], mu_y = s[cp], exx = s[2 * cp], eyy = s[3 * cp], exy = s[4 * cp];
-    const T a1 = T(2) * mu_x * mu_y + c1;
-    const T a2 = T(2) * (exy - mu_x * mu_y) + c2;
-    const T b1 = mu_x * mu_x + mu_y * mu_y + c1;
-    const T b2 = (exx - mu_x * mu_x) + (eyy - mu_y * mu_y) + c2;
-    const T inv_den = T(1) / (b1 * b2);
-    const T smap = a1 * a2 * inv_den;
-    total += static_cast<double>(a1 * a2 / (b1 * b2));
-    T* d = d0 + k;
-    d[0] = T(2) * mu_y * (a2 - a1) * inv_den - T(2) * mu_x * smap * (T(1) / b1 - T(1) / b2);
-    d[cp] = -smap / b2;
-    d[2 * cp] = T(2) * a1 * inv_den;
-  }
+#pragma omp parallel for simd schedule(static) reduction(+ : total) \
+    num_threads(cpu_threads())
+    for (int64_t k = 0; k < cp; ++k) {
+      const T* s = s0 + k;
+      const T mu_x = s[0], mu_y = s[cp], exx = s[2 * cp], eyy = s[3 * cp], exy = s[4 * cp];
+      const T a1 = T(2) * mu_x * mu_y + c1;
+      const T a2 = T(2) * (exy - mu_x * mu_y) + c2;
+      const T b1 = mu_x * mu_x + mu_y * mu_y + c1;
+      const T b2 = (exx - mu_x * mu_x) + (eyy - mu_y * mu_y) + c2;
+      const T inv_den = T(1) / (b1 * b2);
+      const T smap = a1 * a2 * inv_den;
+      total += static_cast<double>(a1 * a2 / (b1 * b2));
+      T* d = d0 + k;
+      d[0] = T(2) * mu_y * (a2 - a1) * inv_den - T(2) * mu_x * smap * (T(1) / b1 - T(1) / b2);
+      d[cp] = -smap / b2;
+      d[2 * cp] = T(2) * a1 * inv_den;
+    }
   }
   const at::Tensor bparts = gauss_blur_cpu(parts, g);
   const T* bp = bparts.data_ptr<T>();
