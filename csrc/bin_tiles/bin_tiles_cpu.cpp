@@ -202,12 +202,9 @@ void prepare_all(const T* m2, const T* co, const T* op, int64_t n,
   }
 }
 
-}  // namespace
-
-std::tuple<at::Tensor, at::Tensor> bin_tiles_cpu(const at::Tensor& means2d,
-                                                 const at::Tensor& radii,
-                                                 const at::Tensor& depths, int64_t width,
-                                                 int64_t height) {
+// Checks shared by both binning ops; returns N.
+int64_t check_bin_inputs(const at::Tensor& means2d, const at::Tensor& radii,
+                         const at::Tensor& depths, int64_t width, int64_t height) {
   COBGS_CHECK_INPUT(means2d);
   COBGS_CHECK_INPUT(radii);
   COBGS_CHECK_INPUT(depths);
@@ -221,6 +218,16 @@ std::tuple<at::Tensor, at::Tensor> bin_tiles_cpu(const at::Tensor& means2d,
   COBGS_CHECK_DTYPE(depths, means2d.scalar_type());
   TORCH_CHECK(width > 0 && height > 0, "width and height must be positive, got ", width,
               " x ", height);
+  return n;
+}
+
+}  // namespace
+
+std::tuple<at::Tensor, at::Tensor> bin_tiles_cpu(const at::Tensor& means2d,
+                                                 const at::Tensor& radii,
+                                                 const at::Tensor& depths, int64_t width,
+                                                 int64_t height) {
+  check_bin_inputs(means2d, radii, depths, width, height);
   const int tiles_x = static_cast<int>((width + math::kTileSize - 1) / math::kTileSize);
   const int tiles_y = static_cast<int>((height + math::kTileSize - 1) / math::kTileSize);
   const int64_t n_tiles = int64_t(tiles_x) * tiles_y;
@@ -237,27 +244,15 @@ std::tuple<at::Tensor, at::Tensor> bin_tiles_cpu(const at::Tensor& means2d,
 std::tuple<at::Tensor, at::Tensor, at::Tensor> bin_tiles_tight_cpu(
     const at::Tensor& means2d, const at::Tensor& radii, const at::Tensor& depths,
     const at::Tensor& conics, const at::Tensor& opacities, int64_t width, int64_t height) {
-  COBGS_CHECK_INPUT(means2d);
-  COBGS_CHECK_INPUT(radii);
-  COBGS_CHECK_INPUT(depths);
-  COBGS_CHECK_INPUT(conics);
-  COBGS_CHECK_INPUT(opacities);
   TORCH_CHECK(means2d.scalar_type() == at::kFloat || means2d.scalar_type() == at::kDouble,
               "means2d must be float32 or float64, got ", means2d.scalar_type());
-  TORCH_CHECK(means2d.dim() == 2, "means2d must have shape [N, 2], got ", means2d.sizes());
-  const int64_t n = means2d.size(0);
-  TORCH_CHECK(n < (int64_t(1) << 31), "at most 2^31 - 1 Gaussians are supported, got ", n);
-  COBGS_CHECK_SHAPE(means2d, n, 2);
-  COBGS_CHECK_SHAPE(radii, n);
-  COBGS_CHECK_SHAPE(depths, n);
+  const int64_t n = check_bin_inputs(means2d, radii, depths, width, height);
+  COBGS_CHECK_INPUT(conics);
+  COBGS_CHECK_INPUT(opacities);
   COBGS_CHECK_SHAPE(conics, n, 3);
   COBGS_CHECK_SHAPE(opacities, n);
-  COBGS_CHECK_DTYPE(radii, at::kInt);
-  COBGS_CHECK_DTYPE(depths, means2d.scalar_type());
   COBGS_CHECK_DTYPE(conics, means2d.scalar_type());
   COBGS_CHECK_DTYPE(opacities, means2d.scalar_type());
-  TORCH_CHECK(width > 0 && height > 0, "width and height must be positive, got ", width,
-              " x ", height);
   const int tiles_x = static_cast<int>((width + math::kTileSize - 1) / math::kTileSize);
   const int tiles_y = static_cast<int>((height + math::kTileSize - 1) / math::kTileSize);
   const int64_t n_tiles = int64_t(tiles_x) * tiles_y;
