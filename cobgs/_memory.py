@@ -50,16 +50,38 @@ def retain_freed_memory() -> bool:
         return ok
 
 
+def release_free_memory() -> None:
+    """Return the allocator's free pages to the OS (glibc ``malloc_trim``; no-op elsewhere).
+
+    Memory meters call it before they read a baseline: freed tensors stay in the process
+    (glibc raises its mmap threshold after large frees, and :func:`retain_freed_memory`
+    keeps them on purpose), so without it the resident size at the start of a method
+    already covers what it will allocate and the measured increase reads 0.
+    """
+    libc = _glibc()
+    if libc is not None:
+        libc.malloc_trim(0)
+
+
+def _glibc():
+    """glibc with ``mallopt`` and ``malloc_trim``, or None (other platforms / C libraries)."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        libc.mallopt, libc.malloc_trim  # noqa: B018 - both must exist (not on musl)
+    except (OSError, AttributeError):
+        return None
+    return libc
+
+
 def _apply() -> bool:
     if os.environ.get("COBGS_RETAIN_FREED_MEMORY", "1").strip() in ("0", "false", "no", "off"):
         return False
-    if not sys.platform.startswith("linux"):
+    libc = _glibc()
+    if libc is None:
         return False
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-        mallopt = libc.mallopt
-    except (OSError, AttributeError):  # musl and other C libraries
-        return False
+    mallopt = libc.mallopt
     mallopt.argtypes = (ctypes.c_int, ctypes.c_int)
     mallopt.restype = ctypes.c_int
     return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and bool(mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD))

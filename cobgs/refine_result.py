@@ -16,6 +16,7 @@ from typing import Optional
 
 from torch import Tensor
 
+from ._memory import release_free_memory
 from .gaussians import GaussianModel
 
 
@@ -110,21 +111,6 @@ class RefineResult:
             "stages": [s.as_dict() for s in self.stages],
             "config": dict(self.config),
         }
-
-
-def release_free_memory() -> None:
-    """Return the allocator's free pages to the OS (glibc ``malloc_trim``; no-op elsewhere).
-
-    Freed tensors stay in the process (glibc raises its mmap threshold after large
-    frees), so without this the RSS at the start of a method already covers what it will
-    allocate and the measured increase reads 0.
-    """
-    try:
-        import ctypes
-
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
-        pass
 
 
 def current_rss_bytes() -> int:
