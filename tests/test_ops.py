@@ -185,7 +185,7 @@ def test_simd_dispatch_is_bitwise_identical(tmp_path):
     code = f"""
 import sys, torch
 sys.path.insert(0, {str(Path(__file__).parent)!r})
-from test_ops import projected, W, H
+from test_ops import projected, W, H, _hard_projection_inputs
 from cobgs import _ops
 m2, conics, _, _, opacities, features, offsets, ids = projected(torch.float32)
 bg = torch.full((3,), 0.25)
@@ -196,7 +196,11 @@ g = torch.Generator().manual_seed(1)
 grads = torch.ops.cobgs.blend_bwd(m2, conics, opacities, features, bg, offsets, ids, out[1],
                                   out[2], torch.randn(H, W, 3, generator=g),
                                   torch.randn(H, W, generator=g))
-torch.save([*out, *grads], sys.argv[1])
+pm, pq, ps, vm, KK = _hard_projection_inputs(torch.float32)
+proj = torch.ops.cobgs.project(pm, pq, ps, vm, KK, 320, 240, 0.01)
+v = [torch.randn(t.shape, generator=g) for t in proj[:3]]
+pgrads = torch.ops.cobgs.project_bwd(pm, pq, ps, vm, KK, 320, 240, proj[3], *v)
+torch.save([*out, *grads, *proj, *pgrads], sys.argv[1])
 """
     results = []
     for disable in ("1", "0"):
@@ -209,3 +213,51 @@ torch.save([*out, *grads], sys.argv[1])
     assert results[0][3].sum() > 0  # label counts exercised
     for a, b in zip(*results):
         assert torch.equal(a, b)
+
+
+def _hard_projection_inputs(dtype, n=203):
+    """Gaussians that take every branch of the projection: ordinary, behind the camera, at
+    the near plane, far off-screen (clamped Jacobian), zero quaternion, overflowing and
+    zero scales."""
+    g = torch.Generator().manual_seed(3)
+    means = torch.randn(n, 3, generator=g, dtype=dtype) * 2
+    means[:, 2] += 4.0
+    means[::9] *= 1e3
+    means[1::11, 2] = 0.01
+    means[2::13, 2] = -1.0
+    quats = torch.randn(n, 4, generator=g, dtype=dtype)
+    quats[3::17] = 0
+    scales = torch.exp(torch.randn(n, 3, generator=g, dtype=dtype) - 3)
+    scales[4::19] = 1e30
+    scales[5::23] = 0
+    viewmat = torch.eye(4, dtype=dtype)
+    viewmat[:3, 3] = torch.tensor([0.1, -0.2, 0.3], dtype=dtype)
+    K = torch.tensor([[300.0, 0, 160], [0, 310.0, 120], [0, 0, 1]], dtype=dtype)
+    return means, quats, scales, viewmat, K
+
+
+def test_project_lanes_match_one_at_a_time():
+    """float32 projects 8 Gaussians at a time in lane vectors and the remainder one by one
+    through the same formulas: every lane must be bitwise what the one-Gaussian path gives
+    (each Gaussian alone runs the scalar path), forward and backward, culled or not."""
+    means, quats, scales, viewmat, K = _hard_projection_inputs(torch.float32)
+    n = means.shape[0]
+    outs = torch.ops.cobgs.project(means, quats, scales, viewmat, K, 320, 240, 0.01)
+    assert 0 < int((outs[3] > 0).sum()) < n  # some culled, some visible
+    g = torch.Generator().manual_seed(4)
+    v = [torch.randn(t.shape, generator=g) for t in outs[:3]]
+    v[0][::7] = 0
+    v[1][::7] = 0
+    v[2][::7] = 0  # no gradient at all: skipped
+    grads = torch.ops.cobgs.project_bwd(means, quats, scales, viewmat, K, 320, 240, outs[3], *v)
+    for i in range(n):
+        sl = slice(i, i + 1)
+        one = torch.ops.cobgs.project(means[sl], quats[sl], scales[sl], viewmat, K, 320, 240,
+                                      0.01)
+        for a, b in zip(outs, one):
+            assert torch.equal(a[sl], b), i
+        one_g = torch.ops.cobgs.project_bwd(means[sl], quats[sl], scales[sl], viewmat, K, 320,
+                                            240, one[3], *(t[sl] for t in v))
+        for a, b in zip(grads, one_g):
+            assert torch.equal(a[sl], b), i
+    assert all(bool(t.isfinite().all()) for t in grads)

@@ -1,7 +1,12 @@
 // Device-agnostic math of the Gaussian rasterizer: one definition of every formula,
 // shared by the CPU kernels (*_cpu.cpp) and, later, CUDA kernels (*_cuda.cu). Only plain
-// scalars and fixed-size structs; no ATen, no allocation, no OpenMP. Every function is
-// HOST_DEVICE inline and templated on the scalar type (float or double).
+// scalars, lane vectors and fixed-size structs; no ATen, no allocation, no OpenMP.
+//
+// The projection formulas are templates over a *lane type* T: a scalar (float or double)
+// or, on the CPU, a GCC/Clang vector of floats, so that one definition evaluates one
+// Gaussian or 8 at once (csrc/project/project_lanes_cpu.h). Lane code uses only exactly
+// rounded IEEE operations (+ - * /, sqrt, ceil, comparisons, selects) and no branches on
+// values, so every lane of a vector evaluation is bit-identical to the scalar one.
 //
 // The contract these formulas implement is written out in cobgs/reference.py (the
 // pure-PyTorch oracle); keep the two in step. Expressions that decide whether a
@@ -13,11 +18,20 @@
 #include <cmath>
 #include <cstdint>
 #include <cstring>
+#include <type_traits>
+#include <utility>
 
 #if defined(__CUDACC__) || defined(__HIPCC__)
 #define HOST_DEVICE __host__ __device__
+#define LANE_INLINE __host__ __device__ __forceinline__
+#elif defined(__GNUC__) || defined(__clang__)
+#define HOST_DEVICE
+// Lane functions are always inlined, so that a caller compiled for AVX2 / AVX-512 (see
+// csrc/common/simd_cpu.h) gets them in its own instruction set.
+#define LANE_INLINE __attribute__((always_inline)) inline
 #else
 #define HOST_DEVICE
+#define LANE_INLINE inline
 #endif
 
 namespace cobgs {
@@ -33,6 +47,104 @@ constexpr double kTransmittanceMin = 1e-4;
 constexpr double kMinEigenGap = 0.1;    // 3DGS: λmax = mid + sqrt(max(0.1, mid² - det))
 constexpr double kMaxRadius = 1073741824.0;  // 2^30: keeps radii representable in int32
 
+// ---------------------------------------------------------------------------------------
+// Lane types: S is the element type, Mask the type of a comparison (bool for scalars, an
+// integer vector of -1 / 0 for vectors). Masks combine with & and |, never && / ||.
+template <typename T, typename = void>
+struct LaneTraits {
+  using S = T;
+  using Mask = bool;
+  static constexpr bool kVector = false;
+};
+#if !defined(__CUDACC__) && !defined(__HIPCC__)
+template <typename T>
+struct LaneTraits<T, std::void_t<decltype(std::declval<T&>()[0])>> {
+  using S = std::decay_t<decltype(std::declval<T&>()[0])>;
+  using Mask = decltype(std::declval<T>() < std::declval<T>());
+  static constexpr bool kVector = true;
+  static constexpr int kWidth = sizeof(T) / sizeof(S);
+};
+#endif
+template <typename T>
+using LaneS = typename LaneTraits<T>::S;
+template <typename T>
+using LaneMask = typename LaneTraits<T>::Mask;
+
+// m ? a : b, lane-wise for vectors.
+template <typename M, typename T>
+LANE_INLINE T sel(const M& m, const T& a, const T& b) {
+  return m ? a : b;
+}
+
+template <typename T>
+LANE_INLINE T splat_lanes(LaneS<T> s) {
+  if constexpr (LaneTraits<T>::kVector) {
+    T r;
+    for (int k = 0; k < LaneTraits<T>::kWidth; ++k) r[k] = s;
+    return r;
+  } else {
+    return s;
+  }
+}
+
+template <typename M>
+LANE_INLINE M lane_not(const M& m) {
+  if constexpr (std::is_same_v<M, bool>) {
+    return !m;
+  } else {
+    return ~m;
+  }
+}
+
+// True when some lane is set.
+template <typename M>
+LANE_INLINE bool lane_any(const M& m) {
+  if constexpr (std::is_same_v<M, bool>) {
+    return m;
+  } else {
+    bool r = false;
+    for (size_t k = 0; k < sizeof(M) / sizeof(m[0]); ++k) r |= m[k] != 0;
+    return r;
+  }
+}
+
+// sqrt and ceil, lane by lane (the compiler turns the loops into vector instructions
+// where the instruction set has them); both are exactly rounded.
+template <typename T>
+LANE_INLINE T lane_sqrt(const T& x) {
+  if constexpr (LaneTraits<T>::kVector) {
+    T r;
+    for (int k = 0; k < LaneTraits<T>::kWidth; ++k) r[k] = std::sqrt(x[k]);
+    return r;
+  } else {
+    return std::sqrt(x);
+  }
+}
+
+template <typename T>
+LANE_INLINE T lane_ceil(const T& x) {
+  if constexpr (LaneTraits<T>::kVector) {
+    T r;
+    for (int k = 0; k < LaneTraits<T>::kWidth; ++k) r[k] = std::ceil(x[k]);
+    return r;
+  } else {
+    return std::ceil(x);
+  }
+}
+
+// Neither infinite nor NaN (x - x is 0 exactly for every finite x, NaN otherwise).
+template <typename T>
+LANE_INLINE LaneMask<T> lane_isfinite(const T& x) {
+  if constexpr (LaneTraits<T>::kVector) {
+    return (x - x) == LaneS<T>(0);
+  } else {
+    return std::isfinite(x);
+  }
+}
+
+// ---------------------------------------------------------------------------------------
+// Projection.
+
 template <typename T>
 struct Vec3 {
   T x, y, z;
@@ -45,27 +157,28 @@ struct Mat3 {
 };
 
 template <typename T>
-HOST_DEVICE inline Mat3<T> transpose(const Mat3<T>& a) {
+LANE_INLINE Mat3<T> transpose(const Mat3<T>& a) {
   Mat3<T> r;
   for (int i = 0; i < 3; ++i)
     for (int j = 0; j < 3; ++j) r.m[i][j] = a.m[j][i];
   return r;
 }
 
-template <typename T>
-HOST_DEVICE inline Mat3<T> matmul(const Mat3<T>& a, const Mat3<T>& b) {
-  Mat3<T> r;
+// A (scalar or lanes) times B (lanes): the product's lane type is B's.
+template <typename A, typename B>
+LANE_INLINE Mat3<B> matmul(const Mat3<A>& a, const Mat3<B>& b) {
+  Mat3<B> r;
   for (int i = 0; i < 3; ++i)
     for (int j = 0; j < 3; ++j) {
-      T s = T(0);
+      B s{};
       for (int k = 0; k < 3; ++k) s += a.m[i][k] * b.m[k][j];
       r.m[i][j] = s;
     }
   return r;
 }
 
-template <typename T>
-HOST_DEVICE inline Vec3<T> matvec(const Mat3<T>& a, const Vec3<T>& v) {
+template <typename A, typename B>
+LANE_INLINE Vec3<B> matvec(const Mat3<A>& a, const Vec3<B>& v) {
   return {a.m[0][0] * v.x + a.m[0][1] * v.y + a.m[0][2] * v.z,
           a.m[1][0] * v.x + a.m[1][1] * v.y + a.m[1][2] * v.z,
           a.m[2][0] * v.x + a.m[2][1] * v.y + a.m[2][2] * v.z};
@@ -73,36 +186,40 @@ HOST_DEVICE inline Vec3<T> matvec(const Mat3<T>& a, const Vec3<T>& v) {
 
 // Rotation matrix of a unit quaternion (w, x, y, z).
 template <typename T>
-HOST_DEVICE inline Mat3<T> quat_to_rotmat(T w, T x, T y, T z) {
+LANE_INLINE Mat3<T> quat_to_rotmat(const T& w, const T& x, const T& y, const T& z) {
+  using S = LaneS<T>;
   Mat3<T> r;
-  r.m[0][0] = T(1) - T(2) * (y * y + z * z);
-  r.m[0][1] = T(2) * (x * y - w * z);
-  r.m[0][2] = T(2) * (x * z + w * y);
-  r.m[1][0] = T(2) * (x * y + w * z);
-  r.m[1][1] = T(1) - T(2) * (x * x + z * z);
-  r.m[1][2] = T(2) * (y * z - w * x);
-  r.m[2][0] = T(2) * (x * z - w * y);
-  r.m[2][1] = T(2) * (y * z + w * x);
-  r.m[2][2] = T(1) - T(2) * (x * x + y * y);
+  r.m[0][0] = S(1) - S(2) * (y * y + z * z);
+  r.m[0][1] = S(2) * (x * y - w * z);
+  r.m[0][2] = S(2) * (x * z + w * y);
+  r.m[1][0] = S(2) * (x * y + w * z);
+  r.m[1][1] = S(1) - S(2) * (x * x + z * z);
+  r.m[1][2] = S(2) * (y * z - w * x);
+  r.m[2][0] = S(2) * (x * z - w * y);
+  r.m[2][1] = S(2) * (y * z + w * x);
+  r.m[2][2] = S(1) - S(2) * (x * x + y * y);
   return r;
 }
 
 // Vector-Jacobian product of quat_to_rotmat: dL/d(w, x, y, z) from dL/dR.
 template <typename T>
-HOST_DEVICE inline void quat_to_rotmat_vjp(T w, T x, T y, T z, const Mat3<T>& v, T out[4]) {
+LANE_INLINE void quat_to_rotmat_vjp(const T& w, const T& x, const T& y, const T& z,
+                                    const Mat3<T>& v, T out[4]) {
+  using S = LaneS<T>;
   const T(*g)[3] = v.m;
-  out[0] = T(2) * (-z * g[0][1] + y * g[0][2] + z * g[1][0] - x * g[1][2] - y * g[2][0] +
+  out[0] = S(2) * (-z * g[0][1] + y * g[0][2] + z * g[1][0] - x * g[1][2] - y * g[2][0] +
                    x * g[2][1]);
-  out[1] = T(2) * (y * g[0][1] + z * g[0][2] + y * g[1][0] - T(2) * x * g[1][1] -
-                   w * g[1][2] + z * g[2][0] + w * g[2][1] - T(2) * x * g[2][2]);
-  out[2] = T(2) * (-T(2) * y * g[0][0] + x * g[0][1] + w * g[0][2] + x * g[1][0] +
-                   z * g[1][2] - w * g[2][0] + z * g[2][1] - T(2) * y * g[2][2]);
-  out[3] = T(2) * (-T(2) * z * g[0][0] - w * g[0][1] + x * g[0][2] + w * g[1][0] -
-                   T(2) * z * g[1][1] + y * g[1][2] + x * g[2][0] + y * g[2][1]);
+  out[1] = S(2) * (y * g[0][1] + z * g[0][2] + y * g[1][0] - S(2) * x * g[1][1] -
+                   w * g[1][2] + z * g[2][0] + w * g[2][1] - S(2) * x * g[2][2]);
+  out[2] = S(2) * (-S(2) * y * g[0][0] + x * g[0][1] + w * g[0][2] + x * g[1][0] +
+                   z * g[1][2] - w * g[2][0] + z * g[2][1] - S(2) * y * g[2][2]);
+  out[3] = S(2) * (-S(2) * z * g[0][0] - w * g[0][1] + x * g[0][2] + w * g[1][0] -
+                   S(2) * z * g[1][1] + y * g[1][2] + x * g[2][0] + y * g[2][1]);
 }
 
 // Camera of one view: rotation/translation of the world->camera transform and the
 // pinhole intrinsics, plus the clamp limits of tx/tz and ty/tz used for the Jacobian.
+// Always scalars (shared by every lane).
 template <typename T>
 struct Camera {
   Mat3<T> R;
@@ -132,24 +249,36 @@ HOST_DEVICE inline Camera<T> make_camera(const T* viewmat, const T* K, int width
   return c;
 }
 
+// v clamped to [lo, hi] (NaN stays NaN).
 template <typename T>
-HOST_DEVICE inline bool is_finite(T v) {
-  return std::isfinite(v);
+LANE_INLINE T clamp_val(const T& v, LaneS<T> lo, LaneS<T> hi) {
+  return sel(v < lo, splat_lanes<T>(lo), sel(v > hi, splat_lanes<T>(hi), v));
 }
 
+// One Gaussian's parameters (or one per lane).
 template <typename T>
-HOST_DEVICE inline T clamp_val(T v, T lo, T hi) {
-  return v < lo ? lo : (v > hi ? hi : v);
+struct GaussianIn {
+  Vec3<T> mean;
+  T quat[4];   // (w, x, y, z), not necessarily normalised
+  T scale[3];
+};
+
+template <typename T>
+HOST_DEVICE inline GaussianIn<T> load_gaussian(const T* mean, const T* quat, const T* scale) {
+  return {{mean[0], mean[1], mean[2]},
+          {quat[0], quat[1], quat[2], quat[3]},
+          {scale[0], scale[1], scale[2]}};
 }
 
-// Result of projecting one Gaussian.
+// Result of projecting one Gaussian (or one per lane). `radius` is an integer value
+// (ceil), kept in the lane type; 0 where not visible, as every other field.
 template <typename T>
 struct Projection {
-  bool visible;
+  LaneMask<T> visible;
   T mx, my;      // pixel coordinates of the projected mean
   T ca, cb, cc;  // conic: inverse 2D covariance [[ca, cb], [cb, cc]]
   T depth;       // camera-space z
-  int radius;    // ceil(3 sqrt(λmax)), 0 when culled
+  T radius;      // ceil(3 sqrt(λmax))
 };
 
 // Factor G = W M of the camera-space covariance W Σ Wᵀ = G Gᵀ of a Gaussian, where
@@ -157,14 +286,15 @@ struct Projection {
 // quaternion (for the backward pass). Working with the factor (27 products) instead of
 // forming Σ and W Σ Wᵀ (about 110) is the same matrix up to rounding.
 template <typename T>
-HOST_DEVICE inline Mat3<T> covariance_factor(const Camera<T>& cam, const T* q, const T* s,
-                                             Mat3<T>& Rq, T qn[4], T& qnorm) {
-  qnorm = std::sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+LANE_INLINE Mat3<T> covariance_factor(const Camera<LaneS<T>>& cam, const GaussianIn<T>& g,
+                                      Mat3<T>& Rq, T qn[4], T& qnorm) {
+  const T* q = g.quat;
+  qnorm = lane_sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
   for (int i = 0; i < 4; ++i) qn[i] = q[i] / qnorm;
   Rq = quat_to_rotmat(qn[0], qn[1], qn[2], qn[3]);
   Mat3<T> M;
   for (int i = 0; i < 3; ++i)
-    for (int j = 0; j < 3; ++j) M.m[i][j] = Rq.m[i][j] * s[j];
+    for (int j = 0; j < 3; ++j) M.m[i][j] = Rq.m[i][j] * g.scale[j];
   return matmul(cam.R, M);
 }
 
@@ -172,16 +302,16 @@ HOST_DEVICE inline Mat3<T> covariance_factor(const Camera<T>& cam, const T* q, c
 template <typename T>
 struct Jacobian {
   T j00, j02, j11, j12;
-  bool clamp_x, clamp_y;  // whether tx/tz (ty/tz) hit a limit
-  T txc, tyc;             // tz · clamped ratio
+  LaneMask<T> clamp_x, clamp_y;  // whether tx/tz (ty/tz) hit a limit
+  T txc, tyc;                    // tz · clamped ratio
 };
 
 template <typename T>
-HOST_DEVICE inline Jacobian<T> projection_jacobian(const Camera<T>& cam, const Vec3<T>& p) {
+LANE_INLINE Jacobian<T> projection_jacobian(const Camera<LaneS<T>>& cam, const Vec3<T>& p) {
   Jacobian<T> J;
   const T rx = p.x / p.z, ry = p.y / p.z;
-  J.clamp_x = rx < -cam.lim_xn || rx > cam.lim_xp;
-  J.clamp_y = ry < -cam.lim_yn || ry > cam.lim_yp;
+  J.clamp_x = (rx < -cam.lim_xn) | (rx > cam.lim_xp);
+  J.clamp_y = (ry < -cam.lim_yn) | (ry > cam.lim_yp);
   J.txc = p.z * clamp_val(rx, -cam.lim_xn, cam.lim_xp);
   J.tyc = p.z * clamp_val(ry, -cam.lim_yn, cam.lim_yp);
   J.j00 = cam.fx / p.z;
@@ -194,73 +324,88 @@ HOST_DEVICE inline Jacobian<T> projection_jacobian(const Camera<T>& cam, const V
 // 2D covariance entries (a, b, c) = J Σc Jᵀ + 0.3 I = P Pᵀ + 0.3 I with P = J G (2x3);
 // J row 0 = (j00, 0, j02), row 1 = (0, j11, j12).
 template <typename T>
-HOST_DEVICE inline void covariance_2d(const Jacobian<T>& J, const Mat3<T>& G, T P[2][3], T& a,
-                                      T& b, T& c) {
+LANE_INLINE void covariance_2d(const Jacobian<T>& J, const Mat3<T>& G, T P[2][3], T& a, T& b,
+                               T& c) {
+  using S = LaneS<T>;
   for (int k = 0; k < 3; ++k) {
     P[0][k] = J.j00 * G.m[0][k] + J.j02 * G.m[2][k];
     P[1][k] = J.j11 * G.m[1][k] + J.j12 * G.m[2][k];
   }
-  a = P[0][0] * P[0][0] + P[0][1] * P[0][1] + P[0][2] * P[0][2] + T(kLowpass);
+  a = P[0][0] * P[0][0] + P[0][1] * P[0][1] + P[0][2] * P[0][2] + S(kLowpass);
   b = P[0][0] * P[1][0] + P[0][1] * P[1][1] + P[0][2] * P[1][2];
-  c = P[1][0] * P[1][0] + P[1][1] * P[1][1] + P[1][2] * P[1][2] + T(kLowpass);
+  c = P[1][0] * P[1][0] + P[1][1] * P[1][1] + P[1][2] * P[1][2] + S(kLowpass);
 }
 
-// Forward projection and culling of one Gaussian.
+// Camera-space mean R m + t.
 template <typename T>
-HOST_DEVICE inline Projection<T> project_gaussian(const Camera<T>& cam, const T* mean,
-                                                  const T* quat, const T* scale,
-                                                  T near_plane) {
-  Projection<T> out{};
-  out.visible = false;
-  const Vec3<T> p = matvec(cam.R, Vec3<T>{mean[0], mean[1], mean[2]});
-  const Vec3<T> pc{p.x + cam.t.x, p.y + cam.t.y, p.z + cam.t.z};
-  if (!(pc.z > near_plane)) return out;
+LANE_INLINE Vec3<T> camera_point(const Camera<LaneS<T>>& cam, const Vec3<T>& mean) {
+  const Vec3<T> p = matvec(cam.R, mean);
+  return {p.x + cam.t.x, p.y + cam.t.y, p.z + cam.t.z};
+}
+
+// Forward projection and culling of one Gaussian (or one per lane). Everything is
+// evaluated whatever the lane's fate (culled lanes may hold inf / NaN on the way, with
+// no effect on the others); fields are zero where not visible.
+template <typename T>
+LANE_INLINE Projection<T> project_gaussian(const Camera<LaneS<T>>& cam, const GaussianIn<T>& g,
+                                           LaneS<T> near_plane) {
+  using S = LaneS<T>;
+  const Vec3<T> pc = camera_point(cam, g.mean);
   Mat3<T> Rq;
   T qn[4], qnorm;
-  const Mat3<T> G = covariance_factor(cam, quat, scale, Rq, qn, qnorm);
-  if (!(qnorm > T(0))) return out;
+  const Mat3<T> G = covariance_factor(cam, g, Rq, qn, qnorm);
   const Jacobian<T> J = projection_jacobian(cam, pc);
   T P[2][3], a, b, c;
   covariance_2d(J, G, P, a, b, c);
   const T det = a * c - b * b;
-  if (!(is_finite(a) && is_finite(b) && is_finite(c) && is_finite(det)) || !(det > T(0)))
-    return out;
   const T ca = c / det, cb = -b / det, cc = a / det;
   const T mx = cam.fx * pc.x / pc.z + cam.cx;
   const T my = cam.fy * pc.y / pc.z + cam.cy;
-  if (!(is_finite(ca) && is_finite(cb) && is_finite(cc) && is_finite(mx) && is_finite(my)))
-    return out;
-  const T mid = T(0.5) * (a + c);
+  const T mid = S(0.5) * (a + c);
   const T gap = mid * mid - det;
-  const T lam = mid + std::sqrt(gap > T(kMinEigenGap) ? gap : T(kMinEigenGap));
-  T r = std::ceil(T(3) * std::sqrt(lam));
-  if (r > T(kMaxRadius)) r = T(kMaxRadius);
-  if (mx + r <= T(0) || mx - r >= T(cam.width) || my + r <= T(0) || my - r >= T(cam.height))
-    return out;
-  out.visible = true;
-  out.mx = mx;
-  out.my = my;
-  out.ca = ca;
-  out.cb = cb;
-  out.cc = cc;
-  out.depth = pc.z;
-  out.radius = static_cast<int>(r);
+  const T lam = mid + lane_sqrt(sel(gap > S(kMinEigenGap), gap, splat_lanes<T>(S(kMinEigenGap))));
+  T r = lane_ceil(S(3) * lane_sqrt(lam));
+  r = sel(r > S(kMaxRadius), splat_lanes<T>(S(kMaxRadius)), r);
+  const LaneMask<T> visible =
+      (pc.z > near_plane) & (qnorm > S(0)) & lane_isfinite(a) & lane_isfinite(b) &
+      lane_isfinite(c) & lane_isfinite(det) & (det > S(0)) & lane_isfinite(ca) &
+      lane_isfinite(cb) & lane_isfinite(cc) & lane_isfinite(mx) & lane_isfinite(my) &
+      lane_not((mx + r <= S(0)) | (mx - r >= S(cam.width)) | (my + r <= S(0)) |
+               (my - r >= S(cam.height)));
+  const T zero{};
+  Projection<T> out;
+  out.visible = visible;
+  out.mx = sel(visible, mx, zero);
+  out.my = sel(visible, my, zero);
+  out.ca = sel(visible, ca, zero);
+  out.cb = sel(visible, cb, zero);
+  out.cc = sel(visible, cc, zero);
+  out.depth = sel(visible, pc.z, zero);
+  out.radius = sel(visible, r, zero);
   return out;
 }
 
-// Backward of project_gaussian for a visible Gaussian: accumulates dL/dmean [3],
-// dL/dquat [4] and dL/dscale [3] from dL/dmeans2d (vmx, vmy), dL/dconic (vca, vcb, vcc)
-// and dL/ddepth.
+// Gradients of one Gaussian's parameters.
 template <typename T>
-HOST_DEVICE inline void project_gaussian_vjp(const Camera<T>& cam, const T* mean,
-                                             const T* quat, const T* scale, T vmx, T vmy,
-                                             T vca, T vcb, T vcc, T vdepth, T* v_mean,
-                                             T* v_quat, T* v_scale) {
-  const Vec3<T> p = matvec(cam.R, Vec3<T>{mean[0], mean[1], mean[2]});
-  const Vec3<T> pc{p.x + cam.t.x, p.y + cam.t.y, p.z + cam.t.z};
+struct GaussianGrad {
+  Vec3<T> mean;
+  T quat[4];
+  T scale[3];
+};
+
+// Backward of project_gaussian for a visible Gaussian (or one per lane): dL/dmean,
+// dL/dquat and dL/dscale from dL/dmeans2d (vmx, vmy), dL/dconic (vca, vcb, vcc) and
+// dL/ddepth.
+template <typename T>
+LANE_INLINE GaussianGrad<T> project_gaussian_vjp(const Camera<LaneS<T>>& cam,
+                                                 const GaussianIn<T>& g, const T& vmx,
+                                                 const T& vmy, const T& vca, const T& vcb,
+                                                 const T& vcc, const T& vdepth) {
+  using S = LaneS<T>;
+  const Vec3<T> pc = camera_point(cam, g.mean);
   Mat3<T> Rq;
   T qn[4], qnorm;
-  const Mat3<T> G = covariance_factor(cam, quat, scale, Rq, qn, qnorm);
+  const Mat3<T> G = covariance_factor(cam, g, Rq, qn, qnorm);
   const Jacobian<T> J = projection_jacobian(cam, pc);
   T P[2][3], a, b, c;
   covariance_2d(J, G, P, a, b, c);
@@ -268,49 +413,48 @@ HOST_DEVICE inline void project_gaussian_vjp(const Camera<T>& cam, const T* mean
   const T ca = c / det, cb = -b / det, cc = a / det;
 
   // Projected mean and depth.
-  const T iz = T(1) / pc.z;
+  const T iz = S(1) / pc.z;
   T vtx = cam.fx * iz * vmx;
   T vty = cam.fy * iz * vmy;
   T vtz = -cam.fx * pc.x * iz * iz * vmx - cam.fy * pc.y * iz * iz * vmy + vdepth;
 
   // conic = inverse of [[a, b], [b, c]]: closed-form partial derivatives.
   const T va = -(ca * ca * vca + ca * cb * vcb + cb * cb * vcc);
-  const T vb = -(T(2) * ca * cb * vca + (ca * cc + cb * cb) * vcb + T(2) * cb * cc * vcc);
+  const T vb = -(S(2) * ca * cb * vca + (ca * cc + cb * cb) * vcb + S(2) * cb * cc * vcc);
   const T vc = -(cb * cb * vca + cb * cc * vcb + cc * cc * vcc);
   // Symmetric gradient V of the 2x2 covariance (b appears twice in the matrix).
-  const T V00 = va, V01 = T(0.5) * vb, V11 = vc;
+  const T V00 = va, V01 = S(0.5) * vb, V11 = vc;
 
   // cov2d = P Pᵀ with P = J G:  dL/dP = 2 V P,  dL/dJ = dL/dP Gᵀ,  dL/dG = Jᵀ dL/dP.
   T vP[2][3];
   for (int k = 0; k < 3; ++k) {
-    vP[0][k] = T(2) * (V00 * P[0][k] + V01 * P[1][k]);
-    vP[1][k] = T(2) * (V01 * P[0][k] + V11 * P[1][k]);
+    vP[0][k] = S(2) * (V00 * P[0][k] + V01 * P[1][k]);
+    vP[1][k] = S(2) * (V01 * P[0][k] + V11 * P[1][k]);
   }
   // Only the four non-constant entries of J: (0, 0), (0, 2), (1, 1), (1, 2).
   T vJ[2][3];
   for (int i = 0; i < 2; ++i)
     for (int m = 0; m < 3; ++m)
       vJ[i][m] = vP[i][0] * G.m[m][0] + vP[i][1] * G.m[m][1] + vP[i][2] * G.m[m][2];
-  // J entries as functions of the camera-space mean (with the 3DGS clamp).
+  // J entries as functions of the camera-space mean (with the 3DGS clamp): both cases
+  // are evaluated, the clamp selects.
   vtz += -cam.fx * iz * iz * vJ[0][0] - cam.fy * iz * iz * vJ[1][1];
-  if (J.clamp_x) {
-    vtz += cam.fx * J.txc * iz * iz * iz * vJ[0][2];
-  } else {
-    vtx += -cam.fx * iz * iz * vJ[0][2];
-    vtz += T(2) * cam.fx * pc.x * iz * iz * iz * vJ[0][2];
+  {
+    const T vtz_clamped = vtz + cam.fx * J.txc * iz * iz * iz * vJ[0][2];
+    const T vtz_free = vtz + S(2) * cam.fx * pc.x * iz * iz * iz * vJ[0][2];
+    vtx = sel(J.clamp_x, vtx, vtx + -cam.fx * iz * iz * vJ[0][2]);
+    vtz = sel(J.clamp_x, vtz_clamped, vtz_free);
   }
-  if (J.clamp_y) {
-    vtz += cam.fy * J.tyc * iz * iz * iz * vJ[1][2];
-  } else {
-    vty += -cam.fy * iz * iz * vJ[1][2];
-    vtz += T(2) * cam.fy * pc.y * iz * iz * iz * vJ[1][2];
+  {
+    const T vtz_clamped = vtz + cam.fy * J.tyc * iz * iz * iz * vJ[1][2];
+    const T vtz_free = vtz + S(2) * cam.fy * pc.y * iz * iz * iz * vJ[1][2];
+    vty = sel(J.clamp_y, vty, vty + -cam.fy * iz * iz * vJ[1][2]);
+    vtz = sel(J.clamp_y, vtz_clamped, vtz_free);
   }
+  GaussianGrad<T> out;
   // Camera-space mean = R m + t.
-  const Mat3<T> Rt = transpose(cam.R);
-  const Vec3<T> vm = matvec(Rt, Vec3<T>{vtx, vty, vtz});
-  v_mean[0] += vm.x;
-  v_mean[1] += vm.y;
-  v_mean[2] += vm.z;
+  const Mat3<S> Rt = transpose(cam.R);
+  out.mean = matvec(Rt, Vec3<T>{vtx, vty, vtz});
 
   // G = W M → dL/dM = Wᵀ dL/dG.
   Mat3<T> vG;
@@ -323,18 +467,19 @@ HOST_DEVICE inline void project_gaussian_vjp(const Camera<T>& cam, const T* mean
   // M = R_q diag(s):  dL/dR_q[i][j] = dL/dM[i][j] s[j],  dL/ds[j] = Σ_i dL/dM[i][j] R_q[i][j].
   Mat3<T> vRq;
   for (int j = 0; j < 3; ++j) {
-    T vs = T(0);
+    T vs{};
     for (int i = 0; i < 3; ++i) {
-      vRq.m[i][j] = vM.m[i][j] * scale[j];
+      vRq.m[i][j] = vM.m[i][j] * g.scale[j];
       vs += vM.m[i][j] * Rq.m[i][j];
     }
-    v_scale[j] += vs;
+    out.scale[j] = vs;
   }
   T vqn[4];
   quat_to_rotmat_vjp(qn[0], qn[1], qn[2], qn[3], vRq, vqn);
   // qn = q / |q|: project out the radial component.
   const T dot = qn[0] * vqn[0] + qn[1] * vqn[1] + qn[2] * vqn[2] + qn[3] * vqn[3];
-  for (int i = 0; i < 4; ++i) v_quat[i] += (vqn[i] - qn[i] * dot) / qnorm;
+  for (int i = 0; i < 4; ++i) out.quat[i] = (vqn[i] - qn[i] * dot) / qnorm;
+  return out;
 }
 
 // ---------------------------------------------------------------------------------------

@@ -1,12 +1,18 @@
-// CPU implementation of the `project` op family (see project.h).
+// CPU implementation of the `project` op family (see project.h). The loops live in
+// project_lanes_cpu.h, compiled per instruction set and chosen at run time.
 #include "project.h"
 
 #include <torch/library.h>
 
+#include <algorithm>
+#include <type_traits>
+
 #include "../common/checks.h"
+#include "../common/cpu_isa.h"
 #include "../common/gs_math.h"
 #include "../common/parallel_cpu.h"
 #include "../common/prof_cpu.h"
+#include "../common/simd_cpu.h"
 
 namespace cobgs {
 namespace {
@@ -40,38 +46,99 @@ void check_gaussians(const at::Tensor& means, const at::Tensor& quats,
 
 
 template <typename T>
+struct ProjArgs {
+  math::Camera<T> cam;
+  T near;
+  const T* means;   // [N, 3]
+  const T* quats;   // [N, 4]
+  const T* scales;  // [N, 3]
+  T* means2d;       // [N, 2]  (every output element is written)
+  T* conics;        // [N, 3]
+  T* depths;        // [N]
+  int32_t* radii;   // [N]
+};
+
+template <typename T>
+struct ProjBwdArgs {
+  math::Camera<T> cam;
+  const T* means;
+  const T* quats;
+  const T* scales;
+  const int32_t* radii;
+  const T* v_means2d;
+  const T* v_conics;
+  const T* v_depths;
+  T* v_means;   // [N, 3]  (every output element is written)
+  T* v_quats;   // [N, 4]
+  T* v_scales;  // [N, 3]
+};
+
+}  // namespace
+
+// The loops once per instruction set (float32 in lane vectors; float64 one at a time).
+namespace project_base {
+#define COBGS_ISA_LEVEL 0
+#include "project_lanes_cpu.h"
+#undef COBGS_ISA_LEVEL
+}  // namespace project_base
+#if COBGS_AVX2_CLONES
+COBGS_BEGIN_ISA_AVX2
+namespace project_avx2 {
+#define COBGS_ISA_LEVEL 1
+#include "project_lanes_cpu.h"
+#undef COBGS_ISA_LEVEL
+}  // namespace project_avx2
+COBGS_END_ISA
+COBGS_BEGIN_ISA_AVX512
+namespace project_avx512 {
+#define COBGS_ISA_LEVEL 2
+#include "project_lanes_cpu.h"
+#undef COBGS_ISA_LEVEL
+}  // namespace project_avx512
+COBGS_END_ISA
+#endif
+
+namespace {
+
+// The version of a range function for this CPU (float64: the baseline one).
+#if COBGS_AVX2_CLONES
+#define COBGS_PICK_ISA(T, fn)                                        \
+  (std::is_same_v<T, float> && cpu_isa() == CpuIsa::kAvx512 ? &project_avx512::fn<T> \
+   : std::is_same_v<T, float> && cpu_isa() == CpuIsa::kAvx2 ? &project_avx2::fn<T>   \
+                                                             : &project_base::fn<T>)
+#else
+#define COBGS_PICK_ISA(T, fn) (&project_base::fn<T>)
+#endif
+
+// Gaussians in chunks of 256 (whole lane blocks), split statically between the threads:
+// results do not depend on the thread count.
+constexpr int64_t kChunk = 256;
+
+template <typename Args>
+void run_chunks(void (*fn)(const Args&, int64_t, int64_t), const Args& args, int64_t n) {
+  const int64_t chunks = (n + kChunk - 1) / kChunk;
+#pragma omp parallel for schedule(static) num_threads(cpu_threads())
+  for (int64_t c = 0; c < chunks; ++c) fn(args, c * kChunk, std::min(n, (c + 1) * kChunk));
+}
+
+template <typename T>
 void project_kernel(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
                     const at::Tensor& viewmat, const at::Tensor& K, int64_t width,
                     int64_t height, double near_plane, at::Tensor& means2d, at::Tensor& conics,
                     at::Tensor& depths, at::Tensor& radii) {
-  const int64_t n = means.size(0);
-  const auto cam = math::make_camera<T>(viewmat.data_ptr<T>(), K.data_ptr<T>(),
-                                        static_cast<int>(width), static_cast<int>(height));
-  const T* m = means.data_ptr<T>();
-  const T* q = quats.data_ptr<T>();
-  const T* s = scales.data_ptr<T>();
-  T* m2 = means2d.data_ptr<T>();
-  T* co = conics.data_ptr<T>();
-  T* d = depths.data_ptr<T>();
-  int32_t* r = radii.data_ptr<int32_t>();
-  const T near = static_cast<T>(near_plane);
+  const ProjArgs<T> args{math::make_camera<T>(viewmat.data_ptr<T>(), K.data_ptr<T>(),
+                                              static_cast<int>(width), static_cast<int>(height)),
+                         static_cast<T>(near_plane),
+                         means.data_ptr<T>(),
+                         quats.data_ptr<T>(),
+                         scales.data_ptr<T>(),
+                         means2d.data_ptr<T>(),
+                         conics.data_ptr<T>(),
+                         depths.data_ptr<T>(),
+                         radii.data_ptr<int32_t>()};
   COBGS_PROF_COUNT(kCallsProject, 1);
-#pragma omp parallel num_threads(cpu_threads())
-  {
-    COBGS_PROF_SCOPE(kProject);
-#pragma omp for schedule(static)
-    for (int64_t i = 0; i < n; ++i) {
-      const auto p = math::project_gaussian<T>(cam, m + 3 * i, q + 4 * i, s + 3 * i, near);
-      if (!p.visible) continue;
-      m2[2 * i] = p.mx;
-      m2[2 * i + 1] = p.my;
-      co[3 * i] = p.ca;
-      co[3 * i + 1] = p.cb;
-      co[3 * i + 2] = p.cc;
-      d[i] = p.depth;
-      r[i] = p.radius;
-    }
-  }
+  COBGS_PROF_SCOPE(kProject);  // (the master thread only)
+  run_chunks(COBGS_PICK_ISA(T, project_range), args, means.size(0));
 }
 
 template <typename T>
@@ -81,36 +148,22 @@ void project_bwd_kernel(const at::Tensor& means, const at::Tensor& quats,
                         const at::Tensor& radii, const at::Tensor& v_means2d,
                         const at::Tensor& v_conics, const at::Tensor& v_depths,
                         at::Tensor& v_means, at::Tensor& v_quats, at::Tensor& v_scales) {
-  const int64_t n = means.size(0);
-  const auto cam = math::make_camera<T>(viewmat.data_ptr<T>(), K.data_ptr<T>(),
-                                        static_cast<int>(width), static_cast<int>(height));
-  const T* m = means.data_ptr<T>();
-  const T* q = quats.data_ptr<T>();
-  const T* s = scales.data_ptr<T>();
-  const int32_t* r = radii.data_ptr<int32_t>();
-  const T* vm2 = v_means2d.data_ptr<T>();
-  const T* vco = v_conics.data_ptr<T>();
-  const T* vd = v_depths.data_ptr<T>();
-  T* om = v_means.data_ptr<T>();
-  T* oq = v_quats.data_ptr<T>();
-  T* os = v_scales.data_ptr<T>();
+  const ProjBwdArgs<T> args{math::make_camera<T>(viewmat.data_ptr<T>(), K.data_ptr<T>(),
+                                                 static_cast<int>(width),
+                                                 static_cast<int>(height)),
+                            means.data_ptr<T>(),
+                            quats.data_ptr<T>(),
+                            scales.data_ptr<T>(),
+                            radii.data_ptr<int32_t>(),
+                            v_means2d.data_ptr<T>(),
+                            v_conics.data_ptr<T>(),
+                            v_depths.data_ptr<T>(),
+                            v_means.data_ptr<T>(),
+                            v_quats.data_ptr<T>(),
+                            v_scales.data_ptr<T>()};
   COBGS_PROF_COUNT(kCallsProjectBwd, 1);
-#pragma omp parallel num_threads(cpu_threads())
-  {
-    COBGS_PROF_SCOPE(kProjectBwd);
-#pragma omp for schedule(static)
-    for (int64_t i = 0; i < n; ++i) {
-      if (r[i] <= 0) continue;
-      // A Gaussian that received no gradient (e.g. behind opaque pixels everywhere in
-      // this view) contributes zero: skip the recomputation (outputs start at zero).
-      if (vm2[2 * i] == T(0) && vm2[2 * i + 1] == T(0) && vco[3 * i] == T(0) &&
-          vco[3 * i + 1] == T(0) && vco[3 * i + 2] == T(0) && vd[i] == T(0))
-        continue;
-      math::project_gaussian_vjp<T>(cam, m + 3 * i, q + 4 * i, s + 3 * i, vm2[2 * i],
-                                    vm2[2 * i + 1], vco[3 * i], vco[3 * i + 1],
-                                    vco[3 * i + 2], vd[i], om + 3 * i, oq + 4 * i, os + 3 * i);
-    }
-  }
+  COBGS_PROF_SCOPE(kProjectBwd);  // (the master thread only)
+  run_chunks(COBGS_PICK_ISA(T, project_bwd_range), args, means.size(0));
 }
 
 }  // namespace
@@ -123,10 +176,11 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> project_cpu(
   check_gaussians(means, quats, scales);
   check_camera(means, viewmat, K, width, height);
   const int64_t n = means.size(0);
-  at::Tensor means2d = at::zeros({n, 2}, means.options());
-  at::Tensor conics = at::zeros({n, 3}, means.options());
-  at::Tensor depths = at::zeros({n}, means.options());
-  at::Tensor radii = at::zeros({n}, means.options().dtype(at::kInt));
+  // Every element is written by the kernel (zero where culled).
+  at::Tensor means2d = at::empty({n, 2}, means.options());
+  at::Tensor conics = at::empty({n, 3}, means.options());
+  at::Tensor depths = at::empty({n}, means.options());
+  at::Tensor radii = at::empty({n}, means.options().dtype(at::kInt));
 
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "cobgs::project", [&] {
     project_kernel<scalar_t>(means, quats, scales, viewmat, K, width, height, near_plane,
@@ -154,9 +208,10 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> project_bwd_cpu(
   COBGS_CHECK_SHAPE(v_means2d, n, 2);
   COBGS_CHECK_SHAPE(v_conics, n, 3);
   COBGS_CHECK_SHAPE(v_depths, n);
-  at::Tensor v_means = at::zeros_like(means);
-  at::Tensor v_quats = at::zeros_like(quats);
-  at::Tensor v_scales = at::zeros_like(scales);
+  // Every element is written by the kernel.
+  at::Tensor v_means = at::empty_like(means);
+  at::Tensor v_quats = at::empty_like(quats);
+  at::Tensor v_scales = at::empty_like(scales);
 
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "cobgs::project_bwd", [&] {
     project_bwd_kernel<scalar_t>(means, quats, scales, viewmat, K, width, height, radii,
