@@ -200,7 +200,9 @@ pm, pq, ps, vm, KK = _hard_projection_inputs(torch.float32)
 proj = torch.ops.cobgs.project(pm, pq, ps, vm, KK, 320, 240, 0.01)
 v = [torch.randn(t.shape, generator=g) for t in proj[:3]]
 pgrads = torch.ops.cobgs.project_bwd(pm, pq, ps, vm, KK, 320, 240, proj[3], *v)
-torch.save([*out, *grads, *proj, *pgrads], sys.argv[1])
+tight = torch.ops.cobgs.bin_tiles_tight(proj[0], proj[3], proj[2], proj[1],
+                                        torch.rand(len(pm), generator=g), 320, 240)
+torch.save([*out, *grads, *proj, *pgrads, *tight], sys.argv[1])
 """
     results = []
     for disable in ("1", "0"):

@@ -61,30 +61,25 @@ V* reusable_buffer(size_t n) {
   return buf.data();
 }
 
+// Fills prep[i0..i1) (csrc/blend/prepare_lanes_cpu.h); the version for this CPU's
+// instruction set.
+template <typename T>
+using PrepareRangeFn = void (*)(const T* m2, const T* co, const T* op, int64_t i0, int64_t i1,
+                                GaussPrep<T>* prep);
+template <typename T>
+PrepareRangeFn<T> prepare_range_fn();
+
 // Fills prep[0..n). Called inside the kernels' parallel region: the loop is an orphaned
-// worksharing construct, so the threads split it without another fork/join.
+// worksharing construct, so the threads split it without another fork/join. Chunks of
+// whole lane blocks, split statically: the records do not depend on the thread count.
 template <typename T>
 void prepare(const T* m2, const T* co, const T* op, int64_t n, GaussPrep<T>* prep) {
-  const double eps = std::numeric_limits<T>::epsilon() * 0.5;
+  const PrepareRangeFn<T> fn = prepare_range_fn<T>();
+  constexpr int64_t kChunk = 256;
+  const int64_t chunks = (n + kChunk - 1) / kChunk;
 #pragma omp for schedule(static)
-  for (int64_t i = 0; i < n; ++i) {
-    GaussPrep<T>& g = prep[i];
-    g.mx = m2[2 * i];
-    g.my = m2[2 * i + 1];
-    g.ca = co[3 * i];
-    g.cb = co[3 * i + 1];
-    g.cc = co[3 * i + 2];
-    g.o = op[i];
-    const math::BlendBound bb = math::make_blend_bound(g.mx, g.my, g.ca, g.cb, g.cc, g.o, eps);
-    g.power_reject = static_cast<T>(bb.power_reject);
-    g.x0 = bb.x0;
-    g.x1 = bb.x1;
-    g.y0 = bb.y0;
-    g.y1 = bb.y1;
-    // Zero the tail padding: bin_tiles_tight returns these records as a tensor, whose
-    // bytes must not depend on what the memory held before.
-    std::memset(reinterpret_cast<char*>(&g) + kPrepUsed<T>, 0, sizeof(GaussPrep<T>) - kPrepUsed<T>);
-  }
+  for (int64_t c = 0; c < chunks; ++c)
+    fn(m2, co, op, c * kChunk, std::min(n, (c + 1) * kChunk), prep);
 }
 
 // The records `prepare` would compute, when the caller already has them: the `prep`

@@ -528,56 +528,76 @@ HOST_DEVICE inline T pixel_power(T ca, T cb, T cc, T dx, T dy) {
 // Pixels a Gaussian can reach: a conservative box around the ellipse of pixel centres
 // where α >= 1/255 is possible, plus a power threshold below which α < 1/255 is certain
 // (so exp is skipped). The exact per-pair test always follows; these only prune.
+// D is double or lanes of doubles (see the lane types above).
+template <typename D>
 struct BlendBound {
-  bool never;           // opacity < 1/255 (or NaN): α < 1/255 at every pixel
-  double power_reject;  // power < this ⇒ α < 1/255
-  // Pixel index box [x0, x1) x [y0, y1); the whole plane when no tight bound is safe.
-  int x0, x1, y0, y1;
+  LaneMask<D> never;  // opacity < 1/255 (or NaN): α < 1/255 at every pixel
+  D power_reject;     // power < this ⇒ α < 1/255 (0 where never)
+  // Pixel index box [x0, x1) x [y0, y1), integer values in [-2^30, 2^30]; the whole plane
+  // when no tight bound is safe, empty (all 0) where never.
+  D x0, x1, y0, y1;
 };
 
+// (double) logf((float) x), lane by lane.
+template <typename D>
+LANE_INLINE D lane_logf(const D& x) {
+  if constexpr (LaneTraits<D>::kVector) {
+    D r;
+    for (int k = 0; k < LaneTraits<D>::kWidth; ++k)
+      r[k] = static_cast<double>(std::log(static_cast<float>(x[k])));
+    return r;
+  } else {
+    return static_cast<double>(std::log(static_cast<float>(x)));
+  }
+}
+
+template <typename T>
+LANE_INLINE T lane_floor(const T& x) {
+  if constexpr (LaneTraits<T>::kVector) {
+    T r;
+    for (int k = 0; k < LaneTraits<T>::kWidth; ++k) r[k] = std::floor(x[k]);
+    return r;
+  } else {
+    return std::floor(x);
+  }
+}
+
 // `eps` is the unit roundoff of the scalar type that evaluates pixel_power.
-HOST_DEVICE inline BlendBound make_blend_bound(double mx, double my, double ca, double cb,
-                                               double cc, double opacity, double eps) {
-  constexpr int kHuge = 1 << 30;
-  BlendBound bb{};
-  bb.never = !(opacity >= kAlphaMin);
-  bb.power_reject = 0.0;
-  bb.x0 = bb.y0 = 0;
-  bb.x1 = bb.y1 = 0;
-  if (bb.never) return bb;
+template <typename D>
+LANE_INLINE BlendBound<D> make_blend_bound(const D& mx, const D& my, const D& ca, const D& cb,
+                                           const D& cc, const D& opacity, double eps) {
+  constexpr double kHuge = double(1 << 30);
+  const D zero{};
+  BlendBound<D> bb;
+  bb.never = lane_not(opacity >= kAlphaMin);
   // α >= 1/255 needs power >= -L with L = log(255 o). The 1e-3 of slack leaves every
   // case where rounding could matter (α within 0.1% of 1/255) to the exact α test.
-  // The float log (about 3x cheaper than the double one; prepare runs on every Gaussian
-  // in both passes) is off by < 1e-6 here, far inside the 1e-3 of slack below.
-  const double L = static_cast<double>(std::log(static_cast<float>(255.0 * opacity)));
-  bb.power_reject = -L - 1e-3;
-  bb.x0 = bb.y0 = -kHuge;
-  bb.x1 = bb.y1 = kHuge;
-  const double det = ca * cc - cb * cb;
-  const double lam_max = 0.5 * (ca + cc) + std::sqrt(0.25 * (ca - cc) * (ca - cc) + cb * cb);
-  if (!(ca > 0.0) || !(det > 0.0) || !std::isfinite(L) || !std::isfinite(lam_max)) return bb;
+  // The float log (about 3x cheaper than the double one; prepare runs on every Gaussian)
+  // is off by < 1e-6 here, far inside the 1e-3 of slack below.
+  const D L = lane_logf(255.0 * opacity);
+  bb.power_reject = sel(bb.never, zero, -L - 1e-3);
+  const D det = ca * cc - cb * cb;
+  const D lam_max = 0.5 * (ca + cc) + lane_sqrt(0.25 * (ca - cc) * (ca - cc) + cb * cb);
   // In the kernel's precision pixel_power is off by at most ~6 eps·cond·q (its cross
   // term can cancel the others), cond = λmax/λmin of the conic. Where that is below 1%,
   // the ellipse q = dᵀ conic d <= 2L widened by 5% holds every pixel centre the exact
   // test can accept; elsewhere no box is used.
-  const double cond = lam_max * lam_max / det;
-  if (!(12.0 * eps * cond < 0.01)) return bb;
-  const double two_l = 2.0 * L * 1.05 + 1e-4;
-  const double hx = std::sqrt(two_l * cc / det), hy = std::sqrt(two_l * ca / det);
+  const D cond = lam_max * lam_max / det;
+  const D two_l = 2.0 * L * 1.05 + 1e-4;
+  const D hx = lane_sqrt(two_l * cc / det), hy = lane_sqrt(two_l * ca / det);
   // Pixel centre i + 0.5 within [m - h, m + h]. No spare pixel is needed: the 5% widening
   // dwarfs the rounding of these double expressions and of the kernel's dx.
-  const double xl = std::ceil(mx - 0.5 - hx), xh = std::floor(mx - 0.5 + hx) + 1.0;
-  const double yl = std::ceil(my - 0.5 - hy), yh = std::floor(my - 0.5 + hy) + 1.0;
-  auto clampi = [](double v) {
-    return static_cast<int>(v < -double(kHuge) ? -double(kHuge)
-                                               : (v > double(kHuge) ? double(kHuge) : v));
-  };
-  if (std::isfinite(xl) && std::isfinite(xh) && std::isfinite(yl) && std::isfinite(yh)) {
-    bb.x0 = clampi(xl);
-    bb.x1 = clampi(xh);
-    bb.y0 = clampi(yl);
-    bb.y1 = clampi(yh);
-  }
+  const D xl = lane_ceil(mx - 0.5 - hx), xh = lane_floor(mx - 0.5 + hx) + 1.0;
+  const D yl = lane_ceil(my - 0.5 - hy), yh = lane_floor(my - 0.5 + hy) + 1.0;
+  const LaneMask<D> tight = (ca > 0.0) & (det > 0.0) & lane_isfinite(L) &
+                            lane_isfinite(lam_max) & (12.0 * eps * cond < 0.01) &
+                            lane_isfinite(xl) & lane_isfinite(xh) & lane_isfinite(yl) &
+                            lane_isfinite(yh);
+  const D lo = splat_lanes<D>(-kHuge), hi = splat_lanes<D>(kHuge);
+  bb.x0 = sel(bb.never, zero, sel(tight, clamp_val(xl, -kHuge, kHuge), lo));
+  bb.x1 = sel(bb.never, zero, sel(tight, clamp_val(xh, -kHuge, kHuge), hi));
+  bb.y0 = sel(bb.never, zero, sel(tight, clamp_val(yl, -kHuge, kHuge), lo));
+  bb.y1 = sel(bb.never, zero, sel(tight, clamp_val(yh, -kHuge, kHuge), hi));
   return bb;
 }
 
