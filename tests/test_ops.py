@@ -202,7 +202,12 @@ v = [torch.randn(t.shape, generator=g) for t in proj[:3]]
 pgrads = torch.ops.cobgs.project_bwd(pm, pq, ps, vm, KK, 320, 240, proj[3], *v)
 tight = torch.ops.cobgs.bin_tiles_tight(proj[0], proj[3], proj[2], proj[1],
                                         torch.rand(len(pm), generator=g), 320, 240)
-torch.save([*out, *grads, *proj, *pgrads, *tight], sys.argv[1])
+shN = torch.randn(len(pm), 15, 3, generator=g) * 0.3
+col = torch.ops.cobgs.sh_colors(pm, torch.randn(len(pm), 1, 3, generator=g), shN,
+                                torch.zeros(3), 3)
+shg = torch.ops.cobgs.sh_colors_bwd(pm, torch.randn(len(pm), 1, 3, generator=g), shN,
+                                    torch.zeros(3), 3, torch.randn(col.shape, generator=g))
+torch.save([*out, *grads, *proj, *pgrads, *tight, col, *shg], sys.argv[1])
 """
     results = []
     for disable in ("1", "0"):

@@ -115,3 +115,28 @@ def _camera():
 
     K = torch.tensor([[30.0, 0, 16], [0, 30.0, 12], [0, 0, 1]])
     return Camera(K=K, viewmat=torch.eye(4), width=32, height=24)
+
+
+def test_float32_rgb_lanes_match_one_at_a_time():
+    """float32 RGB at degree 3 (the training case) runs 8 Gaussians at a time in lane
+    vectors and the remainder one by one through the same formulas: every Gaussian must
+    come out bitwise as when it is evaluated alone (one Gaussian takes the one-at-a-time
+    path), colours and all three gradients, including Gaussians at the camera centre,
+    clamped colours and Gaussians without any colour gradient."""
+    n = 45  # 5 lane blocks and a remainder of 5
+    means, sh0, shN, center = sh_inputs(n=n, dtype=torch.float32)
+    means[::11] = center  # direction clamp
+    colours = torch.ops.cobgs.sh_colors(means, sh0, shN, center, 3)
+    assert (colours == 0).any() and (colours > 0).any()
+    v = torch.randn(colours.shape, generator=torch.Generator().manual_seed(2))
+    v[::4] = 0  # no gradient at all
+    v[1::6, 1] = 0
+    grads = torch.ops.cobgs.sh_colors_bwd(means, sh0, shN, center, 3, v)
+    assert (grads[2][::4] == 0).all() and (grads[2][1] != 0).any()
+    for i in range(n):
+        sl = slice(i, i + 1)
+        one = torch.ops.cobgs.sh_colors(means[sl], sh0[sl], shN[sl], center, 3)
+        assert torch.equal(colours[sl], one), i
+        one_g = torch.ops.cobgs.sh_colors_bwd(means[sl], sh0[sl], shN[sl], center, 3, v[sl])
+        for a, b in zip(grads, one_g):
+            assert torch.equal(a[sl], b) and torch.equal(a[sl].signbit(), b.signbit()), i

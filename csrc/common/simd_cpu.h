@@ -93,5 +93,30 @@ inline auto hsum(const V& v) -> decltype(v[0] + v[0]) {
   return ((v[0] + v[1]) + (v[2] + v[3])) + ((v[4] + v[5]) + (v[6] + v[7]));
 }
 
+
+// In-place transpose of 8 lane vectors of 8 floats: afterwards r[j][i] is the former
+// r[i][j]. Three rounds of two-input shuffles (the usual unpack / shuffle / 128-bit
+// permute network on AVX); only moves values.
+COBGS_ALWAYS_INLINE void transpose8(Lanes<float>::V r[8]) {
+  typedef Lanes<float>::V V;
+  V t[8], s[8];
+  for (int i = 0; i < 8; i += 2) {
+    t[i] = __builtin_shufflevector(r[i], r[i + 1], 0, 8, 1, 9, 4, 12, 5, 13);
+    t[i + 1] = __builtin_shufflevector(r[i], r[i + 1], 2, 10, 3, 11, 6, 14, 7, 15);
+  }
+  for (int i = 0; i < 8; i += 4)
+    for (int h = 0; h < 2; ++h) {
+      s[i + h] = __builtin_shufflevector(t[i + h], t[i + h + 2], 0, 1, 8, 9, 4, 5, 12, 13);
+      s[i + h + 2] = __builtin_shufflevector(t[i + h], t[i + h + 2], 2, 3, 10, 11, 6, 7, 14, 15);
+    }
+  // s[0]: columns 0 / 4 of rows 0-3 in its halves; s[2]: 1 / 5; s[1]: 2 / 6; s[3]: 3 / 7.
+  const int col_of[4] = {0, 2, 1, 3};
+  for (int q = 0; q < 4; ++q) {
+    const int c = col_of[q];
+    r[c] = __builtin_shufflevector(s[q], s[q + 4], 0, 1, 2, 3, 8, 9, 10, 11);
+    r[c + 4] = __builtin_shufflevector(s[q], s[q + 4], 4, 5, 6, 7, 12, 13, 14, 15);
+  }
+}
+
 }  // namespace simd
 }  // namespace cobgs

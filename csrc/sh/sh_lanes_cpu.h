@@ -1,0 +1,184 @@
+// The per-Gaussian loops of the `sh_colors` op family, written once and compiled once per
+// instruction set: included (no include guard) inside a namespace of sh_cpu.cpp between
+// COBGS_BEGIN_ISA_* / COBGS_END_ISA (see csrc/common/simd_cpu.h). The training case
+// (float32, RGB, degree 3, 15 higher coefficients) runs 8 Gaussians per step in lane
+// vectors through the lane-generic formulas of csrc/common/sh_math.h, their coefficients
+// moved between memory and lanes by 8x8 transposes; every lane is bit-identical to the
+// one-Gaussian evaluation, which serves the other cases and the remainders.
+
+template <typename T, int CC, int DEG>
+inline void sh_forward_one(const ShArgs<T>& a, int64_t i) {
+  const int C = CC > 0 ? CC : a.C;
+  const int degree = DEG >= 0 ? DEG : a.degree;
+  const int K = (degree + 1) * (degree + 1);
+  T Y[sh::kMaxCoeffs];
+  if (degree > 0) {
+    T dir[3], norm, nc;
+    sh::view_direction(a.means + 3 * i, a.center, dir, norm, nc);
+    sh::basis(degree, dir[0], dir[1], dir[2], Y);
+  }
+  T v[kMaxChannels];
+  sh::colour_sum(C, K, Y, a.sh0 + i * C, a.shN + i * a.M * C, v);
+  for (int ch = 0; ch < C; ++ch) a.out[i * C + ch] = sh::clamp_colour(v[ch]);
+}
+
+template <typename T, int CC, int DEG>
+inline void sh_backward_one(const ShBwdArgs<T>& a, int64_t i) {
+  const int C = CC > 0 ? CC : a.C;
+  const int degree = DEG >= 0 ? DEG : a.degree;
+  const int K = (degree + 1) * (degree + 1);
+  T* g0 = a.v_sh0 + i * C;
+  T* gn = a.v_shN + i * a.M * C;
+  T* vm = a.v_means + 3 * i;
+  const T* vcol = a.v_col + i * C;
+  bool any_grad = false;
+  for (int ch = 0; ch < C; ++ch) any_grad |= vcol[ch] != T(0);
+  if (!any_grad) {  // e.g. a Gaussian hidden in this view: every gradient is zero
+    std::fill(g0, g0 + C, T(0));
+    std::fill(gn, gn + a.M * C, T(0));
+    vm[0] = vm[1] = vm[2] = T(0);
+    return;
+  }
+  T Y[sh::kMaxCoeffs], dir[3], norm = T(0), nc = T(1);
+  if (degree > 0) {
+    sh::view_direction(a.means + 3 * i, a.center, dir, norm, nc);
+    sh::basis(degree, dir[0], dir[1], dir[2], Y);
+  }
+  sh::colour_vjp(C, degree, Y, dir, norm, nc, a.sh0 + i * C, a.shN + i * a.M * C, vcol, g0, gn,
+                 vm);
+  for (int64_t k = (K - 1) * C; k < a.M * C; ++k) gn[k] = T(0);
+}
+
+// The lane path: float32, 3 channels, degree 3, exactly 15 higher coefficients (45 floats
+// per Gaussian).
+constexpr int kRow = 45;
+
+template <typename V>
+inline V gather3(const float* base, int field) {
+  V v;
+  for (int k = 0; k < simd::kLanes; ++k) v[k] = base[3 * k + field];
+  return v;
+}
+
+template <typename V>
+inline void scatter3(float* base, int field, const V& v) {
+  for (int k = 0; k < simd::kLanes; ++k) base[3 * k + field] = v[k];
+}
+
+// e[j] (j < 45) = float j of the 8 rows of 45 floats at src, lane r from row r.
+template <typename V>
+inline void load_rows45(const float* src, V e[48]) {
+  for (int c = 0; c < 6; ++c) {
+    V rows[8];
+    for (int r = 0; r < 8; ++r) {
+      if (c == 5 && r == 7) {  // the last row's tail: read nothing past the block
+        rows[r] = V{};
+        std::memcpy(&rows[r], src + kRow * r + 40, 5 * sizeof(float));
+      } else {  // (rows 0-6 read 3 floats of the next row: ignored)
+        rows[r] = simd::load<V>(src + kRow * r + 8 * c);
+      }
+    }
+    simd::transpose8(rows);
+    for (int q = 0; q < 8; ++q) e[8 * c + q] = rows[q];
+  }
+}
+
+// The inverse: rows of 45 floats at dst from e[0..45).
+template <typename V>
+inline void store_rows45(float* dst, const V e[48]) {
+  // The last 8-float column first: rows 0-6 spill 3 floats into the next row, which the
+  // first column's stores then overwrite; the last row writes its 5 floats only.
+  for (int c : {5, 0, 1, 2, 3, 4}) {
+    V rows[8];
+    for (int q = 0; q < 8; ++q) rows[q] = e[8 * c + q];
+    simd::transpose8(rows);
+    for (int r = 0; r < 8; ++r) {
+      if (c == 5 && r == 7)
+        std::memcpy(dst + kRow * r + 40, &rows[r], 5 * sizeof(float));
+      else
+        simd::store(dst + kRow * r + 8 * c, rows[r]);
+    }
+  }
+}
+
+template <typename Args>
+inline bool lane_path(const Args& a) {
+  return a.C == 3 && a.degree == 3 && a.M == 15;
+}
+
+// Gaussians [i0, i1).
+template <typename T>
+void sh_forward_range(const ShArgs<T>& a, int64_t i0, int64_t i1) {
+  int64_t i = i0;
+  if constexpr (std::is_same_v<T, float>) {
+    if (lane_path(a)) {
+      using V = simd::Lanes<float>::V;
+      for (; i + simd::kLanes <= i1; i += simd::kLanes) {
+        const V m[3] = {gather3<V>(a.means + 3 * i, 0), gather3<V>(a.means + 3 * i, 1),
+                        gather3<V>(a.means + 3 * i, 2)};
+        V dir[3], norm, nc, Y[sh::kMaxCoeffs];
+        sh::view_direction(m, a.center, dir, norm, nc);
+        sh::basis(3, dir[0], dir[1], dir[2], Y);
+        const V c0[3] = {gather3<V>(a.sh0 + 3 * i, 0), gather3<V>(a.sh0 + 3 * i, 1),
+                         gather3<V>(a.sh0 + 3 * i, 2)};
+        V cn[48], v[3];
+        load_rows45(a.shN + kRow * i, cn);
+        sh::colour_sum(3, 16, Y, c0, cn, v);
+        for (int ch = 0; ch < 3; ++ch) scatter3(a.out + 3 * i, ch, sh::clamp_colour(v[ch]));
+      }
+    }
+  }
+  if (a.C == 3 && a.degree == 3) {
+    for (; i < i1; ++i) sh_forward_one<T, 3, 3>(a, i);
+  } else {
+    for (; i < i1; ++i) sh_forward_one<T, 0, -1>(a, i);
+  }
+}
+
+template <typename T>
+void sh_backward_range(const ShBwdArgs<T>& a, int64_t i0, int64_t i1) {
+  int64_t i = i0;
+  if constexpr (std::is_same_v<T, float>) {
+    if (lane_path(a)) {
+      using V = simd::Lanes<float>::V;
+      using M = simd::Lanes<float>::M;
+      const V zero{};
+      for (; i + simd::kLanes <= i1; i += simd::kLanes) {
+        const V vcol[3] = {gather3<V>(a.v_col + 3 * i, 0), gather3<V>(a.v_col + 3 * i, 1),
+                           gather3<V>(a.v_col + 3 * i, 2)};
+        const M active = (vcol[0] != zero) | (vcol[1] != zero) | (vcol[2] != zero);
+        float* g0 = a.v_sh0 + 3 * i;
+        float* gn = a.v_shN + kRow * i;
+        float* vm = a.v_means + 3 * i;
+        if (!math::lane_any(active)) {
+          std::fill(g0, g0 + 3 * simd::kLanes, 0.0f);
+          std::fill(gn, gn + kRow * simd::kLanes, 0.0f);
+          std::fill(vm, vm + 3 * simd::kLanes, 0.0f);
+          continue;
+        }
+        const V m[3] = {gather3<V>(a.means + 3 * i, 0), gather3<V>(a.means + 3 * i, 1),
+                        gather3<V>(a.means + 3 * i, 2)};
+        V dir[3], norm, nc, Y[sh::kMaxCoeffs];
+        sh::view_direction(m, a.center, dir, norm, nc);
+        sh::basis(3, dir[0], dir[1], dir[2], Y);
+        const V c0[3] = {gather3<V>(a.sh0 + 3 * i, 0), gather3<V>(a.sh0 + 3 * i, 1),
+                         gather3<V>(a.sh0 + 3 * i, 2)};
+        V cn[48], vg0[3], vgn[48], vmean[3];
+        load_rows45(a.shN + kRow * i, cn);
+        sh::colour_vjp(3, 3, Y, dir, norm, nc, c0, cn, vcol, vg0, vgn, vmean);
+        // Lanes without any colour gradient: zeros, as sh_backward_one writes.
+        for (int e = 0; e < kRow; ++e) vgn[e] = active ? vgn[e] : zero;
+        for (int ch = 0; ch < 3; ++ch) {
+          scatter3(g0, ch, active ? vg0[ch] : zero);
+          scatter3(vm, ch, active ? vmean[ch] : zero);
+        }
+        store_rows45(gn, vgn);
+      }
+    }
+  }
+  if (a.C == 3 && a.degree == 3) {
+    for (; i < i1; ++i) sh_backward_one<T, 3, 3>(a, i);
+  } else {
+    for (; i < i1; ++i) sh_backward_one<T, 0, -1>(a, i);
+  }
+}
