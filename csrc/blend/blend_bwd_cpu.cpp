@@ -95,17 +95,7 @@ COBGS_END_ISA
 namespace {
 
 inline BackwardTileFn<float> pick_backward_tile(float, int channels) {
-#if COBGS_AVX2_CLONES
-  switch (cpu_isa()) {
-    case CpuIsa::kAvx512:
-      return backward_tile_avx512::pick<float>(channels);
-    case CpuIsa::kAvx2:
-      return backward_tile_avx2::pick<float>(channels);
-    default:
-      break;
-  }
-#endif
-  return backward_tile_base::pick<float>(channels);
+  return COBGS_ISA_DISPATCH(backward_tile, pick<float>(channels));
 }
 inline BackwardTileFn<double> pick_backward_tile(double, int) {
   return backward_tile_base::backward_tile<double, 0>;

@@ -86,17 +86,7 @@ COBGS_END_ISA
 namespace {
 
 inline ForwardTileFn<float> pick_forward_tile(float, int channels) {
-#if COBGS_AVX2_CLONES
-  switch (cpu_isa()) {
-    case CpuIsa::kAvx512:
-      return forward_tile_avx512::pick<float>(channels);
-    case CpuIsa::kAvx2:
-      return forward_tile_avx2::pick<float>(channels);
-    default:
-      break;
-  }
-#endif
-  return forward_tile_base::pick<float>(channels);
+  return COBGS_ISA_DISPATCH(forward_tile, pick<float>(channels));
 }
 inline ForwardTileFn<double> pick_forward_tile(double, int) {
   return forward_tile_base::forward_tile<double, 0>;

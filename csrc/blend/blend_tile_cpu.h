@@ -43,12 +43,6 @@ struct alignas(sizeof(T) == 4 ? 64 : 16) GaussPrep {
   int32_t x0, x1, y0, y1;  // pixel box that can get α >= 1/255; empty if none can
 };
 
-// Bytes of a GaussPrep before its tail padding (the members leave no interior padding).
-template <typename T>
-constexpr size_t kPrepUsed = offsetof(GaussPrep<T>, y1) + sizeof(int32_t);
-static_assert(kPrepUsed<float> == 7 * sizeof(float) + 4 * sizeof(int32_t), "GaussPrep layout");
-static_assert(kPrepUsed<double> == 7 * sizeof(double) + 4 * sizeof(int32_t), "GaussPrep layout");
-
 // A per-thread buffer kept across calls (grow-only). Fresh multi-megabyte allocations
 // are mmap'ed and zero-filled page by page by the kernel on every call, which cost
 // several milliseconds per render; these buffers stay mapped. Contents are left as the

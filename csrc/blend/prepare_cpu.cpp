@@ -34,17 +34,7 @@ COBGS_END_ISA
 
 template <typename T>
 PrepareRangeFn<T> prepare_range_fn() {
-#if COBGS_AVX2_CLONES
-  switch (cpu_isa()) {
-    case CpuIsa::kAvx512:
-      return &prepare_avx512::prepare_range<T>;
-    case CpuIsa::kAvx2:
-      return &prepare_avx2::prepare_range<T>;
-    default:
-      break;
-  }
-#endif
-  return &prepare_base::prepare_range<T>;
+  return COBGS_ISA_DISPATCH(prepare, prepare_range<T>);
 }
 
 template PrepareRangeFn<float> prepare_range_fn<float>();

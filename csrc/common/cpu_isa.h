@@ -63,4 +63,16 @@ inline CpuIsa cpu_isa() {
 // True when an AVX2 (or better) version of the kernels runs.
 inline bool cpu_use_avx2() { return cpu_isa() != CpuIsa::kBase; }
 
+// `expr` (a function, or a call) from the version of a kernel for this process's
+// instruction set: a kernel compiled per instruction set lives in the namespaces
+// <prefix>_base, <prefix>_avx2 and <prefix>_avx512 (see csrc/common/simd_cpu.h).
+#if COBGS_AVX2_CLONES
+#define COBGS_ISA_DISPATCH(prefix, ...)                                  \
+  (::cobgs::cpu_isa() == ::cobgs::CpuIsa::kAvx512 ? prefix##_avx512::__VA_ARGS__ \
+   : ::cobgs::cpu_isa() == ::cobgs::CpuIsa::kAvx2 ? prefix##_avx2::__VA_ARGS__   \
+                                                  : prefix##_base::__VA_ARGS__)
+#else
+#define COBGS_ISA_DISPATCH(prefix, ...) (prefix##_base::__VA_ARGS__)
+#endif
+
 }  // namespace cobgs

@@ -108,29 +108,38 @@ LANE_INLINE bool lane_any(const M& m) {
   }
 }
 
-// sqrt and ceil, lane by lane (the compiler turns the loops into vector instructions
-// where the instruction set has them); both are exactly rounded.
-template <typename T>
-LANE_INLINE T lane_sqrt(const T& x) {
+// f applied lane by lane (the compiler turns the loop into vector instructions where the
+// instruction set has them), or to the scalar. The functions below are exactly rounded.
+template <typename T, typename F>
+LANE_INLINE T lane_map(const T& x, F f) {
   if constexpr (LaneTraits<T>::kVector) {
     T r;
-    for (int k = 0; k < LaneTraits<T>::kWidth; ++k) r[k] = std::sqrt(x[k]);
+    for (int k = 0; k < LaneTraits<T>::kWidth; ++k) r[k] = f(x[k]);
     return r;
   } else {
-    return std::sqrt(x);
+    return f(x);
   }
 }
 
+struct SqrtFn {
+  template <typename S>
+  LANE_INLINE S operator()(S v) const { return std::sqrt(v); }
+};
+struct CeilFn {
+  template <typename S>
+  LANE_INLINE S operator()(S v) const { return std::ceil(v); }
+};
+struct FloorFn {
+  template <typename S>
+  LANE_INLINE S operator()(S v) const { return std::floor(v); }
+};
+
 template <typename T>
-LANE_INLINE T lane_ceil(const T& x) {
-  if constexpr (LaneTraits<T>::kVector) {
-    T r;
-    for (int k = 0; k < LaneTraits<T>::kWidth; ++k) r[k] = std::ceil(x[k]);
-    return r;
-  } else {
-    return std::ceil(x);
-  }
-}
+LANE_INLINE T lane_sqrt(const T& x) { return lane_map(x, SqrtFn{}); }
+template <typename T>
+LANE_INLINE T lane_ceil(const T& x) { return lane_map(x, CeilFn{}); }
+template <typename T>
+LANE_INLINE T lane_floor(const T& x) { return lane_map(x, FloorFn{}); }
 
 // Neither infinite nor NaN (x - x is 0 exactly for every finite x, NaN otherwise).
 template <typename T>
@@ -539,28 +548,13 @@ struct BlendBound {
 };
 
 // (double) logf((float) x), lane by lane.
+struct LogfFn {
+  LANE_INLINE double operator()(double v) const {
+    return static_cast<double>(std::log(static_cast<float>(v)));
+  }
+};
 template <typename D>
-LANE_INLINE D lane_logf(const D& x) {
-  if constexpr (LaneTraits<D>::kVector) {
-    D r;
-    for (int k = 0; k < LaneTraits<D>::kWidth; ++k)
-      r[k] = static_cast<double>(std::log(static_cast<float>(x[k])));
-    return r;
-  } else {
-    return static_cast<double>(std::log(static_cast<float>(x)));
-  }
-}
-
-template <typename T>
-LANE_INLINE T lane_floor(const T& x) {
-  if constexpr (LaneTraits<T>::kVector) {
-    T r;
-    for (int k = 0; k < LaneTraits<T>::kWidth; ++k) r[k] = std::floor(x[k]);
-    return r;
-  } else {
-    return std::floor(x);
-  }
-}
+LANE_INLINE D lane_logf(const D& x) { return lane_map(x, LogfFn{}); }
 
 // `eps` is the unit roundoff of the scalar type that evaluates pixel_power.
 template <typename D>

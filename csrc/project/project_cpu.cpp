@@ -100,25 +100,15 @@ COBGS_END_ISA
 
 namespace {
 
-// The version of a range function for this CPU (float64: the baseline one).
-#if COBGS_AVX2_CLONES
-#define COBGS_PICK_ISA(T, fn)                                        \
-  (std::is_same_v<T, float> && cpu_isa() == CpuIsa::kAvx512 ? &project_avx512::fn<T> \
-   : std::is_same_v<T, float> && cpu_isa() == CpuIsa::kAvx2 ? &project_avx2::fn<T>   \
-                                                             : &project_base::fn<T>)
-#else
-#define COBGS_PICK_ISA(T, fn) (&project_base::fn<T>)
-#endif
-
-// Gaussians in chunks of 256 (whole lane blocks), split statically between the threads:
-// results do not depend on the thread count.
+// Gaussians in chunks of 256 (whole lane blocks).
 constexpr int64_t kChunk = 256;
 
-template <typename Args>
-void run_chunks(void (*fn)(const Args&, int64_t, int64_t), const Args& args, int64_t n) {
-  const int64_t chunks = (n + kChunk - 1) / kChunk;
-#pragma omp parallel for schedule(static) num_threads(cpu_threads())
-  for (int64_t c = 0; c < chunks; ++c) fn(args, c * kChunk, std::min(n, (c + 1) * kChunk));
+// float32: the version for this CPU; float64: the baseline one (the float64 path, which
+// serves tests and gradcheck, is not bit-identical between the baseline and the AVX-512
+// compilation of the projection).
+template <typename T, typename F>
+F pick(F for_cpu, F base) {
+  return std::is_same_v<T, float> ? for_cpu : base;
 }
 
 template <typename T>
@@ -138,7 +128,9 @@ void project_kernel(const at::Tensor& means, const at::Tensor& quats, const at::
                          radii.data_ptr<int32_t>()};
   COBGS_PROF_COUNT(kCallsProject, 1);
   COBGS_PROF_SCOPE(kProject);  // (the master thread only)
-  run_chunks(COBGS_PICK_ISA(T, project_range), args, means.size(0));
+  const auto fn =
+      pick<T>(COBGS_ISA_DISPATCH(project, project_range<T>), &project_base::project_range<T>);
+  parallel_ranges(means.size(0), kChunk, [&](int64_t i0, int64_t i1) { fn(args, i0, i1); });
 }
 
 template <typename T>
@@ -163,7 +155,9 @@ void project_bwd_kernel(const at::Tensor& means, const at::Tensor& quats,
                             v_scales.data_ptr<T>()};
   COBGS_PROF_COUNT(kCallsProjectBwd, 1);
   COBGS_PROF_SCOPE(kProjectBwd);  // (the master thread only)
-  run_chunks(COBGS_PICK_ISA(T, project_bwd_range), args, means.size(0));
+  const auto fn =
+      pick<T>(COBGS_ISA_DISPATCH(project, project_bwd_range<T>), &project_base::project_bwd_range<T>);
+  parallel_ranges(means.size(0), kChunk, [&](int64_t i0, int64_t i1) { fn(args, i0, i1); });
 }
 
 }  // namespace

@@ -98,36 +98,8 @@ COBGS_END_ISA
 
 namespace {
 
-template <typename Args>
-using RangeFn = void (*)(const Args&, int64_t, int64_t);
-
-// Gaussians in chunks of 256 (whole lane blocks), split statically between the threads:
-// results do not depend on the thread count.
-template <typename Args>
-void run_chunks(RangeFn<Args> fn, const Args& args, int64_t n) {
-  constexpr int64_t kChunk = 256;
-  const int64_t chunks = (n + kChunk - 1) / kChunk;
-#pragma omp parallel for schedule(static) num_threads(cpu_threads())
-  for (int64_t c = 0; c < chunks; ++c) fn(args, c * kChunk, std::min(n, (c + 1) * kChunk));
-}
-
-template <typename T>
-RangeFn<ShArgs<T>> pick_forward() {
-#if COBGS_AVX2_CLONES
-  if (cpu_isa() == CpuIsa::kAvx512) return &sh_avx512::sh_forward_range<T>;
-  if (cpu_isa() == CpuIsa::kAvx2) return &sh_avx2::sh_forward_range<T>;
-#endif
-  return &sh_base::sh_forward_range<T>;
-}
-
-template <typename T>
-RangeFn<ShBwdArgs<T>> pick_backward() {
-#if COBGS_AVX2_CLONES
-  if (cpu_isa() == CpuIsa::kAvx512) return &sh_avx512::sh_backward_range<T>;
-  if (cpu_isa() == CpuIsa::kAvx2) return &sh_avx2::sh_backward_range<T>;
-#endif
-  return &sh_base::sh_backward_range<T>;
-}
+// Gaussians in chunks of 256 (whole lane blocks).
+constexpr int64_t kChunk = 256;
 
 }  // namespace
 
@@ -143,7 +115,8 @@ at::Tensor sh_colors_cpu(const at::Tensor& means, const at::Tensor& sh0, const a
                                 out.data_ptr<scalar_t>()};
     COBGS_PROF_COUNT(kCallsSh, 1);
     COBGS_PROF_SCOPE(kShFwd);  // (the master thread only)
-    run_chunks(pick_forward<scalar_t>(), args, n);
+    const auto fn = COBGS_ISA_DISPATCH(sh, sh_forward_range<scalar_t>);
+    parallel_ranges(n, kChunk, [&](int64_t i0, int64_t i1) { fn(args, i0, i1); });
   });
   return out;
 }
@@ -169,7 +142,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> sh_colors_bwd_cpu(
                                    v_shN.data_ptr<scalar_t>()};
     COBGS_PROF_COUNT(kCallsShBwd, 1);
     COBGS_PROF_SCOPE(kShBwd);  // (the master thread only)
-    run_chunks(pick_backward<scalar_t>(), args, n);
+    const auto fn = COBGS_ISA_DISPATCH(sh, sh_backward_range<scalar_t>);
+    parallel_ranges(n, kChunk, [&](int64_t i0, int64_t i1) { fn(args, i0, i1); });
   });
   return {v_means, v_sh0, v_shN};
 }

@@ -101,6 +101,29 @@ inline void store_rows45(float* dst, const V e[48]) {
   }
 }
 
+// The three fields of 8 consecutive [N, 3] rows, one lane vector per field.
+template <typename V>
+inline void gather3x3(const float* base, V out[3]) {
+  for (int f = 0; f < 3; ++f) out[f] = gather3<V>(base, f);
+}
+
+// What both passes evaluate first for the 8 Gaussians at i: the view direction, the
+// basis, and the coefficients in lanes.
+struct LaneInputs {
+  typedef simd::Lanes<float>::V V;
+  V dir[3], norm, nc, Y[sh::kMaxCoeffs], c0[3], cn[48];
+};
+
+template <typename Args>
+inline void load_lane_inputs(const Args& a, int64_t i, LaneInputs& in) {
+  LaneInputs::V m[3];
+  gather3x3(a.means + 3 * i, m);
+  sh::view_direction(m, a.center, in.dir, in.norm, in.nc);
+  sh::basis(3, in.dir[0], in.dir[1], in.dir[2], in.Y);
+  gather3x3(a.sh0 + 3 * i, in.c0);
+  load_rows45(a.shN + kRow * i, in.cn);
+}
+
 template <typename Args>
 inline bool lane_path(const Args& a) {
   return a.C == 3 && a.degree == 3 && a.M == 15;
@@ -112,18 +135,11 @@ void sh_forward_range(const ShArgs<T>& a, int64_t i0, int64_t i1) {
   int64_t i = i0;
   if constexpr (std::is_same_v<T, float>) {
     if (lane_path(a)) {
-      using V = simd::Lanes<float>::V;
       for (; i + simd::kLanes <= i1; i += simd::kLanes) {
-        const V m[3] = {gather3<V>(a.means + 3 * i, 0), gather3<V>(a.means + 3 * i, 1),
-                        gather3<V>(a.means + 3 * i, 2)};
-        V dir[3], norm, nc, Y[sh::kMaxCoeffs];
-        sh::view_direction(m, a.center, dir, norm, nc);
-        sh::basis(3, dir[0], dir[1], dir[2], Y);
-        const V c0[3] = {gather3<V>(a.sh0 + 3 * i, 0), gather3<V>(a.sh0 + 3 * i, 1),
-                         gather3<V>(a.sh0 + 3 * i, 2)};
-        V cn[48], v[3];
-        load_rows45(a.shN + kRow * i, cn);
-        sh::colour_sum(3, 16, Y, c0, cn, v);
+        LaneInputs in;
+        load_lane_inputs(a, i, in);
+        simd::Lanes<float>::V v[3];
+        sh::colour_sum(3, 16, in.Y, in.c0, in.cn, v);
         for (int ch = 0; ch < 3; ++ch) scatter3(a.out + 3 * i, ch, sh::clamp_colour(v[ch]));
       }
     }
@@ -144,8 +160,8 @@ void sh_backward_range(const ShBwdArgs<T>& a, int64_t i0, int64_t i1) {
       using M = simd::Lanes<float>::M;
       const V zero{};
       for (; i + simd::kLanes <= i1; i += simd::kLanes) {
-        const V vcol[3] = {gather3<V>(a.v_col + 3 * i, 0), gather3<V>(a.v_col + 3 * i, 1),
-                           gather3<V>(a.v_col + 3 * i, 2)};
+        V vcol[3];
+        gather3x3(a.v_col + 3 * i, vcol);
         const M active = (vcol[0] != zero) | (vcol[1] != zero) | (vcol[2] != zero);
         float* g0 = a.v_sh0 + 3 * i;
         float* gn = a.v_shN + kRow * i;
@@ -156,16 +172,10 @@ void sh_backward_range(const ShBwdArgs<T>& a, int64_t i0, int64_t i1) {
           std::fill(vm, vm + 3 * simd::kLanes, 0.0f);
           continue;
         }
-        const V m[3] = {gather3<V>(a.means + 3 * i, 0), gather3<V>(a.means + 3 * i, 1),
-                        gather3<V>(a.means + 3 * i, 2)};
-        V dir[3], norm, nc, Y[sh::kMaxCoeffs];
-        sh::view_direction(m, a.center, dir, norm, nc);
-        sh::basis(3, dir[0], dir[1], dir[2], Y);
-        const V c0[3] = {gather3<V>(a.sh0 + 3 * i, 0), gather3<V>(a.sh0 + 3 * i, 1),
-                         gather3<V>(a.sh0 + 3 * i, 2)};
-        V cn[48], vg0[3], vgn[48], vmean[3];
-        load_rows45(a.shN + kRow * i, cn);
-        sh::colour_vjp(3, 3, Y, dir, norm, nc, c0, cn, vcol, vg0, vgn, vmean);
+        LaneInputs in;
+        load_lane_inputs(a, i, in);
+        V vg0[3], vgn[48], vmean[3];
+        sh::colour_vjp(3, 3, in.Y, in.dir, in.norm, in.nc, in.c0, in.cn, vcol, vg0, vgn, vmean);
         // Lanes without any colour gradient: zeros, as sh_backward_one writes.
         for (int e = 0; e < kRow; ++e) vgn[e] = active ? vgn[e] : zero;
         for (int ch = 0; ch < 3; ++ch) {
