@@ -44,7 +44,8 @@ void prepare_range(const T* m2, const T* co, const T* op, int64_t i0, int64_t i1
     f[5] = simd::load<VT>(op + i);
     VD d[6];
     for (int j = 0; j < 6; ++j) d[j] = __builtin_convertvector(f[j], VD);
-    const math::BlendBound<VD> bb = math::make_blend_bound<VD>(d[0], d[1], d[2], d[3], d[4], d[5], eps);
+    const math::BlendBound<VD> bb =
+        math::make_blend_bound<VD>(d[0], d[1], d[2], d[3], d[4], d[5], eps);
     for (int k = 0; k < simd::kLanes; ++k)
       write_prep(prep + i + k, f[0][k], f[1][k], f[2][k], f[3][k], f[4][k], f[5][k],
                  bb.power_reject[k], bb.x0[k], bb.x1[k], bb.y0[k], bb.y1[k]);

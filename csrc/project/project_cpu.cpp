@@ -156,7 +156,8 @@ void project_bwd_kernel(const at::Tensor& means, const at::Tensor& quats,
   COBGS_PROF_COUNT(kCallsProjectBwd, 1);
   COBGS_PROF_SCOPE(kProjectBwd);  // (the master thread only)
   const auto fn =
-      pick<T>(COBGS_ISA_DISPATCH(project, project_bwd_range<T>), &project_base::project_bwd_range<T>);
+      pick<T>(COBGS_ISA_DISPATCH(project, project_bwd_range<T>),
+              &project_base::project_bwd_range<T>);
   parallel_ranges(means.size(0), kChunk, [&](int64_t i0, int64_t i1) { fn(args, i0, i1); });
 }
 
