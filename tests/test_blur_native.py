@@ -84,6 +84,27 @@ def test_fused_ssim_op_matches_the_python_analytic_path(dtype, tol):
     torch.testing.assert_close(grad, xr.grad, rtol=0, atol=tol * 10 * xr.grad.abs().max().item())
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_fused_ssim_op_does_not_depend_on_the_thread_count(dtype):
+    """Rows are shared out between threads, but every output and the mean (summed per row,
+    then over rows in order) are the same bits whatever the thread count."""
+    g = torch.Generator().manual_seed(5)
+    x = torch.rand(2, 3, 41, 45, generator=g, dtype=dtype)
+    y = (x + 0.1 * torch.randn(x.shape, generator=g, dtype=dtype)).clamp(0, 1)
+    w = _gauss_1d(11, 1.5, dtype, "cpu")
+    before = torch.get_num_threads()
+    try:
+        outs = []
+        for threads in (1, 2, 3):
+            torch.set_num_threads(threads)
+            outs.append(_ops.ssim_mean_grad(x, y, w))
+    finally:
+        torch.set_num_threads(before)
+    for mean, grad in outs[1:]:
+        assert torch.equal(mean, outs[0][0])
+        assert torch.equal(grad, outs[0][1])
+
+
 def test_fused_ssim_opcheck_and_errors():
     x = torch.rand(1, 3, 9, 11, dtype=torch.float64)
     y = torch.rand(1, 3, 9, 11, dtype=torch.float64)
@@ -93,3 +114,5 @@ def test_fused_ssim_opcheck_and_errors():
         torch.ops.cobgs.ssim_mean_grad(x, y[:, :2], w)
     with pytest.raises(RuntimeError, match="x must have shape"):
         torch.ops.cobgs.ssim_mean_grad(x[0], y[0], w)
+    with pytest.raises(RuntimeError, match="odd length"):
+        torch.ops.cobgs.ssim_mean_grad(x, y, torch.ones(4, dtype=torch.float64))

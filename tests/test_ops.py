@@ -207,7 +207,15 @@ col = torch.ops.cobgs.sh_colors(pm, torch.randn(len(pm), 1, 3, generator=g), shN
                                 torch.zeros(3), 3)
 shg = torch.ops.cobgs.sh_colors_bwd(pm, torch.randn(len(pm), 1, 3, generator=g), shN,
                                     torch.zeros(3), 3, torch.randn(col.shape, generator=g))
-torch.save([*out, *grads, *proj, *pgrads, *tight, col, *shg], sys.argv[1])
+from cobgs.losses import _gauss_1d
+blurs = []
+for dt in (torch.float32, torch.float64):  # widths: lane blocks plus a tail, and under 8
+    for shape in ((2, 3, 29, 37), (1, 2, 13, 5)):
+        xs = torch.rand(shape, generator=g, dtype=dt)
+        ys = torch.rand(shape, generator=g, dtype=dt)
+        w = _gauss_1d(11, 1.5, dt, "cpu")
+        blurs += [*torch.ops.cobgs.ssim_mean_grad(xs, ys, w), torch.ops.cobgs.gauss_blur(xs, w)]
+torch.save([*out, *grads, *proj, *pgrads, *tight, col, *shg, *blurs], sys.argv[1])
 """
     results = []
     for disable in ("1", "0"):

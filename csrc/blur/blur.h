@@ -21,4 +21,17 @@ at::Tensor gauss_blur_cpu(const at::Tensor& x, const at::Tensor& g);
 std::tuple<at::Tensor, at::Tensor> ssim_mean_grad_cpu(const at::Tensor& x, const at::Tensor& y,
                                                       const at::Tensor& g);
 
+// SSIM's stabilising constants for a dynamic range of 1.
+constexpr double kSsimC1 = 0.01 * 0.01;
+constexpr double kSsimC2 = 0.03 * 0.03;
+
+namespace blur_detail {
+// ssim_mean_grad on raw planes (csrc/blur/blur_rows_cpu.h, ssim_planes): x, y, grad and
+// the scratch `parts` (3 x planes x H x W) hold `planes` planes of H x W each. Writes the
+// gradient of the mean SSIM into grad and returns the sum of the SSIM map.
+template <typename T>
+double ssim_mean_grad_planes(const T* x, const T* y, int64_t planes, int H, int W, const T* g,
+                             int n, T* parts, T* grad);
+}  // namespace blur_detail
+
 }  // namespace cobgs
