@@ -154,6 +154,31 @@ def test_ops_match_reference_functions():
     assert n_contrib.max() > 0 and n_contrib.dtype == torch.int32
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_bin_tiles_depth_sort_on_many_gaussians(dtype):
+    """Enough Gaussians that the depth sort splits its passes between threads: the lists
+    equal the reference's stable sorts (ties in index order) for 1, 2 and 3 threads.
+    Depths span several octaves (every key byte varies) and repeat (ties)."""
+    g = torch.Generator().manual_seed(11)
+    n = 60_000
+    m2 = (torch.rand(n, 2, generator=g, dtype=torch.float64) * torch.tensor([360.0, 260.0])
+          - 20).to(dtype)
+    depths = torch.exp(torch.rand(n, generator=g, dtype=torch.float64) * 12 - 4).to(dtype)
+    depths[::3] = depths[7::3].repeat(2)[: len(depths[::3])]  # many exact ties
+    depths[5::101] = 1.0
+    radii = (torch.rand(n, generator=g) * 12).int()
+    radii[::13] = 0
+    r_off, r_ids = ref.bin_tiles_reference(m2, radii, depths, 320, 240)
+    before = torch.get_num_threads()
+    try:
+        for threads in (1, 2, 3):
+            torch.set_num_threads(threads)
+            off, ids = _ops.bin_tiles(m2, radii, depths, 320, 240)
+            assert torch.equal(off, r_off) and torch.equal(ids, r_ids), threads
+    finally:
+        torch.set_num_threads(before)
+
+
 def test_thread_count_does_not_change_results():
     """Per-entry gradient slots reduced in list order: bitwise identical for 1 or 2 threads."""
     m2, conics, _, _, opacities, features, offsets, ids = projected(torch.float32)

@@ -8,6 +8,9 @@
 
 #include <torch/library.h>
 
+#include <omp.h>
+
+#include <algorithm>
 #include <cmath>
 #include <cstring>
 #include <vector>
@@ -73,24 +76,68 @@ std::vector<V>& scratch() {
   return buf;
 }
 
-// Stable LSD radix sort of `ids` by `keys` (parallel arrays), 8 bits per pass.
+// Stable LSD radix sort of `ids` by `keys` (parallel arrays), 8 bits per pass, on all
+// threads: per pass, every thread counts the digits of its contiguous chunk, works out
+// where its chunk's entries of each digit go (after all smaller digits, and after the
+// same digit of the chunks before its own), and scatters them. A stable sort has one
+// result, so the order does not depend on the thread count. Passes whose digit is the
+// same for every key are skipped.
 template <typename K>
 void radix_sort(std::vector<K>& keys, std::vector<int32_t>& ids) {
-  const size_t n = keys.size();
+  const int64_t n = static_cast<int64_t>(keys.size());
+  if (n == 0) return;
   std::vector<K>& k2 = scratch<K, 1>();
   std::vector<int32_t>& i2 = scratch<int32_t, 2>();
   k2.resize(n);
   i2.resize(n);
-  for (int shift = 0; shift < static_cast<int>(8 * sizeof(K)); shift += 8) {
-    size_t count[257] = {0};
-    for (size_t i = 0; i < n; ++i) ++count[((keys[i] >> shift) & 0xFF) + 1];
-    if (count[1 + ((keys.empty() ? 0 : (keys[0] >> shift)) & 0xFF)] == n) continue;
-    for (int b = 0; b < 256; ++b) count[b + 1] += count[b];
-    for (size_t i = 0; i < n; ++i) {
-      const size_t dst = count[(keys[i] >> shift) & 0xFF]++;
-      k2[dst] = keys[i];
-      i2[dst] = ids[i];
+  constexpr int kPasses = static_cast<int>(sizeof(K));
+  const int nt = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(cpu_threads(), n / 4096)));
+  std::vector<int64_t>& hist = scratch<int64_t, 7>();  // [nt][256] per pass
+  hist.assign(size_t(nt) * 256, 0);
+  int swaps = 0;  // passes that moved the data (the same count on every thread)
+#pragma omp parallel num_threads(nt)
+  {
+    const int tid = omp_get_thread_num();
+    const int64_t i0 = n * tid / nt, i1 = n * (tid + 1) / nt;
+    K* src_k = keys.data();
+    K* dst_k = k2.data();
+    int32_t* src_i = ids.data();
+    int32_t* dst_i = i2.data();
+    int64_t* my = hist.data() + size_t(tid) * 256;
+    for (int pass = 0; pass < kPasses; ++pass) {
+      const int shift = 8 * pass;
+      std::fill(my, my + 256, int64_t(0));
+      for (int64_t i = i0; i < i1; ++i) ++my[(src_k[i] >> shift) & 0xFF];
+#pragma omp barrier
+      int64_t where[256];
+      int64_t run = 0;
+      bool all_one_digit = false;
+      for (int b = 0; b < 256; ++b) {
+        int64_t before = 0, total = 0;
+        for (int t = 0; t < nt; ++t) {
+          const int64_t c = hist[size_t(t) * 256 + b];
+          if (t < tid) before += c;
+          total += c;
+        }
+        all_one_digit |= total == n;
+        where[b] = run + before;
+        run += total;
+      }
+      if (!all_one_digit) {
+        for (int64_t i = i0; i < i1; ++i) {
+          const int64_t dst = where[(src_k[i] >> shift) & 0xFF]++;
+          dst_k[dst] = src_k[i];
+          dst_i[dst] = src_i[i];
+        }
+        std::swap(src_k, dst_k);
+        std::swap(src_i, dst_i);
+      }
+      // Everyone has read the counts and written its entries before the next pass.
+#pragma omp barrier
+      if (!all_one_digit && tid == 0) ++swaps;
     }
+  }
+  if (swaps % 2 == 1) {
     keys.swap(k2);
     ids.swap(i2);
   }
