@@ -166,32 +166,40 @@ void backward_tile(const BwdArgs<T>& a, int64_t tile, BwdScratch<T>& s) {
     }
     T* dst = a.slot_grad + slot * S;
     a.slot_hit[slot] = 1;
+    // The entry's sums: Σ dx v_power, Σ dy v_power, Σ dx² v_power, Σ dx dy v_power,
+    // Σ dy² v_power, Σ G v_alpha and the first two channels' Σ α T dL/dC, lane sums
+    // added in one batch (simd::hsum8, the same bits as one at a time).
     {
       const V dx0 = px_centre[0] - g.mx, dx1 = px_centre[1] - g.mx;
       const V p0 = load<V>(s.acc_p[0]), p1 = load<V>(s.acc_p[1]);
       const V q0 = load<V>(s.acc_q[0]), q1 = load<V>(s.acc_q[1]);
-      const T s_dx = simd::hsum(dx0 * p0 + dx1 * p1);            // Σ dx v_power
-      const T s_dy = simd::hsum(q0 + q1);                        // Σ dy v_power
-      const T s_dxdx = simd::hsum(dx0 * dx0 * p0 + dx1 * dx1 * p1);
-      const T s_dxdy = simd::hsum(dx0 * q0 + dx1 * q1);
-      dst[kCa] = T(-0.5) * s_dxdx;
-      dst[kCb] = -s_dxdy;
-      dst[kCc] = T(-0.5) * simd::hsum(acc_r);
+      const V parts[8] = {dx0 * p0 + dx1 * p1,
+                          q0 + q1,
+                          dx0 * dx0 * p0 + dx1 * dx1 * p1,
+                          dx0 * q0 + dx1 * q1,
+                          acc_r,
+                          acc_op,
+                          C > 0 ? load<V>(acc_f) : zero,
+                          C > 1 ? load<V>(acc_f + simd::kLanes) : zero};
+      T sums[8];
+      simd::hsum8(parts, sums);
+      const T s_dx = sums[0], s_dy = sums[1];
+      dst[kCa] = T(-0.5) * sums[2];
+      dst[kCb] = -sums[3];
+      dst[kCc] = T(-0.5) * sums[4];
       // d = pixel - mean, so d(power)/d(mean) = -d(power)/d(d).
       dst[kMx] = g.ca * s_dx + g.cb * s_dy;
       dst[kMy] = g.cb * s_dx + g.cc * s_dy;
+      dst[kOp] = sums[5];
+      for (int c = 0; c < std::min(C, 2); ++c) dst[kFeat + c] = sums[6 + c];
       for (int b = 0; b < 2; ++b) {
         store(s.acc_p[b], zero);
         store(s.acc_q[b], zero);
       }
     }
-    dst[kOp] = simd::hsum(acc_op);
     acc_r = acc_op = zero;
-    for (int c = 0; c < C; ++c) {
-      T* af = acc_f + c * simd::kLanes;
-      dst[kFeat + c] = simd::hsum(load<V>(af));
-      std::fill(af, af + simd::kLanes, T(0));
-    }
+    for (int c = 2; c < C; ++c) dst[kFeat + c] = simd::hsum(load<V>(acc_f + c * simd::kLanes));
+    std::fill(acc_f, acc_f + size_t(C) * simd::kLanes, T(0));
   }
   COBGS_PROF_COUNT(kBwdBlocks, n_blocks);
   COBGS_PROF_COUNT(kBwdBlocksExp, n_blocks_exp);
