@@ -161,6 +161,10 @@ def _register() -> None:
     def _ssim_mean_grad_fake(x, y, g):
         return x.new_empty(()), torch.empty_like(x)
 
+    @lib.register_fake("cobgs::photometric_loss_grad")
+    def _photometric_loss_grad_fake(img, ref, g, ssim_weight):
+        return img.new_empty(()), img.new_empty(()), torch.empty_like(img)
+
 
 def _or_zeros(grad: Optional[Tensor], shape, like: Tensor) -> Tensor:
     if grad is None:
@@ -247,6 +251,17 @@ def ssim_mean_grad(x: Tensor, y: Tensor, g: Tensor) -> Tuple[Tensor, Tensor]:
     ensure_loaded()
     dt = x.dtype
     return torch.ops.cobgs.ssim_mean_grad(x.contiguous(), y.to(dt).contiguous(), g.to(dt).contiguous())
+
+
+def photometric_loss_grad(img: Tensor, ref: Tensor, g: Tensor,
+                          ssim_weight: float) -> Tuple[Tensor, Tensor, Tensor]:
+    """Native ``cobgs::photometric_loss_grad`` (no autograd): mean L1 and mean SSIM (window
+    g) of img against a fixed ref, both channel-last [H, W, C] or [B, H, W, C], and the
+    gradient of (1 - λ) L1 + λ (1 - SSIM) w.r.t. img, λ = ssim_weight."""
+    ensure_loaded()
+    dt = img.dtype
+    return torch.ops.cobgs.photometric_loss_grad(img.contiguous(), ref.to(dt).contiguous(),
+                                                 g.to(dt).contiguous(), float(ssim_weight))
 
 
 def gauss_blur(x: Tensor, g: Tensor) -> Tensor:

@@ -49,7 +49,7 @@ from ._memory import retain_freed_memory
 from .data.scene import Scene, View
 from .errors import DataError, InputError
 from .gaussians import GaussianModel, inverse_sigmoid
-from .losses import l1_loss, ssim
+from .losses import photometric_loss
 from .metrics import psnr as psnr_metric
 from .metrics import ssim as ssim_metric
 from .render import render
@@ -287,10 +287,10 @@ class Trainer:
         view = self._next_view()
         bg = torch.rand(3, generator=self.bg_rng) if c.random_background else self.background
         out = render(self.model, view.camera, bg, backend=c.backend)
-        out.means2d.retain_grad()
+        if it < s.densify_until:  # the densification statistics read its gradient
+            out.means2d.retain_grad()
         img = out.image
-        l1 = l1_loss(img, view.image)
-        loss = (1.0 - c.ssim_weight) * l1 + c.ssim_weight * (1.0 - ssim(img, view.image))
+        loss = photometric_loss(img, view.image, c.ssim_weight)
         loss.backward()
 
         with torch.no_grad():

@@ -44,4 +44,6 @@ TORCH_LIBRARY(cobgs, m) {
   // csrc/blur/blur.h
   m.def("gauss_blur(Tensor x, Tensor g) -> Tensor");
   m.def("ssim_mean_grad(Tensor x, Tensor y, Tensor g) -> (Tensor mean, Tensor grad)");
+  m.def("photometric_loss_grad(Tensor img, Tensor ref, Tensor g, float ssim_weight) -> "
+        "(Tensor l1, Tensor ssim, Tensor grad)");
 }

@@ -239,7 +239,10 @@ for dt in (torch.float32, torch.float64):  # widths: lane blocks plus a tail, an
         xs = torch.rand(shape, generator=g, dtype=dt)
         ys = torch.rand(shape, generator=g, dtype=dt)
         w = _gauss_1d(11, 1.5, dt, "cpu")
-        blurs += [*torch.ops.cobgs.ssim_mean_grad(xs, ys, w), torch.ops.cobgs.gauss_blur(xs, w)]
+        blurs += [*torch.ops.cobgs.ssim_mean_grad(xs, ys, w), torch.ops.cobgs.gauss_blur(xs, w),
+                  *torch.ops.cobgs.photometric_loss_grad(xs.permute(0, 2, 3, 1).contiguous(),
+                                                         ys.permute(0, 2, 3, 1).contiguous(), w,
+                                                         0.2)]
 torch.save([*out, *grads, *proj, *pgrads, *tight, col, *shg, *blurs], sys.argv[1])
 """
     results = []

@@ -32,6 +32,22 @@ namespace blur_detail {
 template <typename T>
 double ssim_mean_grad_planes(const T* x, const T* y, int64_t planes, int H, int W, const T* g,
                              int n, T* parts, T* grad);
+// The photometric loss's gradient on channel-interleaved images [batch, H, W, C]:
+// grad = w_l1·sign(x − y) + w_ssim·d mean(S)/dx; returns Σ S, and Σ |x − y| in *l1_sum.
+// `parts` is scratch for 3 x batch x H x W x C values.
+template <typename T>
+double photometric_grad_rows(const T* x, const T* y, int64_t batch, int H, int W, int C,
+                             const T* g, int n, T* parts, T* grad, double w_l1, double w_ssim,
+                             double* l1_sum);
 }  // namespace blur_detail
+
+// The 3DGS photometric loss L = (1 − λ)·mean|img − ref| + λ·(1 − mean SSIM(img, ref)) of
+// channel-last images img, ref [H, W, C] or [B, H, W, C] (SSIM per channel with the window
+// g, as ssim_mean_grad) and dL/dimg, without reordering the images: returns (mean L1,
+// mean SSIM, dL/dimg). λ = ssim_weight in [0, 1].
+std::tuple<at::Tensor, at::Tensor, at::Tensor> photometric_loss_grad_cpu(const at::Tensor& img,
+                                                                        const at::Tensor& ref,
+                                                                        const at::Tensor& g,
+                                                                        double ssim_weight);
 
 }  // namespace cobgs

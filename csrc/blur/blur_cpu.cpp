@@ -45,12 +45,27 @@ COBGS_END_ISA
 template <typename T>
 double ssim_mean_grad_planes(const T* x, const T* y, int64_t planes, int H, int W, const T* g,
                              int n, T* parts, T* grad) {
-  return COBGS_ISA_DISPATCH(blur, ssim_planes<T>(x, y, planes, H, W, g, n, parts, grad));
+  return COBGS_ISA_DISPATCH(
+      blur, ssim_planes<T, false>(x, y, planes, H, W, 1, g, n, parts, grad, {}, nullptr));
 }
-template double ssim_mean_grad_planes<float>(const float*, const float*, int64_t, int, int,
-                                             const float*, int, float*, float*);
-template double ssim_mean_grad_planes<double>(const double*, const double*, int64_t, int, int,
-                                              const double*, int, double*, double*);
+
+template <typename T>
+double photometric_grad_rows(const T* x, const T* y, int64_t batch, int H, int W, int C,
+                             const T* g, int n, T* parts, T* grad, double w_l1, double w_ssim,
+                             double* l1_sum) {
+  return COBGS_ISA_DISPATCH(
+      blur, ssim_planes<T, true>(x, y, batch, H, W * C, C, g, n, parts, grad, {w_l1, w_ssim},
+                                 l1_sum));
+}
+
+#define COBGS_INSTANTIATE(T)                                                                 \
+  template double ssim_mean_grad_planes<T>(const T*, const T*, int64_t, int, int, const T*, \
+                                           int, T*, T*);                                    \
+  template double photometric_grad_rows<T>(const T*, const T*, int64_t, int, int, int,      \
+                                           const T*, int, T*, T*, double, double, double*);
+COBGS_INSTANTIATE(float)
+COBGS_INSTANTIATE(double)
+#undef COBGS_INSTANTIATE
 
 }  // namespace blur_detail
 

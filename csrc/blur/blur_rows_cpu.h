@@ -14,6 +14,11 @@
 // row straight from x and y (the products are formed per tap, never stored as planes),
 // evaluates the SSIM terms on the blurred row and writes the three per-pixel partial
 // derivatives; pass 2 blurs those and combines them with x and y into the gradient.
+//
+// Rows are `R` values long and the horizontal taps are `step` values apart: planar images
+// (one channel per plane) have R = W and step 1; channel-interleaved rows ([H, W, C],
+// the renderer's layout) have R = W·C and step C, which blurs each channel on its own
+// without reordering the image. Each output is the same sum either way.
 
 template <typename V, typename T>
 COBGS_ALWAYS_INLINE V ld(const T* p) {
@@ -74,14 +79,14 @@ COBGS_ALWAYS_INLINE void vertical_stats_block(const T* x, const T* y, int H, int
 }
 
 // Columns [j, j + lanes) of the horizontal pass of K zero-padded rows (padded[k][c] holds
-// column c - n/2): h[k] = Σ_t g[t] padded[k][j + t].
+// column c - (n/2)·step): h[k] = Σ_t g[t] padded[k][j + t·step].
 template <typename V, int K, typename T>
-COBGS_ALWAYS_INLINE void horizontal_block(const T* const* padded, const T* g, int n, int j,
-                                          V* h) {
+COBGS_ALWAYS_INLINE void horizontal_block(const T* const* padded, const T* g, int n, int step,
+                                          int j, V* h) {
   for (int k = 0; k < K; ++k) h[k] = math::splat_lanes<V>(T(0));
   for (int t = 0; t < n; ++t) {
     const V w = math::splat_lanes<V>(g[t]);
-    for (int k = 0; k < K; ++k) h[k] += w * ld<V>(padded[k] + j + t);
+    for (int k = 0; k < K; ++k) h[k] += w * ld<V>(padded[k] + j + t * step);
   }
 }
 
@@ -94,13 +99,13 @@ COBGS_ALWAYS_INLINE void for_column_blocks(int W, const F& fn) {
   for (; j < W; ++j) fn(j, T{});
 }
 
-// Per-thread zero-padded row buffers for K rows.
+// Per-thread zero-padded row buffers for K rows of R values, (n/2)·step zeros each side.
 template <typename T, int K>
 struct PaddedRows {
   std::vector<T> buf;
   T* row[K];
-  PaddedRows(int W, int n) : buf(size_t(K) * (W + n - 1), T(0)) {
-    for (int k = 0; k < K; ++k) row[k] = buf.data() + size_t(k) * (W + n - 1);
+  PaddedRows(int R, int n, int step) : buf(size_t(K) * (R + (n - 1) * step), T(0)) {
+    for (int k = 0; k < K; ++k) row[k] = buf.data() + size_t(k) * (R + (n - 1) * step);
   }
 };
 
@@ -111,7 +116,7 @@ void blur_planes(const T* x, T* y, int64_t planes, int H, int W, const T* g, int
   const int64_t P = int64_t(H) * W;
 #pragma omp parallel num_threads(cpu_threads())
   {
-    PaddedRows<T, 1> rows(W, n);
+    PaddedRows<T, 1> rows(W, n, 1);
     T* const vert[1] = {rows.row[0] + pad};
 #pragma omp for schedule(static)
     for (int64_t r = 0; r < planes * H; ++r) {
@@ -126,28 +131,38 @@ void blur_planes(const T* x, T* y, int64_t planes, int H, int W, const T* g, int
       for_column_blocks<T>(W, [&](int j, auto lane) {
         using V = decltype(lane);
         V h[1];
-        horizontal_block<V, 1>(rows.row, g, n, j, h);
+        horizontal_block<V, 1>(rows.row, g, n, 1, j, h);
         st(out + j, h[0]);
       });
     }
   }
 }
 
-// ssim_mean_grad on `planes` planes (batch items x channels) of H x W: writes the
-// gradient of the mean SSIM into grad and returns Σ S over all pixels. `parts` is scratch
-// for 3 x planes x H x W values. The sum adds the pixels of a row in order, then the
-// rows in order: it does not depend on the thread count.
-template <typename T>
-double ssim_planes(const T* x, const T* y, int64_t planes, int H, int W, const T* g, int n,
-                   T* parts, T* grad) {
-  const int pad = n / 2;
-  const int64_t P = int64_t(H) * W, rows_total = planes * H, part_stride = planes * P;
+// The per-pixel weights of pass 2's output. Plain SSIM gradient: grad = d mean(S) / dx.
+// Photometric loss (kL1 true): grad = d/dx [l1_weight·Σ|x − y| + ssim_weight·mean(S)]
+// (the caller folds the loss's constants and signs into the two weights).
+struct LossWeights {
+  double l1 = 0.0, ssim = 1.0;
+};
+
+// ssim_mean_grad on `planes` planes of H rows of R values (taps `step` apart, see the top
+// of this file): writes the gradient into grad and returns Σ S over all values, and with
+// kL1 Σ |x − y| in *l1_sum. `parts` is scratch for 3 x planes x H x R values. Sums add
+// the values of a row in order, then the rows in order: they do not depend on the
+// thread count.
+template <typename T, bool kL1>
+double ssim_planes(const T* x, const T* y, int64_t planes, int H, int R, int step, const T* g,
+                   int n, T* parts, T* grad, LossWeights wts, double* l1_sum) {
+  const int pad = (n / 2) * step;
+  const int64_t P = int64_t(H) * R, rows_total = planes * H, part_stride = planes * P;
   const T c1 = static_cast<T>(kSsimC1), c2 = static_cast<T>(kSsimC2);
   const T inv_n = T(1) / static_cast<T>(planes * P);
+  const T w_l1 = static_cast<T>(wts.l1), w_ssim = static_cast<T>(wts.ssim);
   std::vector<double> row_sum(static_cast<size_t>(rows_total));
+  std::vector<double> row_l1(kL1 ? static_cast<size_t>(rows_total) : 0);
 #pragma omp parallel num_threads(cpu_threads())
   {
-    PaddedRows<T, 5> rows(W, n);
+    PaddedRows<T, 5> rows(R, n, step);
     T* vert[5];
     for (int k = 0; k < 5; ++k) vert[k] = rows.row[k] + pad;
     // Pass 1: the five blurred statistics of a row, the SSIM terms and the partials
@@ -156,16 +171,16 @@ double ssim_planes(const T* x, const T* y, int64_t planes, int H, int W, const T
     for (int64_t r = 0; r < rows_total; ++r) {
       const int64_t p = r / H;
       const int i = static_cast<int>(r % H);
-      for_column_blocks<T>(W, [&](int j, auto lane) {
+      for_column_blocks<T>(R, [&](int j, auto lane) {
         using V = decltype(lane);
-        vertical_stats_block<V>(x + p * P, y + p * P, H, W, g, n, i, j, vert);
+        vertical_stats_block<V>(x + p * P, y + p * P, H, R, g, n, i, j, vert);
       });
-      T* d0 = parts + p * P + int64_t(i) * W;
+      T* d0 = parts + p * P + int64_t(i) * R;
       double sum = 0.0;
-      for_column_blocks<T>(W, [&](int j, auto lane) {
+      for_column_blocks<T>(R, [&](int j, auto lane) {
         using V = decltype(lane);
         V s[5];
-        horizontal_block<V, 5>(rows.row, g, n, j, s);
+        horizontal_block<V, 5>(rows.row, g, n, step, j, s);
         const V mu_x = s[0], mu_y = s[1], exx = s[2], eyy = s[3], exy = s[4];
         const V a1 = T(2) * mu_x * mu_y + c1;
         const V a2 = T(2) * (exy - mu_x * mu_y) + c2;
@@ -194,21 +209,44 @@ double ssim_planes(const T* x, const T* y, int64_t planes, int H, int W, const T
       const int i = static_cast<int>(r % H);
       const T* const src[3] = {parts + p * P, parts + part_stride + p * P,
                                parts + 2 * part_stride + p * P};
-      for_column_blocks<T>(W, [&](int j, auto lane) {
+      for_column_blocks<T>(R, [&](int j, auto lane) {
         using V = decltype(lane);
-        vertical_block<V, 3>(src, H, W, g, n, i, j, vert);
+        vertical_block<V, 3>(src, H, R, g, n, i, j, vert);
       });
-      const int64_t o = p * P + int64_t(i) * W;
-      for_column_blocks<T>(W, [&](int j, auto lane) {
+      const int64_t o = p * P + int64_t(i) * R;
+      double l1 = 0.0;
+      for_column_blocks<T>(R, [&](int j, auto lane) {
         using V = decltype(lane);
         V q[3];
-        horizontal_block<V, 3>(rows.row, g, n, j, q);
+        horizontal_block<V, 3>(rows.row, g, n, step, j, q);
         const V xv = ld<V>(x + o + j), yv = ld<V>(y + o + j);
-        st(grad + o + j, (q[0] + T(2) * xv * q[1] + yv * q[2]) * inv_n);
+        const V ssim_grad = (q[0] + T(2) * xv * q[1] + yv * q[2]) * inv_n;
+        if constexpr (kL1) {
+          // sign(x − y) with sign(0) = 0, as autograd's |·| gradient.
+          const V diff = xv - yv;
+          const V zero = math::splat_lanes<V>(T(0));
+          const V one = math::splat_lanes<V>(T(1));
+          const V sgn = math::sel(diff > zero, one, math::sel(diff < zero, -one, zero));
+          st(grad + o + j, w_l1 * sgn + w_ssim * ssim_grad);
+          const V ad = math::sel(diff < zero, -diff, diff);
+          if constexpr (math::LaneTraits<V>::kVector) {
+            for (int k = 0; k < simd::kLanes; ++k) l1 += static_cast<double>(ad[k]);
+          } else {
+            l1 += static_cast<double>(ad);
+          }
+        } else {
+          st(grad + o + j, ssim_grad);
+        }
       });
+      if constexpr (kL1) row_l1[static_cast<size_t>(r)] = l1;
     }
   }
   double total = 0.0;
   for (const double s : row_sum) total += s;
+  if constexpr (kL1) {
+    double l1 = 0.0;
+    for (const double s : row_l1) l1 += s;
+    *l1_sum = l1;
+  }
   return total;
 }

@@ -48,6 +48,49 @@ std::tuple<at::Tensor, at::Tensor> ssim_mean_grad_cpu(const at::Tensor& x, const
   return {mean_out, grad};
 }
 
-TORCH_LIBRARY_IMPL(cobgs, CPU, m) { m.impl("ssim_mean_grad", &ssim_mean_grad_cpu); }
+std::tuple<at::Tensor, at::Tensor, at::Tensor> photometric_loss_grad_cpu(const at::Tensor& img,
+                                                                        const at::Tensor& ref,
+                                                                        const at::Tensor& g,
+                                                                        double ssim_weight) {
+  COBGS_CHECK_INPUT(img);
+  COBGS_CHECK_INPUT(ref);
+  COBGS_CHECK_INPUT(g);
+  TORCH_CHECK(img.scalar_type() == at::kFloat || img.scalar_type() == at::kDouble,
+              "img must be float32 or float64, got ", img.scalar_type());
+  TORCH_CHECK(img.dim() == 3 || img.dim() == 4, "img must have shape [H, W, C] or [B, H, W, C], got ",
+              img.sizes());
+  TORCH_CHECK(ref.sizes() == img.sizes(), "ref must have the shape of img ", img.sizes(),
+              ", got ", ref.sizes());
+  TORCH_CHECK(g.dim() == 1 && g.size(0) % 2 == 1, "g must be 1-D with an odd length, got ",
+              g.sizes());
+  COBGS_CHECK_DTYPE(ref, img.scalar_type());
+  COBGS_CHECK_DTYPE(g, img.scalar_type());
+  TORCH_CHECK(img.numel() > 0, "img must not be empty");
+  TORCH_CHECK(ssim_weight >= 0.0 && ssim_weight <= 1.0, "ssim_weight must be in [0, 1], got ",
+              ssim_weight);
+  const int64_t d = img.dim();
+  const int64_t batch = d == 4 ? img.size(0) : 1;
+  const int H = static_cast<int>(img.size(d - 3)), W = static_cast<int>(img.size(d - 2));
+  const int C = static_cast<int>(img.size(d - 1));
+  const double numel = static_cast<double>(img.numel());
+  at::Tensor grad = at::empty_like(img);
+  at::Tensor parts = at::empty({3, img.numel()}, img.options());
+  double ssim_sum = 0.0, l1_sum = 0.0;
+  AT_DISPATCH_FLOATING_TYPES(img.scalar_type(), "cobgs::photometric_loss_grad", [&] {
+    // dL/dx = (1 − λ)/numel · sign(x − y) − λ · d mean(S)/dx
+    ssim_sum = blur_detail::photometric_grad_rows<scalar_t>(
+        img.data_ptr<scalar_t>(), ref.data_ptr<scalar_t>(), batch, H, W, C,
+        g.data_ptr<scalar_t>(), static_cast<int>(g.size(0)), parts.data_ptr<scalar_t>(),
+        grad.data_ptr<scalar_t>(), (1.0 - ssim_weight) / numel, -ssim_weight, &l1_sum);
+  });
+  at::Tensor l1 = at::empty({}, img.options()).fill_(l1_sum / numel);
+  at::Tensor ssim = at::empty({}, img.options()).fill_(ssim_sum / numel);
+  return {l1, ssim, grad};
+}
+
+TORCH_LIBRARY_IMPL(cobgs, CPU, m) {
+  m.impl("ssim_mean_grad", &ssim_mean_grad_cpu);
+  m.impl("photometric_loss_grad", &photometric_loss_grad_cpu);
+}
 
 }  // namespace cobgs

@@ -128,6 +128,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
 
+    from cobgs import losses
     from cobgs.losses import l1_loss, ssim
     from cobgs.train import Trainer, TrainConfig, load_model
 
@@ -189,8 +190,11 @@ def main(argv=None) -> int:
             out.means2d.retain_grad()
         with Clock() as c_l:
             img = out.image
-            loss = (1 - config.ssim_weight) * l1_loss(img, view.image) + \
-                config.ssim_weight * (1 - ssim(img, view.image))
+            if hasattr(losses, "_NativePhotometricLoss"):  # as Trainer.step does
+                loss = losses.photometric_loss(img, view.image, config.ssim_weight)
+            else:  # an older checkout, for comparisons
+                loss = (1 - config.ssim_weight) * l1_loss(img, view.image) + \
+                    config.ssim_weight * (1 - ssim(img, view.image))
         with Clock() as c_b:
             loss.backward()
         with Clock() as c_a:
