@@ -179,6 +179,27 @@ def test_bin_tiles_depth_sort_on_many_gaussians(dtype):
         torch.set_num_threads(before)
 
 
+def test_bin_tiles_names_the_first_bad_depth():
+    """A visible Gaussian with a depth <= 0 or NaN is an error naming the first such index
+    (index order, whichever thread's range it falls in); culled ones are not checked."""
+    g = torch.Generator().manual_seed(12)
+    n = 30_000
+    m2 = torch.rand(n, 2, generator=g) * 300
+    depths = torch.rand(n, generator=g) + 0.5
+    radii = torch.full((n,), 3, dtype=torch.int32)
+    depths[100] = -1.0
+    radii[100] = 0  # culled: ignored
+    depths[20_001] = float("nan")
+    depths[25_000] = 0.0
+    with pytest.raises(RuntimeError, match=r"depths\[20001\] of a visible Gaussian must be "
+                                           r"positive and finite"):
+        _ops.bin_tiles(m2, radii, depths, 320, 240)
+    depths[20_001] = 1.0
+    with pytest.raises(RuntimeError, match=r"depths\[25000\]"):
+        torch.ops.cobgs.bin_tiles_tight(m2, radii, depths, torch.tensor([[0.5, 0.0, 0.5]]).expand(n, 3).contiguous(),
+                                        torch.full((n,), 0.5), 320, 240)
+
+
 def test_thread_count_does_not_change_results():
     """Per-entry gradient slots reduced in list order: bitwise identical for 1 or 2 threads."""
     m2, conics, _, _, opacities, features, offsets, ids = projected(torch.float32)

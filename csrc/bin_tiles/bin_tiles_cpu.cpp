@@ -158,35 +158,53 @@ void bin_tiles_kernel(const at::Tensor& means2d, const at::Tensor& radii,
   COBGS_PROF_COUNT(kCallsBin, 1);
   std::vector<Key>& keys = scratch<Key, 0>();
   std::vector<int32_t>& order = scratch<int32_t, 3>();
-  keys.clear();
-  order.clear();
-  // Every Gaussian's tile rectangle, in index order (streaming reads of its inputs);
-  // only Gaussians that cover some tile enter the depth sort.
+  // Every Gaussian's tile rectangle, and the Gaussians that cover some tile (they enter
+  // the depth sort) in index order: each thread takes a contiguous range, counts, and
+  // after a barrier writes its range's keys after those of the ranges before it.
   std::vector<Rect>& rect_of = scratch<Rect, 6>();
   rect_of.resize(n);
-#pragma omp parallel for schedule(static) num_threads(cpu_threads())
-  for (int64_t i = 0; i < n; ++i) {
-    Rect rc{0, 0, 0, 0};
-    if (r[i] > 0) {
-      rc = tile_rect<T>(m2[2 * i], m2[2 * i + 1], r[i], tiles_x, tiles_y);
-      if (prep) rc = narrow_to_box(rc, prep[i].x0, prep[i].x1, prep[i].y0, prep[i].y1);
-    }
-    rect_of[i] = rc;
-  }
+  keys.resize(n);
+  order.resize(n);
+  const int nt = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(cpu_threads(), n / 4096)));
+  std::vector<int64_t> kept(size_t(nt) + 1, 0);
+  std::vector<int64_t> first_bad(size_t(nt), -1);  // a visible Gaussian with a bad depth
 #ifdef COBGS_PROFILE
   auto* sort_scope = new prof::Scope(prof::kBinSort);
 #endif
-  keys.reserve(n);
-  order.reserve(n);
-  for (int64_t i = 0; i < n; ++i) {
-    if (r[i] <= 0) continue;
-    TORCH_CHECK(d[i] > T(0) && std::isfinite(d[i]), "depths[", i,
-                "] of a visible Gaussian must be positive and finite, got ", d[i]);
-    const Rect& rc = rect_of[i];
-    if (rc.x0 >= rc.x1 || rc.y0 >= rc.y1) continue;
-    keys.push_back(depth_key(d[i]));
-    order.push_back(static_cast<int32_t>(i));
+#pragma omp parallel num_threads(nt)
+  {
+    const int tid = omp_get_thread_num();
+    const int64_t i0 = n * tid / nt, i1 = n * (tid + 1) / nt;
+    int64_t count = 0;
+    for (int64_t i = i0; i < i1; ++i) {
+      Rect rc{0, 0, 0, 0};
+      if (r[i] > 0) {
+        rc = tile_rect<T>(m2[2 * i], m2[2 * i + 1], r[i], tiles_x, tiles_y);
+        if (prep) rc = narrow_to_box(rc, prep[i].x0, prep[i].x1, prep[i].y0, prep[i].y1);
+        if (!(d[i] > T(0) && std::isfinite(d[i])) && first_bad[tid] < 0) first_bad[tid] = i;
+        count += rc.x0 < rc.x1 && rc.y0 < rc.y1;
+      }
+      rect_of[i] = rc;
+    }
+    kept[size_t(tid) + 1] = count;
+#pragma omp barrier
+    int64_t pos = 0;
+    for (int t = 0; t <= tid; ++t) pos += kept[size_t(t)];
+    for (int64_t i = i0; i < i1; ++i) {
+      const Rect& rc = rect_of[i];
+      if (r[i] <= 0 || rc.x0 >= rc.x1 || rc.y0 >= rc.y1) continue;
+      keys[pos] = depth_key(d[i]);
+      order[pos] = static_cast<int32_t>(i);
+      ++pos;
+    }
   }
+  for (const int64_t i : first_bad)
+    TORCH_CHECK(i < 0, "depths[", i, "] of a visible Gaussian must be positive and finite, got ",
+                d[i]);
+  int64_t total = 0;
+  for (const int64_t c : kept) total += c;
+  keys.resize(total);
+  order.resize(total);
   radix_sort(keys, order);
 #ifdef COBGS_PROFILE
   delete sort_scope;
