@@ -91,14 +91,14 @@ void radix_sort(std::vector<K>& keys, std::vector<int32_t>& ids) {
   k2.resize(n);
   i2.resize(n);
   constexpr int kPasses = static_cast<int>(sizeof(K));
-  const int nt = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(cpu_threads(), n / 4096)));
+  const int nt = range_threads(n, 4096);
   std::vector<int64_t>& hist = scratch<int64_t, 7>();  // [nt][256] per pass
   hist.assign(size_t(nt) * 256, 0);
   int swaps = 0;  // passes that moved the data (the same count on every thread)
 #pragma omp parallel num_threads(nt)
   {
     const int tid = omp_get_thread_num();
-    const int64_t i0 = n * tid / nt, i1 = n * (tid + 1) / nt;
+    const auto [i0, i1] = thread_range(n, tid, nt);
     K* src_k = keys.data();
     K* dst_k = k2.data();
     int32_t* src_i = ids.data();
@@ -165,7 +165,7 @@ void bin_tiles_kernel(const at::Tensor& means2d, const at::Tensor& radii,
   rect_of.resize(n);
   keys.resize(n);
   order.resize(n);
-  const int nt = static_cast<int>(std::max<int64_t>(1, std::min<int64_t>(cpu_threads(), n / 4096)));
+  const int nt = range_threads(n, 4096);
   std::vector<int64_t> kept(size_t(nt) + 1, 0);
   std::vector<int64_t> first_bad(size_t(nt), -1);  // a visible Gaussian with a bad depth
 #ifdef COBGS_PROFILE
@@ -174,7 +174,7 @@ void bin_tiles_kernel(const at::Tensor& means2d, const at::Tensor& radii,
 #pragma omp parallel num_threads(nt)
   {
     const int tid = omp_get_thread_num();
-    const int64_t i0 = n * tid / nt, i1 = n * (tid + 1) / nt;
+    const auto [i0, i1] = thread_range(n, tid, nt);
     int64_t count = 0;
     for (int64_t i = i0; i < i1; ++i) {
       Rect rc{0, 0, 0, 0};
