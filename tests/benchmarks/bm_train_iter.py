@@ -26,6 +26,13 @@ rasterizer), Adam step. The SH colour is the native ``cobgs::sh_colors`` op that
 load average: on a machine shared with other jobs the wall time includes waiting for a
 core.
 
+A machine probe (a 384x384 float32 GEMM and one fused Adam step over 4M floats, about a
+tenth of an iteration, compute- and memory-bound like the iteration) runs after every timed
+step. Its spread (median / best) shows how much other jobs slowed the run, and the
+iteration is also reported as a ratio to the probe measured next to it, scaled to the
+probe's best time: the iteration time this build would take on the machine at its quietest
+moment of the same run (the ratio, not the absolute time, is what compares builds).
+
 Target (issue 10): a full iteration on fern 1/8 <= 120 ms (2 threads).
 """
 
@@ -114,6 +121,25 @@ def proxy_model(init, n: int, seed: int = 0):
                          opacity_logits=inverse_sigmoid(opac), sh0=d["sh0"][parent], shN=shN)
 
 
+class MachineProbe:
+    """A fixed small workload timed next to each step (see the module docstring)."""
+
+    def __init__(self, n: int = 4_000_000, size: int = 384):
+        g = torch.Generator().manual_seed(0)
+        self.a = torch.rand(size, size, generator=g)
+        self.b = torch.rand(size, size, generator=g)
+        self.p = torch.nn.Parameter(torch.rand(n, generator=g))
+        self.p.grad = torch.rand(n, generator=g) - 0.5
+        self.opt = torch.optim.Adam([self.p], lr=1e-6, fused=True)
+        self.run()  # allocate the moments
+
+    def run(self) -> float:
+        t0 = time.perf_counter()
+        torch.mm(self.a, self.b)
+        self.opt.step()
+        return time.perf_counter() - t0
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--scene", choices=["fern", "lego"], default="fern")
@@ -165,11 +191,13 @@ def main(argv=None) -> int:
         return seen[-1]
 
     trainer._next_view = recording_next_view
-    steps = []
+    probe = MachineProbe()
+    steps, probes = [], []
     for _ in range(args.reps):
         with Clock() as c:
             trainer.step()
         steps.append(c)
+        probes.append(probe.run())
 
     # The parts, on the same views, with the trainer's own model and optimizer.
     from cobgs import _ops
@@ -214,6 +242,12 @@ def main(argv=None) -> int:
         total_c += med(cs, "cpu")
         print(f"  {k:14s} wall {med(cs, 'wall'):7.1f} ms   CPU {med(cs, 'cpu'):7.1f} ms")
     print(f"  {'sum of parts':14s} wall {total_w:7.1f} ms   CPU {total_c:7.1f} ms")
+    p_med, p_best = 1000 * statistics.median(probes), 1000 * min(probes)
+    ratio = statistics.median(c.wall / pr for c, pr in zip(steps, probes))
+    print(f"machine probe after each step: median {p_med:.2f} ms, best {p_best:.2f} ms "
+          f"(contention factor {p_med / p_best:.2f}); iteration / probe: median {ratio:.1f} "
+          f"(compare builds with this ratio; times the probe's best it estimates "
+          f"{ratio * p_best:.1f} ms for the quietest moment of the run)")
     print(f"load average {load0[0]:.1f} -> {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs; "
           f"target (issue 10): full iteration <= 120 ms wall on fern 1/8")
     return 0
