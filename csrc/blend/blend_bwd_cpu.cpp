@@ -52,12 +52,9 @@ struct BwdScratch {
   int blk_pix[kTilePixels / simd::kLanes];  // tile index of the block's first pixel
   std::vector<T> rest;   // R per channel and pixel
   std::vector<T> vcol;   // dL/dimage per channel and pixel
-  std::vector<T> acc_f;  // per-lane dL/df sums of the current entry, [C][8]
-  // Per-lane sums of the current entry per block column b (0, 1): Σ v_power and
-  // Σ dy·v_power (dx is fixed per column, so the conic and mean gradients follow from
-  // these at the end of the entry).
-  alignas(64) T acc_p[2][8];
-  alignas(64) T acc_q[2][8];
+  // Per-lane dL/df sums of the current entry, [C][8], for the kernel with a run-time
+  // channel count (fixed counts keep them in registers).
+  std::vector<T> acc_f;
 
   explicit BwdScratch(int C)
       : rest(size_t(kTilePixels) * C), vcol(size_t(kTilePixels) * C),

@@ -50,13 +50,21 @@ void backward_tile(const BwdArgs<T>& a, int64_t tile, BwdScratch<T>& s) {
     for (int k = 0; k < simd::kLanes; ++k)
       px_centre[b][k] = T(x0 + b * simd::kLanes + k) + T(0.5);
   // Per-lane gradient sums of the current entry (all zero between entries): Σ dy²·v_power,
-  // Σ G·v_alpha, per channel Σ α T dL/dC, and per block column s.acc_p / s.acc_q.
+  // Σ G·v_alpha, per block column Σ v_power and Σ dy·v_power, and per channel Σ α T dL/dC
+  // (in registers when the channel count is fixed, else in s.acc_f).
   V acc_r = zero, acc_op = zero;
+  V acc_p0 = zero, acc_p1 = zero, acc_q0 = zero, acc_q1 = zero;
+  constexpr int kRegF = NC > 0 ? NC : 1;
+  V acc_fr[kRegF];
+  for (int c = 0; c < kRegF; ++c) acc_fr[c] = zero;
   T* acc_f = s.acc_f.data();
-  for (int b = 0; b < 2; ++b) {
-    store(s.acc_p[b], zero);
-    store(s.acc_q[b], zero);
-  }
+  auto acc_f_get = [&](int c) -> V {
+    if constexpr (NC > 0) {
+      return acc_fr[c];
+    } else {
+      return load<V>(acc_f + c * simd::kLanes);
+    }
+  };
   // Entries behind every pixel's last contributor have nothing to do (and no slot:
   // group_live_entries gave slots to the first max_last entries only).
 
@@ -142,8 +150,12 @@ void backward_tile(const BwdArgs<T>& a, int64_t tile, BwdScratch<T>& s) {
         T* r = s.rest.data() + size_t(c) * kTilePixels + p;
         const V v_ok = ok ? load<V>(s.vcol.data() + size_t(c) * kTilePixels + p) : zero;
         const V rv = load<V>(r);
-        T* af = acc_f + c * simd::kLanes;
-        store(af, load<V>(af) + alpha * t_front * v_ok);
+        if constexpr (NC > 0) {
+          acc_fr[c] += alpha * t_front * v_ok;
+        } else {
+          T* af = acc_f + c * simd::kLanes;
+          store(af, load<V>(af) + alpha * t_front * v_ok);
+        }
         dot += (fc - rv) * v_ok;
         store(r, ok ? alpha * fc + one_minus * rv : rv);
       }
@@ -156,8 +168,13 @@ void backward_tile(const BwdArgs<T>& a, int64_t tile, BwdScratch<T>& s) {
       // power = -0.5 (a dx² + c dy²) - b dx dy with dx fixed per lane of a block column
       // and dy fixed per row: per-lane sums of v_power and dy·v_power per column, and of
       // dy²·v_power, give every conic and mean gradient at the end of the entry.
-      store(s.acc_p[col], load<V>(s.acc_p[col]) + v_power);
-      store(s.acc_q[col], load<V>(s.acc_q[col]) + dy * v_power);
+      if (col == 0) {
+        acc_p0 += v_power;
+        acc_q0 += dy * v_power;
+      } else {
+        acc_p1 += v_power;
+        acc_q1 += dy * v_power;
+      }
       acc_r += (dy * dy) * v_power;
     }
     if (!entry_hit) {
@@ -171,16 +188,15 @@ void backward_tile(const BwdArgs<T>& a, int64_t tile, BwdScratch<T>& s) {
     // added in one batch (simd::hsum8, the same bits as one at a time).
     {
       const V dx0 = px_centre[0] - g.mx, dx1 = px_centre[1] - g.mx;
-      const V p0 = load<V>(s.acc_p[0]), p1 = load<V>(s.acc_p[1]);
-      const V q0 = load<V>(s.acc_q[0]), q1 = load<V>(s.acc_q[1]);
+      const V p0 = acc_p0, p1 = acc_p1, q0 = acc_q0, q1 = acc_q1;
       const V parts[8] = {dx0 * p0 + dx1 * p1,
                           q0 + q1,
                           dx0 * dx0 * p0 + dx1 * dx1 * p1,
                           dx0 * q0 + dx1 * q1,
                           acc_r,
                           acc_op,
-                          C > 0 ? load<V>(acc_f) : zero,
-                          C > 1 ? load<V>(acc_f + simd::kLanes) : zero};
+                          C > 0 ? acc_f_get(0) : zero,
+                          C > 1 ? acc_f_get(1) : zero};
       T sums[8];
       simd::hsum8(parts, sums);
       const T s_dx = sums[0], s_dy = sums[1];
@@ -192,14 +208,14 @@ void backward_tile(const BwdArgs<T>& a, int64_t tile, BwdScratch<T>& s) {
       dst[kMy] = g.cb * s_dx + g.cc * s_dy;
       dst[kOp] = sums[5];
       for (int c = 0; c < std::min(C, 2); ++c) dst[kFeat + c] = sums[6 + c];
-      for (int b = 0; b < 2; ++b) {
-        store(s.acc_p[b], zero);
-        store(s.acc_q[b], zero);
-      }
     }
-    acc_r = acc_op = zero;
-    for (int c = 2; c < C; ++c) dst[kFeat + c] = simd::hsum(load<V>(acc_f + c * simd::kLanes));
-    std::fill(acc_f, acc_f + size_t(C) * simd::kLanes, T(0));
+    acc_r = acc_op = acc_p0 = acc_p1 = acc_q0 = acc_q1 = zero;
+    for (int c = 2; c < C; ++c) dst[kFeat + c] = simd::hsum(acc_f_get(c));
+    if constexpr (NC > 0) {
+      for (int c = 0; c < kRegF; ++c) acc_fr[c] = zero;
+    } else {
+      std::fill(acc_f, acc_f + size_t(C) * simd::kLanes, T(0));
+    }
   }
   COBGS_PROF_COUNT(kBwdBlocks, n_blocks);
   COBGS_PROF_COUNT(kBwdBlocksExp, n_blocks_exp);
