@@ -332,6 +332,7 @@ def run_method(
     background: Sequence[float] = (0.0, 0.0, 0.0),
     object_name: str = "",
     progress: bool = True,
+    texture_moments=None,
 ) -> RefineResult:
     """Run one segmentation method on one object.
 
@@ -344,6 +345,8 @@ def run_method(
         config: the method's config (None = its defaults).
         object_name: recorded in the result.
         progress: tqdm bar.
+        texture_moments: the baseline's Adam moments, where COB-GS's texture stages start
+            (:func:`cobgs.refine.refine`); the peers have no texture stages and ignore them.
     """
     defaults = _CONFIGS
     if method not in defaults:
@@ -353,7 +356,7 @@ def run_method(
         raise InputError(f"method {method!r} takes a {defaults[method].__name__}, got {type(cfg).__name__}")
     if method == "cobgs":
         return refine(model, views, masks, extent, cfg, background=background, object_name=object_name,
-                      progress=progress)
+                      progress=progress, texture_moments=texture_moments)
     if method == "nosplit":
         return run_nosplit(model, views, masks, extent, cfg, background=background, object_name=object_name,
                            progress=progress)

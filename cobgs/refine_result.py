@@ -77,6 +77,8 @@ class RefineResult:
         wall_s: total wall time.
         peak_mem_bytes: peak resident memory above the level at the start (sampled).
         config: the method's parameters as a plain dict.
+        texture_moments: the COB-GS texture Adam's final moments (only when asked for:
+            :func:`cobgs.refine.refine` ``return_moments``), else None.
     """
 
     method: str
@@ -93,6 +95,7 @@ class RefineResult:
     wall_s: float = 0.0
     peak_mem_bytes: int = 0
     config: dict = field(default_factory=dict)
+    texture_moments: Optional[dict] = None
 
     def summary(self) -> dict:
         """JSON-ready numbers (no tensors) for manifests and reports."""

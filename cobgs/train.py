@@ -46,6 +46,7 @@ import torch
 from torch import Tensor
 
 from ._memory import retain_freed_memory
+from .adam_moments import export_moments
 from .data.scene import Scene, View
 from .errors import DataError, InputError
 from .gaussians import GaussianModel, inverse_sigmoid
@@ -162,6 +163,9 @@ class TrainResult:
         wall_s: wall time of the optimisation loop (this call).
         s_per_it: ``wall_s`` / iterations done in this call.
         peak_rss_bytes: peak resident memory of the process so far.
+        adam_moments: the optimizer's final Adam state per tensor
+            (:func:`cobgs.adam_moments.export_moments`): what COB-GS's texture stages
+            continue from (``refine(..., texture_moments=...)``).
     """
 
     model: GaussianModel
@@ -171,6 +175,7 @@ class TrainResult:
     wall_s: float = 0.0
     s_per_it: float = 0.0
     peak_rss_bytes: int = 0
+    adam_moments: dict = field(default_factory=dict)
 
 
 # Scene readers whose images are always RGBA composited on ``Scene.background``
@@ -562,4 +567,5 @@ def train(
         wall_s=wall,
         s_per_it=wall / max(done, 1),
         peak_rss_bytes=peak_rss_bytes(),
+        adam_moments=export_moments(trainer.optimizer),
     )

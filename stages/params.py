@@ -77,6 +77,7 @@ class RefineOptions:
     bgtr: bool = True
     raem: str = "released"
     score: str = "count"
+    texture_adam: str = "baseline"
     split_size_fraction: float = 0.01
     split_children: int = 2
     split_scale_divisor: float = 1.6

@@ -11,6 +11,10 @@ Output ``refined``: ``refined.ply`` (the scene after the method, with its label 
 ``stage_scores.npz`` (the stage-mean ambiguity score of every Gaussian after each mask
 stage: the δ sweep of paper Fig. 7) and ``refine.json`` (the method's summary: Gaussian
 counts, splits, prunes, per-stage statistics, wall time, peak memory, config).
+
+COB-GS's texture stages continue the baseline's Adam from the ``adam_moments.pt`` the
+train stage writes beside ``scene.ply``; a scene without that file (e.g. a PLY trained
+elsewhere) refines with fresh moments, and ``refine.json`` says which (``texture_adam``).
 """
 
 from __future__ import annotations
@@ -70,6 +74,7 @@ def _run(ctx, inputs):
     import numpy as np
     import torch
 
+    from cobgs.adam_moments import MOMENTS_FILE, read_moments
     from cobgs.peers import run_method
     from cobgs.ply import load_ply, save_ply
 
@@ -85,10 +90,18 @@ def _run(ctx, inputs):
         raise StageInputError(f"no mask of object {obj!r} matches a training view of {spec['scene']!r}")
     masks = [None if m is None else m.to(dev) for m in masks]
     config = method_config(p, spec.get("scene_type", ""))
+    moments = None
+    moments_file = Path(inputs["scene"]) / MOMENTS_FILE
+    if p.method == "cobgs" and config.bgtr and config.texture_adam == "baseline":
+        if moments_file.is_file():
+            moments = read_moments(moments_file, len(model), device=dev)
+        else:
+            ctx.log.warning("%s not found: the texture stages start from fresh Adam moments", moments_file)
     ctx.log.info("%s on %r: %d Gaussians, %d views (%d with a mask)", p.method, obj, len(model),
                  len(scene.train), sum(m is not None for m in masks))
     result = run_method(p.method, model, scene.train, masks, scene.extent, config=config,
-                        background=trained["background"], object_name=obj, progress=sys.stderr.isatty())
+                        background=trained["background"], object_name=obj, progress=sys.stderr.isatty(),
+                        texture_moments=moments)
     out_model = result.model.to(torch.device("cpu")) if dev.type != "cpu" else result.model
     save_ply(ctx.out_dir / "refined.ply", out_model)
     np.savez_compressed(ctx.out_dir / "segmentation.npz",
@@ -107,7 +120,7 @@ def _run(ctx, inputs):
 
         eff = nosplit_config(config) if p.method == "nosplit" else config
         summary.update(delta=eff.threshold, scene_type=eff.scene_type, mask_stages=eff.num_mask_stages,
-                       plan=eff.plan())
+                       plan=eff.plan(), texture_adam=result.config.get("texture_adam"))
     write_json(ctx.out_dir / "refine.json", summary)
     ctx.log.info("%s: %d -> %d Gaussians, %d foreground, %.1f s", p.method, summary["num_gaussians_start"],
                  summary["num_gaussians_end"], summary["foreground"], summary["wall_s"])
@@ -119,7 +132,7 @@ def _run(ctx, inputs):
 
 
 STAGE = Stage(
-    name="refine", version=2, run=_run, inputs=("dataset", "poses", "scene", "masks"), outputs=("refined",),
+    name="refine", version=3, run=_run, inputs=("dataset", "poses", "scene", "masks"), outputs=("refined",),
     params=RefineParams, level=("scene", "method", "object"), uses_device=True, resources=Resources(cpus=2),
     description="COB-GS (or an ablation row / a peer) on one object: labels, splits, refined scene",
 )

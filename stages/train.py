@@ -1,7 +1,9 @@
 """Stage ``train``: the baseline 3DGS scene (cobgs.train) that every method refines.
 
 Params mirror :class:`cobgs.train.TrainConfig` (``--set train.iterations=3000``).
-Output ``scene``: ``scene.ply`` (standard 3DGS layout), ``train.json`` (config, resolved
+Output ``scene``: ``scene.ply`` (standard 3DGS layout), ``adam_moments.pt`` (the
+optimizer's final Adam moments, which COB-GS's texture stages continue from, as the
+released code continues its 3DGS checkpoint; :mod:`cobgs.adam_moments`), ``train.json`` (config, resolved
 schedule, loss / PSNR history, held-out PSNR / SSIM per view, Gaussian count, timings) and
 ``renders/<view>.png`` (8-bit renders of the held-out views: the vanilla side of the
 texture comparison).
@@ -21,6 +23,7 @@ from .params import TrainOptions, to_config
 def _run(ctx, inputs):
     import torch
 
+    from cobgs.adam_moments import MOMENTS_FILE, save_moments
     from cobgs.ply import save_ply
     from cobgs.render import render_image
     from cobgs.train import TrainConfig, train
@@ -47,6 +50,7 @@ def _run(ctx, inputs):
     wall = time.perf_counter() - t0
     model = res.model
     save_ply(ctx.out_dir / "scene.ply", model.to(torch.device("cpu")) if dev.type != "cpu" else model)
+    save_moments(ctx.out_dir / MOMENTS_FILE, res.adam_moments, len(model))
     bg = cfg.background if cfg.background is not None else scene.background
     for v in scene.test:
         write_png(ctx.out_dir / "renders" / f"{v.name}.png",
@@ -75,7 +79,7 @@ def _run(ctx, inputs):
 
 
 STAGE = Stage(
-    name="train", version=1, run=_run, inputs=("dataset", "poses"), outputs=("scene",), params=TrainOptions,
+    name="train", version=2, run=_run, inputs=("dataset", "poses"), outputs=("scene",), params=TrainOptions,
     level=("scene",), uses_device=True, resources=Resources(cpus=2),
     description="baseline 3DGS optimisation (scene.ply, held-out renders and PSNR)",
 )

@@ -290,7 +290,8 @@ def test_schedule_defaults():
 
 
 @pytest.mark.parametrize("kw", [dict(scene_type="llff"), dict(raem="yes"), dict(score="alpha"), dict(delta=1.5),
-                                dict(mask_stages=0), dict(stage_length_views=0), dict(mask_lambda=-1.0)])
+                                dict(mask_stages=0), dict(stage_length_views=0), dict(mask_lambda=-1.0),
+                                dict(texture_adam="warm")])
 def test_config_validation(kw):
     with pytest.raises(InputError):
         RefineConfig(**kw)

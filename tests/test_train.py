@@ -88,6 +88,13 @@ def test_tiny_scene_loss_falls_and_psnr_rises(tiny_scene):
     assert 0.0 < res.eval["ssim"] <= 1.0 and set(res.eval["per_view"]) == {v.name for v in tiny_scene.test}
     assert res.model.active_sh_degree == 1 and res.iterations == 300
     assert res.history[-1]["num_gaussians"] == len(res.model) != 300  # densification ran
+    # The final Adam moments (what COB-GS's texture stages continue) follow the final model.
+    assert sorted(res.adam_moments) == sorted(["means", "sh0", "shN", "opacity_logits", "log_scales", "quats"])
+    for name, m in res.adam_moments.items():
+        assert m["exp_avg"].shape == m["exp_avg_sq"].shape == res.model.data[name].shape, name
+        assert bool((m["exp_avg_sq"] >= 0).all()), name
+        # Adam counts the steps a tensor had a gradient: shN only once SH degree 1 is active.
+        assert float(m["step"]) == (201 if name == "shN" else 300), name
 
 
 def test_densify_and_prune_keeps_optimizer_consistent(tiny_scene):

@@ -31,6 +31,9 @@ Rows per scene (all on the same baseline and masks; per object, then averaged):
 * ``cobgs``: COB-GS, released defaults (BAGS + BGTR + RAEM "released") = Table 5 "all three";
 * ``cobgs_raem_paper``: RAEM "paper" (only ambiguous Gaussians below a 1 px footprint);
 * ``t5_bags_bgtr``: RAEM off; ``t5_bags``: splitting only (MASK stages back to back);
+* ``t5_fresh_adam``: RAEM off, the texture stages' Adam started from zero moments instead of
+  the baseline's (every COB-GS row continues the baseline's moments, as the released code
+  does from its 3DGS checkpoint; the baseline file stores them);
 * ``nosplit`` = ``t5_none``: label optimisation without splitting (Table 5 first row);
 * ``sa3d``: SA3D-GS; ``flashsplat``: FlashSplat with ``--flashsplat-bias``.
 
@@ -97,13 +100,16 @@ from cobgs.train import TrainConfig, evaluate, train  # noqa: E402
 # 2: exact-GT metrics compare the occlusion-aware (visible) prediction; the released
 #    object-only render is kept as the "obj-only" columns.
 #    3: amodal columns (object-only render vs the object's whole silhouette).
-RESULTS_VERSION = 3
+#    4: COB-GS texture stages continue the baseline's Adam moments (released behaviour);
+#       row "t5_fresh_adam" keeps the zero-moment start as an ablation.
+RESULTS_VERSION = 4
 LEGO = REPO.parent / "shared" / "data" / "nerf_synthetic_lego"
-ROWS = ["cobgs", "cobgs_raem_paper", "t5_bags_bgtr", "t5_bags", "nosplit", "sa3d", "flashsplat"]
+ROWS = ["cobgs", "cobgs_raem_paper", "t5_bags_bgtr", "t5_fresh_adam", "t5_bags", "nosplit", "sa3d", "flashsplat"]
 ROW_LABEL = {
     "cobgs": "COB-GS (all three)",
     "cobgs_raem_paper": "COB-GS, RAEM paper",
     "t5_bags_bgtr": "BAGS+BGTR (RAEM off)",
+    "t5_fresh_adam": "BAGS+BGTR, fresh texture Adam",
     "t5_bags": "BAGS only",
     "nosplit": "none = no-split peer",
     "sa3d": "SA3D-GS",
@@ -223,7 +229,7 @@ def baseline(args, name, scene, init_spec, scene_key):
     explicit = dict(iterations=args.train_iters, sh_degree=args.sh_degree, max_gaussians=args.max_gaussians,
                     random_init_points=args.init_points, seed=0, scale_densify_interval=True)
     cfg = TrainConfig(**explicit)
-    key = key_of(dict(scene_key, train=explicit))
+    key = key_of(dict(scene_key, train=explicit, adam_moments=True))
     path = Path(args.workdir) / "baselines" / f"{scene_key['scene']}_{key}.pt"
     if path.is_file():
         d = torch.load(path, weights_only=False)
@@ -242,7 +248,7 @@ def baseline(args, name, scene, init_spec, scene_key):
     wall = time.perf_counter() - t0
     ev = evaluate(res.model, scene.test, scene.background)
     d = {"model": res.model.state_dict(), "train_s": wall, "psnr": ev["psnr"], "n": len(res.model),
-         "config": dataclasses.asdict(cfg)}
+         "config": dataclasses.asdict(cfg), "adam": res.adam_moments}
     path.parent.mkdir(parents=True, exist_ok=True)
     torch.save(d, path)
     log(f"[baseline] {name}: {len(res.model)} Gaussians, test PSNR {ev['psnr']:.2f} dB, {wall:.0f} s")
@@ -270,8 +276,9 @@ def row_metrics(res, scene, obj, vanilla_psnr, changes_scene: bool) -> dict:
             "stages": [(s.kind, s.ambiguous, s.ambiguous_large, s.split, s.pruned) for s in res.stages]}
 
 
-def run_object(args, scene, obj, scene_type, model, vanilla_psnr, cache_dir: Path, rows) -> dict:
-    """Every requested row for one object (cached per object and settings)."""
+def run_object(args, scene, obj, scene_type, model, vanilla_psnr, cache_dir: Path, rows, moments) -> dict:
+    """Every requested row for one object (cached per object and settings); ``moments``:
+    the baseline's Adam moments, where COB-GS's texture stages start."""
     train_masks = masks_for(scene.train, obj)
     base = RefineConfig(scene_type=scene_type, stage_length_views=args.stage_views)
     out = {}
@@ -286,10 +293,14 @@ def run_object(args, scene, obj, scene_type, model, vanilla_psnr, cache_dir: Pat
     results = {}
     if {"cobgs", "cobgs_raem_paper", "t5_bags_bgtr"} & set(need):
         off = refine(model, scene.train, train_masks, scene.extent, dataclasses.replace(base, raem="off"),
-                     method="t5_bags_bgtr", **kw)
+                     method="t5_bags_bgtr", texture_moments=moments, **kw)
         results["t5_bags_bgtr"] = (off, True)
         results["cobgs"] = (apply_raem(off, "released", scene.train, method="cobgs"), True)
         results["cobgs_raem_paper"] = (apply_raem(off, "paper", scene.train, method="cobgs_raem_paper"), True)
+    if "t5_fresh_adam" in need:
+        results["t5_fresh_adam"] = (refine(model, scene.train, train_masks, scene.extent,
+                                           dataclasses.replace(base, raem="off", texture_adam="fresh"),
+                                           method="t5_fresh_adam", **kw), True)
     if "t5_bags" in need:
         results["t5_bags"] = (refine(model, scene.train, train_masks, scene.extent,
                                      dataclasses.replace(base, bgtr=False, raem="off"), method="t5_bags", **kw),
@@ -333,7 +344,7 @@ def table(name, objects, per_obj, vanilla, rows) -> str:
     return "\n".join(lines)
 
 
-def delta_sweep(args, scene, obj, scene_type, model, cache_dir: Path) -> str:
+def delta_sweep(args, scene, obj, scene_type, model, cache_dir: Path, moments) -> str:
     ref = args.sweep_ref_delta
     lines = [f"### δ sweep ({args.sweep_scene}, {obj}; COB-GS with RAEM off)", "",
              "Ambiguous = final stage-mean score below the threshold, before RAEM; counted at the run's own δ and "
@@ -347,7 +358,8 @@ def delta_sweep(args, scene, obj, scene_type, model, cache_dir: Path) -> str:
         else:
             cfg = RefineConfig(scene_type=scene_type, stage_length_views=args.stage_views, delta=d, raem="off")
             res = refine(model, scene.train, masks_for(scene.train, obj), scene.extent, cfg,
-                         background=scene.background, object_name=obj, progress=args.progress)
+                         background=scene.background, object_name=obj, progress=args.progress,
+                         texture_moments=moments)
             ev = evaluate_masks(res, scene.test, masks_for(scene.test, obj), visible=True)
             ev_am = evaluate_masks(res, scene.test, scene.amodal[obj])
             mstages = [s for s in res.stages if s.kind == "mask"]
@@ -479,13 +491,13 @@ def main(argv=None):
         log(f"[{name}] V = {len(scene.train)} train / {len(scene.test)} test views, "
             f"{scene.train[0].width}x{scene.train[0].height}, {len(model)} Gaussians, "
             f"vanilla PSNR {base['psnr']:.2f} dB, scene type {scene_type}")
-        per_obj = {obj: run_object(args, scene, obj, scene_type, model, base["psnr"], cache_dir, rows)
+        per_obj = {obj: run_object(args, scene, obj, scene_type, model, base["psnr"], cache_dir, rows, base["adam"])
                    for obj in objects}
         t = table(name, objects, per_obj, base["psnr"], rows)
         report.append(t)
         log(t)
         if not args.no_sweep and name == args.sweep_scene:
-            s = delta_sweep(args, scene, objects[0], scene_type, model, cache_dir)
+            s = delta_sweep(args, scene, objects[0], scene_type, model, cache_dir, base["adam"])
             report.append(s)
             log(s)
     out = Path(args.workdir) / f"report_{settings_key}.md"

@@ -133,6 +133,8 @@ def test_artifacts_and_metrics(tiny):
         assert m["psnr"] > 21.0 and m["psnr_vanilla"] > 21.0  # measured 23.8
     cob = json.loads((_entry(wf, cache, "refine", "tiny/cobgs/ball").output("refined") / "refine.json").read_text())
     assert cob["plan"] == ["mask", "texture", "mask", "texture", "mask"]
+    # The texture stages continued the baseline's Adam, written beside scene.ply.
+    assert (scene_dir / "adam_moments.pt").is_file() and cob["texture_adam"] == "baseline"
     assert cob["num_gaussians_end"] != cob["num_gaussians_start"]  # splits / RAEM edited the scene
 
     summ = _entry(wf, cache, "summary", "").output("summary")
