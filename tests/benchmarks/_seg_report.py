@@ -116,6 +116,10 @@ def comparisons(name: str, objects: Sequence[str], per_obj, rows: Sequence[str])
     return "\n".join(lines)
 
 
+PROTOCOLS = (("biou", "visible"), ("biou_amodal", "object-only vs silhouette"),
+             ("biou_object_only", "object-only vs visible GT"))
+
+
 def target_lines(name: str, objects: Sequence[str], per_obj, vanilla: float, rows: Sequence[str],
                  noisy: bool) -> list[str]:
     """The issue's targets for one scene, checked for each full COB-GS row.
@@ -123,6 +127,10 @@ def target_lines(name: str, objects: Sequence[str], per_obj, vanilla: float, row
     * mBIoU ≥ every peer's (the three of SPEC §3 that were run);
     * on scenes with noisy training masks: mBIoU ≥ the no-split row + 2 points;
     * PSNR of the refined scene ≥ vanilla − 0.1 dB.
+
+    The mBIoU checks are made under each of the three protocols the tables report
+    (:data:`PROTOCOLS`): which one is "the" protocol changes the verdict on the synthetic
+    scenes, so none is picked silently.
     """
     out = []
     peers = [p for p in PEERS if p in rows]
@@ -131,13 +139,16 @@ def target_lines(name: str, objects: Sequence[str], per_obj, vanilla: float, row
         if mh is None:
             continue
         parts = []
-        if peers:
-            worst = min(peers, key=lambda p: 100 * (mh["biou"] - row_means(per_obj, objects, p)["biou"]))
-            margin = 100 * (mh["biou"] - row_means(per_obj, objects, worst)["biou"])
-            parts.append(f"≥ every peer: {'met' if margin >= 0 else 'NOT met'} ({margin:+.2f} vs {ROW_LABEL[worst]})")
-        if noisy and "nosplit" in rows:
-            gain = 100 * (mh["biou"] - row_means(per_obj, objects, "nosplit")["biou"])
-            parts.append(f"≥ no-split + 2: {'met' if gain >= 2 else 'NOT met'} ({gain:+.2f})")
+        for key, proto in PROTOCOLS:
+            sub = []
+            if peers:
+                worst = min(peers, key=lambda p: mh[key] - row_means(per_obj, objects, p)[key])
+                margin = 100 * (mh[key] - row_means(per_obj, objects, worst)[key])
+                sub.append(f"≥ every peer {'met' if margin >= 0 else 'NOT met'} ({margin:+.2f} vs {ROW_LABEL[worst]})")
+            if noisy and "nosplit" in rows:
+                gain = 100 * (mh[key] - row_means(per_obj, objects, "nosplit")[key])
+                sub.append(f"≥ no-split + 2 {'met' if gain >= 2 else 'NOT met'} ({gain:+.2f})")
+            parts.append(f"{proto}: " + ", ".join(sub))
         dp = mh["psnr"] - vanilla
         parts.append(f"PSNR ≥ vanilla − 0.1: {'met' if dp >= -0.1 else 'NOT met'} ({dp:+.2f} dB)")
         out.append(f"- {name}, {ROW_LABEL[h]}: " + "; ".join(parts))
