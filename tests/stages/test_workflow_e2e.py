@@ -32,7 +32,9 @@ mode = "always"
 
 [params.sfm.options]
 camera_model = "SIMPLE_PINHOLE"
-num_threads = 2
+# One thread: COLMAP is only repeatable single-threaded (with 2 threads the held-out IoUs
+# below moved between 0.78 and 0.94 from run to run and failed a full-suite run once).
+num_threads = 1
 
 [params.train]
 iterations = 500
