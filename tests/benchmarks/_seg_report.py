@@ -79,7 +79,7 @@ def bootstrap_mean_diff(per_obj, objects: Sequence[str], row: str, other: str, k
     (stratified bootstrap, fixed seed). In points (×100).
 
     Returns:
-        {"diff", "lo", "hi", "views"} or None when the rows share no view.
+        {"diff", "lo", "hi"} or None when the rows share no view.
     """
     by_obj = {}
     for o in objects:
@@ -95,7 +95,7 @@ def bootstrap_mean_diff(per_obj, objects: Sequence[str], row: str, other: str, k
     rng = random.Random(seed)
     boots = sorted(stat({o: rng.choices(v, k=len(v)) for o, v in by_obj.items()}) for _ in range(reps))
     lo, hi = boots[int(0.025 * reps)], boots[min(reps - 1, int(math.ceil(0.975 * reps)) - 1)]
-    return {"diff": stat(by_obj), "lo": lo, "hi": hi, "views": sum(len(v) for v in by_obj.values())}
+    return {"diff": stat(by_obj), "lo": lo, "hi": hi}
 
 
 def comparisons(name: str, objects: Sequence[str], per_obj, rows: Sequence[str]) -> str:
@@ -133,7 +133,7 @@ def target_lines(name: str, objects: Sequence[str], per_obj, vanilla: float, row
     scenes, so none is picked silently.
     """
     out = []
-    peers = [p for p in PEERS if p in rows]
+    peer_means = {p: m for p in PEERS if p in rows and (m := row_means(per_obj, objects, p)) is not None}
     for h in FULL_ROWS:
         mh = row_means(per_obj, objects, h)
         if mh is None:
@@ -141,12 +141,12 @@ def target_lines(name: str, objects: Sequence[str], per_obj, vanilla: float, row
         parts = []
         for key, proto in PROTOCOLS:
             sub = []
-            if peers:
-                worst = min(peers, key=lambda p: mh[key] - row_means(per_obj, objects, p)[key])
-                margin = 100 * (mh[key] - row_means(per_obj, objects, worst)[key])
+            if peer_means:
+                worst = min(peer_means, key=lambda p: mh[key] - peer_means[p][key])
+                margin = 100 * (mh[key] - peer_means[worst][key])
                 sub.append(f"≥ every peer {'met' if margin >= 0 else 'NOT met'} ({margin:+.2f} vs {ROW_LABEL[worst]})")
-            if noisy and "nosplit" in rows:
-                gain = 100 * (mh[key] - row_means(per_obj, objects, "nosplit")[key])
+            if noisy and "nosplit" in peer_means:
+                gain = 100 * (mh[key] - peer_means["nosplit"][key])
                 sub.append(f"≥ no-split + 2 {'met' if gain >= 2 else 'NOT met'} ({gain:+.2f})")
             parts.append(f"{proto}: " + ", ".join(sub))
         dp = mh["psnr"] - vanilla

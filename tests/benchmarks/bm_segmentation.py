@@ -249,7 +249,7 @@ def load_scene(args, name: str):
 def baseline(args, name, scene, init_spec, scene_key):
     explicit = dict(iterations=args.train_iters, sh_degree=args.sh_degree, max_gaussians=args.max_gaussians,
                     random_init_points=args.init_points, seed=0, scale_densify_interval=True)
-    if getattr(args, "random_background", False) and name != "lego":
+    if args.random_background and name != "lego":  # lego: RGBA-composited, fixed background
         explicit["random_background"] = True
     cfg = TrainConfig(**explicit)
     key = key_of(dict(scene_key, train=explicit, adam_moments=True))
@@ -504,11 +504,10 @@ def main(argv=None):
             f"vanilla PSNR {base['psnr']:.2f} dB, scene type {scene_type}")
         per_obj = {obj: run_object(args, scene, obj, scene_type, model, base["psnr"], cache_dir, rows, base["adam"])
                    for obj in objects}
-        t = table(name, objects, per_obj, base["psnr"], rows)
-        c = comparisons(name, objects, per_obj, rows)
-        report.extend([t, c] if c else [t])
-        log(t)
-        log(c)
+        for part in (table(name, objects, per_obj, base["psnr"], rows), comparisons(name, objects, per_obj, rows)):
+            if part:
+                report.append(part)
+                log(part)
         targets.extend(target_lines(name, objects, per_obj, base["psnr"], rows, noisy=name.endswith("_noisy")))
         if not args.no_sweep and name == args.sweep_scene:
             s = delta_sweep(args, scene, objects[0], scene_type, model, cache_dir, base["adam"])
