@@ -6,10 +6,17 @@ first use and loads the library, which registers the ``torch.ops.cobgs.*`` ops.
 * **Cache folder:** ``$COBGS_EXT_DIR`` if set, else ``$XDG_CACHE_HOME/cobgs/ext`` (default
   ``~/.cache/cobgs/ext``). One sub-folder per build key.
 * **Build key:** sha256 of every source and header under ``csrc/`` (path and content),
-  the compiler flags, the torch version, the Python version, the machine architecture and
-  ``$CXX``. Any source change therefore builds afresh. No ``-march=native`` is used, so
-  a cached build runs on any CPU of the same architecture (which is why the CPU model
-  is not part of the key).
+  the compiler flags, the torch version, the Python version, the machine architecture,
+  ``$CXX`` and the CUDA plan (below). Any source change therefore builds afresh. No
+  ``-march=native`` is used, so a cached build runs on any CPU of the same architecture
+  (which is why the CPU model is not part of the key).
+* **CUDA:** the ``*_cuda.cu`` kernels are compiled into the same library only when torch
+  has CUDA, an ``nvcc`` of the same major version as torch's CUDA is found
+  (``$CUDA_HOME/bin/nvcc``, else ``nvcc`` on the PATH) and the target architectures are
+  known: ``$TORCH_CUDA_ARCH_LIST`` (e.g. ``"9.0"`` or ``"8.6;9.0"``), else those of the
+  visible GPUs. ``$COBGS_CUDA`` = ``0`` builds the CPU kernels only; ``1`` makes a missing
+  piece an error instead of a CPU-only build. ``$MAX_JOBS`` caps the parallel compiler
+  jobs (torch's own setting). :func:`cuda_plan` says what was decided and why.
 * **Concurrency:** several processes may call this at once (pytest workers, other
   sessions). The build runs under an exclusive ``flock`` on ``<key>.lock`` (released by
   the OS if a process dies), in a private temporary folder that is renamed into place
@@ -49,6 +56,11 @@ CSRC = _REPO_CSRC if _REPO_CSRC.is_dir() else Path(__file__).resolve().parent / 
 # -fno-math-errno lets sqrt/floor inline. No -march=native (see the module docstring).
 CFLAGS = ["-O3", "-fopenmp", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math"]
 LDFLAGS = ["-fopenmp"]
+# nvcc: --fmad=false keeps a*b+c unfused, as -ffp-contract=off on the host, so the CUDA
+# kernels evaluate the shared formulas (csrc/common/gs_math.h, sh_math.h) with the same
+# roundings as the CPU kernels (identical pixel decisions and label counts);
+# --expt-relaxed-constexpr lets device code call the constexpr std helpers they use.
+CUDA_FLAGS = ["-O3", "--fmad=false", "--expt-relaxed-constexpr", "-lineinfo"]
 
 
 def _cflags() -> List[str]:
@@ -80,10 +92,106 @@ def _source_files() -> List[Path]:
     return sorted(p for p in CSRC.rglob("*") if p.suffix in (".cpp", ".h", ".cu", ".cuh"))
 
 
+_TRUE = ("1", "on", "yes", "true", "required")
+_FALSE = ("0", "off", "no", "false")
+
+
+def _cuda_home() -> Optional[Path]:
+    """The CUDA toolkit folder: $CUDA_HOME / $CUDA_PATH, else the one holding the nvcc on
+    the PATH (its real location; a wrapper script on the PATH is looked through to
+    /usr/local/cuda), else /usr/local/cuda. None when none holds bin/nvcc and
+    include/cuda_runtime.h."""
+    candidates = [os.environ.get("CUDA_HOME"), os.environ.get("CUDA_PATH")]
+    found = shutil.which("nvcc")
+    if found:
+        candidates.append(str(Path(found).resolve().parents[1]))
+    candidates.append("/usr/local/cuda")
+    for c in candidates:
+        if c and (Path(c) / "bin" / "nvcc").is_file() and \
+                (Path(c) / "include" / "cuda_runtime.h").is_file():
+            return Path(c)
+    return None
+
+
+def _nvcc_version(nvcc: str) -> Optional[str]:
+    try:
+        out = subprocess.run([nvcc, "--version"], capture_output=True, text=True,
+                             timeout=60).stdout
+    except (OSError, subprocess.SubprocessError):
+        return None
+    for line in out.splitlines():
+        if "release" in line:  # "Cuda compilation tools, release 13.0, V13.0.88"
+            return line.split("release", 1)[1].split(",")[0].strip()
+    return None
+
+
+def _visible_archs() -> str:
+    import torch
+
+    try:
+        if not torch.cuda.is_available():
+            return ""
+        caps = {torch.cuda.get_device_capability(i) for i in range(torch.cuda.device_count())}
+    except Exception:  # a broken driver: no GPU to build for
+        return ""
+    return ";".join(f"{major}.{minor}" for major, minor in sorted(caps))
+
+
+_plan_cache: dict = {}
+
+
+def cuda_plan() -> dict:
+    """Whether this build includes the CUDA kernels, and with what.
+
+    Returns ``{"enabled": True, "nvcc": path, "nvcc_version": "13.0", "arch": "9.0",
+    "flags": [...]}`` or ``{"enabled": False, "reason": "..."}``.
+
+    Raises:
+        BuildError: ``$COBGS_CUDA=1`` and a piece is missing.
+    """
+    import torch
+
+    mode = os.environ.get("COBGS_CUDA", "auto").strip().lower()
+    env_key = (mode, os.environ.get("TORCH_CUDA_ARCH_LIST", ""), os.environ.get("CUDA_HOME", ""),
+               os.environ.get("PATH", ""))
+    if env_key in _plan_cache:
+        return _plan_cache[env_key]
+    reason = None
+    plan: dict = {"enabled": False}
+    if mode in _FALSE:
+        reason = "disabled by COBGS_CUDA=0"
+    elif torch.version.cuda is None:
+        reason = f"this torch ({torch.__version__}) is built without CUDA"
+    else:
+        home = _cuda_home()
+        nvcc = str(home / "bin" / "nvcc") if home else None
+        version = _nvcc_version(nvcc) if nvcc else None
+        arch = os.environ.get("TORCH_CUDA_ARCH_LIST", "").strip() or _visible_archs()
+        if nvcc is None:
+            reason = (f"no CUDA toolkit found (torch is built with CUDA {torch.version.cuda}; "
+                      f"install the toolkit of that major version, or set CUDA_HOME to it)")
+        elif version is None or version.split(".")[0] != torch.version.cuda.split(".")[0]:
+            reason = (f"{nvcc} is CUDA {version or 'of unknown version'}, torch is built with "
+                      f"CUDA {torch.version.cuda} (the major versions must match)")
+        elif not arch:
+            reason = ("no CUDA device is visible and TORCH_CUDA_ARCH_LIST is not set "
+                      "(e.g. TORCH_CUDA_ARCH_LIST=9.0 for an H100)")
+        else:
+            plan = {"enabled": True, "nvcc": nvcc, "cuda_home": str(home),
+                    "nvcc_version": version, "arch": arch, "flags": CUDA_FLAGS}
+    if reason is not None:
+        if mode in _TRUE:
+            raise BuildError(f"COBGS_CUDA={mode} asks for the CUDA kernels, but {reason}")
+        plan["reason"] = reason
+    _plan_cache[env_key] = plan
+    return plan
+
+
 def build_key() -> str:
     """Hex digest identifying one build of the current sources and toolchain."""
     import torch
 
+    plan = cuda_plan()
     h = hashlib.sha256()
     for path in _source_files():
         h.update(str(path.relative_to(CSRC)).encode() + b"\0" + path.read_bytes() + b"\0")
@@ -91,6 +199,8 @@ def build_key() -> str:
         "cflags": _cflags(), "ldflags": LDFLAGS, "torch": torch.__version__,
         "python": list(sys.version_info[:2]), "machine": platform.machine(),
         "cxx": os.environ.get("CXX", ""),
+        "cuda": {k: plan[k] for k in ("nvcc_version", "arch", "flags")} if plan["enabled"]
+        else None,
     }, sort_keys=True).encode())
     return h.hexdigest()
 
@@ -134,8 +244,8 @@ import sys, json
 from torch.utils.cpp_extension import load
 a = json.loads(sys.argv[1])
 load(name=a["name"], sources=a["sources"], build_directory=a["build_dir"],
-     extra_cflags=a["cflags"], extra_ldflags=a["ldflags"], verbose=True,
-     is_python_module=False)
+     extra_cflags=a["cflags"], extra_ldflags=a["ldflags"],
+     extra_cuda_cflags=a["cuda_cflags"], verbose=True, is_python_module=False)
 """
 
 
@@ -144,13 +254,21 @@ def _compile(name: str, root: Path, final: Path, verbose: bool) -> None:
     for stale in root.glob(f"{name}.build-*"):  # left by a crashed build (we hold the lock)
         shutil.rmtree(stale, ignore_errors=True)
     tmp = Path(tempfile.mkdtemp(prefix=f"{name}.build-", dir=root))
-    sources = [str(p) for p in _source_files() if p.suffix == ".cpp"]
+    plan = cuda_plan()
+    suffixes = (".cpp", ".cu") if plan["enabled"] else (".cpp",)
+    sources = [str(p) for p in _source_files() if p.suffix in suffixes]
     args = json.dumps({"name": name, "sources": sources, "build_dir": str(tmp),
-                       "cflags": _cflags(), "ldflags": LDFLAGS})
+                       "cflags": _cflags(), "ldflags": LDFLAGS,
+                       "cuda_cflags": plan.get("flags", [])})
     env = dict(os.environ)
     env["PATH"] = str(Path(sys.executable).parent) + os.pathsep + env.get("PATH", "")
+    if plan["enabled"]:
+        env["CUDA_HOME"] = plan["cuda_home"]
+        env["TORCH_CUDA_ARCH_LIST"] = plan["arch"]
     if verbose:
-        print(f"cobgs: building {name} in {tmp}", file=sys.stderr, flush=True)
+        what = (f"CPU + CUDA kernels for {plan['arch']}" if plan["enabled"]
+                else f"CPU kernels only ({plan['reason']})")
+        print(f"cobgs: building {name} in {tmp}: {what}", file=sys.stderr, flush=True)
     proc = subprocess.run([sys.executable, "-c", _CHILD, args], stdout=subprocess.PIPE,
                           stderr=subprocess.STDOUT, env=env, text=True)
     if verbose:
@@ -165,6 +283,14 @@ def _compile(name: str, root: Path, final: Path, verbose: bool) -> None:
     if final.exists():
         shutil.rmtree(final)
     os.replace(tmp, final)
+
+
+def has_cuda_kernels() -> bool:
+    """Whether the loaded extension registered CUDA kernels (loads it if needed)."""
+    load_extension()
+    import torch
+
+    return torch._C._dispatch_has_kernel_for_dispatch_key("cobgs::blend", "CUDA")
 
 
 def load_extension(verbose: bool = False, force: bool = False) -> str:

@@ -72,7 +72,7 @@ def _register() -> None:
 
     @lib.register_fake("cobgs::blend")
     def _blend_fake(means2d, conics, opacities, features, background, tile_offsets,
-                    flat_ids, width, height, pixel_labels, num_labels, prep=None):
+                    flat_ids, width, height, pixel_labels, num_labels, prep=None, check=True):
         rows = means2d.shape[0] if pixel_labels is not None else 0
         return (features.new_empty(height, width, features.shape[1]),
                 features.new_empty(height, width),
@@ -83,7 +83,7 @@ def _register() -> None:
     @lib.register_fake("cobgs::blend_bwd")
     def _blend_bwd_fake(means2d, conics, opacities, features, background, tile_offsets,
                         flat_ids, transmittance, n_contrib, v_image, v_transmittance,
-                        prep=None):
+                        prep=None, check=True):
         return (torch.empty_like(means2d), torch.empty_like(conics),
                 torch.empty_like(opacities), torch.empty_like(features),
                 torch.empty_like(background))
@@ -110,6 +110,7 @@ def _register() -> None:
         (means2d, conics, opacities, features, background, tile_offsets, flat_ids,
          _w, _h, _labels, _k, *rest) = inputs
         prep = rest[0] if rest else None
+        ctx.check = bool(rest[1]) if len(rest) > 1 else True
         ctx.has_prep = prep is not None
         ctx.save_for_backward(means2d, conics, opacities, features, background, tile_offsets,
                               flat_ids, output[1], output[2], *([prep] if ctx.has_prep else []))
@@ -123,8 +124,8 @@ def _register() -> None:
         v_trans = _or_zeros(v_trans, (h, w), features)
         grads = torch.ops.cobgs.blend_bwd(means2d, conics, opacities, features, background,
                                           tile_offsets, flat_ids, trans, n_contrib, v_image,
-                                          v_trans, prep)
-        return (*grads, None, None, None, None, None, None, None)
+                                          v_trans, prep, ctx.check)
+        return (*grads, None, None, None, None, None, None, None, None)
 
     lib.register_autograd("cobgs::blend", blend_backward, setup_context=blend_setup)
 
@@ -202,11 +203,14 @@ def bin_tiles_tight(means2d, radii, depths, conics, opacities, width: int,
 
 def blend(means2d, conics, opacities, features, background, tile_offsets, flat_ids,
           width: int, height: int, pixel_labels: Optional[Tensor] = None,
-          num_labels: int = 2, prep: Optional[Tensor] = None):
+          num_labels: int = 2, prep: Optional[Tensor] = None, check: bool = True):
     """Native ``cobgs::blend`` (see :func:`cobgs.reference.blend_reference`).
 
     ``prep``: the third output of :func:`bin_tiles_tight` for the same means2d / conics /
     opacities (saves recomputing it in both passes), or None.
+    ``check``: on CUDA, raise on bad tile lists / labels / n_contrib (the kernels find
+    them; reading their verdict synchronises with the host). False for lists made by
+    :func:`bin_tiles` (bad values are skipped, never dereferenced, either way).
 
     Returns image [H, W, C], transmittance [H, W], n_contrib [H, W] int32, label_counts
     [N, K] int32 and label_weights [N, K] float32 (both [0, K] without pixel_labels).
@@ -217,7 +221,7 @@ def blend(means2d, conics, opacities, features, background, tile_offsets, flat_i
     return torch.ops.cobgs.blend(means2d.contiguous(), conics.contiguous(),
                                  opacities.contiguous(), features.contiguous(),
                                  background.contiguous(), tile_offsets, flat_ids, width, height,
-                                 pixel_labels, num_labels, prep)
+                                 pixel_labels, num_labels, prep, check)
 
 
 def sh_colors(means, sh0, shN, center, degree: int) -> Tensor:
@@ -242,6 +246,43 @@ def sh_colors(means, sh0, shN, center, degree: int) -> Tensor:
 def is_loaded() -> bool:
     """Whether the native ops are loaded in this process (never triggers a build)."""
     return _ready
+
+
+def serves(device: torch.device) -> bool:
+    """Whether the loaded native ops have kernels for ``device`` (CPU always; CUDA when
+    the extension was built with its CUDA kernels). Never triggers a build: False until
+    the extension is loaded."""
+    if not _ready:
+        return False
+    if device.type == "cpu":
+        return True
+    if device.type == "cuda":
+        global _cuda_kernels
+        if _cuda_kernels is None:
+            _cuda_kernels = _build.has_cuda_kernels()
+        return _cuda_kernels
+    return False
+
+
+_cuda_kernels: Optional[bool] = None
+
+
+def check_serves(device: torch.device) -> None:
+    """Load the extension and raise :class:`~cobgs.errors.InputError` naming why when it
+    has no kernels for ``device``."""
+    from .errors import InputError
+
+    ensure_loaded()
+    if serves(device):
+        return
+    if device.type == "cuda":
+        plan = _build.cuda_plan()
+        raise InputError(f"the native backend has no CUDA kernels in this build "
+                         f"({plan.get('reason', 'built without them')}); rebuild with "
+                         f"`cobgs build --force` once that is fixed, or use "
+                         f"backend=\"reference\" on {device}")
+    raise InputError(f"the native backend runs on the CPU and on CUDA devices; got tensors on "
+                     f"{device} (use backend=\"reference\")")
 
 
 def ssim_mean_grad(x: Tensor, y: Tensor, g: Tensor) -> Tuple[Tensor, Tensor]:
@@ -278,9 +319,10 @@ def rasterize_native(means, quats, scales, opacities, features, viewmat, K, widt
     means2d, conics, depths, radii = project(means, quats, scales, viewmat, K, width, height)
     tile_offsets, flat_ids, prep = bin_tiles_tight(means2d, radii, depths, conics, opacities,
                                                    width, height)
+    # The lists are bin_tiles_tight's own: no need to have the kernels' checks read back.
     image, trans, _n_contrib, counts, weights = blend(
         means2d, conics, opacities, features, background, tile_offsets, flat_ids, width,
-        height, pixel_labels, num_labels, prep)
+        height, pixel_labels, num_labels, prep, check=False)
     has_labels = pixel_labels is not None
     return RasterOutput(image=image, alpha=1 - trans, transmittance=trans, radii=radii,
                         means2d=means2d, conics=conics, depths=depths,

@@ -34,10 +34,10 @@ def _to_nchw(img: Tensor, name: str) -> Tensor:
 
 def _blur(t: Tensor, g: Tensor) -> Tensor:
     """Separable zero-padded Gaussian blur of every channel of [B, K, H, W]."""
-    if t.device.type == "cpu" and not (torch.is_grad_enabled() and t.requires_grad):
+    if not (torch.is_grad_enabled() and t.requires_grad):
         from . import _ops
 
-        if _ops.is_loaded():  # the native op, when the rasterizer already loaded it
+        if _ops.serves(t.device):  # the native op, when the rasterizer already loaded it
             return _ops.gauss_blur(t, g)
     k, n = t.shape[1], g.shape[0]
     pad = n // 2
@@ -115,8 +115,8 @@ class _MeanSSIM(torch.autograd.Function):
 
 
 class _NativeMeanSSIM(torch.autograd.Function):
-    """:class:`_MeanSSIM` on the native ``cobgs::ssim_mean_grad`` op (CPU, extension
-    loaded): the forward also computes the gradient (one fused pass instead of about 25
+    """:class:`_MeanSSIM` on the native ``cobgs::ssim_mean_grad`` op (CPU or CUDA,
+    extension loaded): the forward also computes the gradient (one fused pass instead of about 25
     full-image tensors), the backward scales it."""
 
     @staticmethod
@@ -143,7 +143,7 @@ def ssim(img: Tensor, ref: Tensor) -> Tensor:
 
     When only ``img`` needs a gradient (training against a fixed image) the analytic
     backward of :class:`_MeanSSIM` is used (fused into one native op,
-    :class:`_NativeMeanSSIM`, on the CPU once the extension is loaded); otherwise plain
+    :class:`_NativeMeanSSIM`, on the CPU and CUDA once the extension is loaded); otherwise plain
     autograd.
     """
     _check_pair(img, ref)
@@ -151,10 +151,10 @@ def ssim(img: Tensor, ref: Tensor) -> Tensor:
         return ssim_map(img, ref).mean()
     x, y = _to_nchw(img, "img").contiguous(), _to_nchw(ref, "ref").contiguous()
     g = _gauss_1d(SSIM_WINDOW, SSIM_SIGMA, x.dtype, str(x.device))
-    if x.device.type == "cpu" and y.dtype == x.dtype:
+    if y.dtype == x.dtype:
         from . import _ops
 
-        if _ops.is_loaded():  # the native fused op, when the rasterizer already loaded it
+        if _ops.serves(x.device):  # the native fused op, when the rasterizer already loaded it
             return _NativeMeanSSIM.apply(x, y, g)
     return _MeanSSIM.apply(x, y, g)
 
@@ -167,8 +167,8 @@ def l1_loss(img: Tensor, ref: Tensor) -> Tensor:
 
 
 class _NativePhotometricLoss(torch.autograd.Function):
-    """:func:`photometric_loss` on the native ``cobgs::photometric_loss_grad`` op (CPU,
-    extension loaded, ref fixed): L1, SSIM and the gradient of their mix in one pass over
+    """:func:`photometric_loss` on the native ``cobgs::photometric_loss_grad`` op (CPU or
+    CUDA, extension loaded, ref fixed): L1, SSIM and the gradient of their mix in one pass over
     the channel-last images (no NCHW copies, no separate L1 graph); the backward scales
     the gradient."""
 
@@ -176,7 +176,7 @@ class _NativePhotometricLoss(torch.autograd.Function):
     def forward(ctx, img: Tensor, ref: Tensor, ssim_weight: float) -> Tensor:
         from . import _ops
 
-        g = _gauss_1d(SSIM_WINDOW, SSIM_SIGMA, img.dtype, "cpu")
+        g = _gauss_1d(SSIM_WINDOW, SSIM_SIGMA, img.dtype, str(img.device))
         l1, s, grad = _ops.photometric_loss_grad(img.detach(), ref.detach(), g, ssim_weight)
         ctx.save_for_backward(grad)
         return (1.0 - ssim_weight) * l1 + ssim_weight * (1.0 - s)
@@ -190,8 +190,8 @@ class _NativePhotometricLoss(torch.autograd.Function):
 def photometric_loss(img: Tensor, ref: Tensor, ssim_weight: float = 0.2) -> Tensor:
     """3DGS loss: (1 - λ) L1 + λ (1 - SSIM), λ = 0.2.
 
-    On the CPU with the native extension loaded, when only ``img`` needs a gradient (a
-    training step), the fused :class:`_NativePhotometricLoss`; otherwise L1 and
+    With the native extension loaded (CPU, or CUDA when it has its kernels), when only
+    ``img`` needs a gradient (a training step), the fused :class:`_NativePhotometricLoss`; otherwise L1 and
     :func:`ssim` separately (same value and gradient up to rounding).
 
     Args:
@@ -199,11 +199,11 @@ def photometric_loss(img: Tensor, ref: Tensor, ssim_weight: float = 0.2) -> Tens
         ref: the ground truth, same shape.
     """
     _check_pair(img, ref)
-    if (img.device.type == "cpu" and img.requires_grad and not ref.requires_grad
-            and img.dim() in (3, 4) and ref.dtype == img.dtype
+    if (img.requires_grad and not ref.requires_grad
+            and img.dim() in (3, 4) and ref.dtype == img.dtype and ref.device == img.device
             and img.dtype in (torch.float32, torch.float64) and 0.0 <= ssim_weight <= 1.0):
         from . import _ops
 
-        if _ops.is_loaded():
+        if _ops.serves(img.device):
             return _NativePhotometricLoss.apply(img, ref, float(ssim_weight))
     return (1.0 - ssim_weight) * l1_loss(img, ref) + ssim_weight * (1.0 - ssim(img, ref))

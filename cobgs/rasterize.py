@@ -13,6 +13,7 @@ from typing import Optional
 
 import torch
 from torch import Tensor
+from torch.utils.weak import WeakIdKeyDictionary
 
 from .errors import InputError, check_shape
 from .reference import RasterOutput, rasterize_reference
@@ -59,7 +60,8 @@ def rasterize(
         pixel_labels: Tensor  # [H, W] integer labels 0..num_labels-1, -1 = ignore;
             when given, per-Gaussian label statistics are returned
         num_labels: K, the number of labels
-        backend: "native" (C++ ops, CPU) or "reference" (pure PyTorch, any device)
+        backend: "native" (C++ / CUDA ops: CPU, and CUDA devices when the extension was
+            built with its CUDA kernels) or "reference" (pure PyTorch, any device)
 
     Returns:
         RasterOutput with ``image`` [H, W, C], ``alpha`` [H, W], ``transmittance``
@@ -141,32 +143,67 @@ def _validate(means, quats, scales, opacities, features, viewmat, K, width, heig
         if name in ("viewmat", "K") and not value.dtype.is_floating_point:
             raise InputError(f"{name} must be a floating-point tensor, got {value.dtype}")
     if backend == "native" and means.device.type != "cpu":
-        raise InputError(f"the native backend runs on the CPU only; got tensors on "
-                         f"{means.device} (use backend=\"reference\")")
+        from . import _ops
+
+        _ops.check_serves(means.device)  # CUDA kernels built, or a clear error
 
     with torch.no_grad():
-        if not torch.equal(viewmat[3].double().cpu(),
-                           torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)):
-            raise InputError(f"viewmat must be a world->camera transform with last row "
-                             f"[0, 0, 0, 1], got {viewmat[3].tolist()}")
-        k = K.double().cpu()
-        if k[0, 1] != 0 or k[1, 0] != 0 or not torch.equal(
-                k[2], torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)):
-            raise InputError(f"K must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew), "
-                             f"got {k.tolist()}")
-        if not (k[0, 0] > 0 and k[1, 1] > 0):
-            raise InputError(f"K must have positive focal lengths, got fx = {k[0, 0].item()}, "
-                             f"fy = {k[1, 1].item()}")
+        if not _seen(("camera",), (viewmat, K)):
+            _check_camera(viewmat, K)
+            _passed(("camera",), (viewmat, K))
         if pixel_labels is not None:
             if pixel_labels.dtype.is_floating_point or pixel_labels.dtype.is_complex or \
                     pixel_labels.dtype == torch.bool:
                 raise InputError(f"pixel_labels must have an integer dtype, got "
                                  f"{pixel_labels.dtype}")
-            if pixel_labels.numel():
+            if pixel_labels.numel() and not _seen(("labels", num_labels), (pixel_labels,)):
                 lo, hi = (int(v) for v in torch.aminmax(pixel_labels))
                 if lo < -1 or hi >= num_labels:
                     raise InputError(f"pixel_labels must lie in -1..{num_labels - 1} "
                                      f"(num_labels = {num_labels}), got values in {lo}..{hi}")
+                _passed(("labels", num_labels), (pixel_labels,))
+
+
+# Value checks of device tensors read their values back to the host (a synchronisation
+# that stalls a GPU pipeline). Tensors that passed are remembered while they live and stay
+# unchanged (same objects, same in-place version counters): a training loop renders the
+# same cameras and label maps again and again. CPU tensors are always checked.
+_PASSED = WeakIdKeyDictionary()
+
+
+def _key(what: tuple, tensors: tuple) -> tuple:
+    return what, tuple(id(t) for t in tensors[1:]), tuple(t._version for t in tensors)
+
+
+def _seen(what: tuple, tensors: tuple) -> bool:
+    """Whether these exact tensors, unchanged, passed the check ``what`` before."""
+    if tensors[0].device.type == "cpu":
+        return False
+    entry = _PASSED.get(tensors[0])
+    return entry is not None and entry[0] == _key(what, tensors)
+
+
+def _passed(what: tuple, tensors: tuple) -> None:
+    """Remember that the tensors passed ``what`` (one check remembered per tensor; the
+    others are held, so that their ids stay theirs while the entry lives)."""
+    if tensors[0].device.type != "cpu":
+        _PASSED[tensors[0]] = (_key(what, tensors), tensors[1:])
+
+
+def _check_camera(viewmat: Tensor, K: Tensor) -> None:
+    # One copy to the host for both.
+    cam = torch.cat([viewmat[3].double(), K.double().flatten()]).cpu()
+    last_row, k = cam[:4], cam[4:].reshape(3, 3)
+    if not torch.equal(last_row, torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)):
+        raise InputError(f"viewmat must be a world->camera transform with last row "
+                         f"[0, 0, 0, 1], got {last_row.tolist()}")
+    if k[0, 1] != 0 or k[1, 0] != 0 or not torch.equal(
+            k[2], torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)):
+        raise InputError(f"K must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew), "
+                         f"got {k.tolist()}")
+    if not (k[0, 0] > 0 and k[1, 1] > 0):
+        raise InputError(f"K must have positive focal lengths, got fx = {k[0, 0].item()}, "
+                         f"fy = {k[1, 1].item()}")
 
 
 class _CallableModule(types.ModuleType):

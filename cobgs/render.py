@@ -44,9 +44,10 @@ def render(
     dev = model.device
     cam = camera.to(dev)
     if features is None:
-        if backend == "native" and dev.type == "cpu":
+        from . import _ops
+
+        if backend == "native" and (dev.type == "cpu" or _ops.serves(dev)):
             # One native op instead of ~60 small ATen ops (and their autograd nodes).
-            from . import _ops
 
             deg = model.active_sh_degree if sh_degree is None else int(sh_degree)
             features = _ops.sh_colors(model.data["means"], model.data["sh0"],

@@ -241,7 +241,10 @@ class Trainer:
                 f"images were composited on the fixed background {tuple(scene.background)}: "
                 "train it with random_background=False"
             )
-        self.model = model if model is not None else initial_model(scene, config, init_rng)
+        # The device of the scene's images (cobgs.render moves each camera to the model's).
+        self.device = scene.train[0].image.device
+        model = model if model is not None else initial_model(scene, config, init_rng)
+        self.model = model.to(self.device) if model.device != self.device else model
         self.optimizer = self._make_optimizer()
         self.iteration = 0
         self.view_queue: list[int] = []
@@ -263,10 +266,10 @@ class Trainer:
         )
 
     def _reset_stats(self) -> None:
-        n = len(self.model)
-        self.grad_accum = torch.zeros(n)
-        self.grad_count = torch.zeros(n)
-        self.max_radii = torch.zeros(n)
+        n, dev = len(self.model), self.model.device
+        self.grad_accum = torch.zeros(n, device=dev)
+        self.grad_count = torch.zeros(n, device=dev)
+        self.max_radii = torch.zeros(n, device=dev)
 
     def _next_view(self) -> View:
         if not self.view_queue:
@@ -322,7 +325,7 @@ class Trainer:
         # iteration at 100k Gaussians). Culled Gaussians have radius 0 and zero gradient.
         vis = (radii > 0).to(self.grad_count.dtype)
         # The 2e-4 threshold is in NDC units: x_pix = ((x_ndc + 1) W - 1) / 2.
-        scale = torch.tensor([width / 2.0, height / 2.0], dtype=grad2d.dtype)
+        scale = torch.tensor([width / 2.0, height / 2.0], dtype=grad2d.dtype, device=grad2d.device)
         self.grad_accum += (grad2d * scale).norm(dim=-1) * vis
         self.grad_count += vis
         torch.maximum(self.max_radii, radii.to(self.max_radii.dtype), out=self.max_radii)
@@ -349,7 +352,7 @@ class Trainer:
         opts = [self.optimizer]
         # Clones are exact copies (they separate under the next gradient steps); they are
         # appended after the originals, so the split mask is padded with False for them.
-        split_padded = torch.cat([split, torch.zeros(n_clone, dtype=torch.bool)])
+        split_padded = torch.cat([split, torch.zeros(n_clone, dtype=torch.bool, device=split.device)])
         if n_clone:
             m.append(m.gather(clone), opts)
         if n_split:
@@ -361,7 +364,7 @@ class Trainer:
         # split parents leave, children start at 0.
         radii = torch.cat([self.max_radii, self.max_radii[clone]])
         if n_split:
-            radii = torch.cat([radii[~split_padded], torch.zeros(n_split * c.split_children)])
+            radii = torch.cat([radii[~split_padded], radii.new_zeros(n_split * c.split_children)])
         prune = m.opacities.detach() < c.prune_min_opacity
         if self.iteration > self.sched.opacity_reset_interval:
             prune |= m.scales.detach().max(dim=1).values > c.prune_max_world_scale_fraction * self.extent
@@ -405,10 +408,11 @@ class Trainer:
                 "checkpoint was written with a different TrainConfig: "
                 + ", ".join(f"{k}={saved[k]!r} (now {now.get(k)!r})" for k in diff)
             )
-        self.model = GaussianModel.from_state_dict(state["model"])
+        self.model = GaussianModel.from_state_dict(state["model"]).to(self.device)
         self.optimizer = self._make_optimizer()
         self.optimizer.load_state_dict(state["optimizer"])
-        self.grad_accum, self.grad_count, self.max_radii = (t.clone() for t in state["stats"])
+        self.grad_accum, self.grad_count, self.max_radii = (t.to(self.device).clone()
+                                                            for t in state["stats"])
         self.iteration = int(state["iteration"])
         self.view_queue = list(state["view_queue"])
         self.view_rng.set_state(state["view_rng"])

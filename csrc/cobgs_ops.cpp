@@ -2,6 +2,11 @@
 // register their implementations per backend with TORCH_LIBRARY_IMPL in their own files;
 // autograd formulas and shape-only fake kernels are registered from Python
 // (cobgs/_ops.py). Tensor shapes are documented in each op family's header.
+//
+// blend / blend_bwd `check`: whether the CUDA kernels report bad tile lists, labels and
+// n_contrib as errors (one synchronisation with the host per call). Bad values are never
+// dereferenced either way; rasterize passes False for the lists it made itself. The CPU
+// kernels always check (on the host, at no synchronisation cost).
 #include <torch/library.h>
 
 TORCH_LIBRARY(cobgs, m) {
@@ -26,13 +31,13 @@ TORCH_LIBRARY(cobgs, m) {
   m.def(
       "blend(Tensor means2d, Tensor conics, Tensor opacities, Tensor features, "
       "Tensor background, Tensor tile_offsets, Tensor flat_ids, int width, int height, "
-      "Tensor? pixel_labels, int num_labels, Tensor? prep=None) -> (Tensor image, Tensor transmittance, "
-      "Tensor n_contrib, Tensor label_counts, Tensor label_weights)");
+      "Tensor? pixel_labels, int num_labels, Tensor? prep=None, bool check=True) -> (Tensor image, "
+      "Tensor transmittance, Tensor n_contrib, Tensor label_counts, Tensor label_weights)");
   m.def(
       "blend_bwd(Tensor means2d, Tensor conics, Tensor opacities, Tensor features, "
       "Tensor background, Tensor tile_offsets, Tensor flat_ids, Tensor transmittance, "
-      "Tensor n_contrib, Tensor v_image, Tensor v_transmittance, Tensor? prep=None) "
-      "-> (Tensor v_means2d, "
+      "Tensor n_contrib, Tensor v_image, Tensor v_transmittance, Tensor? prep=None, "
+      "bool check=True) -> (Tensor v_means2d, "
       "Tensor v_conics, Tensor v_opacities, Tensor v_features, Tensor v_background)");
   // csrc/sh/sh.h
   m.def(

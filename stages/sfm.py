@@ -57,6 +57,13 @@ def _run(ctx, inputs):
                               "(set sfm.mode = 'auto' to use its own poses)")
     image_dir = spec_path(Path(inputs["dataset"]), images["dir"])
     device = "cuda" if ctx.device.startswith("cuda") else "cpu"
+    if device == "cuda":
+        import pycolmap
+
+        if not pycolmap.has_cuda:  # PyPI's pycolmap wheels are CPU builds
+            ctx.log.info("pycolmap %s has no CUDA: SIFT extraction and matching run on the CPU "
+                         "(the rest of the workflow stays on %s)", pycolmap.__version__, ctx.device)
+            device = "cpu"
     opts = to_config(p.options, SfmOptions, device=device)
     ctx.log.info("SfM on %d images of %s (%s matcher, %s)", len(images["names"]), image_dir,
                  opts.matcher, opts.camera_model)

@@ -120,6 +120,7 @@ def test_cli_build_reports_the_library():
                           text=True, cwd=REPO, timeout=600)
     assert proc.returncode == 0, proc.stderr
     assert "cobgs native extension ready:" in proc.stdout and ".so" in proc.stdout
+    assert "CUDA kernels: " in proc.stdout  # built, or why not
 
 
 def test_wheel_carries_the_sources_and_builds_from_them(tmp_path):
@@ -146,3 +147,57 @@ def test_wheel_carries_the_sources_and_builds_from_them(tmp_path):
                          text=True, timeout=120, check=True).stdout.split()
     assert out[0] == str((site / "cobgs" / "_csrc").resolve())
     assert out[1] == _build.build_key()
+
+
+def test_cuda_plan_says_why_the_cuda_kernels_are_left_out(monkeypatch):
+    """On this CPU torch the plan is CPU-only with the reason; COBGS_CUDA=0 forces that,
+    COBGS_CUDA=1 turns a missing piece into an error naming it."""
+    import torch
+
+    monkeypatch.setenv("COBGS_CUDA", "0")
+    plan = _build.cuda_plan()
+    assert plan == {"enabled": False, "reason": "disabled by COBGS_CUDA=0"}
+    monkeypatch.setenv("COBGS_CUDA", "auto")
+    plan = _build.cuda_plan()
+    if torch.version.cuda is None:
+        assert not plan["enabled"] and "built without CUDA" in plan["reason"]
+        monkeypatch.setenv("COBGS_CUDA", "1")
+        with pytest.raises(BuildError, match="COBGS_CUDA=1 asks for the CUDA kernels, but this "
+                                             "torch .* is built without CUDA"):
+            _build.cuda_plan()
+
+
+def test_cuda_plan_enters_the_build_key(monkeypatch):
+    """A CUDA build and a CPU-only build of the same sources are different libraries."""
+    monkeypatch.setattr(_build, "cuda_plan", lambda: {"enabled": False, "reason": "x"})
+    cpu_only = _build.build_key()
+    monkeypatch.setattr(_build, "cuda_plan", lambda: {
+        "enabled": True, "nvcc": "/x/nvcc", "cuda_home": "/x", "nvcc_version": "13.0",
+        "arch": "9.0", "flags": _build.CUDA_FLAGS})
+    with_cuda = _build.build_key()
+    monkeypatch.setattr(_build, "cuda_plan", lambda: {
+        "enabled": True, "nvcc": "/x/nvcc", "cuda_home": "/x", "nvcc_version": "13.0",
+        "arch": "8.6;9.0", "flags": _build.CUDA_FLAGS})
+    assert len({cpu_only, with_cuda, _build.build_key()}) == 3
+
+
+def test_cuda_home_is_found_through_a_wrapper_script(tmp_path, monkeypatch):
+    """An nvcc on the PATH that is a wrapper script (not a link) does not mislead the
+    toolkit search: CUDA_HOME, then the folder holding bin/nvcc and include/."""
+    home = tmp_path / "cuda-13.0"
+    (home / "bin").mkdir(parents=True)
+    (home / "include").mkdir()
+    (home / "bin" / "nvcc").write_text("#!/bin/sh\n")
+    (home / "include" / "cuda_runtime.h").write_text("")
+    wrapper = tmp_path / "wrap"
+    wrapper.mkdir()
+    (wrapper / "nvcc").write_text(f"#!/bin/sh\nexec {home}/bin/nvcc \"$@\"\n")
+    (wrapper / "nvcc").chmod(0o755)
+    monkeypatch.delenv("CUDA_PATH", raising=False)
+    monkeypatch.setenv("CUDA_HOME", str(home))
+    assert _build._cuda_home() == home
+    monkeypatch.delenv("CUDA_HOME")
+    monkeypatch.setenv("PATH", str(wrapper))
+    found = _build._cuda_home()
+    assert found != wrapper.parent  # never the wrapper's parent folder
+    assert found is None or (found / "include" / "cuda_runtime.h").is_file()

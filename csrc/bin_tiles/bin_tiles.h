@@ -7,7 +7,45 @@
 
 #include <tuple>
 
+#include "../common/checks.h"
+
 namespace cobgs {
+
+// Checks shared by both binning ops; returns N.
+inline int64_t check_bin_inputs(const at::Tensor& means2d, const at::Tensor& radii,
+                                const at::Tensor& depths, int64_t width, int64_t height) {
+  COBGS_CHECK_CONTIGUOUS(means2d);
+  COBGS_CHECK_LIKE(radii, means2d);
+  COBGS_CHECK_LIKE(depths, means2d);
+  TORCH_CHECK(means2d.dim() == 2, "means2d must have shape [N, 2], got ", means2d.sizes());
+  const int64_t n = means2d.size(0);
+  TORCH_CHECK(n < (int64_t(1) << 31), "at most 2^31 - 1 Gaussians are supported, got ", n);
+  COBGS_CHECK_SHAPE(means2d, n, 2);
+  COBGS_CHECK_SHAPE(radii, n);
+  COBGS_CHECK_SHAPE(depths, n);
+  COBGS_CHECK_DTYPE(radii, at::kInt);
+  COBGS_CHECK_DTYPE(depths, means2d.scalar_type());
+  TORCH_CHECK(width > 0 && height > 0, "width and height must be positive, got ", width,
+              " x ", height);
+  return n;
+}
+
+// check_bin_inputs plus the conics and opacities of bin_tiles_tight; returns N.
+inline int64_t check_bin_tight_inputs(const at::Tensor& means2d, const at::Tensor& radii,
+                                      const at::Tensor& depths, const at::Tensor& conics,
+                                      const at::Tensor& opacities, int64_t width,
+                                      int64_t height) {
+  TORCH_CHECK(means2d.scalar_type() == at::kFloat || means2d.scalar_type() == at::kDouble,
+              "means2d must be float32 or float64, got ", means2d.scalar_type());
+  const int64_t n = check_bin_inputs(means2d, radii, depths, width, height);
+  COBGS_CHECK_LIKE(conics, means2d);
+  COBGS_CHECK_LIKE(opacities, means2d);
+  COBGS_CHECK_SHAPE(conics, n, 3);
+  COBGS_CHECK_SHAPE(opacities, n);
+  COBGS_CHECK_DTYPE(conics, means2d.scalar_type());
+  COBGS_CHECK_DTYPE(opacities, means2d.scalar_type());
+  return n;
+}
 
 // Args:
 //   means2d [N, 2] pixels, radii [N] int32 (0 = culled), depths [N] camera z
@@ -31,6 +69,15 @@ std::tuple<at::Tensor, at::Tensor> bin_tiles_cpu(const at::Tensor& means2d,
 // the list) differs. Also returns prep [N, record size] uint8: blend's per-Gaussian
 // records, which blend and blend_bwd take instead of computing them again.
 std::tuple<at::Tensor, at::Tensor, at::Tensor> bin_tiles_tight_cpu(
+    const at::Tensor& means2d, const at::Tensor& radii, const at::Tensor& depths,
+    const at::Tensor& conics, const at::Tensor& opacities, int64_t width, int64_t height);
+
+// The CUDA implementations (csrc/bin_tiles/bin_tiles_cuda.cu; builds with CUDA only).
+std::tuple<at::Tensor, at::Tensor> bin_tiles_cuda(const at::Tensor& means2d,
+                                                  const at::Tensor& radii,
+                                                  const at::Tensor& depths, int64_t width,
+                                                  int64_t height);
+std::tuple<at::Tensor, at::Tensor, at::Tensor> bin_tiles_tight_cuda(
     const at::Tensor& means2d, const at::Tensor& radii, const at::Tensor& depths,
     const at::Tensor& conics, const at::Tensor& opacities, int64_t width, int64_t height);
 

@@ -20,52 +20,15 @@
 #include "../common/gs_math.h"
 #include "../common/parallel_cpu.h"
 #include "../common/prof_cpu.h"
+#include "tile_rect.h"
 
 namespace cobgs {
 namespace {
 
-struct Rect {
-  int32_t x0, y0, x1, y1;
-};
-
-template <typename T>
-Rect tile_rect(T mx, T my, int32_t radius, int tiles_x, int tiles_y) {
-  const T r = static_cast<T>(radius);
-  const T ts = static_cast<T>(math::kTileSize);
-  auto clampi = [](T v, int hi) {
-    return static_cast<int32_t>(v < T(0) ? T(0) : (v > T(hi) ? T(hi) : v));
-  };
-  return {clampi(std::floor((mx - r) / ts), tiles_x), clampi(std::floor((my - r) / ts), tiles_y),
-          clampi(std::ceil((mx + r) / ts), tiles_x), clampi(std::ceil((my + r) / ts), tiles_y)};
-}
-
-// `rc` narrowed to the tiles that hold a pixel of the box [x0, x1) x [y0, y1) (pixel
-// indices, possibly far outside the image; empty when x0 >= x1 or y0 >= y1).
-inline Rect narrow_to_box(Rect rc, int64_t x0, int64_t x1, int64_t y0, int64_t y1) {
-  const int64_t ts = math::kTileSize;
-  auto floor_div = [ts](int64_t v) { return v >= 0 ? v / ts : -((-v + ts - 1) / ts); };
-  if (x0 >= x1 || y0 >= y1) return {rc.x0, rc.y0, rc.x0, rc.y0};
-  // Tiles floor(x0 / 16) .. floor((x1 - 1) / 16), clamped into rc.
-  auto lo = [](int32_t a, int64_t b) { return static_cast<int32_t>(b > a ? b : a); };
-  auto hi = [](int32_t a, int64_t b) { return static_cast<int32_t>(b < a ? b : a); };
-  Rect out{lo(rc.x0, floor_div(x0)), lo(rc.y0, floor_div(y0)), hi(rc.x1, floor_div(x1 - 1) + 1),
-           hi(rc.y1, floor_div(y1 - 1) + 1)};
-  if (out.x1 < out.x0) out.x1 = out.x0;
-  if (out.y1 < out.y0) out.y1 = out.y0;
-  return out;
-}
-
-// Unsigned keys whose order is the order of the (positive, finite) depths.
-inline uint32_t depth_key(float d) {
-  uint32_t k;
-  std::memcpy(&k, &d, sizeof(k));
-  return k;
-}
-inline uint64_t depth_key(double d) {
-  uint64_t k;
-  std::memcpy(&k, &d, sizeof(k));
-  return k;
-}
+using bin_detail::depth_key;
+using bin_detail::narrow_to_box;
+using bin_detail::Rect;
+using bin_detail::tile_rect;
 
 // A vector of the calling thread kept across calls (cleared, capacity kept): fresh
 // multi-megabyte allocations are zero-filled page by page by the kernel on every call.
@@ -267,31 +230,13 @@ void prepare_all(const T* m2, const T* co, const T* op, int64_t n,
   }
 }
 
-// Checks shared by both binning ops; returns N.
-int64_t check_bin_inputs(const at::Tensor& means2d, const at::Tensor& radii,
-                         const at::Tensor& depths, int64_t width, int64_t height) {
-  COBGS_CHECK_INPUT(means2d);
-  COBGS_CHECK_INPUT(radii);
-  COBGS_CHECK_INPUT(depths);
-  TORCH_CHECK(means2d.dim() == 2, "means2d must have shape [N, 2], got ", means2d.sizes());
-  const int64_t n = means2d.size(0);
-  TORCH_CHECK(n < (int64_t(1) << 31), "at most 2^31 - 1 Gaussians are supported, got ", n);
-  COBGS_CHECK_SHAPE(means2d, n, 2);
-  COBGS_CHECK_SHAPE(radii, n);
-  COBGS_CHECK_SHAPE(depths, n);
-  COBGS_CHECK_DTYPE(radii, at::kInt);
-  COBGS_CHECK_DTYPE(depths, means2d.scalar_type());
-  TORCH_CHECK(width > 0 && height > 0, "width and height must be positive, got ", width,
-              " x ", height);
-  return n;
-}
-
 }  // namespace
 
 std::tuple<at::Tensor, at::Tensor> bin_tiles_cpu(const at::Tensor& means2d,
                                                  const at::Tensor& radii,
                                                  const at::Tensor& depths, int64_t width,
                                                  int64_t height) {
+  COBGS_CHECK_CPU(means2d);
   check_bin_inputs(means2d, radii, depths, width, height);
   const int tiles_x = static_cast<int>((width + math::kTileSize - 1) / math::kTileSize);
   const int tiles_y = static_cast<int>((height + math::kTileSize - 1) / math::kTileSize);
@@ -309,15 +254,9 @@ std::tuple<at::Tensor, at::Tensor> bin_tiles_cpu(const at::Tensor& means2d,
 std::tuple<at::Tensor, at::Tensor, at::Tensor> bin_tiles_tight_cpu(
     const at::Tensor& means2d, const at::Tensor& radii, const at::Tensor& depths,
     const at::Tensor& conics, const at::Tensor& opacities, int64_t width, int64_t height) {
-  TORCH_CHECK(means2d.scalar_type() == at::kFloat || means2d.scalar_type() == at::kDouble,
-              "means2d must be float32 or float64, got ", means2d.scalar_type());
-  const int64_t n = check_bin_inputs(means2d, radii, depths, width, height);
-  COBGS_CHECK_INPUT(conics);
-  COBGS_CHECK_INPUT(opacities);
-  COBGS_CHECK_SHAPE(conics, n, 3);
-  COBGS_CHECK_SHAPE(opacities, n);
-  COBGS_CHECK_DTYPE(conics, means2d.scalar_type());
-  COBGS_CHECK_DTYPE(opacities, means2d.scalar_type());
+  COBGS_CHECK_CPU(means2d);
+  const int64_t n = check_bin_tight_inputs(means2d, radii, depths, conics, opacities, width,
+                                           height);
   const int tiles_x = static_cast<int>((width + math::kTileSize - 1) / math::kTileSize);
   const int tiles_y = static_cast<int>((height + math::kTileSize - 1) / math::kTileSize);
   const int64_t n_tiles = int64_t(tiles_x) * tiles_y;

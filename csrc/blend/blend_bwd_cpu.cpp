@@ -232,24 +232,11 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> blend_bwd
     const at::Tensor& features, const at::Tensor& background, const at::Tensor& tile_offsets,
     const at::Tensor& flat_ids, const at::Tensor& transmittance, const at::Tensor& n_contrib,
     const at::Tensor& v_image, const at::Tensor& v_transmittance,
-    const std::optional<at::Tensor>& prep) {
-  TORCH_CHECK(transmittance.dim() == 2, "transmittance must have shape [H, W], got ",
-              transmittance.sizes());
-  const int64_t height = transmittance.size(0), width = transmittance.size(1);
-  check_blend_inputs(means2d, conics, opacities, features, background, tile_offsets,
-                     flat_ids, width, height);
-  const int64_t c = features.size(1);
-  COBGS_CHECK_INPUT(transmittance);
-  COBGS_CHECK_INPUT(n_contrib);
-  COBGS_CHECK_INPUT(v_image);
-  COBGS_CHECK_INPUT(v_transmittance);
-  COBGS_CHECK_DTYPE(transmittance, means2d.scalar_type());
-  COBGS_CHECK_DTYPE(v_image, means2d.scalar_type());
-  COBGS_CHECK_DTYPE(v_transmittance, means2d.scalar_type());
-  COBGS_CHECK_DTYPE(n_contrib, at::kInt);
-  COBGS_CHECK_SHAPE(n_contrib, height, width);
-  COBGS_CHECK_SHAPE(v_image, height, width, c);
-  COBGS_CHECK_SHAPE(v_transmittance, height, width);
+    const std::optional<at::Tensor>& prep, bool /*check: the CPU always checks*/) {
+  COBGS_CHECK_CPU(means2d);
+  check_blend_bwd_inputs(means2d, conics, opacities, features, background, tile_offsets,
+                         flat_ids, transmittance, n_contrib, v_image, v_transmittance);
+  check_tile_lists_cpu(tile_offsets, flat_ids, means2d.size(0));
   // Every entry is written by blend_backward.
   at::Tensor v_means2d = at::empty_like(means2d);
   at::Tensor v_conics = at::empty_like(conics);
@@ -259,7 +246,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> blend_bwd
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "cobgs::blend_bwd", [&] {
     blend_backward<scalar_t>(means2d, conics, opacities, features, background, tile_offsets,
                              flat_ids, transmittance, n_contrib, v_image, v_transmittance,
-                             given_prep<scalar_t>(prep, means2d.size(0)), v_means2d, v_conics, v_opacities, v_features, v_background);
+                             given_prep<scalar_t>(prep, means2d), v_means2d, v_conics,
+                             v_opacities, v_features, v_background);
   });
   return {v_means2d, v_conics, v_opacities, v_features, v_background};
 }

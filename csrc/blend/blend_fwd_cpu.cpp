@@ -190,17 +190,17 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> blend_cpu
     const at::Tensor& features, const at::Tensor& background, const at::Tensor& tile_offsets,
     const at::Tensor& flat_ids, int64_t width, int64_t height,
     const std::optional<at::Tensor>& pixel_labels, int64_t num_labels,
-    const std::optional<at::Tensor>& prep) {
+    const std::optional<at::Tensor>& prep, bool /*check: the CPU always checks*/) {
+  COBGS_CHECK_CPU(means2d);
   check_blend_inputs(means2d, conics, opacities, features, background, tile_offsets,
                      flat_ids, width, height);
+  check_tile_lists_cpu(tile_offsets, flat_ids, means2d.size(0));
   TORCH_CHECK(num_labels >= 1, "num_labels must be >= 1, got ", num_labels);
   const int64_t n = means2d.size(0), c = features.size(1);
   const int32_t* labels = nullptr;
   if (pixel_labels.has_value()) {
     const at::Tensor& pl = *pixel_labels;
-    COBGS_CHECK_INPUT(pl);
-    COBGS_CHECK_DTYPE(pl, at::kInt);
-    COBGS_CHECK_SHAPE(pl, height, width);
+    check_pixel_labels(means2d, pl, width, height);
     labels = pl.data_ptr<int32_t>();
     bool ok = true;
     for (int64_t i = 0; i < pl.numel(); ++i) ok &= (labels[i] >= -1) & (labels[i] < num_labels);
@@ -217,7 +217,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor> blend_cpu
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "cobgs::blend", [&] {
     blend_forward<scalar_t>(means2d, conics, opacities, features, background, tile_offsets,
                             flat_ids, static_cast<int>(width), static_cast<int>(height),
-                            labels, static_cast<int>(num_labels), given_prep<scalar_t>(prep, n),
+                            labels, static_cast<int>(num_labels), given_prep<scalar_t>(prep, means2d),
                             image, trans, n_contrib, label_counts, label_weights);
   });
   return {image, trans, n_contrib, label_counts, label_weights};

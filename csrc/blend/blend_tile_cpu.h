@@ -26,22 +26,13 @@
 #include "../common/parallel_cpu.h"
 #include "../common/prof_cpu.h"
 #include "../common/simd_cpu.h"
+#include "gauss_prep.h"
+#include "given_prep.h"
 
 namespace cobgs {
 namespace blend_detail {
 
 using math::kTileSize;
-
-// Per-Gaussian data of both passes, compact and (float32: 44 bytes) aligned to a cache
-// line, so that a tile-list entry costs one line and one prefetch (entries of a tile
-// point to Gaussians all over memory; unaligned, most records straddled two lines and the
-// gather missed the cache in about a fifth of the backward's samples).
-template <typename T>
-struct alignas(sizeof(T) == 4 ? 64 : 16) GaussPrep {
-  T mx, my, ca, cb, cc, o;
-  T power_reject;          // power < this ⇒ α < 1/255 for sure (checked before exp)
-  int32_t x0, x1, y0, y1;  // pixel box that can get α >= 1/255; empty if none can
-};
 
 // A per-thread buffer kept across calls (grow-only). Fresh multi-megabyte allocations
 // are mmap'ed and zero-filled page by page by the kernel on every call, which cost
@@ -74,27 +65,6 @@ void prepare(const T* m2, const T* co, const T* op, int64_t n, GaussPrep<T>* pre
 #pragma omp for schedule(static)
   for (int64_t c = 0; c < chunks; ++c)
     fn(m2, co, op, c * kChunk, std::min(n, (c + 1) * kChunk), prep);
-}
-
-// The records `prepare` would compute, when the caller already has them: the `prep`
-// output of `bin_tiles_tight` for the same means2d / conics / opacities (a [N, record
-// size] uint8 tensor). Returns null when absent (the pass then runs `prepare` itself).
-// Only the size is checked: records from other inputs give wrong pixels, never
-// out-of-range accesses (every box is clipped to the tile it is used in).
-template <typename T>
-const GaussPrep<T>* given_prep(const std::optional<at::Tensor>& prep, int64_t n) {
-  if (!prep.has_value()) return nullptr;
-  const at::Tensor& p = *prep;
-  const int64_t record = static_cast<int64_t>(sizeof(GaussPrep<T>));
-  TORCH_CHECK(p.device().is_cpu() && p.is_contiguous() && p.scalar_type() == at::kByte &&
-                  p.dim() == 2 && p.size(0) == n && p.size(1) == record,
-              "prep must be the prep output of bin_tiles_tight for these inputs: a contiguous "
-              "CPU uint8 tensor of shape [", n, ", ", record, "] for ", sizeof(T) == 4 ? "float32" : "float64",
-              " inputs, got ", p.scalar_type(), " of shape ", p.sizes());
-  TORCH_CHECK(reinterpret_cast<uintptr_t>(p.data_ptr()) % alignof(GaussPrep<T>) == 0,
-              "prep must be aligned to ", alignof(GaussPrep<T>), " bytes (a fresh tensor from "
-              "bin_tiles_tight, not a view)");
-  return reinterpret_cast<const GaussPrep<T>*>(p.data_ptr<uint8_t>());
 }
 
 // Software prefetch of a Gaussian a few entries ahead in the tile list: the hardware
@@ -204,39 +174,11 @@ inline const int64_t* tile_order(const int64_t* off, int64_t n_tiles) {
   return order;
 }
 
-// Shapes, dtypes and the consistency of the tile lists shared by both passes.
-inline void check_blend_inputs(const at::Tensor& means2d, const at::Tensor& conics,
-                               const at::Tensor& opacities, const at::Tensor& features,
-                               const at::Tensor& background, const at::Tensor& tile_offsets,
-                               const at::Tensor& flat_ids, int64_t width, int64_t height) {
-  COBGS_CHECK_INPUT(means2d);
-  COBGS_CHECK_INPUT(conics);
-  COBGS_CHECK_INPUT(opacities);
-  COBGS_CHECK_INPUT(features);
-  COBGS_CHECK_INPUT(background);
-  COBGS_CHECK_INPUT(tile_offsets);
-  COBGS_CHECK_INPUT(flat_ids);
-  TORCH_CHECK(means2d.scalar_type() == at::kFloat || means2d.scalar_type() == at::kDouble,
-              "means2d must be float32 or float64, got ", means2d.scalar_type());
-  TORCH_CHECK(means2d.dim() == 2, "means2d must have shape [N, 2], got ", means2d.sizes());
-  TORCH_CHECK(features.dim() == 2, "features must have shape [N, C], got ", features.sizes());
-  const int64_t n = means2d.size(0), c = features.size(1);
-  TORCH_CHECK(c >= 1, "features must have at least one channel, got ", features.sizes());
-  COBGS_CHECK_SHAPE(means2d, n, 2);
-  COBGS_CHECK_SHAPE(conics, n, 3);
-  COBGS_CHECK_SHAPE(opacities, n);
-  COBGS_CHECK_SHAPE(features, n, c);
-  COBGS_CHECK_SHAPE(background, c);
-  for (const auto* t : {&conics, &opacities, &features, &background})
-    COBGS_CHECK_DTYPE((*t), means2d.scalar_type());
-  TORCH_CHECK(width > 0 && height > 0, "width and height must be positive, got ", width,
-              " x ", height);
-  const int64_t tiles = ((width + kTileSize - 1) / kTileSize) *
-                        ((height + kTileSize - 1) / kTileSize);
-  COBGS_CHECK_DTYPE(tile_offsets, at::kLong);
-  COBGS_CHECK_DTYPE(flat_ids, at::kInt);
-  COBGS_CHECK_SHAPE(tile_offsets, tiles + 1);
-  TORCH_CHECK(flat_ids.dim() == 1, "flat_ids must be 1-D, got ", flat_ids.sizes());
+// The consistency of the tile lists (on the host; the shapes were checked by
+// check_blend_inputs, blend.h).
+inline void check_tile_lists_cpu(const at::Tensor& tile_offsets, const at::Tensor& flat_ids,
+                                 int64_t n) {
+  const int64_t tiles = tile_offsets.numel() - 1;
   const int64_t* off = tile_offsets.data_ptr<int64_t>();
   TORCH_CHECK(off[0] == 0 && off[tiles] == flat_ids.numel(),
               "tile_offsets must run from 0 to len(flat_ids) = ", flat_ids.numel(), ", got ",

@@ -5,30 +5,9 @@
 // lane bit-identical to the one-Gaussian evaluation), the rest one at a time.
 
 template <typename T>
-inline void write_prep(GaussPrep<T>* dst, T mx, T my, T ca, T cb, T cc, T o, double power_reject,
-                       double x0, double x1, double y0, double y1) {
-  GaussPrep<T> g;
-  // Zeroed first, tail padding included: bin_tiles_tight returns these records as a
-  // tensor, whose bytes must not depend on what the memory held before.
-  std::memset(&g, 0, sizeof(g));
-  g.mx = mx;
-  g.my = my;
-  g.ca = ca;
-  g.cb = cb;
-  g.cc = cc;
-  g.o = o;
-  g.power_reject = static_cast<T>(power_reject);
-  g.x0 = static_cast<int32_t>(x0);
-  g.x1 = static_cast<int32_t>(x1);
-  g.y0 = static_cast<int32_t>(y0);
-  g.y1 = static_cast<int32_t>(y1);
-  *dst = g;
-}
-
-template <typename T>
 void prepare_range(const T* m2, const T* co, const T* op, int64_t i0, int64_t i1,
                    GaussPrep<T>* prep) {
-  const double eps = std::numeric_limits<T>::epsilon() * 0.5;
+  const double eps = prep_eps<T>();
   using VT = typename simd::Lanes<T>::V;
   using VD = simd::Lanes<double>::V;
   int64_t i = i0;
@@ -50,10 +29,5 @@ void prepare_range(const T* m2, const T* co, const T* op, int64_t i0, int64_t i1
       write_prep(prep + i + k, f[0][k], f[1][k], f[2][k], f[3][k], f[4][k], f[5][k],
                  bb.power_reject[k], bb.x0[k], bb.x1[k], bb.y0[k], bb.y1[k]);
   }
-  for (; i < i1; ++i) {
-    const T mx = m2[2 * i], my = m2[2 * i + 1];
-    const T ca = co[3 * i], cb = co[3 * i + 1], cc = co[3 * i + 2], o = op[i];
-    const math::BlendBound<double> bb = math::make_blend_bound<double>(mx, my, ca, cb, cc, o, eps);
-    write_prep(prep + i, mx, my, ca, cb, cc, o, bb.power_reject, bb.x0, bb.x1, bb.y0, bb.y1);
-  }
+  for (; i < i1; ++i) prepare_one(m2, co, op, i, prep + i);
 }

@@ -7,7 +7,58 @@
 
 #include <tuple>
 
+#include "../common/checks.h"
+
 namespace cobgs {
+
+// Input checks of the three ops, shared by both backends (the caller has checked the
+// device type of the first tensor).
+inline void check_blur_inputs(const at::Tensor& x, const at::Tensor& g) {
+  COBGS_CHECK_CONTIGUOUS(x);
+  COBGS_CHECK_LIKE(g, x);
+  TORCH_CHECK(x.scalar_type() == at::kFloat || x.scalar_type() == at::kDouble,
+              "x must be float32 or float64, got ", x.scalar_type());
+  TORCH_CHECK(x.dim() == 4, "x must have shape [B, K, H, W], got ", x.sizes());
+  TORCH_CHECK(g.dim() == 1 && g.size(0) % 2 == 1, "g must be 1-D with an odd length, got ",
+              g.sizes());
+  COBGS_CHECK_DTYPE(g, x.scalar_type());
+}
+
+inline void check_ssim_inputs(const at::Tensor& x, const at::Tensor& y, const at::Tensor& g) {
+  COBGS_CHECK_CONTIGUOUS(x);
+  COBGS_CHECK_LIKE(y, x);
+  COBGS_CHECK_LIKE(g, x);
+  TORCH_CHECK(x.scalar_type() == at::kFloat || x.scalar_type() == at::kDouble,
+              "x must be float32 or float64, got ", x.scalar_type());
+  TORCH_CHECK(x.dim() == 4, "x must have shape [B, C, H, W], got ", x.sizes());
+  TORCH_CHECK(y.sizes() == x.sizes(), "y must have the shape of x ", x.sizes(), ", got ",
+              y.sizes());
+  TORCH_CHECK(g.dim() == 1 && g.size(0) % 2 == 1, "g must be 1-D with an odd length, got ",
+              g.sizes());
+  COBGS_CHECK_DTYPE(y, x.scalar_type());
+  COBGS_CHECK_DTYPE(g, x.scalar_type());
+  TORCH_CHECK(x.numel() > 0, "x must not be empty");
+}
+
+inline void check_photometric_inputs(const at::Tensor& img, const at::Tensor& ref,
+                                     const at::Tensor& g, double ssim_weight) {
+  COBGS_CHECK_CONTIGUOUS(img);
+  COBGS_CHECK_LIKE(ref, img);
+  COBGS_CHECK_LIKE(g, img);
+  TORCH_CHECK(img.scalar_type() == at::kFloat || img.scalar_type() == at::kDouble,
+              "img must be float32 or float64, got ", img.scalar_type());
+  TORCH_CHECK(img.dim() == 3 || img.dim() == 4,
+              "img must have shape [H, W, C] or [B, H, W, C], got ", img.sizes());
+  TORCH_CHECK(ref.sizes() == img.sizes(), "ref must have the shape of img ", img.sizes(),
+              ", got ", ref.sizes());
+  TORCH_CHECK(g.dim() == 1 && g.size(0) % 2 == 1, "g must be 1-D with an odd length, got ",
+              g.sizes());
+  COBGS_CHECK_DTYPE(ref, img.scalar_type());
+  COBGS_CHECK_DTYPE(g, img.scalar_type());
+  TORCH_CHECK(img.numel() > 0, "img must not be empty");
+  TORCH_CHECK(ssim_weight >= 0.0 && ssim_weight <= 1.0, "ssim_weight must be in [0, 1], got ",
+              ssim_weight);
+}
 
 // Args: x [B, K, H, W] float32/float64, g [n] (n odd) of the same dtype.
 // Returns [B, K, H, W]: out = corr_x(corr_y(x, g), g) with zero padding n / 2, i.e.
@@ -49,5 +100,14 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> photometric_loss_grad_cpu(const a
                                                                         const at::Tensor& ref,
                                                                         const at::Tensor& g,
                                                                         double ssim_weight);
+
+// The CUDA implementations (csrc/blur/blur_cuda.cu; builds with CUDA only).
+at::Tensor gauss_blur_cuda(const at::Tensor& x, const at::Tensor& g);
+std::tuple<at::Tensor, at::Tensor> ssim_mean_grad_cuda(const at::Tensor& x, const at::Tensor& y,
+                                                       const at::Tensor& g);
+std::tuple<at::Tensor, at::Tensor, at::Tensor> photometric_loss_grad_cuda(const at::Tensor& img,
+                                                                         const at::Tensor& ref,
+                                                                         const at::Tensor& g,
+                                                                         double ssim_weight);
 
 }  // namespace cobgs

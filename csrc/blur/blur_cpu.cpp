@@ -70,14 +70,8 @@ COBGS_INSTANTIATE(double)
 }  // namespace blur_detail
 
 at::Tensor gauss_blur_cpu(const at::Tensor& x, const at::Tensor& g) {
-  COBGS_CHECK_INPUT(x);
-  COBGS_CHECK_INPUT(g);
-  TORCH_CHECK(x.scalar_type() == at::kFloat || x.scalar_type() == at::kDouble,
-              "x must be float32 or float64, got ", x.scalar_type());
-  TORCH_CHECK(x.dim() == 4, "x must have shape [B, K, H, W], got ", x.sizes());
-  TORCH_CHECK(g.dim() == 1 && g.size(0) % 2 == 1, "g must be 1-D with an odd length, got ",
-              g.sizes());
-  COBGS_CHECK_DTYPE(g, x.scalar_type());
+  COBGS_CHECK_CPU(x);
+  check_blur_inputs(x, g);
   const int64_t planes = x.size(0) * x.size(1);
   const int H = static_cast<int>(x.size(2)), W = static_cast<int>(x.size(3));
   const int n = static_cast<int>(g.size(0));

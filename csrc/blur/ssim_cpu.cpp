@@ -20,19 +20,8 @@ namespace cobgs {
 
 std::tuple<at::Tensor, at::Tensor> ssim_mean_grad_cpu(const at::Tensor& x, const at::Tensor& y,
                                                       const at::Tensor& g) {
-  COBGS_CHECK_INPUT(x);
-  COBGS_CHECK_INPUT(y);
-  COBGS_CHECK_INPUT(g);
-  TORCH_CHECK(x.scalar_type() == at::kFloat || x.scalar_type() == at::kDouble,
-              "x must be float32 or float64, got ", x.scalar_type());
-  TORCH_CHECK(x.dim() == 4, "x must have shape [B, C, H, W], got ", x.sizes());
-  TORCH_CHECK(y.sizes() == x.sizes(), "y must have the shape of x ", x.sizes(), ", got ",
-              y.sizes());
-  TORCH_CHECK(g.dim() == 1 && g.size(0) % 2 == 1, "g must be 1-D with an odd length, got ",
-              g.sizes());
-  COBGS_CHECK_DTYPE(y, x.scalar_type());
-  COBGS_CHECK_DTYPE(g, x.scalar_type());
-  TORCH_CHECK(x.numel() > 0, "x must not be empty");
+  COBGS_CHECK_CPU(x);
+  check_ssim_inputs(x, y, g);
   const int64_t planes = x.size(0) * x.size(1);
   const int H = static_cast<int>(x.size(2)), W = static_cast<int>(x.size(3));
   at::Tensor grad = at::empty_like(x);
@@ -52,22 +41,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> photometric_loss_grad_cpu(const a
                                                                         const at::Tensor& ref,
                                                                         const at::Tensor& g,
                                                                         double ssim_weight) {
-  COBGS_CHECK_INPUT(img);
-  COBGS_CHECK_INPUT(ref);
-  COBGS_CHECK_INPUT(g);
-  TORCH_CHECK(img.scalar_type() == at::kFloat || img.scalar_type() == at::kDouble,
-              "img must be float32 or float64, got ", img.scalar_type());
-  TORCH_CHECK(img.dim() == 3 || img.dim() == 4, "img must have shape [H, W, C] or [B, H, W, C], got ",
-              img.sizes());
-  TORCH_CHECK(ref.sizes() == img.sizes(), "ref must have the shape of img ", img.sizes(),
-              ", got ", ref.sizes());
-  TORCH_CHECK(g.dim() == 1 && g.size(0) % 2 == 1, "g must be 1-D with an odd length, got ",
-              g.sizes());
-  COBGS_CHECK_DTYPE(ref, img.scalar_type());
-  COBGS_CHECK_DTYPE(g, img.scalar_type());
-  TORCH_CHECK(img.numel() > 0, "img must not be empty");
-  TORCH_CHECK(ssim_weight >= 0.0 && ssim_weight <= 1.0, "ssim_weight must be in [0, 1], got ",
-              ssim_weight);
+  COBGS_CHECK_CPU(img);
+  check_photometric_inputs(img, ref, g, ssim_weight);
   const int64_t d = img.dim();
   const int64_t batch = d == 4 ? img.size(0) : 1;
   const int H = static_cast<int>(img.size(d - 3)), W = static_cast<int>(img.size(d - 2));

@@ -1,6 +1,8 @@
-// Input checks shared by the CPU op implementations. Python validates user input with
-// typed errors first (cobgs/rasterize.py); these guard direct torch.ops.cobgs.* calls so
-// that a wrong tensor is an error naming it, never a crash.
+// Input checks shared by the CPU and CUDA op implementations. Python validates user input
+// with typed errors first (cobgs/rasterize.py); these guard direct torch.ops.cobgs.* calls
+// so that a wrong tensor is an error naming it, never a crash. The shape / dtype checks of
+// each op family are written once (in its header) against a reference tensor `ref`; each
+// backend first checks that `ref` is on its kind of device.
 #pragma once
 
 #include <torch/types.h>
@@ -29,4 +31,10 @@
 
 #define COBGS_CHECK_INPUT(x) \
   COBGS_CHECK_CPU(x);        \
+  COBGS_CHECK_CONTIGUOUS(x)
+
+// x lies on the device of ref and is contiguous.
+#define COBGS_CHECK_LIKE(x, ref)                                                          \
+  TORCH_CHECK((x).device() == (ref).device(), #x " must be on ", (ref).device(),           \
+              " (the device of " #ref "), got ", (x).device());                          \
   COBGS_CHECK_CONTIGUOUS(x)

@@ -1,6 +1,6 @@
 // Real spherical harmonics up to degree 3 (3DGS convention), shared by the CPU kernel
-// (sh_cpu.cpp) and, later, CUDA: the basis, its gradient with respect to the direction,
-// and the colour max(Σ_k c_k Y_k(d) + 0.5, 0). Basis order and constants as in
+// (sh_cpu.cpp) and the CUDA kernel (sh_cuda.cu): the basis, its gradient with respect to
+// the direction, and the colour max(Σ_k c_k Y_k(d) + 0.5, 0). Basis order and constants as in
 // cobgs/sh.py (the pure-PyTorch oracle): coefficient k = l² + l + m.
 #pragma once
 
@@ -12,11 +12,15 @@ namespace sh {
 constexpr int kMaxCoeffs = 16;
 constexpr double kC0 = 0.28209479177387814;
 constexpr double kC1 = 0.4886025119029199;
-constexpr double kC2[5] = {1.0925484305920792, -1.0925484305920792, 0.31539156525252005,
-                           -1.0925484305920792, 0.5462742152960396};
-constexpr double kC3[7] = {-0.5900435899266435, 2.890611442640554, -0.4570457994644658,
-                           0.3731763325901154,  -0.4570457994644658, 1.445305721320277,
-                           -0.5900435899266435};
+// One scalar constant per coefficient (not arrays): CUDA device code may read namespace
+// scope constexpr scalars, not arrays.
+constexpr double kC2_0 = 1.0925484305920792, kC2_1 = -1.0925484305920792,
+                 kC2_2 = 0.31539156525252005, kC2_3 = -1.0925484305920792,
+                 kC2_4 = 0.5462742152960396;
+constexpr double kC3_0 = -0.5900435899266435, kC3_1 = 2.890611442640554,
+                 kC3_2 = -0.4570457994644658, kC3_3 = 0.3731763325901154,
+                 kC3_4 = -0.4570457994644658, kC3_5 = 1.445305721320277,
+                 kC3_6 = -0.5900435899266435;
 
 // Y[0 .. (degree + 1)²) at the unit direction (x, y, z). T is a lane type (see
 // gs_math.h): one direction, or one per lane, bit-identical lane by lane.
@@ -30,19 +34,19 @@ LANE_INLINE void basis(int degree, const T& x, const T& y, const T& z, T* Y) {
   Y[3] = -S(kC1) * x;
   if (degree < 2) return;
   const T xx = x * x, yy = y * y, zz = z * z, xy = x * y, yz = y * z, xz = x * z;
-  Y[4] = S(kC2[0]) * xy;
-  Y[5] = S(kC2[1]) * yz;
-  Y[6] = S(kC2[2]) * (S(2) * zz - xx - yy);
-  Y[7] = S(kC2[3]) * xz;
-  Y[8] = S(kC2[4]) * (xx - yy);
+  Y[4] = S(kC2_0) * xy;
+  Y[5] = S(kC2_1) * yz;
+  Y[6] = S(kC2_2) * (S(2) * zz - xx - yy);
+  Y[7] = S(kC2_3) * xz;
+  Y[8] = S(kC2_4) * (xx - yy);
   if (degree < 3) return;
-  Y[9] = S(kC3[0]) * y * (S(3) * xx - yy);
-  Y[10] = S(kC3[1]) * xy * z;
-  Y[11] = S(kC3[2]) * y * (S(4) * zz - xx - yy);
-  Y[12] = S(kC3[3]) * z * (S(2) * zz - S(3) * xx - S(3) * yy);
-  Y[13] = S(kC3[4]) * x * (S(4) * zz - xx - yy);
-  Y[14] = S(kC3[5]) * z * (xx - yy);
-  Y[15] = S(kC3[6]) * x * (xx - S(3) * yy);
+  Y[9] = S(kC3_0) * y * (S(3) * xx - yy);
+  Y[10] = S(kC3_1) * xy * z;
+  Y[11] = S(kC3_2) * y * (S(4) * zz - xx - yy);
+  Y[12] = S(kC3_3) * z * (S(2) * zz - S(3) * xx - S(3) * yy);
+  Y[13] = S(kC3_4) * x * (S(4) * zz - xx - yy);
+  Y[14] = S(kC3_5) * z * (xx - yy);
+  Y[15] = S(kC3_6) * x * (xx - S(3) * yy);
 }
 
 // dL/d(x, y, z) = Σ_k w[k] ∂Y_k/∂(x, y, z) for k in 1 .. (degree + 1)² (Y_0 is constant).
@@ -57,46 +61,46 @@ LANE_INLINE void basis_vjp(int degree, const T& x, const T& y, const T& z, const
     gx += -S(kC1) * w[3];
   }
   if (degree >= 2) {
-    gx += S(kC2[0]) * y * w[4];
-    gy += S(kC2[0]) * x * w[4];
-    gy += S(kC2[1]) * z * w[5];
-    gz += S(kC2[1]) * y * w[5];
-    gx += S(kC2[2]) * S(-2) * x * w[6];
-    gy += S(kC2[2]) * S(-2) * y * w[6];
-    gz += S(kC2[2]) * S(4) * z * w[6];
-    gx += S(kC2[3]) * z * w[7];
-    gz += S(kC2[3]) * x * w[7];
-    gx += S(kC2[4]) * S(2) * x * w[8];
-    gy += S(kC2[4]) * S(-2) * y * w[8];
+    gx += S(kC2_0) * y * w[4];
+    gy += S(kC2_0) * x * w[4];
+    gy += S(kC2_1) * z * w[5];
+    gz += S(kC2_1) * y * w[5];
+    gx += S(kC2_2) * S(-2) * x * w[6];
+    gy += S(kC2_2) * S(-2) * y * w[6];
+    gz += S(kC2_2) * S(4) * z * w[6];
+    gx += S(kC2_3) * z * w[7];
+    gz += S(kC2_3) * x * w[7];
+    gx += S(kC2_4) * S(2) * x * w[8];
+    gy += S(kC2_4) * S(-2) * y * w[8];
   }
   if (degree >= 3) {
     const T xx = x * x, yy = y * y, zz = z * z;
     // 9: y (3x² - y²)
-    gx += S(kC3[0]) * S(6) * x * y * w[9];
-    gy += S(kC3[0]) * (S(3) * xx - S(3) * yy) * w[9];
+    gx += S(kC3_0) * S(6) * x * y * w[9];
+    gy += S(kC3_0) * (S(3) * xx - S(3) * yy) * w[9];
     // 10: x y z
-    gx += S(kC3[1]) * y * z * w[10];
-    gy += S(kC3[1]) * x * z * w[10];
-    gz += S(kC3[1]) * x * y * w[10];
+    gx += S(kC3_1) * y * z * w[10];
+    gy += S(kC3_1) * x * z * w[10];
+    gz += S(kC3_1) * x * y * w[10];
     // 11: y (4z² - x² - y²)
-    gx += S(kC3[2]) * S(-2) * x * y * w[11];
-    gy += S(kC3[2]) * (S(4) * zz - xx - S(3) * yy) * w[11];
-    gz += S(kC3[2]) * S(8) * y * z * w[11];
+    gx += S(kC3_2) * S(-2) * x * y * w[11];
+    gy += S(kC3_2) * (S(4) * zz - xx - S(3) * yy) * w[11];
+    gz += S(kC3_2) * S(8) * y * z * w[11];
     // 12: z (2z² - 3x² - 3y²)
-    gx += S(kC3[3]) * S(-6) * x * z * w[12];
-    gy += S(kC3[3]) * S(-6) * y * z * w[12];
-    gz += S(kC3[3]) * (S(6) * zz - S(3) * xx - S(3) * yy) * w[12];
+    gx += S(kC3_3) * S(-6) * x * z * w[12];
+    gy += S(kC3_3) * S(-6) * y * z * w[12];
+    gz += S(kC3_3) * (S(6) * zz - S(3) * xx - S(3) * yy) * w[12];
     // 13: x (4z² - x² - y²)
-    gx += S(kC3[4]) * (S(4) * zz - S(3) * xx - yy) * w[13];
-    gy += S(kC3[4]) * S(-2) * x * y * w[13];
-    gz += S(kC3[4]) * S(8) * x * z * w[13];
+    gx += S(kC3_4) * (S(4) * zz - S(3) * xx - yy) * w[13];
+    gy += S(kC3_4) * S(-2) * x * y * w[13];
+    gz += S(kC3_4) * S(8) * x * z * w[13];
     // 14: z (x² - y²)
-    gx += S(kC3[5]) * S(2) * x * z * w[14];
-    gy += S(kC3[5]) * S(-2) * y * z * w[14];
-    gz += S(kC3[5]) * (xx - yy) * w[14];
+    gx += S(kC3_5) * S(2) * x * z * w[14];
+    gy += S(kC3_5) * S(-2) * y * z * w[14];
+    gz += S(kC3_5) * (xx - yy) * w[14];
     // 15: x (x² - 3y²)
-    gx += S(kC3[6]) * (S(3) * xx - S(3) * yy) * w[15];
-    gy += S(kC3[6]) * S(-6) * x * y * w[15];
+    gx += S(kC3_6) * (S(3) * xx - S(3) * yy) * w[15];
+    gy += S(kC3_6) * S(-6) * x * y * w[15];
   }
   out[0] = gx;
   out[1] = gy;

@@ -7,7 +7,53 @@
 
 #include <tuple>
 
+#include "../common/checks.h"
+
 namespace cobgs {
+
+// Shape, dtype and device checks of project / project_bwd (shared by both backends; the
+// caller has checked the device type of means).
+inline void check_project_inputs(const at::Tensor& means, const at::Tensor& quats,
+                                 const at::Tensor& scales, const at::Tensor& viewmat,
+                                 const at::Tensor& K, int64_t width, int64_t height) {
+  TORCH_CHECK(means.dim() == 2, "means must have shape [N, 3], got ", means.sizes());
+  COBGS_CHECK_CONTIGUOUS(means);
+  COBGS_CHECK_LIKE(quats, means);
+  COBGS_CHECK_LIKE(scales, means);
+  TORCH_CHECK(means.scalar_type() == at::kFloat || means.scalar_type() == at::kDouble,
+              "means must be float32 or float64, got ", means.scalar_type());
+  const int64_t n = means.size(0);
+  COBGS_CHECK_SHAPE(means, n, 3);
+  COBGS_CHECK_SHAPE(quats, n, 4);
+  COBGS_CHECK_SHAPE(scales, n, 3);
+  COBGS_CHECK_DTYPE(quats, means.scalar_type());
+  COBGS_CHECK_DTYPE(scales, means.scalar_type());
+  COBGS_CHECK_LIKE(viewmat, means);
+  COBGS_CHECK_LIKE(K, means);
+  COBGS_CHECK_SHAPE(viewmat, 4, 4);
+  COBGS_CHECK_SHAPE(K, 3, 3);
+  COBGS_CHECK_DTYPE(viewmat, means.scalar_type());
+  COBGS_CHECK_DTYPE(K, means.scalar_type());
+  TORCH_CHECK(width > 0 && height > 0, "width and height must be positive, got ", width,
+              " x ", height);
+}
+
+// The extra inputs of project_bwd.
+inline void check_project_bwd_inputs(const at::Tensor& means, const at::Tensor& radii,
+                                     const at::Tensor& v_means2d, const at::Tensor& v_conics,
+                                     const at::Tensor& v_depths) {
+  const int64_t n = means.size(0);
+  COBGS_CHECK_LIKE(radii, means);
+  COBGS_CHECK_SHAPE(radii, n);
+  COBGS_CHECK_DTYPE(radii, at::kInt);
+  for (const auto* t : {&v_means2d, &v_conics, &v_depths}) {
+    COBGS_CHECK_LIKE((*t), means);
+    COBGS_CHECK_DTYPE((*t), means.scalar_type());
+  }
+  COBGS_CHECK_SHAPE(v_means2d, n, 2);
+  COBGS_CHECK_SHAPE(v_conics, n, 3);
+  COBGS_CHECK_SHAPE(v_depths, n);
+}
 
 // Args:
 //   means    [N, 3] world positions           quats  [N, 4] (w, x, y, z), unnormalised
@@ -26,6 +72,17 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> project_cpu(
 // incoming gradients; radii [N] (from the forward) marks the visible Gaussians.
 // Returns v_means [N, 3], v_quats [N, 4], v_scales [N, 3] (zero for culled Gaussians).
 std::tuple<at::Tensor, at::Tensor, at::Tensor> project_bwd_cpu(
+    const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
+    const at::Tensor& viewmat, const at::Tensor& K, int64_t width, int64_t height,
+    const at::Tensor& radii, const at::Tensor& v_means2d, const at::Tensor& v_conics,
+    const at::Tensor& v_depths);
+
+// The CUDA implementations (csrc/project/project_cuda.cu; builds with CUDA only).
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> project_cuda(
+    const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
+    const at::Tensor& viewmat, const at::Tensor& K, int64_t width, int64_t height,
+    double near_plane);
+std::tuple<at::Tensor, at::Tensor, at::Tensor> project_bwd_cuda(
     const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
     const at::Tensor& viewmat, const at::Tensor& K, int64_t width, int64_t height,
     const at::Tensor& radii, const at::Tensor& v_means2d, const at::Tensor& v_conics,

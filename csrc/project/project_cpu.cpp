@@ -17,34 +17,6 @@
 namespace cobgs {
 namespace {
 
-void check_camera(const at::Tensor& means, const at::Tensor& viewmat, const at::Tensor& K,
-                  int64_t width, int64_t height) {
-  COBGS_CHECK_INPUT(viewmat);
-  COBGS_CHECK_INPUT(K);
-  COBGS_CHECK_SHAPE(viewmat, 4, 4);
-  COBGS_CHECK_SHAPE(K, 3, 3);
-  COBGS_CHECK_DTYPE(viewmat, means.scalar_type());
-  COBGS_CHECK_DTYPE(K, means.scalar_type());
-  TORCH_CHECK(width > 0 && height > 0, "width and height must be positive, got ", width,
-              " x ", height);
-}
-
-void check_gaussians(const at::Tensor& means, const at::Tensor& quats,
-                     const at::Tensor& scales) {
-  COBGS_CHECK_INPUT(means);
-  COBGS_CHECK_INPUT(quats);
-  COBGS_CHECK_INPUT(scales);
-  TORCH_CHECK(means.scalar_type() == at::kFloat || means.scalar_type() == at::kDouble,
-              "means must be float32 or float64, got ", means.scalar_type());
-  const int64_t n = means.size(0);
-  COBGS_CHECK_SHAPE(means, n, 3);
-  COBGS_CHECK_SHAPE(quats, n, 4);
-  COBGS_CHECK_SHAPE(scales, n, 3);
-  COBGS_CHECK_DTYPE(quats, means.scalar_type());
-  COBGS_CHECK_DTYPE(scales, means.scalar_type());
-}
-
-
 template <typename T>
 struct ProjArgs {
   math::Camera<T> cam;
@@ -167,9 +139,8 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor> project_cpu(
     const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
     const at::Tensor& viewmat, const at::Tensor& K, int64_t width, int64_t height,
     double near_plane) {
-  TORCH_CHECK(means.dim() == 2, "means must have shape [N, 3], got ", means.sizes());
-  check_gaussians(means, quats, scales);
-  check_camera(means, viewmat, K, width, height);
+  COBGS_CHECK_CPU(means);
+  check_project_inputs(means, quats, scales, viewmat, K, width, height);
   const int64_t n = means.size(0);
   // Every element is written by the kernel (zero where culled).
   at::Tensor means2d = at::empty({n, 2}, means.options());
@@ -189,20 +160,9 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor> project_bwd_cpu(
     const at::Tensor& viewmat, const at::Tensor& K, int64_t width, int64_t height,
     const at::Tensor& radii, const at::Tensor& v_means2d, const at::Tensor& v_conics,
     const at::Tensor& v_depths) {
-  TORCH_CHECK(means.dim() == 2, "means must have shape [N, 3], got ", means.sizes());
-  check_gaussians(means, quats, scales);
-  check_camera(means, viewmat, K, width, height);
-  const int64_t n = means.size(0);
-  COBGS_CHECK_INPUT(radii);
-  COBGS_CHECK_SHAPE(radii, n);
-  COBGS_CHECK_DTYPE(radii, at::kInt);
-  for (const auto* t : {&v_means2d, &v_conics, &v_depths}) {
-    COBGS_CHECK_INPUT((*t));
-    COBGS_CHECK_DTYPE((*t), means.scalar_type());
-  }
-  COBGS_CHECK_SHAPE(v_means2d, n, 2);
-  COBGS_CHECK_SHAPE(v_conics, n, 3);
-  COBGS_CHECK_SHAPE(v_depths, n);
+  COBGS_CHECK_CPU(means);
+  check_project_inputs(means, quats, scales, viewmat, K, width, height);
+  check_project_bwd_inputs(means, radii, v_means2d, v_conics, v_depths);
   // Every element is written by the kernel.
   at::Tensor v_means = at::empty_like(means);
   at::Tensor v_quats = at::empty_like(quats);

@@ -16,62 +16,9 @@
 #include "../common/prof_cpu.h"
 #include "../common/sh_math.h"
 #include "../common/simd_cpu.h"
+#include "sh_one.h"
 
 namespace cobgs {
-namespace {
-
-constexpr int kMaxChannels = 16;  // per-Gaussian channel values live in registers
-
-void check_sh_inputs(const at::Tensor& means, const at::Tensor& sh0, const at::Tensor& shN,
-                     const at::Tensor& center, int64_t degree) {
-  COBGS_CHECK_INPUT(means);
-  COBGS_CHECK_INPUT(sh0);
-  COBGS_CHECK_INPUT(shN);
-  COBGS_CHECK_INPUT(center);
-  TORCH_CHECK(means.scalar_type() == at::kFloat || means.scalar_type() == at::kDouble,
-              "means must be float32 or float64, got ", means.scalar_type());
-  TORCH_CHECK(means.dim() == 2, "means must have shape [N, 3], got ", means.sizes());
-  TORCH_CHECK(sh0.dim() == 3, "sh0 must have shape [N, 1, C], got ", sh0.sizes());
-  const int64_t n = means.size(0), c = sh0.size(2);
-  TORCH_CHECK(c >= 1 && c <= kMaxChannels, "sh0 must have 1..", kMaxChannels,
-              " channels, got ", sh0.sizes());
-  COBGS_CHECK_SHAPE(means, n, 3);
-  COBGS_CHECK_SHAPE(sh0, n, 1, c);
-  COBGS_CHECK_SHAPE(shN, n, -1, c);
-  COBGS_CHECK_SHAPE(center, 3);
-  for (const auto* t : {&sh0, &shN, &center}) COBGS_CHECK_DTYPE((*t), means.scalar_type());
-  TORCH_CHECK(degree >= 0 && degree <= 3, "degree must be in 0..3, got ", degree);
-  TORCH_CHECK(shN.size(1) >= (degree + 1) * (degree + 1) - 1, "shN must have at least ",
-              (degree + 1) * (degree + 1) - 1, " coefficients for degree ", degree, ", got ",
-              shN.sizes());
-}
-
-template <typename T>
-struct ShArgs {
-  const T* means;   // [N, 3]
-  const T* sh0;     // [N, 1, C]
-  const T* shN;     // [N, M, C]
-  const T* center;  // [3]
-  int64_t M;
-  int C, degree;
-  T* out;  // [N, C]
-};
-
-template <typename T>
-struct ShBwdArgs {
-  const T* means;
-  const T* sh0;
-  const T* shN;
-  const T* center;
-  int64_t M;
-  int C, degree;
-  const T* v_col;  // [N, C]
-  T* v_means;      // [N, 3]     (every output element is written)
-  T* v_sh0;        // [N, 1, C]
-  T* v_shN;        // [N, M, C]
-};
-
-}  // namespace
 
 // The loops once per instruction set (see sh_lanes_cpu.h).
 namespace sh_base {
@@ -105,6 +52,7 @@ constexpr int64_t kChunk = 256;
 
 at::Tensor sh_colors_cpu(const at::Tensor& means, const at::Tensor& sh0, const at::Tensor& shN,
                          const at::Tensor& center, int64_t degree) {
+  COBGS_CHECK_CPU(means);
   check_sh_inputs(means, sh0, shN, center, degree);
   const int64_t n = means.size(0), M = shN.size(1), C = sh0.size(2);
   at::Tensor out = at::empty({n, C}, means.options());
@@ -124,11 +72,10 @@ at::Tensor sh_colors_cpu(const at::Tensor& means, const at::Tensor& sh0, const a
 std::tuple<at::Tensor, at::Tensor, at::Tensor> sh_colors_bwd_cpu(
     const at::Tensor& means, const at::Tensor& sh0, const at::Tensor& shN,
     const at::Tensor& center, int64_t degree, const at::Tensor& v_colors) {
+  COBGS_CHECK_CPU(means);
   check_sh_inputs(means, sh0, shN, center, degree);
   const int64_t n = means.size(0), M = shN.size(1), C = sh0.size(2);
-  COBGS_CHECK_INPUT(v_colors);
-  COBGS_CHECK_DTYPE(v_colors, means.scalar_type());
-  COBGS_CHECK_SHAPE(v_colors, n, C);
+  check_sh_bwd_input(means, sh0, v_colors);
   // Every element is written by the kernel (no zero fill needed).
   at::Tensor v_means = at::empty_like(means);
   at::Tensor v_sh0 = at::empty_like(sh0);

@@ -6,49 +6,6 @@
 // moved between memory and lanes by 8x8 transposes; every lane is bit-identical to the
 // one-Gaussian evaluation, which serves the other cases and the remainders.
 
-template <typename T, int CC, int DEG>
-inline void sh_forward_one(const ShArgs<T>& a, int64_t i) {
-  const int C = CC > 0 ? CC : a.C;
-  const int degree = DEG >= 0 ? DEG : a.degree;
-  const int K = (degree + 1) * (degree + 1);
-  T Y[sh::kMaxCoeffs];
-  if (degree > 0) {
-    T dir[3], norm, nc;
-    sh::view_direction(a.means + 3 * i, a.center, dir, norm, nc);
-    sh::basis(degree, dir[0], dir[1], dir[2], Y);
-  }
-  T v[kMaxChannels];
-  sh::colour_sum(C, K, Y, a.sh0 + i * C, a.shN + i * a.M * C, v);
-  for (int ch = 0; ch < C; ++ch) a.out[i * C + ch] = sh::clamp_colour(v[ch]);
-}
-
-template <typename T, int CC, int DEG>
-inline void sh_backward_one(const ShBwdArgs<T>& a, int64_t i) {
-  const int C = CC > 0 ? CC : a.C;
-  const int degree = DEG >= 0 ? DEG : a.degree;
-  const int K = (degree + 1) * (degree + 1);
-  T* g0 = a.v_sh0 + i * C;
-  T* gn = a.v_shN + i * a.M * C;
-  T* vm = a.v_means + 3 * i;
-  const T* vcol = a.v_col + i * C;
-  bool any_grad = false;
-  for (int ch = 0; ch < C; ++ch) any_grad |= vcol[ch] != T(0);
-  if (!any_grad) {  // e.g. a Gaussian hidden in this view: every gradient is zero
-    std::fill(g0, g0 + C, T(0));
-    std::fill(gn, gn + a.M * C, T(0));
-    vm[0] = vm[1] = vm[2] = T(0);
-    return;
-  }
-  T Y[sh::kMaxCoeffs], dir[3], norm = T(0), nc = T(1);
-  if (degree > 0) {
-    sh::view_direction(a.means + 3 * i, a.center, dir, norm, nc);
-    sh::basis(degree, dir[0], dir[1], dir[2], Y);
-  }
-  sh::colour_vjp(C, degree, Y, dir, norm, nc, a.sh0 + i * C, a.shN + i * a.M * C, vcol, g0, gn,
-                 vm);
-  for (int64_t k = (K - 1) * C; k < a.M * C; ++k) gn[k] = T(0);
-}
-
 // The lane path: float32, 3 channels, degree 3, exactly 15 higher coefficients (45 floats
 // per Gaussian).
 constexpr int kRow = 45;
