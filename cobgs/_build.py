@@ -7,7 +7,7 @@ first use and loads the library, which registers the ``torch.ops.cobgs.*`` ops.
   ``~/.cache/cobgs/ext``). One sub-folder per build key.
 * **Build key:** sha256 of every source and header under ``csrc/`` (path and content),
   the compiler flags, the torch version, the Python version, the machine architecture,
-  ``$CXX`` and the CUDA plan (below). Any source change therefore builds afresh. No
+  ``$CXX`` and the CUDA plan (below; with ``$CC``, nvcc's host compiler). Any source change therefore builds afresh. No
   ``-march=native`` is used, so a cached build runs on any CPU of the same architecture
   (which is why the CPU model is not part of the key).
 * **CUDA:** the ``*_cuda.cu`` kernels are compiled into the same library only when torch
@@ -199,8 +199,9 @@ def build_key() -> str:
         "cflags": _cflags(), "ldflags": LDFLAGS, "torch": torch.__version__,
         "python": list(sys.version_info[:2]), "machine": platform.machine(),
         "cxx": os.environ.get("CXX", ""),
-        "cuda": {k: plan[k] for k in ("nvcc_version", "arch", "flags")} if plan["enabled"]
-        else None,
+        # $CC is nvcc's host compiler (torch passes it as -ccbin).
+        "cuda": dict({k: plan[k] for k in ("nvcc_version", "arch", "flags")},
+                     host_cc=os.environ.get("CC", "")) if plan["enabled"] else None,
     }, sort_keys=True).encode())
     return h.hexdigest()
 
