@@ -16,6 +16,7 @@
 #include "../common/gs_math.h"
 #include "../common/parallel_cpu.h"
 #include "../common/simd_cpu.h"
+#include "ssim_math.h"
 
 namespace cobgs {
 namespace blur_detail {

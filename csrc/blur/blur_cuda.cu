@@ -12,6 +12,7 @@
 
 #include "../common/cuda_common.cuh"
 #include "blur.h"
+#include "ssim_math.h"
 
 namespace cobgs {
 namespace {
@@ -24,6 +25,26 @@ struct Geometry {
   __host__ __device__ int64_t size() const { return planes * H * R; }
 };
 
+// The vertical taps of value e: t in [t0, t1) reads the value at first + t R (the rows
+// inside the image only).
+struct Taps {
+  int t0, t1;
+  int64_t first;
+};
+
+__device__ __forceinline__ Taps vertical_taps(const Geometry& d, int64_t e) {
+  const int64_t plane_row = e / d.R;
+  const int j = static_cast<int>(e % d.R);
+  const int i = static_cast<int>(plane_row % d.H);
+  const int64_t p = plane_row / d.H;
+  const int pad = d.n / 2;
+  Taps v;
+  v.t0 = pad - i > 0 ? pad - i : 0;
+  v.t1 = d.n < d.H + pad - i ? d.n : d.H + pad - i;
+  v.first = (p * d.H + (i - pad)) * d.R + j;  // the row of tap t = 0 (may lie outside)
+  return v;
+}
+
 // out[k] = Σ_t g[t] src[k][row + t - n/2] over the rows inside the image (K planes, `kst`
 // values apart in src and out).
 template <typename T, int K>
@@ -31,16 +52,11 @@ __global__ void vertical_kernel(Geometry d, const T* __restrict__ src, int64_t k
                                 const T* __restrict__ g, T* __restrict__ out) {
   const int64_t e = blockIdx.x * int64_t(kThreads) + threadIdx.x;
   if (e >= d.size()) return;
-  const int64_t plane_row = e / d.R;
-  const int j = static_cast<int>(e % d.R);
-  const int i = static_cast<int>(plane_row % d.H);
-  const int64_t p = plane_row / d.H;
-  const int pad = d.n / 2;
-  const int t0 = pad - i > 0 ? pad - i : 0, t1 = d.n < d.H + pad - i ? d.n : d.H + pad - i;
+  const Taps v = vertical_taps(d, e);
   T acc[K];
   for (int k = 0; k < K; ++k) acc[k] = T(0);
-  for (int t = t0; t < t1; ++t) {
-    const int64_t o = (p * d.H + (i + t - pad)) * d.R + j;
+  for (int t = v.t0; t < v.t1; ++t) {
+    const int64_t o = v.first + int64_t(t) * d.R;
     for (int k = 0; k < K; ++k) acc[k] += g[t] * src[k * kst + o];
   }
   for (int k = 0; k < K; ++k) out[k * kst + e] = acc[k];
@@ -54,16 +70,11 @@ __global__ void vertical_stats_kernel(Geometry d, const T* __restrict__ x,
   const int64_t e = blockIdx.x * int64_t(kThreads) + threadIdx.x;
   const int64_t size = d.size();
   if (e >= size) return;
-  const int64_t plane_row = e / d.R;
-  const int j = static_cast<int>(e % d.R);
-  const int i = static_cast<int>(plane_row % d.H);
-  const int64_t p = plane_row / d.H;
-  const int pad = d.n / 2;
-  const int t0 = pad - i > 0 ? pad - i : 0, t1 = d.n < d.H + pad - i ? d.n : d.H + pad - i;
+  const Taps v = vertical_taps(d, e);
   T acc[5] = {T(0), T(0), T(0), T(0), T(0)};
-  for (int t = t0; t < t1; ++t) {
+  for (int t = v.t0; t < v.t1; ++t) {
     const T w = g[t];
-    const int64_t o = (p * d.H + (i + t - pad)) * d.R + j;
+    const int64_t o = v.first + int64_t(t) * d.R;
     const T xv = x[o], yv = y[o];
     acc[0] += w * xv;
     acc[1] += w * yv;
@@ -110,17 +121,11 @@ __global__ void ssim_terms_kernel(Geometry d, const T* __restrict__ stats,
   if (e >= size) return;
   T s[5];
   horizontal<T, 5>(d, stats, size, g, e, s);
-  const T mu_x = s[0], mu_y = s[1], exx = s[2], eyy = s[3], exy = s[4];
-  const T a1 = T(2) * mu_x * mu_y + c1;
-  const T a2 = T(2) * (exy - mu_x * mu_y) + c2;
-  const T b1 = mu_x * mu_x + mu_y * mu_y + c1;
-  const T b2 = (exx - mu_x * mu_x) + (eyy - mu_y * mu_y) + c2;
-  const T inv_den = T(1) / (b1 * b2);
-  const T smap = a1 * a2 * inv_den;
-  smap_out[e] = a1 * a2 / (b1 * b2);
-  parts[e] = T(2) * mu_y * (a2 - a1) * inv_den - T(2) * mu_x * smap * (T(1) / b1 - T(1) / b2);
-  parts[size + e] = -smap / b2;
-  parts[2 * size + e] = T(2) * a1 * inv_den;
+  const ssim::Terms<T> t = ssim::terms<T, T>(s[0], s[1], s[2], s[3], s[4], c1, c2);
+  smap_out[e] = t.s;
+  parts[e] = t.d_mu;
+  parts[size + e] = t.d_xx;
+  parts[2 * size + e] = t.d_xy;
 }
 
 // grad = w_l1 sign(x - y) + w_ssim (b0 + 2 x b1 + y b2) / numel, b = the blurred partials
@@ -136,12 +141,11 @@ __global__ void ssim_grad_kernel(Geometry d, const T* __restrict__ vparts,
   T q[3];
   horizontal<T, 3>(d, vparts, size, g, e, q);
   const T xv = x[e], yv = y[e];
-  const T ssim_grad = (q[0] + T(2) * xv * q[1] + yv * q[2]) * inv_n;
+  const T ssim_grad = ssim::grad<T, T>(q, xv, yv, inv_n);
   if (kL1) {
     const T diff = xv - yv;
-    const T sgn = diff > T(0) ? T(1) : (diff < T(0) ? T(-1) : T(0));
-    grad[e] = w_l1 * sgn + w_ssim * ssim_grad;
-    absdiff[e] = diff < T(0) ? -diff : diff;
+    grad[e] = w_l1 * ssim::sign<T, T>(diff) + w_ssim * ssim_grad;
+    absdiff[e] = ssim::abs<T, T>(diff);
   } else {
     grad[e] = ssim_grad;
   }

@@ -181,23 +181,15 @@ double ssim_planes(const T* x, const T* y, int64_t planes, int H, int R, int ste
         using V = decltype(lane);
         V s[5];
         horizontal_block<V, 5>(rows.row, g, n, step, j, s);
-        const V mu_x = s[0], mu_y = s[1], exx = s[2], eyy = s[3], exy = s[4];
-        const V a1 = T(2) * mu_x * mu_y + c1;
-        const V a2 = T(2) * (exy - mu_x * mu_y) + c2;
-        const V b1 = mu_x * mu_x + mu_y * mu_y + c1;
-        const V b2 = (exx - mu_x * mu_x) + (eyy - mu_y * mu_y) + c2;
-        const V inv_den = T(1) / (b1 * b2);
-        const V smap = a1 * a2 * inv_den;
-        const V mean_term = a1 * a2 / (b1 * b2);
+        const ssim::Terms<V> t = ssim::terms<V, T>(s[0], s[1], s[2], s[3], s[4], c1, c2);
         if constexpr (math::LaneTraits<V>::kVector) {
-          for (int k = 0; k < simd::kLanes; ++k) sum += static_cast<double>(mean_term[k]);
+          for (int k = 0; k < simd::kLanes; ++k) sum += static_cast<double>(t.s[k]);
         } else {
-          sum += static_cast<double>(mean_term);
+          sum += static_cast<double>(t.s);
         }
-        st(d0 + j, T(2) * mu_y * (a2 - a1) * inv_den -
-                       T(2) * mu_x * smap * (T(1) / b1 - T(1) / b2));
-        st(d0 + part_stride + j, -smap / b2);
-        st(d0 + 2 * part_stride + j, T(2) * a1 * inv_den);
+        st(d0 + j, t.d_mu);
+        st(d0 + part_stride + j, t.d_xx);
+        st(d0 + 2 * part_stride + j, t.d_xy);
       });
       row_sum[static_cast<size_t>(r)] = sum;
     }
@@ -220,15 +212,11 @@ double ssim_planes(const T* x, const T* y, int64_t planes, int H, int R, int ste
         V q[3];
         horizontal_block<V, 3>(rows.row, g, n, step, j, q);
         const V xv = ld<V>(x + o + j), yv = ld<V>(y + o + j);
-        const V ssim_grad = (q[0] + T(2) * xv * q[1] + yv * q[2]) * inv_n;
+        const V ssim_grad = ssim::grad<V, T>(q, xv, yv, inv_n);
         if constexpr (kL1) {
-          // sign(x − y) with sign(0) = 0, as autograd's |·| gradient.
           const V diff = xv - yv;
-          const V zero = math::splat_lanes<V>(T(0));
-          const V one = math::splat_lanes<V>(T(1));
-          const V sgn = math::sel(diff > zero, one, math::sel(diff < zero, -one, zero));
-          st(grad + o + j, w_l1 * sgn + w_ssim * ssim_grad);
-          const V ad = math::sel(diff < zero, -diff, diff);
+          st(grad + o + j, w_l1 * ssim::sign<V, T>(diff) + w_ssim * ssim_grad);
+          const V ad = ssim::abs<V, T>(diff);
           if constexpr (math::LaneTraits<V>::kVector) {
             for (int k = 0; k < simd::kLanes; ++k) l1 += static_cast<double>(ad[k]);
           } else {
