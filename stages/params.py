@@ -141,7 +141,7 @@ class ScribbleOptions:
     keep_positive_above: float = 0.98
     keep_negative_above: float = 0.995
     seed: int = 0
-    binarize_above: int = 127
+    binarize_above: int = 0
     at_least_one_per_scribble: bool = True
 
 

@@ -5,8 +5,8 @@ Published layout of the labels folder (one sub-folder per task)::
     <labels>/masks/<task>/<target>.JPG          the held-out target view (full resolution)
     <labels>/masks/<task>/<target>_mask.png     its ground-truth mask (full resolution)
     <labels>/reference_image/<task>/<ref>.JPG   the view the scribbles were drawn on
-    <labels>/scribbles/<task>/pos_*.png         positive scribbles (1/4 resolution)
-    <labels>/scribbles/<task>/neg_*.png         negative scribbles
+    <labels>/scribbles/<task>/pos_*.png         positive scribbles (1/4 resolution; any
+    <labels>/scribbles/<task>/neg_*.png         negative scribbles   name holding pos / neg)
 
 The images themselves are the LLFF scenes; two tasks share the ``horns`` scene. The
 target view must be held out of training; the reference view is a training view that the
@@ -95,6 +95,30 @@ def _images_in(folder: Path) -> list[Path]:
                   if p.is_file() and p.suffix.lower() in _IMAGE_SUFFIXES and not p.stem.endswith("_mask"))
 
 
+def scribble_files(folder: Path) -> tuple[tuple[Path, ...], tuple[Path, ...]]:
+    """The positive and negative scribble images of a task folder, as the reference
+    methods match them: names containing ``pos`` / ``neg`` (any case); visualisation
+    files (names containing ``vis``) and other images are ignored.
+
+    Raises:
+        DataError: a name contains both ``pos`` and ``neg`` (the file is named).
+    """
+    pos, neg = [], []
+    for p in _images_in(folder):
+        name = p.stem.lower()
+        if "vis" in name:
+            continue
+        is_pos, is_neg = "pos" in name, "neg" in name
+        if is_pos and is_neg:
+            raise DataError("scribble file name contains both 'pos' and 'neg': cannot tell "
+                            "whether it is a positive or a negative scribble (rename it)", p)
+        if is_pos:
+            pos.append(p)
+        elif is_neg:
+            neg.append(p)
+    return tuple(pos), tuple(neg)
+
+
 def read_nvos_task(labels_dir: os.PathLike | str, task: str) -> NvosTask:
     """Locate and check one task's files in an NVOS labels folder.
 
@@ -145,10 +169,10 @@ def read_nvos_task(labels_dir: os.PathLike | str, task: str) -> NvosTask:
     sdir = root / "scribbles" / task
     if not sdir.is_dir():
         raise DataError("scribbles folder not found", sdir)
-    pos = tuple(sorted(sdir.glob("pos_*.png")))
-    neg = tuple(sorted(sdir.glob("neg_*.png")))
+    pos, neg = scribble_files(sdir)
     if not pos:
-        raise DataError("no positive scribble (pos_*.png) found", sdir)
+        raise DataError("no positive scribble found (an image whose name contains 'pos', "
+                        "e.g. pos_0.png)", sdir)
     return NvosTask(task=task, scene=nvos_scene_of(task), target=target, reference=reference,
                     gt_mask=gt, target_image=target_images[0] if target_images else None,
                     reference_image=ref_images[0] if ref_images else None,

@@ -1,6 +1,8 @@
 """NVOS scribbles -> SAM2 point prompts (SPEC section 5).
 
-Each scribble image is binarised and skeletonised (scikit-image); a skeleton pixel is kept
+Each scribble image is binarised (a scribble pixel is any pixel with a non-zero colour
+channel, as the reference methods read them: pure red or blue strokes count) and
+skeletonised (scikit-image); a skeleton pixel is kept
 as a positive point where U(0,1) > 0.98 and as a negative point where U(0,1) > 0.995, with
 one seeded generator drawn over the positive scribbles first, then the negative ones.
 Scribbles come at their own resolution (1/4 of the full images in NVOS) and are mapped
@@ -27,20 +29,29 @@ class ScribbleConfig:
     keep_positive_above: float = 0.98
     keep_negative_above: float = 0.995
     seed: int = 0
-    binarize_above: int = 127  # 8-bit scribble images
+    # A scribble pixel has some colour channel above this (8-bit images; 0 = any non-zero
+    # channel, the protocol's: pure red or blue strokes and anti-aliased edges count).
+    binarize_above: int = 0
     # a scribble too short to leave any point still contributes its middle pixel
     at_least_one_per_scribble: bool = True
 
 
 def _load_scribble(path: PathLike, threshold: int) -> np.ndarray:
+    """bool [H, W]: pixels with some colour channel above ``threshold``; where the image has
+    transparency, fully transparent pixels are never part of the scribble."""
     from PIL import Image
 
     try:
         with Image.open(path) as im:
-            a = np.asarray(im.convert("L"))
+            transparent = im.mode in ("RGBA", "LA", "PA") or \
+                (im.mode == "P" and "transparency" in im.info)
+            a = np.asarray(im.convert("RGBA" if transparent else "RGB"))
     except (OSError, ValueError) as exc:
         raise DataError(f"cannot read scribble: {exc}", path) from exc
-    return a > threshold
+    mask = (a[..., :3] > threshold).any(axis=-1)
+    if transparent:
+        mask &= a[..., 3] > 0
+    return mask
 
 
 def skeleton_points(mask: np.ndarray) -> np.ndarray:

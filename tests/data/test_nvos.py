@@ -91,3 +91,21 @@ def test_missing_or_wrong_files_are_named(tmp_path, breakage, message):
         (root / "scribbles" / "fern" / "pos_0.png").unlink()
     with pytest.raises(DataError, match=message):
         read_nvos_task(root, "fern")
+
+
+def test_scribble_files_are_matched_by_pos_neg_substrings(tmp_path):
+    """Any image whose name holds pos / neg (any case); visualisations are ignored; a name
+    holding both is refused with the file named."""
+    root = make_labels(tmp_path / "labels", "fern")
+    sdir = root / "scribbles" / "fern"
+    dot = np.zeros((8, 11), np.uint8)
+    dot[3, 3:6] = 255
+    for name in ("scribble_pos_1.png", "NEG_2.png", "pos_vis.png", "overlay.png"):
+        _png(sdir / name, dot)
+    t = read_nvos_task(root, "fern")
+    assert [p.name for p in t.positive_scribbles] == ["pos_0.png", "scribble_pos_1.png"]
+    assert [p.name for p in t.negative_scribbles] == ["NEG_2.png", "neg_0.png"]
+    _png(sdir / "pos_neg_3.png", dot)
+    with pytest.raises(DataError, match="both 'pos' and 'neg'") as info:
+        read_nvos_task(root, "fern")
+    assert "pos_neg_3.png" in str(info.value)

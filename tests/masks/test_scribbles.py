@@ -62,6 +62,37 @@ def test_sampling_rule_seed_and_scaling(tmp_path):
                                                    (72.0, 61.0)}
 
 
+@pytest.mark.parametrize("colour", [(255, 0, 0), (0, 0, 255), (40, 40, 40)],
+                         ids=["pure red", "pure blue", "dark grey"])
+def test_any_non_zero_channel_is_a_scribble_pixel(tmp_path, colour):
+    """The protocol's rule (SPEC §5): pure red / blue strokes (luminance 76 / 29) and
+    anti-aliased edges count; a luminance threshold of 127 lost all of them."""
+    from cobgs.masks.scribbles import _load_scribble
+
+    img = np.zeros((60, 80, 3), np.uint8)
+    img[20:24, 10:70] = colour
+    img[19, 10:70] = [c // 8 for c in colour]  # anti-aliased edge rows, faint
+    img[24, 10:70] = [max(1, c // 16) for c in colour]
+    path = tmp_path / "pos_0.png"
+    Image.fromarray(img).save(path)
+    assert _load_scribble(path, 0).sum() == 6 * 60
+    pts, labs = scribble_points([path], [], (60, 80), ScribbleConfig(seed=0))
+    assert len(pts) >= 1 and (labs == 1).all()
+    assert (np.abs(pts[:, 1] - 21.5) <= 3).all()  # on the stroke
+
+
+def test_transparent_pixels_are_never_scribble(tmp_path):
+    from cobgs.masks.scribbles import _load_scribble
+
+    rgba = np.zeros((30, 40, 4), np.uint8)
+    rgba[..., :3] = 200  # colour under a fully transparent background
+    rgba[10:12, 5:35, 3] = 255
+    path = tmp_path / "pos_0.png"
+    Image.fromarray(rgba).save(path)
+    m = _load_scribble(path, 0)
+    assert m.sum() == 2 * 30 and m[10:12, 5:35].all()
+
+
 def test_errors(tmp_path):
     empty = _scribble(tmp_path / "e.png", (10, 10), [])
     with pytest.raises(DataError, match="no foreground"):
