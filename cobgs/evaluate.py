@@ -9,8 +9,9 @@ stage renders the predictions, the evaluate stage hands them over with the proto
   boundary IoU (:mod:`cobgs.metrics`).
 * **NVOS** (:func:`nvos_summary`): one target view per task; mIoU / mAcc = means over tasks.
 * **LERF-mask** (:func:`lerf_prompt_scores`, :func:`lerf_summary`): IoU and boundary IoU
-  per prompt and test view, averaged per prompt, then over prompts; views whose GT is
-  missing or empty are skipped and listed.
+  per prompt and test view, averaged per prompt, then over prompts; every GT file counts
+  (an empty GT scores 0 against a non-empty prediction, NaN against an empty one), views
+  without a GT file are skipped and listed.
 * **Exact GT** (:func:`exact_scores`): synthetic scenes and NeRF-synthetic alpha masks,
   every held-out view with a non-empty GT.
 * **Texture** (:func:`psnr_scores`): PSNR of 8-bit renders against the held-out images, the
@@ -239,6 +240,11 @@ def lerf_prompt_scores(preds: Mapping[str, object], gt_paths: Mapping[str, Optio
                        test_views: Sequence[str], boundary_ratio: float = BOUNDARY_RATIO) -> dict:
     """LERF-mask scores of one prompt over its annotated test views.
 
+    Every GT file is scored, as Gaussian Grouping's ``eval_lerf_mask.py`` does (SPEC §5):
+    an empty GT mask scores IoU 0 (and boundary IoU 0) when the prediction is not empty;
+    when both are empty the scores are NaN and left out of the means. Both cases are
+    listed under ``"empty_gt"`` and counted.
+
     Args:
         preds: test view -> predicted mask (any size; resized NEAREST to the GT).
         gt_paths: test view -> GT file of this prompt (missing / None: no GT).
@@ -246,29 +252,41 @@ def lerf_prompt_scores(preds: Mapping[str, object], gt_paths: Mapping[str, Optio
         boundary_ratio: boundary width of the boundary IoU.
 
     Returns:
-        ``{"iou", "biou", "acc"`` (means over evaluated views), ``"views"``,
-        ``"per_view"``, ``"skipped": {view: reason}}``.
+        ``{"iou", "biou", "acc"`` (means over the finite scores), ``"views"`` (views with a
+        finite IoU), ``"per_view"``, ``"skipped": {view: reason}`` (no GT file, or both
+        masks empty), ``"empty_gt": {view: what happened}``, ``"empty_gt_zero"``,
+        ``"empty_gt_nan"``}.
     """
-    per, skipped = {}, {}
+    per, skipped, empty = {}, {}, {}
     for v in test_views:
         path = gt_paths.get(v)
         if path is None:
             skipped[v] = "no GT file"
             continue
-        g8 = read_mask_u8(path)
-        if not np.any(g8 > THRESHOLD_U8):
-            skipped[v] = "empty GT"
-            continue
         if v not in preds:
             raise InputError(f"no prediction for test view {v!r} (GT {path})")
-        per[v] = compare_masks(preds[v], g8, boundary_ratio).to_json()
+        g8 = read_mask_u8(path)
+        s = compare_masks(preds[v], g8, boundary_ratio).to_json()
+        if not np.any(g8 > THRESHOLD_U8):
+            if s["fp"] > 0:
+                s.update(iou=0.0, biou=0.0)
+                empty[v] = "empty GT, prediction not empty: IoU 0"
+            else:
+                s.update(iou=float("nan"), biou=float("nan"))
+                empty[v] = "empty GT and empty prediction: NaN, left out of the mean"
+                skipped[v] = empty[v]
+        per[v] = s
+    n_zero = sum(1 for why in empty.values() if why.endswith("IoU 0"))
     return {
         "iou": nanmean(p["iou"] for p in per.values()),
         "biou": nanmean(p["biou"] for p in per.values()),
         "acc": nanmean(p["acc"] for p in per.values()),
-        "views": len(per),
+        "views": sum(1 for p in per.values() if math.isfinite(p["iou"])),
         "per_view": per,
         "skipped": skipped,
+        "empty_gt": empty,
+        "empty_gt_zero": n_zero,
+        "empty_gt_nan": len(empty) - n_zero,
     }
 
 

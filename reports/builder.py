@@ -195,10 +195,13 @@ def _write(data: RunData, root: Path, sets: list[str]) -> None:
                              "log": logs(t) if t.state == "failed" else None, "key": t.key})
     waiting = [{"stage": t.stage, "item": t.item_id, "state": t.state, "message": t.error}
                for t in data.tasks if t.state in ("missing", "stale")]
-    skipped: dict = {}  # the protocol's own gaps (no / empty GT), the same for every method
+    skipped: dict = {}  # the protocol's own gaps (no / empty GT), per scene and object
     for r in data.results:
         for view, why in r.skipped.items():
             skipped.setdefault((r.scene, r.object), {})[view] = why
+        for view, why in r.empty_gt.items():  # LERF-mask: an empty GT scored 0 (per method)
+            if view not in r.skipped:
+                skipped.setdefault((r.scene, r.object), {})[f"{view} ({r.method})"] = why
     eval_gaps = [{"scene": sc, "object": ob, "views": len(v), "reasons": ", ".join(
         f"{n}× {why}" for why, n in sorted(_count(v.values()).items())), "names": ", ".join(sorted(v))}
         for (sc, ob), v in skipped.items()]

@@ -97,6 +97,7 @@ class Result:
     row: Optional[dict] = None  # metrics.json "row"
     per_view: dict = field(default_factory=dict)  # view -> {iou, acc, biou, ...}
     skipped: dict = field(default_factory=dict)  # view -> reason
+    empty_gt: dict = field(default_factory=dict)  # view -> how an empty GT mask was scored
     psnr_per_view: dict = field(default_factory=dict)
     refine: Optional[dict] = None  # refine.json
     refine_params: Optional[dict] = None  # the refine task's resolved params
@@ -235,6 +236,7 @@ def collect(workflow, cache_dir: os.PathLike | str) -> RunData:
                 details = metrics.get("details") or {}
                 r.per_view = dict(details.get("per_view") or {})
                 r.skipped = dict(details.get("skipped") or {})
+                r.empty_gt = dict(details.get("empty_gt") or {})
                 r.psnr_per_view = dict(metrics.get("psnr_per_view") or {})
             rt = task_for("refined", mt.item)
             r.refine, r.refine_dir = load(rt, "refined")

@@ -8,7 +8,9 @@ The dataset spec names the protocol:
              visible are skipped and listed;
   nvos       the held-out target view against the full-resolution GT (prediction resized
              NEAREST, both > 128); IoU and accuracy;
-  lerf_mask  every annotated test view of this prompt; IoU and boundary IoU averaged over
+  lerf_mask  every GT file of this prompt (an empty GT scores 0 against a non-empty
+             prediction, NaN against an empty one: counted as empty_gt_zero / _nan); IoU
+             and boundary IoU averaged over
              views (the summary then averages over prompts); missing / empty GT listed;
   none       no mask GT: only the texture numbers.
 Texture (paper Table 4): PSNR of the refined scene's held-out renders next to the vanilla
@@ -95,8 +97,9 @@ def _run(ctx, inputs):
             raise StageInputError(f"LERF-mask: no GT file for prompt {obj!r} (prompts: {gt['prompts']})")
         r = E.lerf_prompt_scores(preds, paths, gt["test_views"], p.boundary_ratio)
         row.update(iou=r["iou"], acc=r["acc"], biou=r["biou"], views=r["views"], prompt=obj,
-                   mask_render="object_only")
-        details.update(per_view=r["per_view"], skipped=r["skipped"])
+                   mask_render="object_only", empty_gt_zero=r["empty_gt_zero"],
+                   empty_gt_nan=r["empty_gt_nan"])
+        details.update(per_view=r["per_view"], skipped=r["skipped"], empty_gt=r["empty_gt"])
     else:
         row.update(iou=float("nan"), acc=float("nan"), biou=float("nan"), views=0)
         details.update(per_view={}, skipped={})

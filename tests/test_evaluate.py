@@ -87,10 +87,37 @@ def test_lerf_means_per_prompt_then_over_prompts(tmp_path):
     b_paths["v3"] = write("b3", np.zeros((h, w), np.uint8))
     b = E.lerf_prompt_scores({v: box(h, w, 4, 8, 4, 8) for v in views}, b_paths, views)
     assert a["iou"] == 1.0 and a["views"] == 1 and set(a["skipped"]) == {"v1", "v2", "v3"}
-    assert b["iou"] == 0.0 and b["views"] == 3 and b["skipped"] == {"v3": "empty GT"}
+    # v3's GT is empty and the prediction is not: scored 0, as Gaussian Grouping does
+    assert b["iou"] == 0.0 and b["views"] == 4 and b["skipped"] == {}
+    assert b["empty_gt"] == {"v3": "empty GT, prediction not empty: IoU 0"}
+    assert (b["empty_gt_zero"], b["empty_gt_nan"]) == (1, 0)
     s = E.lerf_summary({"A": a, "B": b, "C": {"views": 0, "iou": float("nan"), "biou": float("nan")}})
     assert s["miou"] == pytest.approx(0.5)  # not 0.25: prompts weigh equally, not views
     assert s["prompts"] == 2 and s["prompts_without_gt"] == ["C"]
+
+
+def test_lerf_empty_gt_follows_gaussian_groupings_rule(tmp_path):
+    """Hand computation of eval_lerf_mask.py's rule: IoU = |P∩G| / |P∪G| per GT file, 0/0
+    = NaN left out of the mean. v0: half overlap -> 1/3; v1: empty GT, non-empty prediction
+    -> 0; v2: both empty -> NaN. Mean over finite values = (1/3 + 0) / 2."""
+    h = w = 8
+
+    def write(name, arr):
+        p = tmp_path / f"{name}.png"
+        cv2.imwrite(str(p), arr)
+        return p
+
+    empty = np.zeros((h, w), np.uint8)
+    paths = {"v0": write("g0", box(h, w, 0, 4, 0, 4)), "v1": write("g1", empty),
+             "v2": write("g2", empty)}
+    preds = {"v0": box(h, w, 0, 4, 2, 6), "v1": box(h, w, 5, 7, 5, 7), "v2": empty}
+    r = E.lerf_prompt_scores(preds, paths, ["v0", "v1", "v2"])
+    assert r["per_view"]["v0"]["iou"] == pytest.approx(8 / 24)
+    assert r["per_view"]["v1"]["iou"] == 0.0 and r["per_view"]["v1"]["biou"] == 0.0
+    assert np.isnan(r["per_view"]["v2"]["iou"]) and np.isnan(r["per_view"]["v2"]["biou"])
+    assert r["iou"] == pytest.approx((8 / 24 + 0.0) / 2)
+    assert r["views"] == 2 and (r["empty_gt_zero"], r["empty_gt_nan"]) == (1, 1)
+    assert set(r["skipped"]) == {"v2"} and set(r["empty_gt"]) == {"v1", "v2"}
 
 
 def test_psnr_of_8bit_renders():

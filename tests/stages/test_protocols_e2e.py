@@ -117,14 +117,18 @@ def test_nvos_and_lerf_mask_workflows(tmp_path):
     # 0.881, SA3D-GS 0.832, FlashSplat 0.878. A mis-wired protocol scores far lower.
     for method in ("cobgs", "nosplit", "sa3d", "flashsplat"):
         assert rows[f"synthball/{method}/ball"]["row"]["iou"] > 0.75, method
-    # LERF-mask: every test view with a non-empty GT is evaluated, the others are listed, and
-    # the GT of test index i is the i-th sorted test view's (its area identifies it).
+    # LERF-mask: every GT file is scored (an empty GT: 0 against a non-empty prediction, NaN
+    # against an empty one, both counted), views without a file are listed, and the GT of
+    # test index i is the i-th sorted test view's (its area identifies it).
     for item, m in rows.items():
         if not item.startswith("lerf/"):
             continue
         assert m["row"]["protocol"] == "lerf_mask"
         assert set(m["details"]["per_view"]) | set(m["details"]["skipped"]) == set(test_views)
-        assert m["row"]["views"] == len(m["details"]["per_view"]) > 0
+        finite = [pv for pv in m["details"]["per_view"].values()
+                  if pv["iou"] is not None and pv["iou"] == pv["iou"]]  # NaN is null in JSON
+        assert m["row"]["views"] == len(finite) > 0
+        assert m["row"]["empty_gt_zero"] + m["row"]["empty_gt_nan"] == len(m["details"]["empty_gt"])
         obj = item.split("/")[-1]
         for view, pv in m["details"]["per_view"].items():
             assert pv["tp"] + pv["fn"] == _area(scene / "masks" / obj / f"{view[len('frame_'):]}.png"), view
