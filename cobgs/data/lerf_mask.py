@@ -9,8 +9,9 @@ Published layout of a scene folder::
 
 Training views are the names in ``images_train/``; test views are all other images,
 sorted by name, and ``<idx>`` is a view's position in that sorted list (``0``, ``1``,
-...; zero-padded folder names are accepted). Some test views have no GT folder, and some
-GT masks are empty: the protocol skips both and says so (:func:`read_lerf_gt`).
+...; zero-padded folder names are accepted). Some test views have no GT folder (left out
+and listed, :func:`read_lerf_gt`), and some GT masks are empty: those are scored as
+Gaussian Grouping's script scores them (:func:`cobgs.evaluate.lerf_prompt_scores`).
 """
 
 from __future__ import annotations
