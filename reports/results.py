@@ -185,7 +185,7 @@ def object_records(data: RunData, infos: dict, log_href: LogHref) -> list[dict]:
         recs.append({
             "scene": r.scene, "method": r.method, "object": r.object, "status": status,
             "iou": row.get("iou"), "acc": row.get("acc"), "biou": row.get("biou"), "views": row.get("views"),
-            "iou_object_only": row.get("iou_object_only"),
+            "iou_object_only": row.get("iou_object_only"), "mask_route": row.get("mask_route"),
             "psnr": row.get("psnr"), "psnr_delta": row.get("psnr_delta"), "num_gaussians": row.get("num_gaussians"),
             "splits": row.get("splits"), "pruned": row.get("pruned"),
             "ambiguous_final": amb if amb is not None and amb >= 0 else None,

@@ -71,7 +71,11 @@ def result_tables(data: RunData, infos: dict, logs: R.LogHref) -> dict:
     t_object = build_table(
         "t-object", "Per object: the evaluate stage's numbers and the refinement's Gaussian bookkeeping",
         [Column("scene", "Scene", numeric=False), Column("method", "Method", numeric=False),
-         Column("object", "Object", numeric=False), Column("iou", "IoU", fmt.pct, better="max"),
+         Column("object", "Object", numeric=False),
+         Column("mask_route", "Masks", numeric=False,
+                title="how the training masks were made: dataset masks, released masks (files), "
+                      "scribbles -> SAM2, text -> two-stage (+ noise)"),
+         Column("iou", "IoU", fmt.pct, better="max"),
          Column("acc", "Acc", fmt.pct, better="max"), Column("biou", "BIoU", fmt.pct, better="max"),
          *([Column("iou_object_only", "IoU obj. only", fmt.pct,
                    title="IoU of the object rendered alone (the released evaluation render), for reference; "

@@ -114,7 +114,8 @@ def _run(ctx, inputs):
                object_gaussians=seg["object_gaussians"], splits=ref["splits"], pruned=ref["pruned"],
                ambiguous_final=ref["ambiguous_final"], refine_s=ref["wall_s"],
                refine_peak_mem_bytes=ref["peak_mem_bytes"], extract_ms=seg["extract_ms"],
-               train_psnr_eval=(train.get("eval") or {}).get("psnr"))
+               train_psnr_eval=(train.get("eval") or {}).get("psnr"),
+               mask_route=ref.get("mask_route"))
     write_json(ctx.out_dir / "metrics.json", {"row": row, "details": details,
                                               "psnr_per_view": {"refined": pr["per_view"],
                                                                 "vanilla": pv["per_view"]}})
@@ -132,7 +133,7 @@ def _run(ctx, inputs):
 
 
 STAGE = Stage(
-    name="evaluate", version=2, run=_run, inputs=("dataset", "poses", "scene", "refined", "segmentation"),
+    name="evaluate", version=3, run=_run, inputs=("dataset", "poses", "scene", "refined", "segmentation"),
     outputs=("metrics",), params=EvaluateParams, level=("scene", "method", "object"),
     resources=Resources(cpus=1),
     description="protocol metrics (exact GT, NVOS, LERF-mask) and PSNR vs the vanilla scene",

@@ -2,7 +2,10 @@
 
 Sources (``masks.source``):
   files  the dataset's own masks (``masks/<object>/`` folders, Blender alpha), training
-         views only — held-out masks stay ground truth;
+         views only — held-out masks stay ground truth; or, when the object sets
+         ``mask_dir``, a folder of per-view mask images named after the views (COB-GS's
+         released NVOS masks: ``<IMG>.JPG``), any resolution (resized NEAREST to the
+         training size), binarised ``> masks.files_threshold`` (0, as the released code);
   noisy  the same, corrupted by :mod:`cobgs.data.mask_noise` (robustness runs);
   onnx   two-stage text prompting, Grounding DINO + SAM2 (:func:`cobgs.masks.generate_masks`),
          prompt = the object's ``prompt`` attribute (default: its name, ``_`` as spaces);
@@ -41,10 +44,19 @@ class ObjectAttrs:
             ``masks.source``.
         prompt: text prompt for ``masks.source = "onnx"`` (default: the object name with
             ``_`` read as a space).
+        mask_dir: ``masks.source = "files"`` reads this folder's per-view mask images
+            (``<view>.<any image suffix>``, e.g. COB-GS's released ``IMG_4026.JPG``) instead
+            of the dataset's masks; relative paths resolve against the workflow file.
     """
 
     mask: str = ""
     prompt: str = ""
+    mask_dir: Optional[Path] = None
+
+    def __post_init__(self) -> None:
+        if self.mask_dir is not None and not Path(self.mask_dir).is_dir():
+            raise ValueError(f"mask_dir {self.mask_dir} does not exist (a folder of per-view "
+                             f"mask images named after the views, e.g. IMG_4026.JPG)")
 
 
 @dataclass(frozen=True)
@@ -56,6 +68,8 @@ class MasksParams:
         two_stage: Alg. 1 thresholds (``onnx``).
         scribbles: scribble point sampling (``nvos``).
         intra_op_threads: onnxruntime threads per graph (0 = its choice).
+        files_threshold: ``files`` from an object's ``mask_dir``: a mask pixel has some
+            channel above this (0 = any non-zero, as COB-GS's released code reads its masks).
     """
 
     source: str = "files"
@@ -64,8 +78,12 @@ class MasksParams:
     two_stage: TwoStageOptions = field(default_factory=TwoStageOptions)
     scribbles: ScribbleOptions = field(default_factory=ScribbleOptions)
     intra_op_threads: int = 0
+    files_threshold: int = 0
 
     def __post_init__(self) -> None:
+        if not 0 <= self.files_threshold < 255:
+            raise ValueError(f"files_threshold must be in 0..254 (a mask pixel is one with some "
+                             f"channel above it), got {self.files_threshold}")
         if self.source not in SOURCES:
             raise ValueError(f"source must be one of {list(SOURCES)}, got {self.source!r}")
         # Checked when the workflow is planned, before any task runs (fail fast: the
@@ -91,8 +109,14 @@ def _run(ctx, inputs):
     views = scene.train
     t0 = time.perf_counter()
     info: dict = {"source": p.source, "object": obj, "scene": spec["scene"]}
+    attrs = ctx.item.attrs.get("object")
+    mask_dir = getattr(attrs, "mask_dir", None) if attrs is not None else None
+    info["route"] = mask_route(p.source, mask_dir is not None)
     if p.source in ("files", "noisy"):
-        masks = _dataset_masks(views, obj, spec)
+        if mask_dir is not None:
+            masks, info["files"] = _folder_masks(views, Path(mask_dir), p.files_threshold)
+        else:
+            masks = _dataset_masks(views, obj, spec)
         if p.source == "noisy":
             from cobgs.data.mask_noise import MaskNoiseParams, mask_rng, apply_mask_noise
 
@@ -126,6 +150,62 @@ def _run(ctx, inputs):
     ctx.log.info("masks of %r (%s): %d views, %d empty", obj, p.source, len(areas), len(info["empty"]))
     ctx.note(source=p.source, object=obj, views=len(areas), empty=len(info["empty"]))
     return {"masks": ctx.out_dir}
+
+
+def mask_route(source: str, from_folder: bool) -> str:
+    """How the masks were made, in the words reports use."""
+    if source == "files":
+        return "released masks (files)" if from_folder else "dataset masks"
+    if source == "noisy":
+        return ("released masks" if from_folder else "dataset masks") + " + noise"
+    if source == "onnx":
+        return "text -> two-stage (Grounding DINO + SAM2)"
+    return "scribbles -> SAM2"
+
+
+_MASK_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff")
+
+
+def _folder_masks(views, folder: Path, threshold: int) -> tuple[dict, dict]:
+    """Per-view masks from a folder of images named after the views (uint8 0/255 at the
+    training size) and what was read: files, original sizes, resizing, unused files."""
+    import numpy as np
+    from PIL import Image
+
+    by_stem: dict = {}
+    for f in sorted(folder.iterdir()):
+        if f.is_file() and f.suffix.lower() in _MASK_SUFFIXES:
+            by_stem.setdefault(f.stem, []).append(f)
+    out, sizes, used = {}, {}, set()
+    for v in views:
+        files = by_stem.get(v.name, [])
+        if len(files) > 1:
+            raise StageInputError(f"mask_dir {folder}: more than one mask for view {v.name!r}: "
+                                  f"{[f.name for f in files]}")
+        if not files:
+            continue
+        f = files[0]
+        used.add(f.stem)
+        try:
+            with Image.open(f) as im:
+                a = np.asarray(im.convert("RGB"))
+        except (OSError, ValueError) as exc:
+            raise StageInputError(f"mask file {f}: cannot read it as an image ({exc})") from exc
+        m = (a > threshold).any(axis=-1)
+        sizes[v.name] = [int(m.shape[1]), int(m.shape[0])]
+        if m.shape != (v.height, v.width):  # NEAREST, as the evaluation scripts resize
+            m = np.asarray(Image.fromarray(m.astype(np.uint8) * 255).resize(
+                (v.width, v.height), Image.NEAREST)) > 127
+        out[v.name] = m.astype(np.uint8) * 255
+    if not out:
+        raise StageInputError(f"mask_dir {folder}: no mask named after a training view (views like "
+                              f"{[v.name for v in views[:3]]}; files like {sorted(by_stem)[:3]})")
+    resized = {n: s for n, s in sizes.items() if s != [views[0].width, views[0].height]}
+    info = {"dir": str(folder), "threshold": threshold, "files": {n: by_stem[n][0].name for n in out},
+            "source_size": sizes, "resized_nearest": sorted(resized),
+            "training_size": [views[0].width, views[0].height],
+            "unused_files": sorted(set(by_stem) - used)}
+    return out, info
 
 
 def _dataset_masks(views, obj: str, spec: dict) -> dict:
@@ -193,7 +273,7 @@ def _generate(ctx, p: MasksParams, spec: dict, obj: str, views, info: dict) -> N
 
 
 STAGE = Stage(
-    name="masks", version=1, run=_run, inputs=("dataset", "poses"), outputs=("masks",), params=MasksParams,
+    name="masks", version=2, run=_run, inputs=("dataset", "poses"), outputs=("masks",), params=MasksParams,
     level=("scene", "object"), uses_device=True, resources=Resources(cpus=2),
     description="an object's training-view masks: dataset files, noisy copies, ONNX text or NVOS scribbles",
 )

@@ -112,6 +112,8 @@ def _run(ctx, inputs):
                         **{f"stage_{i}": s.cpu().numpy().astype(np.float32)
                            for i, s in enumerate(result.stage_scores)})
     summary = result.summary()
+    masks_info = read_json(Path(inputs["masks"]) / "masks.json")
+    summary.update(mask_route=masks_info.get("route"), mask_source=masks_info.get("source"))
     summary.update(method_param=p.method, method_item=ctx.item["method"], object=obj,
                    scene=spec["scene"], train_views=len(scene.train),
                    views_with_mask=sum(m is not None for m in masks), extent=scene.extent)
@@ -132,7 +134,7 @@ def _run(ctx, inputs):
 
 
 STAGE = Stage(
-    name="refine", version=3, run=_run, inputs=("dataset", "poses", "scene", "masks"), outputs=("refined",),
+    name="refine", version=4, run=_run, inputs=("dataset", "poses", "scene", "masks"), outputs=("refined",),
     params=RefineParams, level=("scene", "method", "object"), uses_device=True, resources=Resources(cpus=2),
     description="COB-GS (or an ablation row / a peer) on one object: labels, splits, refined scene",
 )

@@ -217,6 +217,56 @@ def test_noisy_masks_source(tiny, tmp_path):
     assert sorted(info["empty"]) == sorted(k for k, r in recs.items() if r["dropped"])
 
 
+def test_masks_from_a_folder_of_released_masks(tiny, tmp_path):
+    """An object's ``mask_dir`` (COB-GS's released NVOS masks: ``<IMG>.JPG`` per view, any
+    resolution, binarised > 0): read per training view, resized NEAREST to the training
+    size, recorded in masks.json with the route label; the route reaches refine.json."""
+    import cv2
+    import numpy as np
+
+    path, cache, wf, _ = tiny
+    clean = _entry(wf, cache, "masks", "tiny/ball").output("masks")
+    folder = tmp_path / "released"
+    folder.mkdir()
+    for f in sorted(clean.glob("*.png")):  # twice the training size, JPEG-compressed
+        m = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+        big = cv2.resize(m, (2 * m.shape[1], 2 * m.shape[0]), interpolation=cv2.INTER_NEAREST)
+        cv2.imwrite(str(folder / f"{f.stem}.JPG"), big, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    (folder / "notes.txt").write_text("not a mask")
+    cv2.imwrite(str(folder / "0999.JPG"), np.zeros((8, 8), np.uint8))  # no such view: unused
+    wf_path = tmp_path / "released.toml"
+    wf_path.write_text(path.read_text() + f'[axes.object.tiny.ball_released]\nmask = "ball"\n'
+                       f'mask_dir = "{folder}"\n')
+    wf2, summary, log = _run(wf_path, cache, only=("masks",))
+    assert summary.exit_code == 0, log
+    out = _entry(wf2, cache, "masks", "tiny/ball_released").output("masks")
+    info = json.loads((out / "masks.json").read_text())
+    assert info["route"] == "released masks (files)" and info["files"]["threshold"] == 0
+    assert sorted(info["files"]["files"]) == sorted(p.stem for p in clean.glob("*.png"))
+    assert info["files"]["unused_files"] == ["0999"]
+    w, h = info["files"]["training_size"]
+    assert all(s == [2 * w, 2 * h] for s in info["files"]["source_size"].values())
+    assert len(info["files"]["resized_nearest"]) == len(info["files"]["files"])
+    for f in clean.glob("*.png"):
+        ref = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE) > 127
+        got = cv2.imread(str(out / f.name), cv2.IMREAD_GRAYSCALE) > 127
+        # > 0 keeps JPEG ringing next to the edges (as the released code does): a superset
+        assert got.shape == ref.shape and (got | ~ref).all() and (got ^ ref).mean() < 0.05
+    wf3, summary, log = _run(wf_path, cache, only=("refine",), items="tiny/cobgs/ball_released")
+    assert summary.exit_code == 0, log
+    refined = _entry(wf3, cache, "refine", "tiny/cobgs/ball_released").output("refined")
+    assert json.loads((refined / "refine.json").read_text())["mask_route"] == "released masks (files)"
+
+
+def test_missing_mask_dir_is_refused_when_the_workflow_loads(tiny, tmp_path):
+    path, cache, wf, _ = tiny
+    wf_path = tmp_path / "bad.toml"
+    wf_path.write_text(path.read_text() + '[axes.object.tiny.ball_released]\nmask = "ball"\n'
+                       f'mask_dir = "{tmp_path}/nowhere"\n')
+    with pytest.raises(Exception, match="mask_dir .*nowhere does not exist"):
+        _run(wf_path, cache, only=("masks",))
+
+
 def test_device_enters_the_keys_of_computing_stages_only(tiny):
     path, cache, _, _ = tiny
     _, dry, _ = _run(path, cache, sets=["device=cuda"], dry_run=True)
