@@ -321,7 +321,8 @@ def scene_records(data: RunData) -> list[dict]:
                      if spec else None, "objects": ", ".join(spec.get("objects") or []),
                      "iterations": t.get("iterations"), "num_gaussians": t.get("num_gaussians"),
                      "train_s": t.get("wall_s"), "psnr": ev.get("psnr"), "ssim": ev.get("ssim"),
-                     "status": sc.train_task.state if sc.train_task else "not in workflow"})
+                     "status": sc.train_task.state if sc.train_task else "not in workflow",
+                     "notes": "; ".join(spec.get("notes") or [])})
     return recs
 
 

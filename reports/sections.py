@@ -97,7 +97,10 @@ def result_tables(data: RunData, infos: dict, logs: R.LogHref) -> dict:
          Column("num_gaussians", "Gaussians", fmt.count), Column("train_s", "Train time", fmt.seconds),
          Column("psnr", "PSNR", fmt.db, title="vanilla scene, held-out views (dB)"),
          Column("ssim", "SSIM", lambda v: "" if fmt.finite(v) is None else f"{v:.4f}"),
-         Column("status", "Training", numeric=False)], R.scene_records(data))
+         Column("status", "Training", numeric=False),
+         Column("notes", "Reader notes", numeric=False,
+                title="what the reader decided about the data: distortion read as a pinhole, "
+                      "images matched to poses by sorted order, ...")], R.scene_records(data))
     return {"method": t_method, "scene": t_scene, "object": t_object, "scenes": t_scenes,
             "raw": {"by_method": by_method, "by_scene_method": by_scene, "by_object": recs}}
 

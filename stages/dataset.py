@@ -204,6 +204,7 @@ def _run(ctx, inputs):
                     raise StageInputError(f"NVOS task {task.task!r}: view {need!r} is not an image of "
                                           f"{root} (images: {stems[:3]} ...)")
             sfm_dir, post = _sfm_images(root, p)
+            spec["notes"] = list(scene.notes)
             spec.update(protocol="nvos", nvos=task.to_json(), objects=[task.task],
                         views=stems, test_views=[task.target], has_poses=True,
                         images={"dir": os.fspath(sfm_dir), "names": _names(sfm_dir)}, sfm_downscale=post,
@@ -224,6 +225,7 @@ def _run(ctx, inputs):
             kw = {"background": tuple(p.background)} if p.background is not None else {}
             scene = read_scene(root, format=reader["format"], downscale=p.downscale,
                                test_every=p.test_every, **kw)
+            spec["notes"] = list(scene.notes)
             all_views = sorted(v.name for v in scene.views)
             kept = set(_subset(all_views, p))
             test = [v.name for v in scene.test if v.name in kept]
@@ -260,7 +262,7 @@ def _detect(root: Path) -> str:
 
 
 STAGE = Stage(
-    name="dataset", version=1, run=_run, inputs=(), outputs=("dataset",), params=DatasetParams,
+    name="dataset", version=2, run=_run, inputs=(), outputs=("dataset",), params=DatasetParams,
     level=("scene",), resources=Resources(cpus=1),
     description="generate a synthetic scene or ingest an external one (dataset.json)",
 )

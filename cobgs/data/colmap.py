@@ -23,13 +23,15 @@ from .scene import (
     View,
     find_object_files,
     finish_rgb,
+    list_images,
     make_scene,
     read_image_array,
     read_mask_array,
     resize_mask,
     target_size,
 )
-from .undistort import PINHOLE_MODELS, pinhole_params, undistort_view_arrays
+from .undistort import (DROPPABLE_MODELS, PINHOLE_MODELS, pinhole_dropping_distortion,
+                        pinhole_params, undistort_view_arrays)
 
 _MODEL_FILES = ("cameras", "images", "points3D")
 
@@ -56,6 +58,7 @@ def read_colmap(
     downscale: float = 1.0,
     test_every: int = 8,
     test_names: Optional[Sequence[str]] = None,
+    distortion: str = "auto",
 ) -> Scene:
     """Read a COLMAP scene.
 
@@ -67,14 +70,28 @@ def read_colmap(
         downscale: divide the image size by this. When ``<path>/images_<k>/`` exists for
             an integer ``downscale == k`` and ``images_dir`` is not given, those
             pre-shrunk images are used (the LLFF / Mip-NeRF 360 convention).
+            When the files there are named otherwise than the model's images (LLFF's
+            ``nerf_llff_data``: ``images_4/image000.png`` ... for ``IMG_4026.JPG`` ...),
+            they are matched to the model's images by sorted order, which needs the same
+            number of images (and each matched image must have the camera's aspect).
         test_every: hold out views 0, k, 2k, ... of the name-sorted registered images.
         test_names: explicit held-out views (stems or file names).
+        distortion: what to do with a distorted camera model. "undistort": remap the
+            full-size images (a pre-shrunk ``images_<k>/`` is then refused); "ignore": read
+            SIMPLE_RADIAL / RADIAL / OPENCV / FULL_OPENCV cameras as their pinhole, the
+            distortion terms dropped (what the NVOS reference methods do with
+            ``nerf_llff_data``'s SIMPLE_RADIAL camera); "auto" (default): undistort when
+            the full-size images are used, ignore with pre-shrunk ones. Every dropped term
+            is listed in ``Scene.notes``.
 
     Returns:
         Scene with SfM ``points`` / ``points_rgb`` from the model.
     """
     import pycolmap
 
+    if distortion not in ("auto", "undistort", "ignore"):
+        raise DataError(f"distortion must be 'auto', 'undistort' or 'ignore', got {distortion!r}",
+                        path)
     root = Path(path)
     mdir = Path(model_dir) if model_dir is not None else find_model_dir(root)
     try:
@@ -93,11 +110,15 @@ def read_colmap(
     if not idir.is_dir():
         raise DataError("image folder not found", idir)
 
-    images = sorted(rec.images.values(), key=lambda im: im.name)
-    images = [im for im in images if _has_pose(im)]
+    notes: list[str] = []
+    every = sorted(rec.images.values(), key=lambda im: im.name)
+    files = _match_image_files(idir, [im.name for im in every], pre_shrunk, mdir, notes)
+    images = [im for im in every if _has_pose(im)]
     if not images:
         raise DataError("the model has no registered images", mdir)
-    views = [_read_view(root, rec, im, idir, downscale, pre_shrunk) for im in images]
+    drop = distortion == "ignore" or (distortion == "auto" and pre_shrunk)
+    views = [_read_view(root, rec, im, files[im.name], downscale, pre_shrunk, drop, notes)
+             for im in images]
 
     pts = rec.points3D
     points = points_rgb = None
@@ -113,7 +134,30 @@ def read_colmap(
         kind="colmap",
         points=points,
         points_rgb=points_rgb,
+        notes=notes,
     )
+
+
+def _match_image_files(idir: Path, names: list[str], pre_shrunk: bool, mdir: Path,
+                       notes: list[str]) -> dict[str, Path]:
+    """The file of each of the model's images: ``idir/<name>``, or, for a pre-shrunk folder
+    whose files are named otherwise (nerf_llff_data's ``images_4/image000.png``), the file
+    at the same position in sorted order."""
+    direct = {n: idir / n for n in names}
+    if not pre_shrunk or all(p.is_file() for p in direct.values()):
+        return direct
+    files = list_images(idir)
+    if any(p.is_file() for p in direct.values()) or len(files) != len(names):
+        missing = [n for n, p in direct.items() if not p.is_file()]
+        raise DataError(
+            f"{idir.name}/ does not hold the model's images under their names (missing e.g. "
+            f"{missing[:3]}), and it cannot be matched to them by sorted order: it has "
+            f"{len(files)} images, the model {len(names)} ({mdir}); pass images_dir, or give "
+            f"{idir.name}/ the model's file names", idir)
+    notes.append(f"{idir.name}/ names its images otherwise than the COLMAP model "
+                 f"({files[0].name} ... vs {names[0]} ...): matched by sorted order, "
+                 f"{len(files)} images")
+    return dict(zip(names, files))
 
 
 def _has_pose(im) -> bool:
@@ -123,10 +167,10 @@ def _has_pose(im) -> bool:
     return bool(has() if callable(has) else has)
 
 
-def _read_view(root: Path, rec, im, idir: Path, downscale: float, pre_shrunk: bool) -> View:
+def _read_view(root: Path, rec, im, img_path: Path, downscale: float, pre_shrunk: bool,
+               drop_distortion: bool, notes: list[str]) -> View:
     cam = rec.cameras[im.camera_id]
     model = cam.model.name
-    img_path = idir / im.name
     if not img_path.is_file():
         raise DataError(f"image {im.name!r} of the COLMAP model not found", img_path)
     arr = read_image_array(img_path)
@@ -142,7 +186,8 @@ def _read_view(root: Path, rec, im, idir: Path, downscale: float, pre_shrunk: bo
         if abs(got[0] - expect[0]) > 1 or abs(got[1] - expect[1]) > 1:
             raise DataError(
                 f"image is {got[0]}x{got[1]}, expected about {expect[0]}x{expect[1]} "
-                f"(camera {cam_size[0]}x{cam_size[1]} / {downscale})",
+                f"(camera {cam_size[0]}x{cam_size[1]} of {im.name} / {downscale}: another "
+                f"aspect or size)",
                 img_path,
             )
     elif got != cam_size:
@@ -152,8 +197,17 @@ def _read_view(root: Path, rec, im, idir: Path, downscale: float, pre_shrunk: bo
             img_path,
         )
 
-    if model in PINHOLE_MODELS:
-        fx, fy, cx, cy = pinhole_params(model, params)
+    dropped = drop_distortion and model in DROPPABLE_MODELS
+    if dropped:
+        (fx, fy, cx, cy), terms = pinhole_dropping_distortion(model, params)
+        note = (f"camera {im.camera_id} ({model}) read as a pinhole, distortion "
+                f"{[round(t, 6) for t in terms]} dropped (as the NVOS reference methods read "
+                f"nerf_llff_data)")
+        if note not in notes:
+            notes.append(note)
+    if model in PINHOLE_MODELS or dropped:
+        if not dropped:
+            fx, fy, cx, cy = pinhole_params(model, params)
         native = got
         sx, sy = got[0] / cam_size[0], got[1] / cam_size[1]
         fx, fy, cx, cy = fx * sx, fy * sy, cx * sx, cy * sy
@@ -163,7 +217,8 @@ def _read_view(root: Path, rec, im, idir: Path, downscale: float, pre_shrunk: bo
         if pre_shrunk:
             raise DataError(
                 f"camera model {model} is distorted; undistortion needs the full-size images, "
-                "not a pre-shrunk images_<k>/ folder (pass images_dir)",
+                "not a pre-shrunk images_<k>/ folder (pass images_dir, or distortion = "
+                "'ignore' to read it as a pinhole where the model allows)",
                 img_path,
             )
         masks_native = {k: read_mask_array(f, [got]) for k, f in mask_files.items()}

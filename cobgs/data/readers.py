@@ -43,6 +43,7 @@ def read_scene(
     test_names: Optional[Sequence[str]] = None,
     background: Optional[Sequence[float]] = None,
     format: Optional[str] = None,
+    distortion: str = "auto",
 ) -> Scene:
     """Read any supported scene folder.
 
@@ -55,6 +56,8 @@ def read_scene(
         test_names: explicit held-out views (stems or file names).
         background: compositing colour for RGBA images (Blender default: white).
         format: force a reader instead of detecting it.
+        distortion: COLMAP scenes: "auto", "undistort" or "ignore" (see
+            :func:`cobgs.data.colmap.read_colmap`).
     """
     fmt = format or detect_format(path)
     if fmt == "blender":
@@ -72,7 +75,8 @@ def read_scene(
     if fmt == "colmap":
         from .colmap import read_colmap
 
-        return read_colmap(path, downscale=downscale, test_every=test_every, test_names=test_names)
+        return read_colmap(path, downscale=downscale, test_every=test_every, test_names=test_names,
+                           distortion=distortion)
     if fmt == "llff":
         from .llff import read_llff
 

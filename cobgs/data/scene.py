@@ -70,6 +70,9 @@ class Scene:
         object_names: every object with masks in at least one view, sorted.
         source: folder the scene was read from.
         kind: which reader produced it ("colmap", "llff", "blender", "transforms").
+        notes: what the reader decided that a user should know (e.g. a distortion model
+            read as a pinhole, images matched to poses by sorted order); the dataset
+            stage writes them into its manifest.
     """
 
     train: list[View]
@@ -82,6 +85,7 @@ class Scene:
     object_names: list[str] = field(default_factory=list)
     source: str = ""
     kind: str = ""
+    notes: list[str] = field(default_factory=list)
 
     @property
     def views(self) -> list[View]:

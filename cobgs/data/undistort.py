@@ -31,6 +31,22 @@ def pinhole_params(model: str, params: Sequence[float]) -> tuple[float, float, f
     raise DataError(f"camera model {model} is not a pinhole model")
 
 
+# Models whose parameters start with a pinhole's (f or fx, fy; cx; cy) followed by radial /
+# tangential terms: these can be read as that pinhole with the distortion dropped.
+DROPPABLE_MODELS = {"SIMPLE_RADIAL": 1, "RADIAL": 1, "OPENCV": 2, "FULL_OPENCV": 2}
+
+
+def pinhole_dropping_distortion(model: str, params: Sequence[float]
+                                ) -> tuple[tuple[float, float, float, float], list[float]]:
+    """((fx, fy, cx, cy), the dropped distortion terms) of a SIMPLE_RADIAL / RADIAL / OPENCV
+    / FULL_OPENCV camera read as a pinhole."""
+    if DROPPABLE_MODELS.get(model) == 1:
+        f, cx, cy = (float(v) for v in params[:3])
+        return (f, f, cx, cy), [float(v) for v in params[3:]]
+    fx, fy, cx, cy = (float(v) for v in params[:4])
+    return (fx, fy, cx, cy), [float(v) for v in params[4:]]
+
+
 def undistort_view_arrays(
     image: np.ndarray,  # [H, W, C] float32 in [0, 1]
     masks: dict[str, np.ndarray],  # object → [H, W] float32 binary

@@ -281,3 +281,92 @@ def test_llff_count_mismatch(tmp_path):
         read_llff(tmp_path, downscale=8)
     with pytest.raises(DataError, match="unrecognised"):
         detect_format(tmp_path / "images_8")
+
+
+# -- the two published copies of the NVOS LLFF scenes (SPEC §5) -----------------------------------
+def _nerf_llff_data_fixture(root, n=4, W=160, H=120, k1=-0.05):
+    """nerf_llff_data's layout: sparse/0 with one SIMPLE_RADIAL camera over full-resolution
+    images/IMG_*.JPG, and images_4/ named image000.png ... (the same views, 1/4 size)."""
+    sparse = root / "sparse" / "0"
+    sparse.mkdir(parents=True)
+    (sparse / "cameras.txt").write_text(f"1 SIMPLE_RADIAL {W} {H} 150.0 {W / 2 + 1.5} {H / 2 - 2.0} {k1}\n")
+    lines = []
+    for i in range(n):
+        name = f"IMG_{4026 + i}.JPG"
+        lines.append(f"{i + 1} 1 0 0 0 {0.2 * i} 0 3 1 {name}\n\n")
+        img = np.full((H, W, 3), 20 * i, np.uint8)
+        cv2.imwrite(str(_mkdir(root / "images") / name), img)
+        _write_png(root / "images_4" / f"image{i:03d}.png", img[::4, ::4])
+    (sparse / "images.txt").write_text("".join(lines))
+    (sparse / "points3D.txt").write_text("1 0 0 1 200 100 50 0.5\n")
+
+
+def _mkdir(p):
+    p.mkdir(parents=True, exist_ok=True)
+    return p
+
+
+def test_nerf_llff_data_copy_reads_with_model_names_and_k1_dropped(tmp_path):
+    _nerf_llff_data_fixture(tmp_path)
+    scene = read_scene(tmp_path, downscale=4.0, test_every=0)
+    assert [v.name for v in scene.train] == ["IMG_4026", "IMG_4027", "IMG_4028", "IMG_4029"]
+    v = scene.train[1]
+    assert v.path.endswith("images_4/image001.png") and v.image.shape == (30, 40, 3)
+    assert float(v.image[0, 0, 0]) == pytest.approx(20 / 255, abs=1e-6)  # image001 = view 1
+    # SIMPLE_RADIAL read as a pinhole (k1 dropped), scaled to the 1/4 images
+    assert v.camera.fx == pytest.approx(150.0 / 4) and v.camera.fy == pytest.approx(150.0 / 4)
+    assert v.camera.cx == pytest.approx((80 + 1.5) / 4) and v.camera.cy == pytest.approx((60 - 2.0) / 4)
+    assert any("matched by sorted order" in n for n in scene.notes)
+    assert any("SIMPLE_RADIAL" in n and "-0.05" in n and "dropped" in n for n in scene.notes)
+    # full-size images: undistorted as before (no note about dropping)
+    full = read_scene(tmp_path, downscale=1.0, test_every=0)
+    c = full.train[0].camera
+    assert not any("dropped" in n for n in full.notes) and (c.width, c.fx) != (160, 150.0)
+
+
+def test_nerf_llff_data_mismatches_are_named(tmp_path):
+    _nerf_llff_data_fixture(tmp_path)
+    (tmp_path / "images_4" / "image003.png").unlink()
+    with pytest.raises(DataError, match="3 images, the model 4") as info:
+        read_scene(tmp_path, downscale=4.0, test_every=0)
+    assert "images_4" in str(info.value)
+    _write_png(tmp_path / "images_4" / "image003.png", np.zeros((40, 40, 3), np.uint8))
+    with pytest.raises(DataError, match="another aspect or size") as info:
+        read_scene(tmp_path, downscale=4.0, test_every=0)
+    assert "image003.png" in str(info.value)
+    with pytest.raises(DataError, match="distorted; undistortion needs the full-size images"):
+        read_colmap(tmp_path, downscale=4.0, distortion="undistort")
+
+
+def _nex_fixture(root, n=3, W=160, H=120, names=("IMG_4026", "IMG_4027", "IMG_4028")):
+    """NeX's *_undistort layout: 14-column poses_bounds.npy + hwf_cxcy.npy, images/ full
+    size and images_4/ named otherwise."""
+    rows = []
+    for i in range(n):
+        R = np.eye(3)[:, [1, 0, 2]] * np.array([1, 1, -1])  # LLFF axes for an identity camera
+        pose = np.concatenate([R, np.array([[0.1 * i], [0.0], [0.0]])], 1)
+        rows.append(np.concatenate([pose.reshape(-1), [1.0, 10.0]]))
+        img = np.full((H, W, 3), 30 * i, np.uint8)
+        _write_png(root / "images" / f"{names[i]}.png", img)
+        _write_png(root / "images_4" / f"image{i:03d}.png", img[::4, ::4])
+    np.save(root / "poses_bounds.npy", np.stack(rows))
+    np.save(root / "hwf_cxcy.npy", np.array([[H], [W], [140.0], [141.0], [W / 2 + 4.0], [H / 2 - 4.0]]))
+
+
+def test_nex_undistort_layout(tmp_path):
+    _nex_fixture(tmp_path)
+    assert detect_format(tmp_path) == "llff"
+    scene = read_llff(tmp_path, downscale=4, test_every=0)
+    assert [v.name for v in scene.train] == ["IMG_4026", "IMG_4027", "IMG_4028"]
+    c = scene.train[0].camera
+    assert (c.width, c.height) == (40, 30)
+    assert c.fx == pytest.approx(140.0 / 4) and c.fy == pytest.approx(141.0 / 4)
+    assert c.cx == pytest.approx(84.0 / 4) and c.cy == pytest.approx(56.0 / 4)
+    assert any("NeX" in n for n in scene.notes) and any("sorted order" in n for n in scene.notes)
+    # LLFF axes: camera 1 sits 0.1 to the right of camera 0
+    assert torch.allclose(scene.train[1].camera.center - scene.train[0].camera.center,
+                          torch.tensor([0.1, 0.0, 0.0]), atol=1e-6)
+    (tmp_path / "hwf_cxcy.npy").unlink()
+    with pytest.raises(DataError, match="needs hwf_cxcy.npy") as info:
+        read_llff(tmp_path, downscale=4)
+    assert "hwf_cxcy.npy" in str(info.value)
