@@ -144,6 +144,27 @@ def _sfm_images(root: Path, p: DatasetParams) -> tuple[Path, float]:
     return root / "images", p.downscale
 
 
+def _sfm_images_as_views(out_dir: Path, scene, sfm_dir: Path) -> Path:
+    """The SfM image folder, as copies named after the views when the reader matched files
+    named otherwise (nerf_llff_data's images_4/image000.png for IMG_4026): SfM names its
+    images after the files, and the views, the NVOS task and the masks use the views'
+    names. The copies live in the artifact (returned relative to it: the artifact moves
+    when it is committed)."""
+    import shutil
+
+    views = [v for v in scene.views if v.path]
+    if all(Path(v.path).stem == v.name for v in views):
+        return sfm_dir
+    out = out_dir / "sfm_images"
+    out.mkdir(parents=True, exist_ok=True)
+    for v in views:
+        src = Path(v.path)
+        if src.parent.resolve() != sfm_dir.resolve():
+            src = sfm_dir / src.name  # the folder SfM reads holds the file under its own name
+        shutil.copy2(src, out / f"{v.name}{src.suffix}")
+    return Path(out.name)
+
+
 def _run(ctx, inputs):
     from cobgs.data.readers import read_scene
 
@@ -204,10 +225,14 @@ def _run(ctx, inputs):
                     raise StageInputError(f"NVOS task {task.task!r}: view {need!r} is not an image of "
                                           f"{root} (images: {stems[:3]} ...)")
             sfm_dir, post = _sfm_images(root, p)
+            sfm_dir = _sfm_images_as_views(ctx.out_dir, scene, sfm_dir)
             spec["notes"] = list(scene.notes)
             spec.update(protocol="nvos", nvos=task.to_json(), objects=[task.task],
                         views=stems, test_views=[task.target], has_poses=True,
-                        images={"dir": os.fspath(sfm_dir), "names": _names(sfm_dir)}, sfm_downscale=post,
+                        images={"dir": os.fspath(sfm_dir),
+                                "names": _names(sfm_dir if sfm_dir.is_absolute()
+                                                else ctx.out_dir / sfm_dir)},
+                        sfm_downscale=post,
                         scene_type=attrs.scene_type or "forward")
         elif attrs.kind == "lerf_mask":
             from cobgs.data.lerf_mask import read_lerf_gt

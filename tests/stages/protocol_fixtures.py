@@ -37,18 +37,61 @@ def _copy_masks(scene: Path, out: Path, objects) -> None:
         shutil.copytree(scene / "masks" / obj, out / "masks" / obj)
 
 
-def to_nvos(scene: Path, out: Path, task: str, obj: str, target: str, reference: str) -> tuple[Path, Path]:
-    """Write ``out/llff`` and ``out/labels``; returns (scene folder, labels folder)."""
+def to_nvos(scene: Path, out: Path, task: str, obj: str, target: str, reference: str,
+            layout: str = "llff") -> tuple[Path, Path]:
+    """Write ``out/llff`` and ``out/labels``; returns (scene folder, labels folder).
+
+    ``layout``: "llff" (``poses_bounds.npy`` + ``images_2/`` named like the views);
+    "nerf_llff_data" (the copy COB-GS, SAGA and FlashSplat evaluate on: COLMAP
+    ``sparse/0`` with a SIMPLE_RADIAL camera over full-size ``images/<view>.JPG``, and
+    ``images_2/image000.png`` ... in sorted order); "nex" (NeX's ``*_undistort``: a
+    14-column ``poses_bounds.npy`` + ``hwf_cxcy.npy``, full-size ``images/``, and
+    ``images_2/image000.png`` ...). Every layout also gets ``released_masks/<view>.JPG``:
+    the object's mask of each view at the full size, JPEG-compressed, as COB-GS releases
+    its NVOS masks.
+    """
     llff, labels = out / "llff", out / "labels"
     (llff / "images_2").mkdir(parents=True)
-    rows = []
-    for stem, img, c2w, f in _frames(scene):
-        shutil.copy(img, llff / "images_2" / f"{stem}.png")
+    (llff / "released_masks").mkdir()
+    frames = _frames(scene)
+    rows, lines = [], []
+    f0 = frames[0][3]
+    for i, (stem, img, c2w, f) in enumerate(frames):
+        renamed = layout in ("nerf_llff_data", "nex")
+        shutil.copy(img, llff / "images_2" / (f"image{i:03d}.png" if renamed else f"{stem}.png"))
+        big = cv2.resize(cv2.imread(str(img)), None, fx=2, fy=2, interpolation=cv2.INTER_LINEAR)
+        if renamed:
+            (llff / "images").mkdir(exist_ok=True)
+            cv2.imwrite(str(llff / "images" / f"{stem}.JPG"), big)
+        m = cv2.imread(str(scene / "masks" / obj / f"{stem}.png"), cv2.IMREAD_GRAYSCALE)
+        cv2.imwrite(str(llff / "released_masks" / f"{stem}.JPG"),
+                    cv2.resize(m, None, fx=2, fy=2, interpolation=cv2.INTER_NEAREST))
         # LLFF columns: down, right, backward (then translation, then [h, w, focal] at full res).
         rot = np.stack([c2w[:3, 1], c2w[:3, 0], -c2w[:3, 2]], 1)
-        hwf = np.array([2 * f["h"], 2 * f["w"], 2 * f["fl_x"]])
-        rows.append(np.concatenate([np.column_stack([rot, c2w[:3, 3], hwf]).ravel(), [0.5, 20.0]]))
-    np.save(llff / "poses_bounds.npy", np.stack(rows))
+        if layout == "nex":
+            rows.append(np.concatenate([np.column_stack([rot, c2w[:3, 3]]).ravel(), [0.5, 20.0]]))
+        else:
+            hwf = np.array([2 * f["h"], 2 * f["w"], 2 * f["fl_x"]])
+            rows.append(np.concatenate([np.column_stack([rot, c2w[:3, 3], hwf]).ravel(), [0.5, 20.0]]))
+        w2c = np.linalg.inv(c2w)
+        q, t = _quat_wxyz(w2c[:3, :3]), w2c[:3, 3]
+        lines.append(f"{i + 1} {' '.join(repr(float(v)) for v in q)} {' '.join(repr(float(v)) for v in t)} 1 {stem}.JPG\n\n")
+    if layout == "nerf_llff_data":
+        model = llff / "sparse" / "0"
+        model.mkdir(parents=True)
+        # SIMPLE_RADIAL at the full size (the images are pinhole renders: k1 tiny), as COLMAP
+        # leaves it; the reference methods read it as a pinhole.
+        (model / "cameras.txt").write_text(
+            f"1 SIMPLE_RADIAL {2 * f0['w']} {2 * f0['h']} {2 * f0['fl_x']} {2 * f0['cx']} "
+            f"{2 * f0['cy']} 0.0001\n")
+        (model / "images.txt").write_text("".join(lines))
+        (model / "points3D.txt").write_text("")
+    else:
+        np.save(llff / "poses_bounds.npy", np.stack(rows))
+        if layout == "nex":
+            np.save(llff / "hwf_cxcy.npy", np.array(
+                [[2 * f0["h"]], [2 * f0["w"]], [2 * f0["fl_x"]], [2 * f0["fl_y"]], [2 * f0["cx"]],
+                 [2 * f0["cy"]]]))
     _copy_masks(scene, llff, [obj])
 
     def up(a, k):
@@ -118,7 +161,7 @@ def to_lerf_mask(scene: Path, out: Path, prompts: dict[str, str], test_every: in
             shutil.copy(img, out / "images_train" / name)
         w2c = np.linalg.inv(c2w)
         q, t = _quat_wxyz(w2c[:3, :3]), w2c[:3, 3]
-        lines.append(f"{i + 1} {' '.join(map(repr, q))} {' '.join(map(repr, t))} 1 {name}\n\n")
+        lines.append(f"{i + 1} {' '.join(repr(float(v)) for v in q)} {' '.join(repr(float(v)) for v in t)} 1 {name}\n\n")
     (model / "images.txt").write_text("".join(lines))
     (model / "points3D.txt").write_text("")
     test = sorted(test)

@@ -15,7 +15,7 @@ import json
 
 import pytest
 
-from pipeline import RunOptions, WorkflowError, load_workflow, run_workflow
+from pipeline import RunOptions, WorkflowError, entries, load_workflow, run_workflow
 from stages.registry import load_registry
 
 from protocol_fixtures import to_lerf_mask, to_nvos  # tests/stages is on sys.path
@@ -180,3 +180,44 @@ def test_onnx_masks_need_a_model_folder(tmp_path):
     path.write_text(path.read_text().replace('source = "onnx"', f'source = "nvos"\nmodels_dir = "{tmp_path}/none"'))
     with pytest.raises(WorkflowError, match="does not exist"):
         Plan(load_workflow(path, load_registry()))
+
+
+@pytest.mark.parametrize("layout", ["nerf_llff_data", "nex"])
+def test_nvos_on_the_published_llff_copies_with_released_masks(tmp_path, layout):
+    """Both published copies of the NVOS scenes load (nerf_llff_data: SIMPLE_RADIAL sparse/0,
+    images_2/image000.png ...; NeX: 14-column poses_bounds + hwf_cxcy.npy), the target view
+    is held out, and the released masks (<view>.JPG at full size) train the object: dataset
+    -> ... -> evaluate, with the route and the reader's decisions in the artifacts."""
+    from cobgs.data.synthetic import generate_scene
+
+    scene = generate_scene(tmp_path / "synth", "demo", seed=0, num_views=12, workers=1)
+    llff, labels = to_nvos(scene, tmp_path / "nvos", "synthball", "ball", target="0008",
+                           reference="0003", layout=layout)
+    text = WORKFLOW.format(llff=llff, labels=labels, lerf=llff)
+    text = text[:text.index("[axes.scene.lerf]")] + text[text.index("[axes.method.cobgs]"):]
+    text = text.replace("[axes.object.lerf.ball]\n[axes.object.lerf.can]\n", "")
+    text = text.replace("[axes.object.synthball.ball]",
+                        f'[axes.object.synthball.ball]\nmask_dir = "{llff / "released_masks"}"')
+    text = text.replace("[axes.method.nosplit]\nrefine = {{ method = \"nosplit\" }}", "")
+    text += '\n[params.masks]\nsource = "files"\n'
+    path = tmp_path / "nvos.toml"
+    path.write_text(text)
+    wf = load_workflow(path, load_registry(), [])
+    out = io.StringIO()
+    summary = run_workflow(wf, RunOptions(cache_dir=tmp_path / "cache", package_version="test",
+                                          items="synthball/cobgs/ball"), stream=out)
+    assert summary.exit_code == 0, out.getvalue()
+    recs = {(r.stage, r.item.id): r for r in entries(wf, tmp_path / "cache")}
+    spec = json.loads((recs[("dataset", "synthball")].output("dataset") / "dataset.json").read_text())
+    assert spec["protocol"] == "nvos" and spec["test_views"] == ["0008"]
+    assert "0008" in spec["views"] and "0003" in spec["views"]
+    assert any("sorted order" in n for n in spec["notes"])
+    if layout == "nerf_llff_data":
+        assert any("SIMPLE_RADIAL" in n and "dropped" in n for n in spec["notes"])
+    else:
+        assert any("NeX" in n for n in spec["notes"])
+    masks = json.loads((recs[("masks", "synthball/ball")].output("masks") / "masks.json").read_text())
+    assert masks["route"] == "released masks (files)" and "0008" not in masks["files"]["files"]
+    m = json.loads((recs[("evaluate", "synthball/cobgs/ball")].output("metrics") / "metrics.json").read_text())
+    assert m["row"]["protocol"] == "nvos" and m["row"]["mask_route"] == "released masks (files)"
+    assert m["row"]["iou"] > 0.7  # a mis-read camera or mask would score far lower
