@@ -75,7 +75,18 @@ class InlineExecutor:
         pass
 
 
+def _quiet_interrupts(unraisable: Any) -> None:
+    """sys.unraisablehook of a worker: a Ctrl-C that lands inside a callback Python cannot
+    raise from (a weakref callback of the import machinery, a finaliser) is not printed as
+    a stray traceback; the parent's interrupt sequence (see ForkExecutor.interrupt) signals
+    the worker again if it keeps running. Everything else is reported as usual."""
+    if isinstance(unraisable.exc_value, KeyboardInterrupt):
+        return
+    sys.__unraisablehook__(unraisable)
+
+
 def _child_main(job: Job, conn: Any) -> None:
+    sys.unraisablehook = _quiet_interrupts
     try:
         # SIGINT was blocked across fork (see ForkExecutor.submit); one that arrived
         # meanwhile is delivered here and becomes an ordinary interruption.
