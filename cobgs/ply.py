@@ -16,6 +16,7 @@ round trip reproduces the model exactly.
 
 from __future__ import annotations
 
+import logging
 import os
 import re
 import tempfile
@@ -27,6 +28,8 @@ import torch
 
 from .errors import DataError, InputError
 from .gaussians import GaussianModel, check_extra_name
+
+log = logging.getLogger(__name__)
 
 _SH_REST_COUNTS = {0: 0, 9: 1, 24: 2, 45: 3}
 _COMMENT_EXTRA = "cobgs_extra"
@@ -127,30 +130,51 @@ def load_ply(path: os.PathLike | str, device: str | torch.device = "cpu") -> Gau
     """Read a 3DGS PLY (ours or any tool's that writes the standard layout).
 
     Every property outside the standard layout becomes an extra (``foo_0..foo_{k-1}``
-    group into one [N, k] extra). Normals are optional.
+    group into one [N, k] extra); properties that cannot be (oddly numbered, names or types
+    of another tool's) are ignored and logged. Normals are optional.
 
     Raises:
-        DataError: missing file, not a PLY, truncated data, no ``vertex`` element, or a
-            missing / inconsistent standard property (the message names it).
+        DataError: missing file, not a PLY (a ``.splat`` file or a compressed PLY is named
+            as such, with what to convert it to), truncated data, no ``vertex`` element, a
+            missing standard property, a gap in the ``f_rest_*`` numbering, or Gaussians
+            with non-finite values (counted); the message names the file.
     """
     from plyfile import PlyData
 
     path = Path(path)
     if not path.is_file():
         raise DataError("PLY file not found", path)
+    with open(path, "rb") as fh:
+        magic = fh.read(4)
+    if magic[:3] != b"ply":
+        if path.suffix.lower() == ".splat" or (path.stat().st_size % 32 == 0 and magic != b""):
+            raise DataError("this is a .splat file (antimatter15's 32-byte-per-Gaussian format: "
+                            "position, scale, 8-bit colour and rotation; no SH, quantised "
+                            "opacity), not a PLY; convert it to a standard 3DGS PLY first "
+                            "(SuperSplat, for one, opens .splat and exports .ply)", path)
+        raise DataError(f"not a PLY file (it starts with {magic!r}, a PLY with b'ply')", path)
     try:
         ply = PlyData.read(os.fspath(path))
     except Exception as e:  # plyfile raises several types (PlyParseError, ValueError, ...)
         raise DataError(f"malformed or truncated PLY: {e}", path) from e
-    if "vertex" not in [el.name for el in ply.elements]:
-        raise DataError(
-            f"no 'vertex' element (elements: {[el.name for el in ply.elements]})", path
-        )
+    elements = [el.name for el in ply.elements]
+    if "vertex" not in elements:
+        raise DataError(f"no 'vertex' element (elements: {elements})", path)
     v = ply["vertex"].data
     props = list(v.dtype.names or ())
+    if "chunk" in elements or any(p.startswith("packed_") for p in props):
+        raise DataError("this is a compressed PLY (PlayCanvas / SuperSplat's packed layout: a "
+                        "'chunk' element and packed_position / packed_rotation / packed_scale / "
+                        "packed_color), not the standard 3DGS layout; decompress it first "
+                        "(SuperSplat exports the uncompressed .ply)", path)
     n = len(v)
-    rest = sorted((p for p in props if p.startswith("f_rest_")), key=lambda s: int(s[7:]))
-    if len(rest) not in _SH_REST_COUNTS or rest != [f"f_rest_{i}" for i in range(len(rest))]:
+    numbered = {int(p[7:]): p for p in props if re.fullmatch(r"f_rest_\d+", p)}
+    if numbered and sorted(numbered) != list(range(len(numbered))):
+        gaps = sorted(set(range(max(numbered) + 1)) - set(numbered))
+        raise DataError(f"the f_rest_* numbering has a gap: f_rest_{gaps[0]} is missing "
+                        f"({len(numbered)} of f_rest_0..f_rest_{max(numbered)} present)", path)
+    rest = [numbered[i] for i in range(len(numbered))]
+    if len(rest) not in _SH_REST_COUNTS:
         raise DataError(
             f"expected f_rest_0..f_rest_k with 3(K-1) in {{0, 9, 24, 45}} properties, got {len(rest)}",
             path,
@@ -159,6 +183,16 @@ def load_ply(path: os.PathLike | str, device: str | torch.device = "cpu") -> Gau
     missing = [p for p in need if p not in props]
     if missing:
         raise DataError(f"missing standard 3DGS properties {missing}", path)
+    bad = np.zeros(n, bool)
+    bad_props = []
+    for p in need:
+        nf = ~np.isfinite(np.asarray(v[p], dtype=np.float64))
+        if nf.any():
+            bad |= nf
+            bad_props.append(p)
+    if bad.any():
+        raise DataError(f"{int(bad.sum())} of {n} Gaussians have non-finite values (NaN or inf) "
+                        f"in {bad_props}", path)
 
     def col(name):
         return torch.from_numpy(np.ascontiguousarray(v[name], dtype=np.float32))
@@ -187,22 +221,30 @@ def load_ply(path: os.PathLike | str, device: str | torch.device = "cpu") -> Gau
     model = GaussianModel(means, log_scales, quats, opac, sh0, shN, active_sh_degree=active)
 
     standard = set(_standard_names(len(rest)))
-    for name, cols in _group_extras([p for p in props if p not in standard], path):
+    groups, odd = _group_extras([p for p in props if p not in standard])
+    ignored = list(odd)
+    for name, cols in groups:
         arrays = [np.asarray(v[c]) for c in cols]
         stacked = arrays[0] if cols == [name] else np.stack(arrays, 1)
-        t = torch.from_numpy(np.ascontiguousarray(stacked))
-        if t.dtype in (torch.int8, torch.int16, torch.int32):
-            t = t.to(torch.int64)
         try:
             check_extra_name(name)
-        except InputError as e:
-            raise DataError(f"property {name!r} cannot be read as an extra: {e}", path) from e
+            t = torch.from_numpy(np.ascontiguousarray(stacked))
+        except (InputError, TypeError):  # a name or type another tool uses: not ours
+            ignored.extend(cols)
+            continue
+        if t.dtype in (torch.int8, torch.int16, torch.int32):
+            t = t.to(torch.int64)
         model.add_extra(name, t, fill=fills.get(name, 0))
+    if ignored:
+        log.info("%s: ignored properties that are neither standard 3DGS nor readable extras: %s",
+                 path, ignored)
     return model.to(device) if str(device) != "cpu" else model
 
 
-def _group_extras(props: list[str], path) -> list[tuple[str, list[str]]]:
-    """Group ``foo_0..foo_{k-1}`` into one vector extra, in order of first appearance."""
+def _group_extras(props: list[str]) -> tuple[list[tuple[str, list[str]]], list[str]]:
+    """Group ``foo_0..foo_{k-1}`` into one vector extra, in order of first appearance.
+    Returns (the groups, the properties that look numbered but are not 0..k-1: not ours,
+    ignored by the caller)."""
     order: list[str] = []
     groups: dict[str, dict[int, str]] = {}
     for p in props:
@@ -212,7 +254,7 @@ def _group_extras(props: list[str], path) -> list[tuple[str, list[str]]]:
             order.append(base)
             groups[base] = {}
         groups[base][int(m.group(2)) if m else -1] = p
-    out = []
+    out, odd = [], []
     for base in order:
         idx = groups[base]
         if list(idx) == [-1]:
@@ -220,12 +262,8 @@ def _group_extras(props: list[str], path) -> list[tuple[str, list[str]]]:
         elif sorted(idx) == list(range(len(idx))):
             out.append((base, [idx[i] for i in range(len(idx))]))
         else:
-            raise DataError(
-                f"properties {sorted(idx.values())} look like components of {base!r} but are not "
-                "numbered 0..k-1",
-                path,
-            )
-    return out
+            odd.extend(sorted(idx.values()))
+    return out, odd
 
 
 def _parse_number(s: str):

@@ -97,3 +97,59 @@ def test_malformed_files_raise_data_error(tmp_path):
     PlyData([PlyElement.describe(arr, "point")]).write(str(tmp_path / "noverts.ply"))
     with pytest.raises(DataError, match="vertex"):
         load_ply(tmp_path / "noverts.ply")
+
+
+def _standard_vertex(n, extra=(), rest=0):
+    names = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", *[f"f_rest_{i}" for i in range(rest)],
+             "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    arr = np.zeros(n, dtype=[(nm, "f4") for nm in names] + list(extra))
+    arr["rot_0"] = 1.0
+    return arr
+
+
+def test_foreign_formats_are_named_with_what_to_do(tmp_path):
+    # antimatter15's .splat: 32 bytes per Gaussian, no header
+    (tmp_path / "scene.splat").write_bytes(np.zeros(4 * 32, np.uint8).tobytes())
+    with pytest.raises(DataError, match=r"\.splat file .*convert it to a standard 3DGS PLY") as info:
+        load_ply(tmp_path / "scene.splat")
+    assert "scene.splat" in str(info.value)
+    # PlayCanvas / SuperSplat compressed PLY: a chunk element and packed_* properties
+    chunk = np.zeros(1, dtype=[("min_x", "f4"), ("max_x", "f4")])
+    packed = np.zeros(3, dtype=[("packed_position", "u4"), ("packed_rotation", "u4"),
+                                ("packed_scale", "u4"), ("packed_color", "u4")])
+    PlyData([PlyElement.describe(chunk, "chunk"), PlyElement.describe(packed, "vertex")]).write(
+        str(tmp_path / "compressed.ply"))
+    with pytest.raises(DataError, match="compressed PLY .*decompress it first") as info:
+        load_ply(tmp_path / "compressed.ply")
+    assert "compressed.ply" in str(info.value)
+
+
+def test_gap_in_f_rest_numbering_is_reported_as_such(tmp_path):
+    arr = _standard_vertex(2, rest=9)
+    names = [n if n != "f_rest_4" else "f_rest_40" for n in arr.dtype.names]
+    arr.dtype.names = names
+    PlyData([PlyElement.describe(arr, "vertex")]).write(str(tmp_path / "gap.ply"))
+    with pytest.raises(DataError, match="gap: f_rest_4 is missing") as info:
+        load_ply(tmp_path / "gap.ply")
+    assert "gap.ply" in str(info.value)
+
+
+def test_unrelated_properties_are_ignored(tmp_path):
+    arr = _standard_vertex(3, extra=[("red", "u1"), ("filter_3D", "f4"), ("feat_1", "f4"),
+                                     ("feat_3", "f4"), ("semantic_0", "f4"), ("semantic_1", "f4")])
+    arr["semantic_1"] = [1, 2, 3]
+    PlyData([PlyElement.describe(arr, "vertex")]).write(str(tmp_path / "tool.ply"))
+    m = load_ply(tmp_path / "tool.ply")
+    assert len(m) == 3 and torch.equal(m.data["semantic"][:, 1], torch.tensor([1.0, 2, 3]))
+    assert "feat" not in m.extras  # feat_1, feat_3: not numbered 0..k-1, ignored
+
+
+def test_non_finite_values_are_refused_with_a_count(tmp_path):
+    arr = _standard_vertex(5)
+    arr["x"][1] = np.nan
+    arr["opacity"][3] = np.inf
+    arr["scale_0"][3] = np.nan
+    PlyData([PlyElement.describe(arr, "vertex")]).write(str(tmp_path / "nan.ply"))
+    with pytest.raises(DataError, match=r"2 of 5 Gaussians have non-finite values .*'x'.*'opacity'") as info:
+        load_ply(tmp_path / "nan.ply")
+    assert "nan.ply" in str(info.value)
