@@ -2,7 +2,10 @@
 
 Layout and conventions: docs/data_formats.md. Intrinsics (``fl_x``, ``fl_y``, ``cx``,
 ``cy``, ``w``, ``h``) may be per frame (they win) or top level; ``camera_angle_x`` is
-accepted when focal lengths are absent. Masks live in ``masks/<object>/<stem>.png``,
+accepted when focal lengths are absent. Distortion as nerfstudio writes it (OPENCV: k1 k2
+p1 p2, with k3 the full OpenCV model; OPENCV_FISHEYE: k1..k4) is undistorted; terms the
+model cannot hold, and ``distortion_params``, are refused naming the key. nerfstudio's
+``ply_file_path`` point cloud becomes the scene's initial points. Masks live in ``masks/<object>/<stem>.png``,
 coverage maps (synthetic scenes) in ``coverage/<object>/<stem>.png``.
 """
 
@@ -34,7 +37,39 @@ from .scene import (
 from .undistort import undistort_view_arrays
 
 _PINHOLE = ("PINHOLE", "SIMPLE_PINHOLE")
-_DISTORTION_KEYS = ("k1", "k2", "p1", "p2")
+_MODELS = (*_PINHOLE, "OPENCV", "OPENCV_FISHEYE")
+_ALL_DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+
+
+def _distortion(get, model: str, i: int, jf: Path) -> tuple[str, list[float]]:
+    """(COLMAP model, its distortion parameters after fx, fy, cx, cy) of a frame, as
+    nerfstudio writes them: OPENCV k1 k2 p1 p2 (+ k3: the full OpenCV model), OPENCV_FISHEYE
+    k1..k4. A term the model cannot hold, or ``distortion_params`` (whose order no format
+    fixes), is refused naming the key rather than ignored."""
+    d = {k: float(get(k, 0.0) or 0.0) for k in _ALL_DISTORTION_KEYS}
+    given = [k for k, v in d.items() if v != 0.0]
+    dp = get("distortion_params")
+    if dp is not None and any(float(v) != 0.0 for v in dp):
+        raise DataError(f"frame {i}: 'distortion_params' {list(dp)} is not read (its order differs "
+                        f"between tools); give the terms as k1, k2, k3, k4, p1, p2 with "
+                        f"camera_model OPENCV or OPENCV_FISHEYE", jf)
+    if model in _PINHOLE:
+        if given:
+            raise DataError(f"frame {i}: camera_model {model} but distortion {given} is given "
+                            f"(set camera_model OPENCV, or OPENCV_FISHEYE, to apply it)", jf)
+        return model, []
+    if model == "OPENCV_FISHEYE":
+        bad = [k for k in ("p1", "p2") if d[k] != 0.0]
+        if bad:
+            raise DataError(f"frame {i}: OPENCV_FISHEYE has no tangential terms, got {bad}", jf)
+        return "OPENCV_FISHEYE", [d["k1"], d["k2"], d["k3"], d["k4"]]
+    if d["k4"] != 0.0:
+        raise DataError(f"frame {i}: k4 = {d['k4']} with camera_model OPENCV (k4 belongs to "
+                        f"OPENCV_FISHEYE in nerfstudio's convention); set camera_model, or drop "
+                        f"k4", jf)
+    if d["k3"] != 0.0:  # the full OpenCV model: k1 k2 p1 p2 k3 (k4..k6 of the rational model 0)
+        return "FULL_OPENCV", [d["k1"], d["k2"], d["p1"], d["p2"], d["k3"], 0.0, 0.0, 0.0]
+    return "OPENCV", [d["k1"], d["k2"], d["p1"], d["p2"]]
 
 
 def read_transforms(
@@ -71,6 +106,11 @@ def read_transforms(
     views = [_read_frame(root, jf, meta, f, i, downscale, background) for i, f in enumerate(frames)]
     if test_names is None and meta.get("test_filenames") is not None:
         test_names = list(meta["test_filenames"])
+    points = points_rgb = None
+    notes = []
+    if meta.get("ply_file_path"):
+        points, points_rgb = _read_point_cloud(root / str(meta["ply_file_path"]), jf)
+        notes.append(f"initial points: {len(points)} from {meta['ply_file_path']} (ply_file_path)")
     return make_scene(
         views,
         test_every=test_every,
@@ -78,7 +118,37 @@ def read_transforms(
         source=root,
         kind="transforms",
         background=tuple(float(b) for b in background),
+        points=points,
+        points_rgb=points_rgb,
+        notes=notes,
     )
+
+
+def _read_point_cloud(path: Path, jf: Path) -> tuple[torch.Tensor, torch.Tensor]:
+    """x, y, z and (when present) 8-bit red, green, blue of a point-cloud PLY (nerfstudio's
+    ``ply_file_path``, in the frames' world coordinates)."""
+    from plyfile import PlyData
+
+    if not path.is_file():
+        raise DataError(f"ply_file_path of {jf.name} names a missing file", path)
+    try:
+        v = PlyData.read(os.fspath(path))["vertex"].data
+    except Exception as e:  # plyfile raises several types
+        raise DataError(f"unreadable point cloud (ply_file_path of {jf.name}): {e}", path) from e
+    names = v.dtype.names or ()
+    if not all(c in names for c in "xyz"):
+        raise DataError(f"point cloud without x, y, z (properties: {list(names)})", path)
+    xyz = np.stack([np.asarray(v[c], np.float64) for c in "xyz"], 1)
+    finite = np.isfinite(xyz).all(1)
+    if not finite.all():
+        raise DataError(f"{int((~finite).sum())} of {len(xyz)} points have non-finite coordinates",
+                        path)
+    if all(c in names for c in ("red", "green", "blue")):
+        rgb = np.stack([np.asarray(v[c], np.float64) for c in ("red", "green", "blue")], 1) / 255.0
+    else:
+        rgb = np.full_like(xyz, 0.5)
+    return (torch.tensor(xyz, dtype=torch.float32),
+            torch.tensor(np.clip(rgb, 0.0, 1.0), dtype=torch.float32))
 
 
 def _read_frame(root: Path, jf: Path, meta: dict, frame: dict, i: int, downscale, background) -> View:
@@ -110,12 +180,12 @@ def _read_frame(root: Path, jf: Path, meta: dict, frame: dict, i: int, downscale
     fx, fy = float(fx), float(fy)
     cx, cy = float(get("cx", w / 2.0)), float(get("cy", h / 2.0))
     model = str(get("camera_model", "PINHOLE")).upper()
-    if model not in _PINHOLE and model != "OPENCV":
+    if model not in _MODELS:
         raise DataError(
-            f"frame {i}: unknown camera_model {model!r} (expected PINHOLE, SIMPLE_PINHOLE or OPENCV)",
+            f"frame {i}: unknown camera_model {model!r} (expected one of {list(_MODELS)})",
             jf,
         )
-    dist = [float(get(k, 0.0)) for k in _DISTORTION_KEYS]
+    model, dist = _distortion(get, model, i, jf)
     c2w = np.asarray(frame["transform_matrix"], np.float64)
     if c2w.shape not in ((4, 4), (3, 4)):
         raise DataError(f"frame {i}: transform_matrix must be 4x4, got {list(c2w.shape)}", jf)
@@ -123,11 +193,11 @@ def _read_frame(root: Path, jf: Path, meta: dict, frame: dict, i: int, downscale
     stem = img_path.stem
     size = target_size(*native, downscale)
     mask_files = find_object_files(root, stem, "masks")
-    if model == "OPENCV" and any(d != 0.0 for d in dist):
+    if any(d != 0.0 for d in dist):
         # Undistort pixels and masks at the native size first (masks must then be native).
         masks_native = {k: read_mask_array(f, [native]) for k, f in mask_files.items()}
         arr, masks_native, (fx, fy, cx, cy, w, h) = undistort_view_arrays(
-            arr, masks_native, "OPENCV", [fx, fy, cx, cy, *dist], w, h, img_path
+            arr, masks_native, model, [fx, fy, cx, cy, *dist], w, h, img_path
         )
         native = (w, h)
         size = target_size(*native, downscale)

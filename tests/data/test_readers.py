@@ -370,3 +370,91 @@ def test_nex_undistort_layout(tmp_path):
     with pytest.raises(DataError, match="needs hwf_cxcy.npy") as info:
         read_llff(tmp_path, downscale=4)
     assert "hwf_cxcy.npy" in str(info.value)
+
+
+# -- nerfstudio's distortion keys and initial point cloud ----------------------------------------
+def _lens_transforms(root, model, dist, W=80, H=60):
+    """transforms.json frames whose images show a blob where a 3D point lands through the
+    given lens (COLMAP's model of the same name projects it)."""
+    import pycolmap
+
+    point = np.array([2.5, -0.9, 0.1])  # near the edge of a wide view: k3 moves it by pixels
+    colmap_model, params = {
+        "OPENCV": ("FULL_OPENCV", [dist.get("k1", 0), dist.get("k2", 0), dist.get("p1", 0),
+                                   dist.get("p2", 0), dist.get("k3", 0), 0, 0, 0]),
+        "OPENCV_FISHEYE": ("OPENCV_FISHEYE", [dist.get(k, 0) for k in ("k1", "k2", "k3", "k4")]),
+    }[model]
+    cam = pycolmap.Camera.create_from_model_name(1, colmap_model, 1.0, W, H)
+    cam.params = [40.0, 41.0, 40.5, 29.5] + [float(p) for p in params]
+    frames = []
+    for i, tz in enumerate((3.0, 3.3, 2.8)):
+        c2w_cv = np.eye(4)
+        c2w_cv[:3, 3] = [0.1 * i, 0.0, -tz]
+        u, v = cam.img_from_cam((point - c2w_cv[:3, 3])[None])[0]
+        yy, xx = np.mgrid[0:H, 0:W] + 0.5
+        blob = np.exp(-((xx - u) ** 2 + (yy - v) ** 2) / (2 * 1.2**2))
+        _write_png(root / "images" / f"{i:04d}.png",
+                   np.round(np.stack([blob, 0.5 * blob, np.full_like(blob, 0.2)], 2) * 255).astype(np.uint8))
+        c2w_gl = c2w_cv @ np.diag([1.0, -1.0, -1.0, 1.0])
+        frames.append({"file_path": f"images/{i:04d}.png", "transform_matrix": c2w_gl.tolist()})
+    meta = {"camera_model": model, "fl_x": 40.0, "fl_y": 41.0, "cx": 40.5, "cy": 29.5, "w": W, "h": H,
+            "frames": frames, **dist}
+    (root / "transforms.json").write_text(json.dumps(meta))
+    return point
+
+
+@pytest.mark.parametrize("model, dist", [
+    ("OPENCV", {"k1": -0.2, "k2": 0.05, "k3": 0.1, "p1": 0.001}),
+    ("OPENCV_FISHEYE", {"k1": 0.05, "k2": -0.01, "k3": 0.002, "k4": -0.001}),
+], ids=["opencv with k3", "fisheye k1..k4"])
+def test_transforms_distortion_terms_are_applied(tmp_path, model, dist):
+    point = _lens_transforms(tmp_path, model, dist)
+
+    def worst_px(scene):
+        return max(float(np.abs(_blob_centre(v.image) - v.camera.project(
+            torch.from_numpy(point[None]).float())[0][0].numpy()).max()) for v in scene.train)
+
+    # undistorted: the blob lands where the pinhole camera projects it (measured <= 0.18 px)
+    assert worst_px(read_transforms(tmp_path, test_every=0)) < 0.3
+    if model == "OPENCV":  # negative control: the same lens without its k3 misses by pixels
+        meta = json.loads((tmp_path / "transforms.json").read_text())
+        meta.pop("k3")
+        (tmp_path / "transforms.json").write_text(json.dumps(meta))
+        assert worst_px(read_transforms(tmp_path, test_every=0)) > 1.0  # measured 1.9
+
+
+@pytest.mark.parametrize("change, key", [
+    ({"camera_model": "OPENCV", "k4": 0.01}, "k4"),
+    ({"camera_model": "OPENCV", "distortion_params": [0.1, 0, 0, 0, 0, 0]}, "distortion_params"),
+    ({"camera_model": "PINHOLE", "k1": -0.1}, "k1"),
+    ({"camera_model": "OPENCV_FISHEYE", "p1": 0.01}, "p1"),
+])
+def test_transforms_distortion_the_model_cannot_hold_is_refused(tmp_path, change, key):
+    _lens_transforms(tmp_path, "OPENCV", {})
+    meta = json.loads((tmp_path / "transforms.json").read_text())
+    meta.update(change)
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(DataError, match=key) as info:
+        read_transforms(tmp_path)
+    assert "transforms.json" in str(info.value)
+
+
+def test_transforms_ply_file_path_gives_the_initial_points(tmp_path):
+    from plyfile import PlyData, PlyElement
+
+    _lens_transforms(tmp_path, "OPENCV", {})
+    pts = np.zeros(3, dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("red", "u1"), ("green", "u1"),
+                             ("blue", "u1")])
+    pts["x"], pts["red"] = [1, 2, 3], [255, 0, 51]
+    PlyData([PlyElement.describe(pts, "vertex")]).write(str(tmp_path / "sparse_pc.ply"))
+    meta = json.loads((tmp_path / "transforms.json").read_text())
+    meta["ply_file_path"] = "sparse_pc.ply"
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    scene = read_transforms(tmp_path)
+    assert torch.equal(scene.points[:, 0], torch.tensor([1.0, 2, 3]))
+    assert torch.allclose(scene.points_rgb[:, 0], torch.tensor([1.0, 0.0, 0.2]))
+    assert any("sparse_pc.ply" in n for n in scene.notes)
+    meta["ply_file_path"] = "missing.ply"
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(DataError, match="missing.ply"):
+        read_transforms(tmp_path)
