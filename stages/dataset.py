@@ -46,6 +46,12 @@ class SceneAttrs:
         labels: the NVOS labels folder (``kind = "nvos"``).
         task: the NVOS task (default: the scene value's name).
         scene_type: "forward" or "360" (default: from the kind / preset).
+        trained: a scene trained elsewhere, used instead of training one: an output folder
+            of the original 3DGS code (``point_cloud/iteration_<N>/point_cloud.ply``,
+            ``cameras.json``, ``cfg_args``, optional ``chkpnt<N>.pth`` whose Adam state the
+            texture stages continue) or any standard 3DGS PLY, trained on this scene's data
+            (checked: :mod:`cobgs.trained3dgs`).
+        trained_iteration: which saved iteration of a 3DGS output folder (0 = the highest).
     """
 
     kind: str = "synthetic"
@@ -53,8 +59,15 @@ class SceneAttrs:
     labels: Optional[Path] = None
     task: str = ""
     scene_type: str = ""
+    trained: Optional[Path] = None
+    trained_iteration: int = 0
 
     def __post_init__(self) -> None:
+        if self.trained is not None and not Path(self.trained).exists():
+            raise ValueError(f"trained {self.trained} does not exist (a 3DGS output folder or a "
+                             f"PLY file)")
+        if self.trained_iteration < 0:
+            raise ValueError(f"trained_iteration must be >= 0, got {self.trained_iteration}")
         if self.kind not in KINDS:
             raise ValueError(f"kind must be one of {list(KINDS)}, got {self.kind!r}")
         if self.scene_type not in ("", "forward", "360"):

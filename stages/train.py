@@ -7,12 +7,18 @@ released code continues its 3DGS checkpoint; :mod:`cobgs.adam_moments`), ``train
 schedule, loss / PSNR history, held-out PSNR / SSIM per view, Gaussian count, timings) and
 ``renders/<view>.png`` (8-bit renders of the held-out views: the vanilla side of the
 texture comparison).
+
+With the scene's ``trained`` attribute the stage imports that scene instead of training
+(:mod:`cobgs.trained3dgs`: an original-3DGS output folder, with its checkpoint's Adam
+state when present, or any standard 3DGS PLY), checked against the data; train.json's
+``imported`` says what was read.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import time
+from pathlib import Path
 
 from pipeline import Resources, Stage
 
@@ -31,6 +37,9 @@ def _run(ctx, inputs):
     cfg = to_config(ctx.params, TrainConfig)
     scene = to_device(load_scene(inputs["dataset"], inputs["poses"]), ctx.device)
     dev = torch_device(ctx.device)
+    trained = getattr(ctx.item.attrs.get("scene"), "trained", None)
+    if trained is not None:
+        return _import_trained(ctx, cfg, scene, dev, Path(trained))
     ctx.log.info("training %d iterations on %d views (%d held out), %s", cfg.iterations, len(scene.train),
                  len(scene.test), ctx.device)
     bar = ctx.progress(total=cfg.iterations, desc=f"train[{ctx.item.label}]")
@@ -75,6 +84,49 @@ def _run(ctx, inputs):
                  f"{ev['psnr']:.2f}" if ev else "n/a", wall, res.s_per_it)
     ctx.note(num_gaussians=len(model), iterations=res.iterations, psnr=ev.get("psnr"), ssim=ev.get("ssim"),
              s_per_it=res.s_per_it, train_views=len(scene.train), test_views=len(scene.test))
+    return {"scene": ctx.out_dir}
+
+
+def _import_trained(ctx, cfg, scene, dev, path: Path):
+    """The scene's ``trained`` 3DGS instead of training one: read, checked against the data,
+    written as this stage's artifacts (scene.ply, its Adam moments when a checkpoint holds
+    them, train.json saying where it came from, the held-out renders)."""
+    from cobgs.adam_moments import MOMENTS_FILE, save_moments
+    from cobgs.ply import save_ply
+    from cobgs.render import render_image
+    from cobgs.train import evaluate
+    from cobgs.trained3dgs import check_against_scene, read_trained
+
+    t0 = time.perf_counter()
+    attrs = ctx.item.attrs["scene"]
+    imp = read_trained(path, attrs.trained_iteration)
+    checks = check_against_scene(imp, scene)
+    model = imp.model
+    save_ply(ctx.out_dir / "scene.ply", model)
+    if imp.moments is not None:
+        save_moments(ctx.out_dir / MOMENTS_FILE, imp.moments, len(model))
+    bg = cfg.background if cfg.background is not None else scene.background
+    model = model.to(dev) if dev.type != "cpu" else model
+    for v in scene.test:
+        write_png(ctx.out_dir / "renders" / f"{v.name}.png",
+                  render_image(model, v.camera, bg, backend=cfg.backend).clamp(0, 1).cpu().numpy())
+    ev = evaluate(model, scene.test, bg, backend=cfg.backend) if scene.test else {}
+    wall = time.perf_counter() - t0
+    write_json(ctx.out_dir / "train.json", {
+        "imported": imp.source, "checks": checks, "notes": imp.notes,
+        "config": dataclasses.asdict(cfg), "iterations": int(imp.source.get("iteration", 0)),
+        "num_gaussians": len(model),
+        "train_views": [v.name for v in scene.train], "test_views": [v.name for v in scene.test],
+        "extent": scene.extent, "background": list(bg), "eval": ev, "history": [],
+        "wall_s": wall, "s_per_it": None, "peak_rss_bytes": None,
+    })
+    ctx.log.info("imported %s (%s): %d Gaussians, %.0f%% inside the training views, held-out "
+                 "PSNR %s dB; %s", path, imp.source["kind"], len(model),
+                 100 * checks["visible_fraction"], f"{ev['psnr']:.2f}" if ev else "n/a",
+                 "; ".join(imp.notes) or "no notes")
+    ctx.note(imported=imp.source["kind"], num_gaussians=len(model), psnr=ev.get("psnr"),
+             ssim=ev.get("ssim"), train_views=len(scene.train), test_views=len(scene.test),
+             moments=imp.moments is not None)
     return {"scene": ctx.out_dir}
 
 

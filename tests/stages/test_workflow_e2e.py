@@ -267,6 +267,63 @@ def test_missing_mask_dir_is_refused_when_the_workflow_loads(tiny, tmp_path):
         _run(wf_path, cache, only=("masks",))
 
 
+def test_a_scene_trained_elsewhere_replaces_training(tiny, tmp_path):
+    """A scene's ``trained`` 3DGS output folder (point_cloud/iteration_<N>, cameras.json,
+    cfg_args, chkpnt<N>.pth) is imported by the train stage, checked against the data, and
+    its checkpoint's Adam state reaches the COB-GS texture stages."""
+    import shutil
+
+    import torch
+
+    from cobgs.adam_moments import read_moments
+    from stages._common import load_scene
+
+    path, cache, wf, _ = tiny
+    trained = _entry(wf, cache, "train", "tiny").output("scene")
+    scene = load_scene(_entry(wf, cache, "dataset", "tiny").output("dataset"),
+                       _entry(wf, cache, "sfm", "tiny").output("poses"))
+    out = tmp_path / "3dgs_output"
+    (out / "point_cloud" / "iteration_500").mkdir(parents=True)
+    shutil.copy(trained / "scene.ply", out / "point_cloud" / "iteration_500" / "point_cloud.ply")
+    (out / "cfg_args").write_text("Namespace(sh_degree=3, source_path='/data/tiny', white_background=False)")
+    (out / "cameras.json").write_text(json.dumps([
+        {"id": i, "img_name": v.name, "width": v.camera.width, "height": v.camera.height,
+         "position": v.camera.center.tolist(), "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, 1]],
+         "fx": float(v.camera.fx), "fy": float(v.camera.fy)} for i, v in enumerate(scene.train)]))
+    ours = read_moments(trained / "adam_moments.pt")
+    from cobgs.ply import load_ply
+
+    model = load_ply(trained / "scene.ply")
+    order = [("xyz", "means"), ("f_dc", "sh0"), ("f_rest", "shN"), ("opacity", "opacity_logits"),
+             ("scaling", "log_scales"), ("rotation", "quats")]
+    state = {k: {"step": ours[n]["step"], "exp_avg": ours[n]["exp_avg"].reshape(-1, 1) if n == "opacity_logits"
+                 else ours[n]["exp_avg"], "exp_avg_sq": ours[n]["exp_avg_sq"]} for k, (_, n) in enumerate(order)}
+    groups = [{"params": [k], "lr": 0.01, "name": g} for k, (g, _) in enumerate(order)]
+    n = len(model)
+    capture = (3, model.means.detach(), model.data["sh0"].detach(), model.data["shN"].detach(),
+               model.data["log_scales"].detach(), model.data["quats"].detach(),
+               model.data["opacity_logits"].detach()[:, None], torch.zeros(n), torch.zeros(n, 1),
+               torch.zeros(n, 1), {"state": state, "param_groups": groups}, 1.0)
+    torch.save((capture, 500), out / "chkpnt500.pth")
+
+    wf_path = tmp_path / "imported.toml"
+    wf_path.write_text(path.read_text().replace('[axes.scene.tiny]\nkind = "synthetic"\n',
+                                                f'[axes.scene.tiny]\nkind = "synthetic"\ntrained = "{out}"\n'))
+    # (the scene's attributes enter its tasks' keys: dataset and SfM run again for it)
+    wf2, summary, log = _run(wf_path, cache, only=("dataset", "sfm", "train", "masks", "refine"),
+                             items="tiny/cobgs/ball")
+    assert summary.exit_code == 0, log
+    imported = _entry(wf2, cache, "train", "tiny").output("scene")
+    info = json.loads((imported / "train.json").read_text())
+    assert info["imported"]["kind"] == "3dgs_output" and info["imported"]["iteration"] == 500
+    assert info["imported"]["checkpoint"].endswith("chkpnt500.pth") and info["checks"]["visible_fraction"] > 0.9
+    assert info["checks"]["cameras_matched"] == len(scene.train)
+    back = read_moments(imported / "adam_moments.pt")
+    assert all(torch.equal(back[n]["exp_avg"], ours[n]["exp_avg"]) for n in ours)
+    refined = _entry(wf2, cache, "refine", "tiny/cobgs/ball").output("refined")
+    assert json.loads((refined / "refine.json").read_text())["texture_adam"] == "baseline"
+
+
 def test_device_enters_the_keys_of_computing_stages_only(tiny):
     path, cache, _, _ = tiny
     _, dry, _ = _run(path, cache, sets=["device=cuda"], dry_run=True)
