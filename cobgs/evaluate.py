@@ -258,6 +258,7 @@ def lerf_prompt_scores(preds: Mapping[str, object], gt_paths: Mapping[str, Optio
         ``"empty_gt_nan"``}.
     """
     per, skipped, empty = {}, {}, {}
+    n_zero = 0
     for v in test_views:
         path = gt_paths.get(v)
         if path is None:
@@ -271,12 +272,12 @@ def lerf_prompt_scores(preds: Mapping[str, object], gt_paths: Mapping[str, Optio
             if s["fp"] > 0:
                 s.update(iou=0.0, biou=0.0)
                 empty[v] = "empty GT, prediction not empty: IoU 0"
+                n_zero += 1
             else:
                 s.update(iou=float("nan"), biou=float("nan"))
                 empty[v] = "empty GT and empty prediction: NaN, left out of the mean"
                 skipped[v] = empty[v]
         per[v] = s
-    n_zero = sum(1 for why in empty.values() if why.endswith("IoU 0"))
     return {
         "iou": nanmean(p["iou"] for p in per.values()),
         "biou": nanmean(p["biou"] for p in per.values()),

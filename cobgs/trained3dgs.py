@@ -163,9 +163,7 @@ def read_3dgs_checkpoint_moments(path: Path, model: GaussianModel) -> dict:
         raise DataError(f"the checkpoint's Gaussians are not those of the PLY it is read with "
                         f"({tuple(getattr(xyz, 'shape', ()))} vs {len(model)} Gaussians, or other "
                         f"positions): checkpoint and point_cloud of different iterations?", path)
-    shapes = {"means": model.means.shape, "sh0": model.data["sh0"].shape,
-              "shN": model.data["shN"].shape, "opacity_logits": model.data["opacity_logits"].shape,
-              "log_scales": model.data["log_scales"].shape, "quats": model.data["quats"].shape}
+    shapes = {name: model.data[name].shape for name in _GROUPS.values()}
     out = {}
     for g in groups:
         name = _GROUPS.get(g.get("name"))

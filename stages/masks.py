@@ -172,11 +172,13 @@ def _folder_masks(views, folder: Path, threshold: int) -> tuple[dict, dict]:
     import numpy as np
     from PIL import Image
 
+    from cobgs.evaluate import resize_nearest
+
     by_stem: dict = {}
     for f in sorted(folder.iterdir()):
         if f.is_file() and f.suffix.lower() in _MASK_SUFFIXES:
             by_stem.setdefault(f.stem, []).append(f)
-    out, sizes, used = {}, {}, set()
+    out, sizes, resized = {}, {}, []
     for v in views:
         files = by_stem.get(v.name, [])
         if len(files) > 1:
@@ -185,26 +187,23 @@ def _folder_masks(views, folder: Path, threshold: int) -> tuple[dict, dict]:
         if not files:
             continue
         f = files[0]
-        used.add(f.stem)
         try:
             with Image.open(f) as im:
                 a = np.asarray(im.convert("RGB"))
         except (OSError, ValueError) as exc:
             raise StageInputError(f"mask file {f}: cannot read it as an image ({exc})") from exc
-        m = (a > threshold).any(axis=-1)
+        m = (a > threshold).any(axis=-1).astype(np.uint8) * 255
         sizes[v.name] = [int(m.shape[1]), int(m.shape[0])]
         if m.shape != (v.height, v.width):  # NEAREST, as the evaluation scripts resize
-            m = np.asarray(Image.fromarray(m.astype(np.uint8) * 255).resize(
-                (v.width, v.height), Image.NEAREST)) > 127
-        out[v.name] = m.astype(np.uint8) * 255
+            resized.append(v.name)
+        out[v.name] = resize_nearest(m, v.height, v.width)
     if not out:
         raise StageInputError(f"mask_dir {folder}: no mask named after a training view (views like "
                               f"{[v.name for v in views[:3]]}; files like {sorted(by_stem)[:3]})")
-    resized = {n: s for n, s in sizes.items() if s != [views[0].width, views[0].height]}
     info = {"dir": str(folder), "threshold": threshold, "files": {n: by_stem[n][0].name for n in out},
             "source_size": sizes, "resized_nearest": sorted(resized),
             "training_size": [views[0].width, views[0].height],
-            "unused_files": sorted(set(by_stem) - used)}
+            "unused_files": sorted(set(by_stem) - set(out))}
     return out, info
 
 

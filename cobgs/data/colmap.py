@@ -30,8 +30,7 @@ from .scene import (
     resize_mask,
     target_size,
 )
-from .undistort import (DROPPABLE_MODELS, PINHOLE_MODELS, pinhole_dropping_distortion,
-                        pinhole_params, undistort_view_arrays)
+from .undistort import DROPPABLE_MODELS, PINHOLE_MODELS, split_pinhole, undistort_view_arrays
 
 _MODEL_FILES = ("cameras", "images", "points3D")
 
@@ -198,16 +197,14 @@ def _read_view(root: Path, rec, im, img_path: Path, downscale: float, pre_shrunk
         )
 
     dropped = drop_distortion and model in DROPPABLE_MODELS
-    if dropped:
-        (fx, fy, cx, cy), terms = pinhole_dropping_distortion(model, params)
-        note = (f"camera {im.camera_id} ({model}) read as a pinhole, distortion "
-                f"{[round(t, 6) for t in terms]} dropped (as the NVOS reference methods read "
-                f"nerf_llff_data)")
-        if note not in notes:
-            notes.append(note)
     if model in PINHOLE_MODELS or dropped:
-        if not dropped:
-            fx, fy, cx, cy = pinhole_params(model, params)
+        (fx, fy, cx, cy), terms = split_pinhole(model, params)
+        if dropped:
+            note = (f"camera {im.camera_id} ({model}) read as a pinhole, distortion "
+                    f"{[round(t, 6) for t in terms]} dropped (as the NVOS reference methods "
+                    f"read nerf_llff_data)")
+            if note not in notes:
+                notes.append(note)
         native = got
         sx, sy = got[0] / cam_size[0], got[1] / cam_size[1]
         fx, fy, cx, cy = fx * sx, fy * sy, cx * sx, cy * sy

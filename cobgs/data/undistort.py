@@ -20,31 +20,32 @@ from ..errors import DataError
 PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")
 
 
+# Models whose parameters start with a pinhole's (f, cx, cy or fx, fy, cx, cy): how many
+# focal lengths they hold. The distortion terms follow.
+_FOCALS = {"SIMPLE_PINHOLE": 1, "PINHOLE": 2, "SIMPLE_RADIAL": 1, "RADIAL": 1, "OPENCV": 2,
+           "FULL_OPENCV": 2}
+# Of those, the distorted ones: these can be read as their pinhole with the distortion dropped.
+DROPPABLE_MODELS = ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV")
+
+
+def split_pinhole(model: str, params: Sequence[float]
+                  ) -> tuple[tuple[float, float, float, float], list[float]]:
+    """((fx, fy, cx, cy), the distortion terms after them) of a camera whose parameters
+    start with a pinhole's: PINHOLE / SIMPLE_PINHOLE (no terms), SIMPLE_RADIAL / RADIAL /
+    OPENCV / FULL_OPENCV (read as a pinhole, the terms returned)."""
+    n = _FOCALS.get(model)
+    if n is None:
+        raise DataError(f"camera model {model} does not start with pinhole parameters")
+    vals = [float(v) for v in params]
+    fx, fy = (vals[0], vals[0]) if n == 1 else (vals[0], vals[1])
+    return (fx, fy, vals[n], vals[n + 1]), vals[n + 2:]
+
+
 def pinhole_params(model: str, params: Sequence[float]) -> tuple[float, float, float, float]:
     """(fx, fy, cx, cy) of a PINHOLE or SIMPLE_PINHOLE camera."""
-    if model == "SIMPLE_PINHOLE":
-        f, cx, cy = params[:3]
-        return float(f), float(f), float(cx), float(cy)
-    if model == "PINHOLE":
-        fx, fy, cx, cy = params[:4]
-        return float(fx), float(fy), float(cx), float(cy)
-    raise DataError(f"camera model {model} is not a pinhole model")
-
-
-# Models whose parameters start with a pinhole's (f or fx, fy; cx; cy) followed by radial /
-# tangential terms: these can be read as that pinhole with the distortion dropped.
-DROPPABLE_MODELS = {"SIMPLE_RADIAL": 1, "RADIAL": 1, "OPENCV": 2, "FULL_OPENCV": 2}
-
-
-def pinhole_dropping_distortion(model: str, params: Sequence[float]
-                                ) -> tuple[tuple[float, float, float, float], list[float]]:
-    """((fx, fy, cx, cy), the dropped distortion terms) of a SIMPLE_RADIAL / RADIAL / OPENCV
-    / FULL_OPENCV camera read as a pinhole."""
-    if DROPPABLE_MODELS.get(model) == 1:
-        f, cx, cy = (float(v) for v in params[:3])
-        return (f, f, cx, cy), [float(v) for v in params[3:]]
-    fx, fy, cx, cy = (float(v) for v in params[:4])
-    return (fx, fy, cx, cy), [float(v) for v in params[4:]]
+    if model not in PINHOLE_MODELS:
+        raise DataError(f"camera model {model} is not a pinhole model")
+    return split_pinhole(model, params)[0]
 
 
 def undistort_view_arrays(
