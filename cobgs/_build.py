@@ -152,8 +152,8 @@ def cuda_plan() -> dict:
     import torch
 
     mode = os.environ.get("COBGS_CUDA", "auto").strip().lower()
-    env_key = (mode, os.environ.get("TORCH_CUDA_ARCH_LIST", ""), os.environ.get("CUDA_HOME", ""),
-               os.environ.get("PATH", ""))
+    env_key = (mode, *(os.environ.get(k, "") for k in ("TORCH_CUDA_ARCH_LIST", "CUDA_HOME",
+                                                        "CUDA_PATH", "PATH")))
     if env_key in _plan_cache:
         return _plan_cache[env_key]
     reason = None
