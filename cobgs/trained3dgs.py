@@ -28,6 +28,7 @@ decided is returned for the manifest.
 from __future__ import annotations
 
 import json
+import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -165,22 +166,30 @@ def read_3dgs_checkpoint_moments(path: Path, model: GaussianModel) -> dict:
                         f"positions): checkpoint and point_cloud of different iterations?", path)
     shapes = {name: model.data[name].shape for name in _GROUPS.values()}
     out = {}
-    for g in groups:
-        name = _GROUPS.get(g.get("name"))
-        if name is None:
-            continue
-        st = state.get(g["params"][0]) if g.get("params") else None
-        if not st:
-            continue
-        entry = {}
-        for k in ("exp_avg", "exp_avg_sq"):
-            t = torch.as_tensor(st[k]).float()
-            if t.numel() != int(np.prod(shapes[name])):
-                raise DataError(f"optimizer group {g.get('name')!r}: {k} has {t.numel()} values, "
-                                f"the PLY's {name} {int(np.prod(shapes[name]))}", path)
-            entry[k] = t.reshape(shapes[name]).contiguous()
-        entry["step"] = torch.as_tensor(st.get("step", 0)).float().reshape(())
-        out[name] = entry
+    try:
+        for g in groups:
+            name = _GROUPS.get(g.get("name"))
+            if name is None:
+                continue
+            st = state.get(g["params"][0]) if g.get("params") else None
+            if not st:
+                continue
+            entry = {}
+            for k in ("exp_avg", "exp_avg_sq"):
+                t = torch.as_tensor(st[k]).float()
+                if t.numel() != int(np.prod(shapes[name])):
+                    raise DataError(f"optimizer group {g.get('name')!r}: {k} has {t.numel()} "
+                                    f"values, the PLY's {name} {int(np.prod(shapes[name]))}", path)
+                if not torch.isfinite(t).all():
+                    raise DataError(f"optimizer group {g.get('name')!r}: {k} has "
+                                    f"{int((~torch.isfinite(t)).sum())} non-finite values", path)
+                entry[k] = t.reshape(shapes[name]).contiguous()
+            entry["step"] = torch.as_tensor(st.get("step", 0)).float().reshape(())
+            out[name] = entry
+    except (AttributeError, TypeError, ValueError, IndexError, KeyError, RuntimeError) as e:
+        raise DataError(f"the optimizer state is not Adam state as the 3DGS code saves it "
+                        f"(param_groups with a name and params; state with exp_avg, exp_avg_sq, "
+                        f"step): {e!r}", path) from e
     missing = sorted(set(_GROUPS.values()) - set(out))
     if missing:
         raise DataError(f"the checkpoint's optimizer has no state for {missing}", path)
@@ -213,8 +222,14 @@ def _read_cameras_json(path: Path) -> dict:
     out = {}
     try:
         for c in cams:
-            out[Path(str(c["img_name"])).stem] = (np.asarray(c["position"], np.float64),
-                                                  float(c["fx"]), int(c["width"]))
+            name = Path(str(c["img_name"])).stem
+            pos, fx, width = np.asarray(c["position"], np.float64), float(c["fx"]), int(c["width"])
+            if pos.shape != (3,) or not np.isfinite(pos).all() or not (math.isfinite(fx) and fx > 0) \
+                    or width <= 0:
+                raise DataError(f"camera {name!r}: expected a finite 3-vector position, fx > 0 and "
+                                f"width > 0, got position {pos.tolist()}, fx {fx}, width {width}",
+                                path)
+            out[name] = (pos, fx, width)
     except (TypeError, KeyError, ValueError) as e:
         raise DataError(f"expected a list of {{img_name, position, fx, width, ...}}: {e!r}", path) from e
     return out

@@ -184,3 +184,31 @@ def test_a_checkpoint_of_another_iteration_is_refused(tmp_path, scene_and_model)
     save_ply(tmp_path / "point_cloud" / "iteration_7000" / "point_cloud.ply", moved)
     with pytest.raises(DataError, match="different iterations"):
         read_trained(tmp_path)
+
+
+@pytest.mark.parametrize("field, value", [("position", [1.0, 2.0]), ("fx", 0.0), ("width", 0)])
+def test_cameras_json_with_unusable_values_is_refused(tmp_path, scene_and_model, field, value):
+    scene, model = scene_and_model
+    _output_folder(tmp_path, model, scene, checkpoint=False)
+    cams = json.loads((tmp_path / "cameras.json").read_text())
+    cams[2][field] = value
+    (tmp_path / "cameras.json").write_text(json.dumps(cams))
+    with pytest.raises(DataError, match="camera 'v02': expected a finite 3-vector") as info:
+        read_trained(tmp_path)
+    assert "cameras.json" in str(info.value)
+
+
+@pytest.mark.parametrize("damage, what", [
+    (lambda st: st.pop("exp_avg"), "not Adam state"),
+    (lambda st: st.update(exp_avg_sq=torch.full_like(st["exp_avg_sq"], float("nan"))), "non-finite"),
+])
+def test_a_checkpoint_with_damaged_adam_state_is_refused(tmp_path, scene_and_model, damage, what):
+    scene, model = scene_and_model
+    _output_folder(tmp_path, model, scene)
+    ck = tmp_path / "chkpnt7000.pth"
+    capture, it = torch.load(ck, weights_only=True)
+    damage(capture[10]["state"][3])
+    torch.save((capture, it), ck)
+    with pytest.raises(DataError, match=what) as info:
+        read_trained(tmp_path)
+    assert "chkpnt7000.pth" in str(info.value)

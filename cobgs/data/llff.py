@@ -132,6 +132,8 @@ def _nex_intrinsics(root: Path) -> tuple:
         a = np.load(path).astype(np.float64).reshape(-1)
     except (OSError, ValueError) as e:
         raise DataError(f"unreadable numpy file: {e}", path) from e
+    if not np.isfinite(a).all():
+        raise DataError(f"non-finite intrinsics {a.tolist()}", path)
     if a.size == 6:
         h, w, fx, fy, cx, cy = (float(v) for v in a)
     elif a.size == 3:

@@ -46,10 +46,23 @@ def _distortion(get, model: str, i: int, jf: Path) -> tuple[str, list[float]]:
     nerfstudio writes them: OPENCV k1 k2 p1 p2 (+ k3: the full OpenCV model), OPENCV_FISHEYE
     k1..k4. A term the model cannot hold, or ``distortion_params`` (whose order no format
     fixes), is refused naming the key rather than ignored."""
-    d = {k: float(get(k, 0.0) or 0.0) for k in _ALL_DISTORTION_KEYS}
+    d = {}
+    for k in _ALL_DISTORTION_KEYS:
+        try:
+            d[k] = float(get(k, 0.0) or 0.0)
+        except (TypeError, ValueError):
+            raise DataError(f"frame {i}: distortion term {k!r} must be a number, got "
+                            f"{get(k)!r}", jf) from None
+        if not math.isfinite(d[k]):
+            raise DataError(f"frame {i}: distortion term {k!r} is {d[k]}", jf)
     given = [k for k, v in d.items() if v != 0.0]
     dp = get("distortion_params")
-    if dp is not None and any(float(v) != 0.0 for v in dp):
+    try:
+        dp_given = dp is not None and any(float(v) != 0.0 for v in dp)
+    except (TypeError, ValueError):
+        raise DataError(f"frame {i}: 'distortion_params' must be a list of numbers, got {dp!r}",
+                        jf) from None
+    if dp_given:
         raise DataError(f"frame {i}: 'distortion_params' {list(dp)} is not read (its order differs "
                         f"between tools); give the terms as k1, k2, k3, k4, p1, p2 with "
                         f"camera_model OPENCV or OPENCV_FISHEYE", jf)

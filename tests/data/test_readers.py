@@ -366,6 +366,10 @@ def test_nex_undistort_layout(tmp_path):
     # LLFF axes: camera 1 sits 0.1 to the right of camera 0
     assert torch.allclose(scene.train[1].camera.center - scene.train[0].camera.center,
                           torch.tensor([0.1, 0.0, 0.0]), atol=1e-6)
+    np.save(tmp_path / "hwf_cxcy.npy", np.array([120.0, 160.0, 140.0, 141.0, np.nan, 56.0]))
+    with pytest.raises(DataError, match="non-finite intrinsics") as info:
+        read_llff(tmp_path, downscale=4)
+    assert "hwf_cxcy.npy" in str(info.value)
     (tmp_path / "hwf_cxcy.npy").unlink()
     with pytest.raises(DataError, match="needs hwf_cxcy.npy") as info:
         read_llff(tmp_path, downscale=4)
@@ -428,6 +432,9 @@ def test_transforms_distortion_terms_are_applied(tmp_path, model, dist):
     ({"camera_model": "OPENCV", "distortion_params": [0.1, 0, 0, 0, 0, 0]}, "distortion_params"),
     ({"camera_model": "PINHOLE", "k1": -0.1}, "k1"),
     ({"camera_model": "OPENCV_FISHEYE", "p1": 0.01}, "p1"),
+    ({"camera_model": "OPENCV", "k1": "strong"}, "k1"),  # not a number
+    ({"camera_model": "OPENCV", "k2": float("nan")}, "k2"),
+    ({"camera_model": "OPENCV", "distortion_params": 0.1}, "distortion_params"),  # not a list
 ])
 def test_transforms_distortion_the_model_cannot_hold_is_refused(tmp_path, change, key):
     _lens_transforms(tmp_path, "OPENCV", {})
