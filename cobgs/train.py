@@ -35,6 +35,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import pickle
 import resource
 import tempfile
 import time
@@ -428,10 +429,9 @@ class Trainer:
         path = Path(path)
         if not path.is_file():
             raise DataError("checkpoint not found", path)
-        try:
-            state = torch.load(path, map_location="cpu", weights_only=False)
-        except Exception as e:  # torch raises several types for corrupt files
-            raise DataError(f"unreadable checkpoint: {e}", path) from e
+        state = _load_safely(path)
+        if not isinstance(state, dict) or "model" not in state:
+            raise DataError("not a cobgs training checkpoint (no model state)", path)
         self.load_state_dict(state)
 
 
@@ -444,11 +444,23 @@ def load_model(path: os.PathLike | str) -> GaussianModel:
         return load_ply(path)
     if not path.is_file():
         raise DataError("checkpoint not found", path)
+    state = _load_safely(path)
     try:
-        state = torch.load(path, map_location="cpu", weights_only=False)
         return GaussianModel.from_state_dict(state["model"])
-    except (KeyError, TypeError) as e:
-        raise DataError(f"not a cobgs training checkpoint (no model state): {e}", path) from e
+    except (KeyError, TypeError, IndexError) as e:
+        raise DataError(f"not a cobgs training checkpoint (no model state): {e!r}", path) from e
+
+
+def _load_safely(path: Path):
+    """``torch.load(weights_only=True)``: tensors, numbers, strings, lists, tuples and dicts
+    only, so a checkpoint from elsewhere cannot run code when it is read (a pickle of any
+    other object is refused, naming the file)."""
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError as e:
+        raise DataError("refused: the checkpoint holds objects other than tensors, numbers, "
+                        "strings, lists and dicts (it is read with torch.load(weights_only=True), "
+                        f"which never runs code from the file): {str(e).splitlines()[0]}", path) from e
     except Exception as e:  # torch raises several types for corrupt files
         raise DataError(f"unreadable checkpoint: {e}", path) from e
 

@@ -7,7 +7,7 @@ import torch
 
 from cobgs.camera import Camera
 from cobgs.data.scene import View, make_scene
-from cobgs.errors import InputError
+from cobgs.errors import DataError, InputError
 from cobgs.gaussians import GaussianModel
 from cobgs.render import render
 from cobgs.train import Trainer, TrainConfig, evaluate, expon_lr, load_model, train
@@ -176,6 +176,33 @@ def test_deterministic_and_resume_is_exact(tiny_scene, tmp_path):
     other = _cfg(densify_grad_threshold_ndc=1e-3)
     with pytest.raises(InputError, match="densify_grad_threshold_ndc"):
         train(tiny_scene, other, resume=tmp_path / "a" / "ckpt_20.pt", progress=False)
+
+
+class _Payload:
+    """Unpickling this runs code: it creates a marker file."""
+
+    def __init__(self, path):
+        self.path = str(path)
+
+    def __reduce__(self):
+        return (open, (self.path, "w"))
+
+
+def test_a_crafted_checkpoint_is_refused_without_running_code(tiny_scene, tmp_path):
+    """Checkpoints are read with torch.load(weights_only=True) (resume and load_model): a
+    pickle carrying any other object is refused naming the file, and its code never runs."""
+    marker = tmp_path / "ran"
+    bad = tmp_path / "ckpt_20.pt"
+    torch.save({"version": 1, "model": _Payload(marker)}, bad)
+    with pytest.raises(DataError, match="refused: the checkpoint holds objects") as info:
+        load_model(bad)
+    assert str(bad) in str(info.value) and not marker.exists()
+    with pytest.raises(DataError, match="refused") as info:
+        train(tiny_scene, _cfg(), resume=bad, progress=False, evaluate_test=False)
+    assert str(bad) in str(info.value) and not marker.exists()
+    torch.save([1, 2], bad)
+    with pytest.raises(DataError, match="not a cobgs training checkpoint"):
+        load_model(bad)
 
 
 def test_random_background_draws_a_colour_per_iteration_and_resumes_exactly(tiny_scene, tmp_path, monkeypatch):
