@@ -85,7 +85,23 @@ def _quiet_interrupts(unraisable: Any) -> None:
     sys.__unraisablehook__(unraisable)
 
 
-def _child_main(job: Job, conn: Any) -> None:
+def die_with_parent(parent_pid: int) -> None:
+    """End this process when its parent dies, whatever kills the parent (SIGKILL, SIGTERM,
+    the OOM killer): Linux's PR_SET_PDEATHSIG sends it SIGKILL then. Where that is not
+    available nothing changes. A parent that died before the call ends it at once."""
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGKILL), 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent_pid:
+        os._exit(1)
+
+
+def _child_main(job: Job, conn: Any, parent_pid: int) -> None:
+    die_with_parent(parent_pid)
     sys.unraisablehook = _quiet_interrupts
     try:
         # SIGINT was blocked across fork (see ForkExecutor.submit); one that arrived
@@ -120,7 +136,7 @@ class ForkExecutor:
 
     def submit(self, job: Job, resources: Resources) -> None:
         recv, send = self._mp.Pipe(duplex=False)
-        proc = self._mp.Process(target=_child_main, args=(job, send), daemon=False,
+        proc = self._mp.Process(target=_child_main, args=(job, send, os.getpid()), daemon=False,
                                 name=f"cobgs-{job.stage.name}")
         # A Ctrl-C landing inside fork() would interrupt the child's at-fork handlers
         # (logging's lock re-initialisation) and print a stray traceback; hold it until

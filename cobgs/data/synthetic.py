@@ -78,7 +78,18 @@ def render_scene_view(scene: Scene, camera: PinholeCamera, supersampling: int) -
 _WORKER: dict = {}
 
 
-def _init_worker(scene: Scene, cams: List[PinholeCamera], s: int) -> None:
+def _init_worker(scene: Scene, cams: List[PinholeCamera], s: int, parent_pid: int) -> None:
+    # A render worker must not outlive the process that started it (a SIGKILLed run would
+    # leave it waiting on its task queue forever): Linux's PR_SET_PDEATHSIG ends it then.
+    try:
+        import ctypes
+        import signal
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL), 0, 0, 0)
+    except (OSError, AttributeError):
+        pass
+    if os.getppid() != parent_pid:
+        os._exit(1)
     _WORKER.update(scene=scene, cams=cams, s=s, caster=make_caster(scene))
 
 
@@ -106,7 +117,7 @@ def _render_all(scene: Scene, cams: List[PinholeCamera], s: int, progress: bool,
         methods = mp.get_all_start_methods()
         ctx = mp.get_context("fork" if "fork" in methods else "spawn")
         pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
-                                   initargs=(scene, cams, s))
+                                   initargs=(scene, cams, s, os.getpid()))
         try:
             for view in pool.map(_render_index, range(len(cams))):
                 yield view

@@ -345,3 +345,51 @@ def test_cli_matches_library(tmp_path):
         _cli(["synth", "--out", str(out), "-q"])
     with pytest.raises(SystemExit):
         _cli(["synth", "--out", str(out), "--size", "48by36"])
+
+
+def test_render_workers_end_with_a_killed_parent(tmp_path):
+    """A SIGKILLed process that was rendering with worker processes (the dataset stage with
+    ``workers = 2``) leaves no worker behind: they end within seconds instead of waiting on
+    their task queue forever under PID 1."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    code = ("from cobgs.data.synthetic import generate_scene\n"
+            f"generate_scene({str(tmp_path / 'scene')!r}, 'forward', seed=0, num_views=60, "
+            "workers=2, progress=False)\n")
+    proc = subprocess.Popen([sys.executable, "-c", code], start_new_session=True)
+    children: list[int] = []
+    deadline = time.monotonic() + 60
+    try:
+        while len(children) < 2 and time.monotonic() < deadline and proc.poll() is None:
+            try:
+                children = [int(c) for c in
+                            Path(f"/proc/{proc.pid}/task/{proc.pid}/children").read_text().split()]
+            except OSError:
+                pass
+            time.sleep(0.02)
+        assert len(children) >= 2, "the render workers never started"
+        time.sleep(0.3)  # inside the pool's task loop
+        os.kill(proc.pid, signal.SIGKILL)  # the parent only, as the OOM killer does
+        proc.wait(timeout=30)
+        left = set(children)
+        deadline = time.monotonic() + 5
+        while left and time.monotonic() < deadline:
+            for pid in list(left):
+                try:
+                    state = Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0]
+                except OSError:
+                    state = "gone"
+                if state in ("gone", "Z"):
+                    left.discard(pid)
+            time.sleep(0.05)
+        assert not left, f"render workers {sorted(left)} outlived their parent"
+    finally:
+        for pid in children:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass

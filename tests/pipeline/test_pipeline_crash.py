@@ -89,6 +89,42 @@ def test_sigkill_of_a_pool_worker_fails_only_its_task(toy, executions):
     assert by_task(toy)[("refine", "beta/nosplit")].state == "done"
 
 
+def _gone(pid: int, timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return True
+        try:  # a zombie (exited, not yet reaped by its new parent) is gone too
+            if Path(f"/proc/{pid}/stat").read_text().split(")")[-1].split()[0] == "Z":
+                return True
+        except OSError:
+            return True
+        time.sleep(0.05)
+    return False
+
+
+@pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM])
+def test_a_killed_driver_leaves_no_worker_behind(toy, sig):
+    """Killing only the driver's pid (not its process group, as the OOM killer or `kill PID`
+    does) ends its forked task workers within seconds instead of leaving them under PID 1."""
+    marker = toy.folder / "hang"
+    proc = start_run(toy, "--jobs", "2", PIPELINE_TOYS_HANG=str(marker),
+                     PIPELINE_TOYS_HANG_ITEM="beta/nosplit")
+    worker = int(wait_for(marker, proc))
+    assert worker != proc.pid
+    os.kill(proc.pid, sig)
+    proc.wait(timeout=30)
+    try:
+        assert _gone(worker, 5.0), f"worker {worker} outlived the killed driver"
+    finally:
+        try:
+            os.kill(worker, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+
+
 @pytest.mark.parametrize("jobs", ["1", "2"])
 def test_ctrl_c_discards_running_entries_and_keeps_finished_ones(toy, jobs):
     marker = toy.folder / "hang"
