@@ -24,7 +24,9 @@ from typing import Any, Iterable, Mapping, Optional, Sequence
 
 from .errors import WorkflowError
 
-VALUE_RE = re.compile(r"^[^/,=\s][^/,=]*$")  # "/" "," "=" are item-id syntax
+# "/" "," "=" are item-id syntax; names become folder names (export, report), so no path
+# separator, no leading "." (".", "..", hidden files), no control character, no trailing space.
+VALUE_RE = re.compile(r"^[^/\\,=\s.\x00-\x1f\x7f](?:[^/\\,=\x00-\x1f\x7f]*[^/\\,=\s\x00-\x1f\x7f])?$")
 
 
 @dataclass(frozen=True)
@@ -211,6 +213,7 @@ def agrees(a: Item, b: Item) -> bool:
 
 def check_value_name(name: str, axis: str, source: str) -> None:
     if not isinstance(name, str) or not VALUE_RE.match(name):
-        raise WorkflowError(f"value name {name!r} may not be empty, start with a space or "
-                            "contain '/', ',' or '='", source, f"axes.{axis}")
+        raise WorkflowError(f"value name {name!r} may not be empty, start with a space or '.', end "
+                            "with a space, or contain '/', '\\', ',', '=' or a control character "
+                            "(names become folder names)", source, f"axes.{axis}")
 

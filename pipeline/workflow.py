@@ -44,7 +44,7 @@ from typing import Any, Mapping, Optional, Sequence
 from . import params as P
 from .errors import PipelineError, WorkflowError, unknown_key_hint
 from .graph import Graph
-from .items import Axes, Axis, Item, check_value_name
+from .items import VALUE_RE, Axes, Axis, Item, check_value_name
 from .registry import Registry
 from .stage import NAME_RE, Stage
 
@@ -261,6 +261,11 @@ def load_workflow(path: os.PathLike | str, registry: Registry, sets: Sequence[st
     for k, v in (("name", name), ("description", description)):
         if not isinstance(v, str):
             raise WorkflowError(f"expected a string, got {v!r}", source, f"workflow.{k}")
+    if not VALUE_RE.match(name):  # the default report folder is runs/reports/<name>
+        raise WorkflowError(f"workflow name {name!r} may not be empty, start with a space or '.', "
+                            "end with a space, or contain '/', '\\', ',', '=' or a control "
+                            "character (it names the report folder)", source,
+                            "workflow.name" if "name" in wf else "(the file name)")
 
     settings = P.build(Settings, [P.Layer(_table(raw.get("settings", {}), source, "settings"),
                                           source, base, prefix="settings"),

@@ -2,9 +2,10 @@
 
 The folder (``index.html``, ``static/``, ``img/``, ``plots/``, ``logs/``, ``workflow.toml``,
 ``report.json``) uses relative links only and no network resource, so it opens from
-``file://`` anywhere it is copied. It is written to a temporary sibling folder and renamed
-into place once complete, so a crash never leaves a half-written report that looks whole;
-an existing report at the destination is replaced, any other non-empty folder is refused.
+``file://`` anywhere it is copied. It is written to a temporary sibling folder and swapped
+into place as a whole (:func:`pipeline.publish.publish_folder`), so a kill leaves either the
+previous report or the new one; an existing report at the destination is replaced, any other
+non-empty folder is refused.
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ import shutil
 import time
 from pathlib import Path
 from typing import Iterable, Optional
+
+from pipeline.publish import DestinationError, check_destination, publish_folder
 
 from . import fmt, results as R
 from .collect import RunData, Task, collect
@@ -63,16 +66,10 @@ def build_report(workflow_path: os.PathLike | str, out_dir: Optional[os.PathLike
     _check_destination(out)
     t0 = time.perf_counter()
     data = collect(wf, cache)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.parent / f".{out.name}.tmp-{os.getpid()}"
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
     try:
-        _write(data, tmp, sets)
-        _swap(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        publish_folder(out, lambda tmp: _write(data, tmp, sets), MARKER, "report")
+    except DestinationError as exc:
+        raise ReportError(str(exc)) from None
     if stream is not None:
         print(f"report of {wf.name}: {out / 'index.html'} ({len(data.results)} results, "
               f"{len(data.failed)} failed tasks, {time.perf_counter() - t0:.1f} s)", file=stream)
@@ -80,24 +77,11 @@ def build_report(workflow_path: os.PathLike | str, out_dir: Optional[os.PathLike
 
 
 def _check_destination(out: Path) -> None:
-    if out.exists() and not out.is_dir():
-        raise ReportError(f"report destination {out} exists and is not a folder")
-    if out.is_dir() and any(out.iterdir()) and not (out / MARKER).is_file():
-        raise ReportError(f"report destination {out} is a non-empty folder that is not a cobgs report "
-                          f"(no {MARKER}); refusing to replace it: choose another --out")
-
-
-def _swap(tmp: Path, out: Path) -> None:
-    """Put the finished ``tmp`` at ``out``: the old report is renamed away first, so at any
-    moment ``out`` is either absent or a complete report."""
-    old = None
-    if out.exists():
-        old = out.parent / f".{out.name}.old-{os.getpid()}"
-        shutil.rmtree(old, ignore_errors=True)
-        os.rename(out, old)
-    os.rename(tmp, out)
-    if old is not None:
-        shutil.rmtree(old, ignore_errors=True)
+    """Before any work: a destination that is not a cobgs report is refused."""
+    try:
+        check_destination(out, MARKER, "report")
+    except DestinationError as exc:
+        raise ReportError(f"{exc} (it is not a cobgs report)") from None
 
 
 class _Logs:

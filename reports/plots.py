@@ -34,6 +34,9 @@ def _plt():
         "axes.titleweight": "bold", "axes.labelsize": 8.5, "legend.fontsize": 8, "legend.frameon": False,
         "xtick.labelsize": 8, "ytick.labelsize": 8, "axes.grid": True, "grid.color": "#e6e6e6",
         "grid.linewidth": 0.6, "axes.axisbelow": True, "figure.dpi": 100,
+        # Labels are scene / method / object names, not TeX: "a$b" is drawn as typed (with
+        # math text on, a lone "$" made matplotlib raise and the whole report fail).
+        "text.parse_math": False,
     })
     return plt
 

@@ -12,8 +12,8 @@ Layout written (README "Exports")::
     DIR/export.json                               what was copied from which cache entry
 
 Only finished entries of the workflow's *current* configuration are copied (what
-``cobgs status`` calls done); anything else is listed as missing. Each file is copied to a
-temporary name and renamed, so a file in DIR is always complete.
+``cobgs status`` calls done); anything else is listed as missing. DIR is built beside itself
+and swapped into place as a whole: a kill leaves the previous export or the new one.
 """
 
 from __future__ import annotations
@@ -35,48 +35,57 @@ def _copy(src, dst) -> None:
     import shutil
 
     dst.parent.mkdir(parents=True, exist_ok=True)
-    tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
-    shutil.copyfile(src, tmp)
-    os.replace(tmp, dst)
+    shutil.copyfile(src, dst)
 
 
 def export(workflow, cache_dir, to, stream=None) -> dict:
     """Copy the exports of ``workflow`` (a loaded :class:`pipeline.Workflow`) from
-    ``cache_dir`` into ``to``; returns the record written to ``export.json``."""
+    ``cache_dir`` into ``to``; returns the record written to ``export.json``.
+
+    ``to`` is replaced as a whole (:func:`pipeline.publish.publish_folder`): a kill leaves
+    the previous export or the new one, never a mix. It may be absent, empty or an earlier
+    export (it holds ``export.json``); another folder is refused."""
     import json
     from pathlib import Path
 
     from pipeline import entries
+    from pipeline.publish import check_destination, publish_folder
 
-    to = Path(to)
+    to = Path(os.path.abspath(to))
+    check_destination(to, "export.json", "export")
     wanted = {stage: (artifact, files, where) for stage, artifact, files, where in EXPORTS}
-    copied, missing = [], []
+    plan, missing = [], []
     for rec in entries(workflow, cache_dir):
         if rec.stage not in wanted:
             continue
         artifact, files, where = wanted[rec.stage]
         v = rec.item.values
-        if where == "scene":
-            dest = to / v["scene"]
-        elif where == "object":
-            dest = to / v["scene"] / v["method"] / v["object"]
-        else:
-            dest = to
+        parts = {"scene": (v.get("scene"),), "object": (v.get("scene"), v.get("method"), v.get("object")),
+                 "root": ()}[where]
         if rec.state != "done":
             missing.append({"stage": rec.stage, "item": rec.item.id, "state": rec.state,
                             "reasons": list(getattr(rec, "reasons", []) or [])})
             continue
         folder = Path(rec.output(artifact))
         for name in files:
-            _copy(folder / name, dest / name)
-            copied.append({"file": str((dest / name).relative_to(to)), "stage": rec.stage,
-                           "item": rec.item.id, "entry": str(folder)})
+            plan.append((folder / name, Path(*parts, name), rec))
+    copied = []
+
+    def write(tmp: Path) -> None:
+        for src, rel, rec in plan:
+            dst = tmp / rel
+            # item names are checked when the workflow loads; never write outside the folder
+            if os.path.commonpath([os.path.abspath(dst), str(tmp)]) != str(tmp) or ".." in rel.parts:
+                raise ValueError(f"export path {rel} would leave the export folder")
+            _copy(src, dst)
+            copied.append({"file": rel.as_posix(), "stage": rec.stage, "item": rec.item.id,
+                           "entry": str(src.parent)})
+        record.update(copied=copied)
+        (tmp / "export.json").write_text(json.dumps(record, indent=1))
+
     record = {"workflow": str(workflow.path), "cache_dir": str(Path(cache_dir).resolve()),
               "copied": copied, "missing": missing}
-    tmp = to / f".export.json.{os.getpid()}.tmp"
-    to.mkdir(parents=True, exist_ok=True)
-    tmp.write_text(json.dumps(record, indent=1))
-    os.replace(tmp, to / "export.json")
+    publish_folder(to, write, "export.json", "export")
     return record
 
 
@@ -94,7 +103,11 @@ def _run(args) -> int:
         return 2
     cache = default_cache_dir(args.cache_dir)
     print(f"cache: {cache}")
-    rec = export(wf, cache, args.to)
+    try:
+        rec = export(wf, cache, args.to)
+    except PipelineError as exc:
+        print(f"cobgs export: {exc}", file=sys.stderr)
+        return 2
     for m in rec["missing"]:
         print(f"  not exported: {m['stage']} {m['item'] or '(workflow)'} ({m['state']})", file=sys.stderr)
     plys = [c["file"] for c in rec["copied"] if c["file"].endswith(".ply")]

@@ -235,6 +235,23 @@ def test_refuses_to_replace_a_folder_that_is_not_a_report(recorded, tmp_path):
     assert (out / "thesis.tex").read_text() == "x"
 
 
+def test_leftovers_of_a_killed_report_are_cleaned(recorded, tmp_path):
+    """A SIGKILLed `cobgs report` leaves .NAME.tmp-PID / .NAME.old-PID folders; the next
+    report to that destination removes them (their pid is dead) and puts back a previous
+    report that a kill left renamed away."""
+    import os
+
+    out = tmp_path / "r"
+    recorded.build(out)
+    dead = 2 ** 22 + 1  # above the default pid_max: no such process
+    (tmp_path / f".r.tmp-{dead}").mkdir()
+    os.rename(out, tmp_path / f".r.old-{dead}")
+    (tmp_path / f".r.old-{os.getpid()}x").mkdir()  # not a leftover name: kept
+    recorded.build(out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["r", f".r.old-{os.getpid()}x"])
+    assert (out / "index.html").is_file()
+
+
 def test_missing_cache_is_a_clear_error(recorded, tmp_path):
     from reports import build_report
 

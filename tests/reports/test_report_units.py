@@ -194,3 +194,14 @@ def test_thin_errors_survive_the_page_size_overlay(tmp_path):
     assert ov.shape[1] == MAX_WIDTH_PX
     red = np.abs(ov - np.array(FP_RGB)).sum(axis=2) < 60
     assert red[25:50].any() and red.sum() >= 20
+
+
+def test_plot_labels_are_text_not_tex(tmp_path):
+    """A scene or object named with a "$" (or TeX-like text) is drawn as typed; it used to
+    raise in matplotlib's math-text parser and fail the whole report."""
+    from reports import plots
+
+    name = "cup$_$2/cob$^$gs"  # math text: invalid TeX (ValueError)
+    assert plots.time_breakdown(tmp_path / "t.svg", [(name, {"train": 3.0, "refine": 1.0})],
+                                ["train", "refine"])
+    assert name in (tmp_path / "t.svg").read_text()
