@@ -32,6 +32,7 @@ from typing import Any, Iterator, Optional
 from .errors import CacheError
 from .hashing import canonical_json, sha256_text
 from .locks import EntryLock
+from .publish import exchange_paths
 
 MANIFEST = "manifest.json"
 LOG = "log.txt"
@@ -65,6 +66,36 @@ def write_json_atomic(path: Path, data: Any) -> None:
 def read_json(path: Path) -> Any:
     with open(path, "rb") as f:
         return json.loads(f.read())
+
+
+def read_json_object(path: Path) -> Optional[dict]:
+    """A JSON object from ``path``; None when the file is missing, unreadable, not JSON or
+    JSON of another shape (a list, a string ...): the cache treats all those as absent or
+    corrupt, never as a crash."""
+    try:
+        data = read_json(path)
+    except (OSError, ValueError):
+        return None
+    return data if isinstance(data, dict) else None
+
+
+def outputs_problem(outputs: Any) -> str:
+    """What is wrong with a manifest's ``outputs`` table ("" when it has the shape written
+    at commit: name -> {path: str, kind: file|dir, bytes: int, sizes: {rel: int}})."""
+    if not isinstance(outputs, dict):
+        return "outputs is not a table"
+    for name, out in outputs.items():
+        if not isinstance(out, dict) or not isinstance(out.get("path"), str):
+            return f"output {name!r} has no path"
+        if out.get("kind") not in ("file", "dir"):
+            return f"output {name!r} has kind {out.get('kind')!r}"
+        if out["kind"] == "file" and not isinstance(out.get("bytes"), int):
+            return f"output {name!r} has no byte count"
+        sizes = out.get("sizes")
+        if out["kind"] == "dir" and sizes is not None and (
+                not isinstance(sizes, dict) or not all(isinstance(v, int) for v in sizes.values())):
+            return f"output {name!r} has a malformed file list"
+    return ""
 
 
 class Cache:
@@ -117,10 +148,13 @@ class Cache:
                 or manifest.get("status") != "ok" or not isinstance(manifest.get("outputs"), dict):
             return EntryCheck("corrupt", reason="manifest does not describe a finished entry "
                                                 "with this key")
+        shape = outputs_problem(manifest["outputs"])
+        if shape:
+            return EntryCheck("corrupt", reason=f"manifest is malformed: {shape}")
         for name, out in manifest["outputs"].items():
             try:
                 st = os.stat(folder / out["path"])
-            except (OSError, KeyError, TypeError):
+            except OSError:
                 return EntryCheck("corrupt", manifest, f"output {name!r} is missing")
             if out.get("kind") == "file" and st.st_size != out.get("bytes"):
                 return EntryCheck("corrupt", manifest,
@@ -141,10 +175,8 @@ class Cache:
         return EntryCheck("done", manifest)
 
     def load_failed(self, stage: str, key: str) -> Optional[dict]:
-        try:
-            return read_json(self.failed_dir(stage, key) / MANIFEST)
-        except (OSError, ValueError):
-            return None
+        """The failure record of a key; None when absent or unusable (not a JSON object)."""
+        return read_json_object(self.failed_dir(stage, key) / MANIFEST)
 
     # -- writing (callers hold the entry's lock) ---------------------------------------
     def new_tmp(self, stage: str, key: str) -> Path:
@@ -178,6 +210,11 @@ class Cache:
         final = self.entry_dir(stage, key)
         final.parent.mkdir(parents=True, exist_ok=True)
         if final.exists():  # corrupt leftover or a forced recompute
+            # One atomic exchange: a kill at any moment leaves the old entry or the new one
+            # (moving the old one aside first lost both to a kill between the two renames).
+            if exchange_paths(tmp, final):
+                shutil.rmtree(tmp, ignore_errors=True)  # now the old entry
+                return final
             self._move_aside(final)
         os.rename(tmp, final)
         return final
@@ -212,10 +249,8 @@ class Cache:
                 / f"{sha256_text(item_id)[:20]}.json")
 
     def read_ref(self, workflow_id: str, stage: str, item_id: str) -> Optional[dict]:
-        try:
-            return read_json(self.ref_path(workflow_id, stage, item_id))
-        except (OSError, ValueError):
-            return None
+        ref = read_json_object(self.ref_path(workflow_id, stage, item_id))
+        return ref if ref is not None and isinstance(ref.get("key"), str) else None
 
     def write_ref(self, workflow_id: str, stage: str, item_id: str, ref: dict) -> None:
         path = self.ref_path(workflow_id, stage, item_id)

@@ -232,18 +232,22 @@ def cmd_gc(args: argparse.Namespace, registry_factory: RegistryFactory,
 
 def cmd_ls(args: argparse.Namespace, stream: Optional[TextIO] = None) -> int:
     stream = stream if stream is not None else sys.stdout
-    from .cache import MANIFEST, Cache, read_json
+    from .cache import MANIFEST, Cache, outputs_problem, read_json_object
 
     cache = Cache(default_cache_dir(args.cache_dir))
     n = 0
+    print(f"{'stage':<12} {'key':<12}  {'item':<24} {'status':<7} {'size':>10} {'wall':>10}  finished",
+          file=stream)
     for stage, key, folder in cache.iter_entries("failed" if args.failed else "entries"):
         if args.stage and stage != args.stage:
             continue
-        try:
-            m = read_json(folder / MANIFEST)
-        except (OSError, ValueError):
+        m = read_json_object(folder / MANIFEST)
+        if m is None or (not args.failed and outputs_problem(m.get("outputs"))) \
+                or not isinstance(m.get("item") or {}, dict):
             m = {"status": "corrupt"}
-        size = sum(o.get("bytes", 0) for o in (m.get("outputs") or {}).values())
+        outs = m.get("outputs") if isinstance(m.get("outputs"), dict) else {}
+        size = sum(o.get("bytes", 0) for o in outs.values()
+                   if isinstance(o, dict) and isinstance(o.get("bytes", 0), int))
         wall = m.get("wall_s")
         print(f"{stage:<12} {key[:12]}  {(m.get('item') or {}).get('id') or '(workflow)':<24} "
               f"{m.get('status', '?'):<7} {_fmt_bytes(size):>10} "
@@ -256,7 +260,7 @@ def cmd_ls(args: argparse.Namespace, stream: Optional[TextIO] = None) -> int:
 
 def cmd_verify(args: argparse.Namespace, stream: Optional[TextIO] = None) -> int:
     stream = stream if stream is not None else sys.stdout
-    from .cache import MANIFEST, Cache, read_json
+    from .cache import MANIFEST, Cache, outputs_problem, read_json
     from .hashing import tree_hash
 
     cache = Cache(default_cache_dir(args.cache_dir))
@@ -266,6 +270,8 @@ def cmd_verify(args: argparse.Namespace, stream: Optional[TextIO] = None) -> int
         problem = ""
         try:
             m = read_json(folder / MANIFEST)
+            if not isinstance(m, dict) or outputs_problem(m.get("outputs")):
+                raise ValueError("the manifest is malformed")
             for name, out in m["outputs"].items():
                 if tree_hash(folder / out["path"]).sha256 != out["sha256"]:
                     problem = f"output {name!r} does not match its recorded hash"

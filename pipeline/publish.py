@@ -40,7 +40,7 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def _exchange(a: Path, b: Path) -> bool:
+def exchange_paths(a: Path, b: Path) -> bool:
     """Swap two paths atomically; False where the system cannot (then nothing changed)."""
     try:
         libc = ctypes.CDLL(None, use_errno=True)
@@ -98,7 +98,7 @@ def publish_folder(dest: Path, write: Callable[[Path], None], marker: str, what:
             raise RuntimeError(f"internal: the {what} writer did not write {marker}")
         if not dest.exists():
             os.rename(tmp, dest)
-        elif not _exchange(tmp, dest):
+        elif not exchange_paths(tmp, dest):
             shutil.rmtree(old, ignore_errors=True)
             os.rename(dest, old)
             os.rename(tmp, dest)

@@ -116,3 +116,45 @@ def test_stages_listing(toy):
     assert "refine v1  per scene x method  ['model'] -> ['refined']  (uses device)" in out
     out = cobgs("stages", "--toml", check=0).stdout
     assert "[params.train]\niterations = 10\nfail_on = \"\"" in out
+
+
+def test_wrong_shaped_cache_files_are_corrupt_entries_not_crashes(toy):
+    """Valid JSON of the wrong shape in the cache (a manifest whose folder sizes are a list,
+    a refs file holding a list, a failure record holding a string) is treated like any
+    corrupt file: every command still works, the entry is recomputed."""
+    import json
+
+    from pipeline import entries
+
+    wf, cache = toy.path, toy.cache
+    cobgs("run", wf, "--cache-dir", cache, check=0)
+    recs = {(r.stage, r.item.id): r for r in entries(toy.load(), cache)}
+    train = recs[("train", "alpha")]
+    man = train.entry_dir / "manifest.json"
+    m = json.loads(man.read_text())
+    name = next(iter(m["outputs"]))
+    m["outputs"][name] = {"path": m["outputs"][name]["path"], "kind": "dir", "sizes": [1, 2]}
+    man.write_text(json.dumps(m))
+    refine = recs[("refine", "beta/full")]
+    other = recs[("evaluate", "alpha/full")].entry_dir / "manifest.json"
+    m2 = json.loads(other.read_text())
+    m2["outputs"] = {"x": [1]}
+    other.write_text(json.dumps(m2))
+    refs = sorted((cache / "refs").rglob("*.json"))
+    for r in refs[:3]:
+        if r.name != "workflow.json":
+            r.write_text("[1]")
+    failed = cache / "failed" / "refine" / refine.key
+    failed.mkdir(parents=True)
+    (failed / "manifest.json").write_text('"x"')
+    (cache / "refs" / next(p.name for p in (cache / "refs").iterdir()) / "workflow.json").write_text("7")
+    for args in (("status", wf), ("cache", "ls"), ("cache", "verify"), ("run", wf, "--dry-run")):
+        proc = cobgs(*args, "--cache-dir", cache)
+        assert proc.returncode in (0, 1) and "Traceback" not in proc.stderr, (args, proc.stderr)
+    out = cobgs("run", wf, "--cache-dir", cache, check=0).stdout
+    # the entries with malformed manifests are recomputed (and what depends on them)
+    assert "train     alpha          done" in out and "evaluate  alpha/full     done" in out, out
+    proc = cobgs("cache", "gc", wf, "--cache-dir", cache)
+    assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
+    out = cobgs("status", wf, "--cache-dir", cache, check=0).stdout
+    assert out.count(" done ") == 13

@@ -388,3 +388,49 @@ def test_meter_records_gpu_peak_only_when_the_task_used_cuda(monkeypatch):
 
     cuda.is_initialized = lambda: False  # torch loaded, CUDA never initialised (CPU task)
     assert Meter().stop()["gpu_peak_bytes"] is None and calls == ["reset"]
+
+
+@pytest.mark.parametrize("k", [1, 2, 3, 4])
+def test_a_kill_during_a_replacing_commit_keeps_an_entry(tmp_path, monkeypatch, k):
+    """A forced recompute replaces an entry; an interruption at the k-th file-system step of
+    the replacement leaves the old entry or the new one in place, never neither."""
+    import os
+    import shutil
+
+    import pipeline.cache as C
+
+    cache = C.Cache(tmp_path / "c")
+    cache.ensure()
+
+    def entry(text):
+        t = cache.new_tmp("s", "k1")
+        (t / "out.txt").write_text(text)
+        C.write_json_atomic(t / C.MANIFEST, {"key": "k1", "status": "ok", "outputs": {
+            "o": {"path": "out.txt", "kind": "file", "bytes": len(text)}}})
+        return t
+
+    cache.commit(entry("old"), "s", "k1")
+    new = entry("new!")
+    steps = []
+    real_rename, real_rmtree = os.rename, shutil.rmtree
+
+    def step(fn):
+        def wrapped(*a, **kw):
+            steps.append(fn.__name__)
+            if len(steps) == k:
+                raise KeyboardInterrupt
+            return fn(*a, **kw)
+        return wrapped
+
+    monkeypatch.setattr(C.os, "rename", step(real_rename))
+    monkeypatch.setattr(C.shutil, "rmtree", step(real_rmtree))
+    real_exchange = C.exchange_paths
+    monkeypatch.setattr(C, "exchange_paths", step(real_exchange))
+    try:
+        cache.commit(new, "s", "k1")
+    except KeyboardInterrupt:
+        pass
+    monkeypatch.undo()
+    check = cache.check("s", "k1")
+    assert check.state == "done", (k, steps, check.reason)
+    assert (cache.entry_dir("s", "k1") / "out.txt").read_text() in ("old", "new!")
