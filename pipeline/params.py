@@ -20,6 +20,7 @@ import functools
 import json
 import math
 import os
+import re
 import tomllib
 import types
 import typing
@@ -102,9 +103,9 @@ def _coerce(value: Any, tp: Any, key: str, layer: Layer) -> Any:
         return value
     inner, optional = _unwrap_optional(tp)
     if optional:
-        if value is None or (isinstance(value, str) and value.lower() in ("none", "null")
+        if value is None or (isinstance(value, str) and value.lower() in ("none", "null", "")
                              and inner is not str):
-            return None
+            return None  # "" too: `${VAR:-}` in a workflow leaves an optional value unset
         return _coerce(value, inner, key, layer)
     origin = typing.get_origin(tp)
     if origin is typing.Literal:
@@ -245,7 +246,26 @@ def _assemble(cls: type, leaves: dict, path: tuple[str, ...], owner: str, base: 
     try:
         return dataclasses.replace(base, **kwargs) if base is not _MISSING else cls(**kwargs)
     except (TypeError, ValueError) as exc:  # the dataclass's own __post_init__ checks
-        raise WorkflowError(f"{owner}: invalid params {cls.__name__}: {exc}") from exc
+        # Name where the offending value was set: the fields the message mentions, else the
+        # values set at this level (the check cannot say which one it refused).
+        msg = str(exc)
+        set_here = [(f.name, leaves[path + (f.name,)]) for f in dataclasses.fields(cls)
+                    if path + (f.name,) in leaves]
+        found = []
+        for x in set_here:
+            m = re.search(rf"(?<![A-Za-z0-9_]){re.escape(x[0])}(?![A-Za-z0-9_])", msg)
+            if m:
+                found.append((m.start(), x))
+        named = [x for _, x in sorted(found, key=lambda t: t[0])][:1]  # the first one named
+        culprits = named or set_here
+        if len(culprits) == 1:
+            _, (_, layer, key) = culprits[0]
+            who = owner.removeprefix(f"{layer.source}: ")
+            raise WorkflowError(f"{who}: {msg}" if who != owner or not key.startswith(who) else msg,
+                                layer.source, key) from exc
+        where = "; ".join(f"{layer.source}: {key}" for _, (_, layer, key) in culprits)
+        raise WorkflowError(f"{owner}: invalid params {cls.__name__}: {msg}"
+                            + (f" (values set at {where})" if where else "")) from exc
 
 
 def to_json(value: Any) -> Any:

@@ -78,6 +78,12 @@ class SceneAttrs:
             raise ValueError(f"kind {self.kind!r} needs path = the data folder")
         if not Path(self.path).is_dir():
             raise ValueError(f"data folder {self.path} (kind {self.kind!r}) does not exist")
+        if self.kind == "images" and not (Path(self.path) / "images").is_dir():
+            loose = [f.name for f in Path(self.path).iterdir()
+                     if f.suffix.lower() in (".jpg", ".jpeg", ".png")][:3]
+            raise ValueError(f"path {self.path} has no images/ subfolder, where kind 'images' reads "
+                             "the photos" + (f" (the folder holds images such as {loose}: move them "
+                                             "into an images/ subfolder)" if loose else ""))
         if self.kind == "nvos":
             if self.labels is None:
                 raise ValueError("kind 'nvos' needs labels = the NVOS labels folder "

@@ -6,6 +6,8 @@ Sources (``masks.source``):
          ``mask_dir``, a folder of per-view mask images named after the views (COB-GS's
          released NVOS masks: ``<IMG>.JPG``), any resolution (resized NEAREST to the
          training size), binarised ``> masks.files_threshold`` (0, as the released code);
+         ``masks.files_root`` gives every object without a ``mask_dir`` the folder
+         ``<files_root>/<object>`` (the object axis value's name);
   noisy  the same, corrupted by :mod:`cobgs.data.mask_noise` (robustness runs);
   onnx   two-stage text prompting, Grounding DINO + SAM2 (:func:`cobgs.masks.generate_masks`),
          prompt = the object's ``prompt`` attribute (default: its name, ``_`` as spaces);
@@ -70,6 +72,10 @@ class MasksParams:
         intra_op_threads: onnxruntime threads per graph (0 = its choice).
         files_threshold: ``files`` from an object's ``mask_dir``: a mask pixel has some
             channel above this (0 = any non-zero, as COB-GS's released code reads its masks).
+        files_root: ``files``: a folder holding one folder of per-view masks per object,
+            named after the object value (e.g. COB-GS's released NVOS masks as
+            ``fern/IMG_4026.JPG``, ``horns_center/...``); read like an object's ``mask_dir``,
+            which wins where both are given.
     """
 
     source: str = "files"
@@ -79,8 +85,12 @@ class MasksParams:
     scribbles: ScribbleOptions = field(default_factory=ScribbleOptions)
     intra_op_threads: int = 0
     files_threshold: int = 0
+    files_root: Optional[Path] = None
 
     def __post_init__(self) -> None:
+        if self.files_root is not None and not Path(self.files_root).is_dir():
+            raise ValueError(f"masks.files_root {self.files_root} does not exist (a folder with one "
+                             f"folder of mask images per object, named after the object)")
         if not 0 <= self.files_threshold < 255:
             raise ValueError(f"files_threshold must be in 0..254 (a mask pixel is one with some "
                              f"channel above it), got {self.files_threshold}")
@@ -111,6 +121,13 @@ def _run(ctx, inputs):
     info: dict = {"source": p.source, "object": obj, "scene": spec["scene"]}
     attrs = ctx.item.attrs.get("object")
     mask_dir = getattr(attrs, "mask_dir", None) if attrs is not None else None
+    if mask_dir is None and p.files_root is not None and p.source in ("files", "noisy"):
+        mask_dir = Path(p.files_root) / ctx.item["object"]
+        if not mask_dir.is_dir():
+            have = sorted(d.name for d in Path(p.files_root).iterdir() if d.is_dir())[:8]
+            raise StageInputError(f"masks.files_root {p.files_root}: no folder {mask_dir.name}/ for "
+                                  f"object {ctx.item.values['object']!r} (folders there: {have}); "
+                                  f"name it after the object, or give the object a mask_dir")
     info["route"] = mask_route(p.source, mask_dir is not None)
     if p.source in ("files", "noisy"):
         if mask_dir is not None:
@@ -144,8 +161,13 @@ def _run(ctx, inputs):
                 without_mask=sorted(v.name for v in views if v.name not in areas),
                 seconds=round(time.perf_counter() - t0, 3))
     if not areas or all(a == 0 for a in areas.values()):
+        hint = ""
+        if p.source in ("files", "noisy") and mask_dir is None:
+            hint = (f" (the dataset's mask files of {obj!r} are read as 8-bit images whose "
+                    "foreground is >= 128: masks holding 0/1 read as empty; save them as 0/255, "
+                    "or give the object a mask_dir, where any non-zero pixel counts)")
         raise StageInputError(f"object {obj!r}: no training view got a non-empty mask "
-                              f"(source {p.source!r}); nothing to segment")
+                              f"(source {p.source!r}); nothing to segment{hint}")
     write_json(ctx.out_dir / "masks.json", info)
     ctx.log.info("masks of %r (%s): %d views, %d empty", obj, p.source, len(areas), len(info["empty"]))
     ctx.note(source=p.source, object=obj, views=len(areas), empty=len(info["empty"]))

@@ -158,3 +158,14 @@ def test_wrong_shaped_cache_files_are_corrupt_entries_not_crashes(toy):
     assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
     out = cobgs("status", wf, "--cache-dir", cache, check=0).stdout
     assert out.count(" done ") == 13
+
+
+def test_a_closed_pipe_ends_quietly():
+    """`cobgs stages --toml | head -1`: the reader leaves early; no BrokenPipe traceback,
+    exit status 141 (what a shell reports for SIGPIPE)."""
+    proc = subprocess.Popen([sys.executable, "-m", "stages.cli", "stages", "--toml"], cwd=REPO,
+                            env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    proc.stdout.readline()
+    proc.stdout.close()
+    err = proc.stderr.read().decode()
+    assert proc.wait(timeout=60) in (0, 141) and "Traceback" not in err and "BrokenPipe" not in err, err

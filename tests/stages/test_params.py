@@ -42,3 +42,41 @@ def test_stage_modules_import_without_torch():
             "print(','.join(bad))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == ""
+
+
+def _load(tmp_path, text, sets=()):
+    from pipeline import Plan, load_workflow
+    from stages.registry import load_registry
+
+    path = tmp_path / "w.toml"
+    path.write_text('[workflow]\nnested = { object = "scene" }\n' + text
+                    + '[axes.method.cobgs]\n[axes.object.s.ball]\n')
+    return path, Plan(load_workflow(path, load_registry(), list(sets)))
+
+
+@pytest.mark.parametrize("text, sets, where", [
+    ('[params.refine]\nmethod = "cobgss"\n[axes.scene.s]\nkind = "synthetic"\n', (),
+     "w.toml: params.refine.method: "),
+    ('[axes.scene.s]\nkind = "synthetic"\n', ("refine.method=x",), "--set: refine.method: "),
+    ('[params.dataset]\ndownscale = -1.0\n[axes.scene.s]\nkind = "synthetic"\n', (),
+     "w.toml: params.dataset.downscale: "),
+])
+def test_a_refused_value_names_its_file_and_key(tmp_path, text, sets, where):
+    """A value a params class refuses is reported with the file (or --set) and the dotted
+    key that set it, before any task runs."""
+    from pipeline import WorkflowError
+
+    with pytest.raises(WorkflowError) as info:
+        _load(tmp_path, text, sets)
+    assert where in str(info.value), str(info.value)
+
+
+def test_kind_images_without_an_images_folder_is_refused_at_load(tmp_path):
+    from pipeline import WorkflowError
+
+    (tmp_path / "photos").mkdir()
+    (tmp_path / "photos" / "IMG_1.jpg").write_bytes(b"")
+    with pytest.raises(WorkflowError) as info:
+        _load(tmp_path, f'[axes.scene.s]\nkind = "images"\npath = "{tmp_path / "photos"}"\n')
+    text = str(info.value)
+    assert "axes.scene.s.path" in text and "no images/ subfolder" in text and "IMG_1.jpg" in text
