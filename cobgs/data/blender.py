@@ -69,7 +69,10 @@ def _read_split(root: Path, split: str, downscale, background, mask_name) -> lis
         raise DataError("missing 'camera_angle_x' (horizontal field of view in radians)", jf)
     if not isinstance(meta.get("frames"), list) or not meta["frames"]:
         raise DataError("missing or empty 'frames' list", jf)
-    fov_x = float(meta["camera_angle_x"])
+    fov_x = meta["camera_angle_x"]
+    if isinstance(fov_x, bool) or not isinstance(fov_x, (int, float)) or not 0 < fov_x < math.pi:
+        raise DataError(f"'camera_angle_x' is {fov_x!r}, expected a number in (0, pi) (the "
+                        "horizontal field of view in radians)", jf)
     views = []
     native = None
     for i, frame in enumerate(meta["frames"]):
@@ -85,9 +88,7 @@ def _read_split(root: Path, split: str, downscale, background, mask_name) -> lis
             raise DataError("image size differs from the first frame's", img_path)
         w, h = size
         focal = 0.5 * w / math.tan(0.5 * fov_x)
-        c2w = np.asarray(frame["transform_matrix"], np.float64)
-        if c2w.shape != (4, 4):
-            raise DataError(f"frame {i}: transform_matrix must be 4x4, got {list(c2w.shape)}", jf)
+        c2w = check_pose(frame["transform_matrix"], f"frame {i} ({frame['file_path']})", jf)
         cam = Camera.from_c2w(c2w, focal, focal, w / 2.0, h / 2.0, w, h, img_path.stem, opengl=True)
         masks, coverage = {}, {}
         if alpha is not None:
@@ -95,6 +96,31 @@ def _read_split(root: Path, split: str, downscale, background, mask_name) -> lis
             coverage[mask_name] = alpha
         views.append(View(cam, image, img_path.stem, masks, coverage, os.fspath(img_path)))
     return views
+
+
+def check_pose(value, where: str, jf: Path) -> np.ndarray:
+    """A camera-to-world matrix checked for what breaks a camera later: numbers only, 4x4
+    (or 3x4), finite, a rotation block that is a rotation (orthonormal, det +1: a scaled or
+    mirrored block would distort every projection) and [0, 0, 0, 1] as the last row."""
+    try:
+        c2w = np.asarray(value, np.float64)
+    except (TypeError, ValueError):
+        raise DataError(f"{where}: transform_matrix must be a 4x4 list of numbers, got {value!r}"[:300],
+                        jf) from None
+    if c2w.shape not in ((4, 4), (3, 4)):
+        raise DataError(f"{where}: transform_matrix must be 4x4, got {list(c2w.shape)}", jf)
+    if not np.isfinite(c2w).all():
+        raise DataError(f"{where}: transform_matrix has non-finite values", jf)
+    if c2w.shape == (4, 4) and not np.allclose(c2w[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
+        raise DataError(f"{where}: transform_matrix's last row is {c2w[3].tolist()}, expected "
+                        "[0, 0, 0, 1]", jf)
+    r = c2w[:3, :3]
+    err = float(np.abs(r.T @ r - np.eye(3)).max())
+    if err > 1e-3 or np.linalg.det(r) < 0:
+        raise DataError(f"{where}: transform_matrix's 3x3 block is not a rotation (|R^T R - I| = "
+                        f"{err:.3g}, det {np.linalg.det(r):.4g}): a scaled, sheared or mirrored pose "
+                        "is not a camera", jf)
+    return c2w
 
 
 def _resolve(root: Path, file_path: str) -> Path:

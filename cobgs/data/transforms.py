@@ -21,7 +21,7 @@ import torch
 
 from ..camera import Camera
 from ..errors import DataError
-from .blender import _load_json
+from .blender import _load_json, check_pose
 from .scene import (
     Scene,
     View,
@@ -116,6 +116,13 @@ def read_transforms(
     frames = meta.get("frames")
     if not isinstance(frames, list) or not frames:
         raise DataError("missing or empty 'frames' list", jf)
+    seen: dict[str, int] = {}
+    for i, f in enumerate(frames):
+        key = Path(str(f.get("file_path", ""))).as_posix() if isinstance(f, dict) else ""
+        if key and key in seen:
+            raise DataError(f"frame {i} repeats frame {seen[key]}'s file_path {key!r} (each image "
+                            "must appear once)", jf)
+        seen[key] = i
     views = [_read_frame(root, jf, meta, f, i, downscale, background) for i, f in enumerate(frames)]
     if test_names is None and meta.get("test_filenames") is not None:
         test_names = list(meta["test_filenames"])
@@ -182,16 +189,28 @@ def _read_frame(root: Path, jf: Path, meta: dict, frame: dict, i: int, downscale
             f"image is {native[0]}x{native[1]} but {jf.name} says w={w}, h={h} (frame {i})",
             img_path,
         )
-    fx, fy = get("fl_x"), get("fl_y")
-    if fx is None and get("camera_angle_x") is not None:
-        fx = 0.5 * w / math.tan(0.5 * float(get("camera_angle_x")))
+    def number(key, default=None, positive=False, below=None):
+        v = get(key, default)
+        if v is None:
+            return None
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise DataError(f"frame {i} ({frame['file_path']}): {key!r} must be a number, got {v!r}", jf)
+        v = float(v)
+        if not math.isfinite(v) or (positive and v <= 0) or (below is not None and v >= below):
+            want = "a finite number" + (" > 0" if positive else "") + (f" < {below:.4g}" if below else "")
+            raise DataError(f"frame {i} ({frame['file_path']}): {key!r} is {v}, expected {want}", jf)
+        return v
+
+    fx, fy = number("fl_x", positive=True), number("fl_y", positive=True)
+    ax = number("camera_angle_x", positive=True, below=math.pi)
+    if fx is None and ax is not None:
+        fx = 0.5 * w / math.tan(0.5 * ax)
     if fx is None:
         raise DataError(f"frame {i}: no focal length ('fl_x' or 'camera_angle_x')", jf)
     if fy is None:
-        ay = get("camera_angle_y")
-        fy = fx if ay is None else 0.5 * h / math.tan(0.5 * float(ay))
-    fx, fy = float(fx), float(fy)
-    cx, cy = float(get("cx", w / 2.0)), float(get("cy", h / 2.0))
+        ay = number("camera_angle_y", positive=True, below=math.pi)
+        fy = fx if ay is None else 0.5 * h / math.tan(0.5 * ay)
+    cx, cy = number("cx", w / 2.0), number("cy", h / 2.0)
     model = str(get("camera_model", "PINHOLE")).upper()
     if model not in _MODELS:
         raise DataError(
@@ -199,9 +218,7 @@ def _read_frame(root: Path, jf: Path, meta: dict, frame: dict, i: int, downscale
             jf,
         )
     model, dist = _distortion(get, model, i, jf)
-    c2w = np.asarray(frame["transform_matrix"], np.float64)
-    if c2w.shape not in ((4, 4), (3, 4)):
-        raise DataError(f"frame {i}: transform_matrix must be 4x4, got {list(c2w.shape)}", jf)
+    c2w = check_pose(frame["transform_matrix"], f"frame {i} ({frame['file_path']})", jf)
 
     stem = img_path.stem
     size = target_size(*native, downscale)

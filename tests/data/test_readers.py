@@ -2,6 +2,7 @@
 
 import json
 import math
+import re
 
 import cv2
 import numpy as np
@@ -270,6 +271,64 @@ def test_transforms_errors(tmp_path):
         from cobgs.data.scene import read_image_array
 
         read_image_array(tmp_path / "images" / "0000.png")
+
+
+def _pose_with(i, value):
+    c2w = np.eye(4)
+    c2w[:3, 3] = [0.5 * i, 0.0, 4.0]
+    if value == "nan":
+        c2w[0, 3] = float("nan")
+    elif value == "singular":
+        c2w[:3, :3] = 0.0
+    elif value == "scaled":
+        c2w[:3, :3] *= 2.0
+    elif value == "mirrored":
+        c2w[0, 0] = -1.0
+    elif value == "last_row":
+        c2w[3, 2] = 1.0
+    return c2w.tolist()
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"transform_matrix": "nan"}, "non-finite"),
+    ({"transform_matrix": "singular"}, "not a rotation"),
+    ({"transform_matrix": "scaled"}, "not a rotation"),
+    ({"transform_matrix": "mirrored"}, "not a rotation"),
+    ({"transform_matrix": "last_row"}, "last row"),
+    ({"transform_matrix": [[1, 0, 0, "x"], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]]}, "list of numbers"),
+    ({"fl_x": 0.0}, "'fl_x' is 0.0, expected a finite number > 0"),
+    ({"fl_x": float("nan")}, "'fl_x' is nan"),
+    ({"fl_y": "500"}, "'fl_y' must be a number, got '500'"),
+    ({"cx": None, "cy": float("inf")}, "'cy' is inf"),
+])
+def test_transforms_bad_cameras_are_refused_naming_file_and_frame(tmp_path, change, message):
+    """Cameras that would fail later (a singular pose: LinAlgError in a later stage; a NaN
+    or zero focal: non-finite renders) or be silently wrong (a scaled or mirrored rotation,
+    a focal given as text) are refused when the scene is read, naming transforms.json and
+    the frame."""
+    meta = _transforms_fixture(tmp_path)
+    f = meta["frames"][3]
+    for k, v in change.items():
+        if k == "transform_matrix" and isinstance(v, str):
+            v = _pose_with(3, v)
+        if v is None:
+            f.pop(k)
+        else:
+            f[k] = v
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(DataError, match=re.escape(message)) as info:
+        read_transforms(tmp_path)
+    text = str(info.value)
+    assert "transforms.json" in text and "frame 3 (images/0003.png)" in text
+
+
+def test_transforms_duplicate_frames_are_refused(tmp_path):
+    meta = _transforms_fixture(tmp_path)
+    meta["frames"][4]["file_path"] = "images/0001.png"
+    (tmp_path / "transforms.json").write_text(json.dumps(meta))
+    with pytest.raises(DataError, match=r"frame 4 repeats frame 1's file_path 'images/0001.png'") as info:
+        read_transforms(tmp_path)
+    assert "transforms.json" in str(info.value)
 
 
 def test_llff_count_mismatch(tmp_path):
