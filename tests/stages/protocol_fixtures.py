@@ -9,11 +9,16 @@ pipeline and be checked against known answers.
   "full" resolution, 2x the training images; scribbles at 1/4 of that).
 * :func:`to_lerf_mask` — a COLMAP text model + ``images/`` + ``images_train/`` +
   ``test_mask/<idx>/<prompt>.png`` (+ ``masks/`` so the masks stage can read files).
+* :func:`nvos_published` / :func:`lerf_mask_published` — every task / prompt of the two
+  benchmarks with the published scene, view and prompt names, so ``workflows/nvos.toml``
+  and ``workflows/lerf_mask.toml`` run unchanged on them
+  (tests/benchmarks/bm_protocol_workflows.py).
 """
 
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -32,84 +37,161 @@ def _frames(scene: Path):
     return out
 
 
-def _copy_masks(scene: Path, out: Path, objects) -> None:
-    for obj in objects:
-        shutil.copytree(scene / "masks" / obj, out / "masks" / obj)
+def published_names(target: str, reference: str, n: int) -> list[str]:
+    """``n`` distinct view names in the style of ``target`` (IMG_4027, DJI_20200223_163024_597),
+    sorted, containing ``target`` and ``reference``: the fillers count up the last number of
+    the target's name, so sorting the names keeps them in capture order."""
+    m = re.fullmatch(r"(.*?)(\d+)", target)
+    if m is None:
+        raise ValueError(f"target {target!r} does not end in a number")
+    head, digits = m.groups()
+    names, k = {target, reference}, 1
+    while len(names) < n:
+        names.add(f"{head}{int(digits) + k:0{len(digits)}d}")
+        k += 1
+    return sorted(names)
 
 
 def to_nvos(scene: Path, out: Path, task: str, obj: str, target: str, reference: str,
-            layout: str = "llff") -> tuple[Path, Path]:
-    """Write ``out/llff`` and ``out/labels``; returns (scene folder, labels folder).
+            layout: str = "llff", factor: int = 2) -> tuple[Path, Path]:
+    """Write ``out/llff`` and ``out/labels`` for one task; returns (scene folder, labels
+    folder). The synthetic views keep their names; see :func:`write_llff` for ``layout``."""
+    llff, labels = out / "llff", out / "labels"
+    write_llff(scene, llff, layout, {obj: llff / "released_masks"}, factor=factor)
+    write_nvos_labels(scene, labels, task, obj, target, reference, factor=factor)
+    return llff, labels
 
-    ``layout``: "llff" (``poses_bounds.npy`` + ``images_2/`` named like the views);
+
+def write_llff(scene: Path, llff: Path, layout: str, released: dict[str, Path],
+               names: dict[str, str] | None = None, factor: int = 2) -> Path:
+    """Write the synthetic ``scene`` as an LLFF scene folder whose "full" resolution is
+    ``factor`` x the synthetic images, and ``images_<factor>/`` the synthetic images.
+
+    ``layout``: "llff" (``poses_bounds.npy`` + ``images_<factor>/`` named like the views);
     "nerf_llff_data" (the copy COB-GS, SAGA and FlashSplat evaluate on: COLMAP
     ``sparse/0`` with a SIMPLE_RADIAL camera over full-size ``images/<view>.JPG``, and
-    ``images_2/image000.png`` ... in sorted order); "nex" (NeX's ``*_undistort``: a
+    ``images_<factor>/image000.png`` ... in sorted order); "nex" (NeX's ``*_undistort``: a
     14-column ``poses_bounds.npy`` + ``hwf_cxcy.npy``, full-size ``images/``, and
-    ``images_2/image000.png`` ...). Every layout also gets ``released_masks/<view>.JPG``:
-    the object's mask of each view at the full size, JPEG-compressed, as COB-GS releases
-    its NVOS masks.
+    ``images_<factor>/image000.png`` ...). ``names`` renames views (synthetic stem ->
+    published name); ``released`` maps objects to folders that get the object's mask of
+    every view at the full size, JPEG-compressed and named ``<view>.JPG``, as COB-GS
+    releases its NVOS masks.
     """
-    llff, labels = out / "llff", out / "labels"
-    (llff / "images_2").mkdir(parents=True)
-    (llff / "released_masks").mkdir()
-    frames = _frames(scene)
+    names = names or {}
+    (llff / f"images_{factor}").mkdir(parents=True)
+    frames = sorted(_frames(scene), key=lambda fr: names.get(fr[0], fr[0]))
     rows, lines = [], []
     f0 = frames[0][3]
+    k = float(factor)
     for i, (stem, img, c2w, f) in enumerate(frames):
+        name = names.get(stem, stem)
         renamed = layout in ("nerf_llff_data", "nex")
-        shutil.copy(img, llff / "images_2" / (f"image{i:03d}.png" if renamed else f"{stem}.png"))
-        big = cv2.resize(cv2.imread(str(img)), None, fx=2, fy=2, interpolation=cv2.INTER_LINEAR)
+        # nerf_llff_data names its downscaled DJI images (horns, trex) after the views
+        small = f"image{i:03d}.png" if renamed and not name.startswith("DJI_") else f"{name}.png"
+        shutil.copy(img, llff / f"images_{factor}" / small)
+        big = cv2.resize(cv2.imread(str(img)), None, fx=k, fy=k, interpolation=cv2.INTER_LINEAR)
         if renamed:
             (llff / "images").mkdir(exist_ok=True)
-            cv2.imwrite(str(llff / "images" / f"{stem}.JPG"), big)
-        m = cv2.imread(str(scene / "masks" / obj / f"{stem}.png"), cv2.IMREAD_GRAYSCALE)
-        cv2.imwrite(str(llff / "released_masks" / f"{stem}.JPG"),
-                    cv2.resize(m, None, fx=2, fy=2, interpolation=cv2.INTER_NEAREST))
+            cv2.imwrite(str(llff / "images" / f"{name}.JPG"), big)
+        for obj, folder in released.items():
+            folder.mkdir(parents=True, exist_ok=True)
+            m = cv2.imread(str(scene / "masks" / obj / f"{stem}.png"), cv2.IMREAD_GRAYSCALE)
+            cv2.imwrite(str(folder / f"{name}.JPG"),
+                        cv2.resize(m, None, fx=k, fy=k, interpolation=cv2.INTER_NEAREST))
         # LLFF columns: down, right, backward (then translation, then [h, w, focal] at full res).
         rot = np.stack([c2w[:3, 1], c2w[:3, 0], -c2w[:3, 2]], 1)
         if layout == "nex":
             rows.append(np.concatenate([np.column_stack([rot, c2w[:3, 3]]).ravel(), [0.5, 20.0]]))
         else:
-            hwf = np.array([2 * f["h"], 2 * f["w"], 2 * f["fl_x"]])
+            hwf = np.array([k * f["h"], k * f["w"], k * f["fl_x"]])
             rows.append(np.concatenate([np.column_stack([rot, c2w[:3, 3], hwf]).ravel(), [0.5, 20.0]]))
         w2c = np.linalg.inv(c2w)
         q, t = _quat_wxyz(w2c[:3, :3]), w2c[:3, 3]
-        lines.append(f"{i + 1} {' '.join(repr(float(v)) for v in q)} {' '.join(repr(float(v)) for v in t)} 1 {stem}.JPG\n\n")
+        lines.append(f"{i + 1} {' '.join(repr(float(v)) for v in q)} {' '.join(repr(float(v)) for v in t)} 1 {name}.JPG\n\n")
     if layout == "nerf_llff_data":
         model = llff / "sparse" / "0"
         model.mkdir(parents=True)
         # SIMPLE_RADIAL at the full size (the images are pinhole renders: k1 tiny), as COLMAP
         # leaves it; the reference methods read it as a pinhole.
         (model / "cameras.txt").write_text(
-            f"1 SIMPLE_RADIAL {2 * f0['w']} {2 * f0['h']} {2 * f0['fl_x']} {2 * f0['cx']} "
-            f"{2 * f0['cy']} 0.0001\n")
+            f"1 SIMPLE_RADIAL {k * f0['w']:g} {k * f0['h']:g} {k * f0['fl_x']} {k * f0['cx']} "
+            f"{k * f0['cy']} 0.0001\n")
         (model / "images.txt").write_text("".join(lines))
-        (model / "points3D.txt").write_text("")
+        _write_points3d(model / "points3D.txt", scene)
     else:
         np.save(llff / "poses_bounds.npy", np.stack(rows))
         if layout == "nex":
-            np.save(llff / "hwf_cxcy.npy", np.array(
-                [[2 * f0["h"]], [2 * f0["w"]], [2 * f0["fl_x"]], [2 * f0["fl_y"]], [2 * f0["cx"]],
-                 [2 * f0["cy"]]]))
-    _copy_masks(scene, llff, [obj])
+            np.save(llff / "hwf_cxcy.npy", k * np.array(
+                [[f0["h"]], [f0["w"]], [f0["fl_x"]], [f0["fl_y"]], [f0["cx"]], [f0["cy"]]]))
+    for src in sorted((scene / "masks").iterdir()):
+        (llff / "masks" / src.name).mkdir(parents=True)
+        for f in src.iterdir():
+            shutil.copy(f, llff / "masks" / src.name / (names.get(f.stem, f.stem) + f.suffix))
+    return llff
 
-    def up(a, k):
-        return cv2.resize(a, None, fx=k, fy=k, interpolation=cv2.INTER_NEAREST)
+
+def _write_points3d(path: Path, scene: Path) -> None:
+    """The sparse points a COLMAP model carries (here: the surfaces the cameras see)."""
+    xyz, rgb = surface_points(scene)
+    path.write_text("".join(f"{i + 1} {x!r} {y!r} {z!r} {r} {g} {b} 0.5\n"
+                            for i, ((x, y, z), (r, g, b)) in enumerate(zip(xyz.tolist(), rgb.tolist()))))
+
+
+def surface_points(scene: Path, step: int = 8, limit: int = 4000) -> tuple[np.ndarray, np.ndarray]:
+    """Points on the surfaces a synthetic scene's cameras see ([N, 3] float, [N, 3] uint8
+    colours from the images): rays through every ``step``-th pixel of every view, cast
+    against the scene the generator rebuilds from ``scene.json``; at most ``limit``."""
+    from cobgs.data.synth_render import make_caster
+    from cobgs.data.synthetic import build_scene
+
+    meta = json.loads((scene / "scene.json").read_text())
+    w, h = meta["image_size"]
+    _, synth, cams = build_scene(meta["preset"], meta["seed"], num_views=meta["num_views"],
+                                 width_px=w, height_px=h)
+    caster = make_caster(synth)
+    stems = sorted(p.stem for p in (scene / "images").iterdir())
+    xyz, rgb = [], []
+    for cam, stem in zip(cams, stems):
+        img = cv2.imread(str(scene / "images" / f"{stem}.png"))[:, :, ::-1]
+        v, u = np.mgrid[step // 2:h:step, step // 2:w:step]
+        u, v = u.ravel(), v.ravel()
+        c2w = cam.c2w_array
+        d = np.stack([(u + 0.5 - cam.cx) / cam.fx, (v + 0.5 - cam.cy) / cam.fy, np.ones(len(u))], 1) @ c2w[:3, :3].T
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        t, which = caster.first_hit(c2w[:3, 3], d)
+        hit = (which >= 0) & np.isfinite(t)
+        xyz.append(c2w[:3, 3] + t[hit, None] * d[hit])
+        rgb.append(img[v[hit], u[hit]])
+    xyz, rgb = np.concatenate(xyz), np.concatenate(rgb)
+    keep = np.random.default_rng(0).permutation(len(xyz))[:limit]
+    return xyz[keep], rgb[keep]
+
+
+def write_nvos_labels(scene: Path, labels: Path, task: str, obj: str, target: str,
+                      reference: str, names: dict[str, str] | None = None, factor: int = 2) -> Path:
+    """Add ``task`` to an NVOS labels folder: ``masks/<task>/<target>.JPG`` +
+    ``<target>_mask.png`` at the full size (``factor`` x the synthetic images),
+    ``reference_image/<task>/<reference>.JPG``, and ``scribbles/<task>/pos_0.png`` /
+    ``neg_0.png`` at 1/4 of the full size. ``target`` / ``reference`` are synthetic view
+    stems; ``names`` maps them to the published names the files carry."""
+    names = names or {}
+
+    def up(a):
+        return cv2.resize(a, None, fx=factor, fy=factor, interpolation=cv2.INTER_NEAREST)
 
     img_t = cv2.imread(str(scene / "images" / f"{target}.png"))
     img_r = cv2.imread(str(scene / "images" / f"{reference}.png"))
     gt = cv2.imread(str(scene / "masks" / obj / f"{target}.png"), cv2.IMREAD_GRAYSCALE)
-    (labels / "masks" / task).mkdir(parents=True)
-    (labels / "reference_image" / task).mkdir(parents=True)
-    (labels / "scribbles" / task).mkdir(parents=True)
-    cv2.imwrite(str(labels / "masks" / task / f"{target}.JPG"), up(img_t, 2))
-    cv2.imwrite(str(labels / "masks" / task / f"{target}_mask.png"), up(gt, 2))
-    cv2.imwrite(str(labels / "reference_image" / task / f"{reference}.JPG"), up(img_r, 2))
-    # Scribbles at 1/4 of the "full" size = 1/2 of the training images: a stroke through the
-    # object's centre and one on the background.
-    ref = cv2.imread(str(scene / "masks" / obj / f"{reference}.png"), cv2.IMREAD_GRAYSCALE)
-    small = cv2.resize(ref, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_NEAREST)
+    t_name, r_name = names.get(target, target), names.get(reference, reference)
+    for sub in ("masks", "reference_image", "scribbles"):
+        (labels / sub / task).mkdir(parents=True)
+    cv2.imwrite(str(labels / "masks" / task / f"{t_name}.JPG"), up(img_t))
+    cv2.imwrite(str(labels / "masks" / task / f"{t_name}_mask.png"), up(gt))
+    cv2.imwrite(str(labels / "reference_image" / task / f"{r_name}.JPG"), up(img_r))
+    # Scribbles at 1/4 of the full size: a stroke through the object's centre and one on the
+    # background.
+    ref = up(cv2.imread(str(scene / "masks" / obj / f"{reference}.png"), cv2.IMREAD_GRAYSCALE))
+    small = cv2.resize(ref, None, fx=0.25, fy=0.25, interpolation=cv2.INTER_NEAREST)
     ys, xs = np.nonzero(small)
     pos = np.zeros_like(small)
     cy, cx = int(ys.mean()), int(xs.mean())
@@ -118,7 +200,7 @@ def to_nvos(scene: Path, out: Path, task: str, obj: str, target: str, reference:
     neg[1, 1:6] = 255
     cv2.imwrite(str(labels / "scribbles" / task / "pos_0.png"), pos)
     cv2.imwrite(str(labels / "scribbles" / task / "neg_0.png"), neg)
-    return llff, labels
+    return labels
 
 
 def _quat_wxyz(r: np.ndarray) -> np.ndarray:
@@ -163,7 +245,7 @@ def to_lerf_mask(scene: Path, out: Path, prompts: dict[str, str], test_every: in
         q, t = _quat_wxyz(w2c[:3, :3]), w2c[:3, 3]
         lines.append(f"{i + 1} {' '.join(repr(float(v)) for v in q)} {' '.join(repr(float(v)) for v in t)} 1 {name}\n\n")
     (model / "images.txt").write_text("".join(lines))
-    (model / "points3D.txt").write_text("")
+    _write_points3d(model / "points3D.txt", scene)
     test = sorted(test)
     for prompt, obj in prompts.items():
         d = out / "masks" / prompt
@@ -175,3 +257,96 @@ def to_lerf_mask(scene: Path, out: Path, prompts: dict[str, str], test_every: in
             g.mkdir(parents=True, exist_ok=True)
             shutil.copy(scene / "masks" / obj / f"{view[len('frame_'):]}.png", g / f"{prompt}.png")
     return out, test
+
+
+def nvos_published(out: Path, layout: str, num_views: int = 12, factor: int = 4,
+                   workers: int = 1) -> tuple[Path, Path, Path]:
+    """All 8 NVOS tasks in a published layout, for running ``workflows/nvos.toml`` as is:
+    ``out/scenes/<scene>/`` (fern, flower, fortress, horns, leaves, orchids, trex; one
+    synthetic scene each, other seeds, views renamed to the scene's published names so the
+    target and reference views are the published ones), ``out/labels/`` (the 8 tasks) and
+    ``out/released/<task>/<view>.JPG`` (the task's object mask of every view at the full
+    size, as COB-GS releases its masks). The horns tasks segment two objects of one scene
+    (ball, can); the others the ball. Returns (scenes, labels, released)."""
+    from cobgs.data.nvos import NVOS_TASKS
+    from cobgs.data.synthetic import generate_scene
+
+    scenes, labels, released = out / "scenes", out / "labels", out / "released"
+    by_scene: dict[str, list[str]] = {}
+    for task, (scene_name, _, _) in NVOS_TASKS.items():
+        by_scene.setdefault(scene_name, []).append(task)
+    for seed, (scene_name, tasks) in enumerate(by_scene.items()):
+        synth = generate_scene(out / "synthetic" / scene_name, "demo", seed=seed,
+                               num_views=num_views, workers=workers, progress=False)
+        _, target, reference = NVOS_TASKS[tasks[0]]
+        pub = published_names(target, reference, num_views)
+        stems = sorted(p.stem for p in (synth / "images").iterdir())
+        names = dict(zip(stems, pub))
+        objs = dict(zip(tasks, ("ball", "can")))
+        write_llff(synth, scenes / scene_name, layout,
+                   {objs[t]: released / t for t in tasks}, names=names, factor=factor)
+        for t in tasks:
+            write_nvos_labels(synth, labels, t, objs[t], stems[pub.index(target)],
+                              stems[pub.index(reference)], names=names, factor=factor)
+    return scenes, labels, released
+
+
+def lerf_mask_published(out: Path, num_views: int = 12, workers: int = 1) -> Path:
+    """The three LERF-mask scenes with every published prompt, for running
+    ``workflows/lerf_mask.toml`` as is: ``out/<scene>/`` as :func:`to_lerf_mask` writes it,
+    one synthetic scene each (other seeds); the prompts take the synthetic objects in turn
+    (ball, can, crate, ball, ...), so several prompts share an object's masks."""
+    from cobgs.data.lerf_mask import LERF_PROMPTS
+    from cobgs.data.synthetic import generate_scene
+
+    objects = ("ball", "can", "crate")
+    for seed, (scene_name, prompts) in enumerate(LERF_PROMPTS.items(), start=10):
+        synth = generate_scene(out / "synthetic" / scene_name, "demo", seed=seed,
+                               num_views=num_views, workers=workers, progress=False)
+        to_lerf_mask(synth, out / scene_name,
+                     {p: objects[i % len(objects)] for i, p in enumerate(prompts)})
+    return out
+
+
+def write_3dgs_output(train_artifact: Path, scene, out: Path, iteration: int,
+                      source_path: Path | str = "/data/scene") -> Path:
+    """Write a train stage artifact (``scene.ply`` + ``adam_moments.pt``) as the original
+    3DGS code's output folder: ``point_cloud/iteration_<N>/point_cloud.ply``,
+    ``cameras.json`` (one entry per training view: position, camera-to-world rotation,
+    focal lengths), ``cfg_args`` and ``chkpnt<N>.pth`` (``capture()``'s tuple, the Adam
+    state keyed by parameter group in the order the original code creates them)."""
+    import torch
+
+    from cobgs.adam_moments import read_moments
+    from cobgs.ply import load_ply
+
+    d = out / "point_cloud" / f"iteration_{iteration}"
+    d.mkdir(parents=True)
+    shutil.copy(train_artifact / "scene.ply", d / "point_cloud.ply")
+    model = load_ply(train_artifact / "scene.ply")
+    (out / "cfg_args").write_text(
+        f"Namespace(data_device='cuda', eval=False, images='images', model_path='{out}', "
+        f"resolution=-1, sh_degree={model.sh_degree}, source_path='{source_path}', "
+        f"white_background=False)")
+    (out / "cameras.json").write_text(json.dumps([
+        {"id": i, "img_name": v.name, "width": v.camera.width, "height": v.camera.height,
+         "position": v.camera.center.tolist(), "rotation": v.camera.c2w[:3, :3].tolist(),
+         "fy": float(v.camera.fy), "fx": float(v.camera.fx)} for i, v in enumerate(scene.train)]))
+    ours = read_moments(train_artifact / "adam_moments.pt")
+    order = [("xyz", "means"), ("f_dc", "sh0"), ("f_rest", "shN"), ("opacity", "opacity_logits"),
+             ("scaling", "log_scales"), ("rotation", "quats")]
+    state = {}
+    for k, (_, name) in enumerate(order):
+        m = ours[name]
+        shape = (-1, 1) if name == "opacity_logits" else m["exp_avg"].shape
+        state[k] = {"step": m["step"], "exp_avg": m["exp_avg"].reshape(shape),
+                    "exp_avg_sq": m["exp_avg_sq"].reshape(shape)}
+    groups = [{"params": [k], "lr": 0.01, "name": g} for k, (g, _) in enumerate(order)]
+    n = len(model)
+    capture = (model.sh_degree, model.means.detach(), model.data["sh0"].detach(),
+               model.data["shN"].detach(), model.data["log_scales"].detach(),
+               model.data["quats"].detach(), model.data["opacity_logits"].detach()[:, None],
+               torch.zeros(n), torch.zeros(n, 1), torch.zeros(n, 1),
+               {"state": state, "param_groups": groups}, 1.0)
+    torch.save((capture, iteration), out / f"chkpnt{iteration}.pth")
+    return out

@@ -150,12 +150,11 @@ def test_nvos_and_lerf_mask_workflows(tmp_path):
 
 
 @pytest.mark.parametrize("name, env, message", [
-    ("nvos.toml", {}, "COBGS_MODELS_DIR is not set"),
-    ("nvos.toml", {"COBGS_MODELS_DIR": "/m"}, "NVOS_LLFF_DIR is not set"),
-    ("nvos.toml", {"COBGS_MODELS_DIR": "/m", "NVOS_LLFF_DIR": "/nonexistent", "NVOS_LABELS_DIR": "/nonexistent"},
+    ("nvos.toml", {}, "NVOS_LLFF_DIR is not set"),
+    ("nvos.toml", {"NVOS_LLFF_DIR": "/nonexistent", "NVOS_LABELS_DIR": "/nonexistent"},
      "data folder /nonexistent/fern (kind 'nvos') does not exist"),
-    ("lerf_mask.toml", {"COBGS_MODELS_DIR": "/m"}, "LERF_MASK_DIR is not set"),
-    ("lerf_mask.toml", {"COBGS_MODELS_DIR": "/m", "LERF_MASK_DIR": "/nonexistent"},
+    ("lerf_mask.toml", {}, "LERF_MASK_DIR is not set"),
+    ("lerf_mask.toml", {"LERF_MASK_DIR": "/nonexistent"},
      "data folder /nonexistent/figurines (kind 'lerf_mask') does not exist"),
 ])
 def test_benchmark_workflows_fail_fast_without_data(name, env, message):
@@ -165,6 +164,32 @@ def test_benchmark_workflows_fail_fast_without_data(name, env, message):
     path = Path(__file__).resolve().parents[2] / "workflows" / name
     with pytest.raises(WorkflowError, match=re.escape(message)):
         load_workflow(path, load_registry(), environ=env)
+
+
+@pytest.mark.parametrize("name, scenes", [
+    ("nvos.toml", ("fern", "flower", "fortress", "horns", "leaves", "orchids", "trex")),
+    ("lerf_mask.toml", ("figurines", "ramen", "teatime")),
+])
+def test_benchmark_workflows_need_models_only_for_model_sources(tmp_path, name, scenes):
+    """Without COBGS_MODELS_DIR the shipped workflows load; their model-backed mask source
+    is refused when planned, naming the setting, and masks from files need no models."""
+    from pathlib import Path
+
+    from pipeline import Plan
+
+    for s in scenes:
+        (tmp_path / "data" / s).mkdir(parents=True)
+    (tmp_path / "labels").mkdir()
+    env = {"NVOS_LLFF_DIR": str(tmp_path / "data"), "NVOS_LABELS_DIR": str(tmp_path / "labels"),
+           "LERF_MASK_DIR": str(tmp_path / "data")}
+    path = Path(__file__).resolve().parents[2] / "workflows" / name
+    with pytest.raises(WorkflowError, match="needs masks.models_dir, which is not set"):
+        Plan(load_workflow(path, load_registry(), environ=env))
+    (tmp_path / "released").mkdir()
+    plan = Plan(load_workflow(path, load_registry(), ["masks.source=files",
+                                                      f"masks.files_root={tmp_path / 'released'}"],
+                              environ=env))
+    assert plan.tasks
 
 
 def test_onnx_masks_need_a_model_folder(tmp_path):

@@ -192,6 +192,55 @@ def test_export_copies_the_ply_layout(tiny, tmp_path):
     assert rec["missing"] == [] and len(rec["copied"]) >= 15
 
 
+def test_export_replaces_the_folder_as_a_whole(tiny, tmp_path, monkeypatch):
+    """An export interrupted mid-copy leaves the previous export untouched (no mix of new
+    and old files, no temporary file), leftovers of killed exports are cleaned (and an old
+    folder a kill left renamed away is put back), and a folder that is not an export is
+    refused."""
+    import os
+
+    import stages.export_cmd as ex
+    from pipeline import PipelineError
+    from stages.cli import main
+
+    path, cache, wf, _ = tiny
+    out = tmp_path / "out"
+    assert main(["export", str(path), "--to", str(out), "--cache-dir", str(cache)]) == 0
+    (out / "tiny" / "scene.ply").write_bytes(b"previous")  # recognisably the old export
+    before = sorted(p.relative_to(out).as_posix() for p in out.rglob("*"))
+    calls = []
+    real = ex._copy
+
+    def dying_copy(src, dst):
+        calls.append(dst)
+        if len(calls) == 5:
+            raise KeyboardInterrupt  # Ctrl-C in the middle of the copies
+        real(src, dst)
+
+    monkeypatch.setattr(ex, "_copy", dying_copy)
+    with pytest.raises(KeyboardInterrupt):
+        ex.export(wf, cache, out)
+    monkeypatch.setattr(ex, "_copy", real)
+    assert sorted(p.relative_to(out).as_posix() for p in out.rglob("*")) == before
+    assert (out / "tiny" / "scene.ply").read_bytes() == b"previous"
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]  # no .out.tmp-PID left
+    # what a SIGKILLed export leaves (its pid is dead): a half-built folder, and an old one
+    # renamed away with the destination missing
+    dead = 2 ** 22 + 1  # above the default pid_max: no such process
+    (tmp_path / f".out.tmp-{dead}").mkdir()
+    os.rename(out, tmp_path / f".out.old-{dead}")
+    rec = ex.export(wf, cache, out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"] and rec["missing"] == []
+    assert (out / "tiny" / "scene.ply").read_bytes() != b"previous"
+    other = tmp_path / "mine"
+    other.mkdir()
+    (other / "notes.txt").write_text("keep me")
+    with pytest.raises(PipelineError, match="did not write .no export.json.; refusing"):
+        ex.export(wf, cache, other)
+    assert main(["export", str(path), "--to", str(other), "--cache-dir", str(cache)]) == 2
+    assert [p.name for p in other.iterdir()] == ["notes.txt"]
+
+
 def test_noisy_masks_source(tiny, tmp_path):
     """An object value can name the same dataset object with another mask source."""
     import cv2
@@ -267,44 +316,51 @@ def test_missing_mask_dir_is_refused_when_the_workflow_loads(tiny, tmp_path):
         _run(wf_path, cache, only=("masks",))
 
 
+def test_files_root_gives_each_object_its_folder(tiny, tmp_path):
+    """``masks.files_root`` (one folder per object, named after the object value, as
+    COB-GS's released NVOS masks): an object reads ``<root>/<object>/``, an object's own
+    ``mask_dir`` wins, a missing object folder fails that task naming the folder and what is
+    there, and a missing root is refused when the workflow loads."""
+    import shutil
+
+    path, cache, wf, _ = tiny
+    clean = _entry(wf, cache, "masks", "tiny/ball").output("masks")
+    root = tmp_path / "released"
+    shutil.copytree(clean, root / "ball", ignore=shutil.ignore_patterns("*.json"))
+    sorted((root / "ball").glob("*.png"))[0].unlink()  # recognisably this folder's masks
+    wf_path = tmp_path / "root.toml"
+    wf_path.write_text(path.read_text() + f'[axes.object.tiny.own]\nmask = "can"\nmask_dir = "{clean}"\n'
+                       '[axes.object.tiny.can]\n')
+    sets = ["masks.source=files", f"masks.files_root={root}"]
+    wf2, summary, log = _run(wf_path, cache, sets, only=("masks",), items="tiny/ball,tiny/own")
+    assert summary.exit_code == 0, log
+    info = json.loads((_entry(wf2, cache, "masks", "tiny/ball").output("masks") / "masks.json").read_text())
+    assert info["route"] == "released masks (files)" and info["files"]["dir"] == str(root / "ball")
+    assert len(info["files"]["files"]) == len(list(clean.glob("*.png"))) - 1
+    own = json.loads((_entry(wf2, cache, "masks", "tiny/own").output("masks") / "masks.json").read_text())
+    assert own["files"]["dir"] == str(clean)
+    _, summary, log = _run(wf_path, cache, sets, only=("masks",), items="tiny/can")
+    assert summary.exit_code == 1 and "no folder can/ for object 'can'" in log and "['ball']" in log
+    with pytest.raises(Exception, match="masks.files_root .*nowhere does not exist"):
+        _run(wf_path, cache, ["masks.source=files", f"masks.files_root={tmp_path}/nowhere"], only=("masks",))
+
+
 def test_a_scene_trained_elsewhere_replaces_training(tiny, tmp_path):
     """A scene's ``trained`` 3DGS output folder (point_cloud/iteration_<N>, cameras.json,
     cfg_args, chkpnt<N>.pth) is imported by the train stage, checked against the data, and
     its checkpoint's Adam state reaches the COB-GS texture stages."""
-    import shutil
-
     import torch
 
     from cobgs.adam_moments import read_moments
+    from protocol_fixtures import write_3dgs_output  # tests/stages is on sys.path
     from stages._common import load_scene
 
     path, cache, wf, _ = tiny
     trained = _entry(wf, cache, "train", "tiny").output("scene")
     scene = load_scene(_entry(wf, cache, "dataset", "tiny").output("dataset"),
                        _entry(wf, cache, "sfm", "tiny").output("poses"))
-    out = tmp_path / "3dgs_output"
-    (out / "point_cloud" / "iteration_500").mkdir(parents=True)
-    shutil.copy(trained / "scene.ply", out / "point_cloud" / "iteration_500" / "point_cloud.ply")
-    (out / "cfg_args").write_text("Namespace(sh_degree=3, source_path='/data/tiny', white_background=False)")
-    (out / "cameras.json").write_text(json.dumps([
-        {"id": i, "img_name": v.name, "width": v.camera.width, "height": v.camera.height,
-         "position": v.camera.center.tolist(), "rotation": [[1, 0, 0], [0, 1, 0], [0, 0, 1]],
-         "fx": float(v.camera.fx), "fy": float(v.camera.fy)} for i, v in enumerate(scene.train)]))
+    out = write_3dgs_output(trained, scene, tmp_path / "3dgs_output", iteration=500)
     ours = read_moments(trained / "adam_moments.pt")
-    from cobgs.ply import load_ply
-
-    model = load_ply(trained / "scene.ply")
-    order = [("xyz", "means"), ("f_dc", "sh0"), ("f_rest", "shN"), ("opacity", "opacity_logits"),
-             ("scaling", "log_scales"), ("rotation", "quats")]
-    state = {k: {"step": ours[n]["step"], "exp_avg": ours[n]["exp_avg"].reshape(-1, 1) if n == "opacity_logits"
-                 else ours[n]["exp_avg"], "exp_avg_sq": ours[n]["exp_avg_sq"]} for k, (_, n) in enumerate(order)}
-    groups = [{"params": [k], "lr": 0.01, "name": g} for k, (g, _) in enumerate(order)]
-    n = len(model)
-    capture = (3, model.means.detach(), model.data["sh0"].detach(), model.data["shN"].detach(),
-               model.data["log_scales"].detach(), model.data["quats"].detach(),
-               model.data["opacity_logits"].detach()[:, None], torch.zeros(n), torch.zeros(n, 1),
-               torch.zeros(n, 1), {"state": state, "param_groups": groups}, 1.0)
-    torch.save((capture, 500), out / "chkpnt500.pth")
 
     wf_path = tmp_path / "imported.toml"
     wf_path.write_text(path.read_text().replace('[axes.scene.tiny]\nkind = "synthetic"\n',
