@@ -219,8 +219,9 @@ def cmd_gc(args: argparse.Namespace, registry_factory: RegistryFactory,
     from .gc import collect
 
     cache_dir = default_cache_dir(args.cache_dir)
+    started = time.time()  # entries committed from now on are kept (a run beside gc)
     keep = referenced_keys(args.workflows, registry_factory(), args.sets, cache_dir)
-    report = collect(cache_dir, keep, dry_run=args.dry_run)
+    report = collect(cache_dir, keep, dry_run=args.dry_run, started=started)
     verb = "would remove" if args.dry_run else "removed"
     for line in report.lines:
         print(f"  {verb} {line}", file=stream)

@@ -20,9 +20,22 @@ class GcReport:
     lines: list[str] = field(default_factory=list)
 
 
-def collect(cache_dir: Path, keep: set[tuple[str, str]], dry_run: bool = False) -> GcReport:
+def _changed_since(folder: Path, started: float) -> bool:
+    """Whether ``folder`` was put in place (committed: a rename, which sets its ctime) or
+    changed at or after ``started``, allowing for coarse file-system timestamps."""
+    try:
+        st = folder.stat()
+    except OSError:
+        return False
+    return max(st.st_ctime, st.st_mtime) >= started - 2.0
+
+
+def collect(cache_dir: Path, keep: set[tuple[str, str]], dry_run: bool = False,
+            started: float | None = None) -> GcReport:
     """Remove entries and failure records not in ``keep``, stale temporary folders and
-    unused lock files. Anything whose lock is held (being written) is left alone."""
+    unused lock files. Anything whose lock is held (being written) is left alone, and so is
+    anything committed since ``started`` (when gc began working out ``keep``): a run
+    beside gc may save an entry whose key ``keep`` could not know yet."""
     cache = Cache(cache_dir)
     report = GcReport()
     for kind in ("entries", "failed"):
@@ -32,6 +45,10 @@ def collect(cache_dir: Path, keep: set[tuple[str, str]], dry_run: bool = False) 
                 continue
             lock = cache.lock(stage, key)
             if not lock.acquire(blocking=False):
+                continue
+            if started is not None and _changed_since(folder, started):
+                lock.release()
+                report.kept += kind == "entries"
                 continue
             try:
                 size = dir_size(folder)
