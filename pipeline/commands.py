@@ -216,12 +216,12 @@ def referenced_keys(workflows: Sequence[str], registry: Any, sets: Sequence[str]
 def cmd_gc(args: argparse.Namespace, registry_factory: RegistryFactory,
            stream: Optional[TextIO] = None) -> int:
     stream = stream if stream is not None else sys.stdout
-    from .gc import collect
+    from .gc import collect, snapshot
 
     cache_dir = default_cache_dir(args.cache_dir)
-    started = time.time()  # entries committed from now on are kept (a run beside gc)
+    existing = snapshot(cache_dir)  # entries committed from now on are kept (a run beside gc)
     keep = referenced_keys(args.workflows, registry_factory(), args.sets, cache_dir)
-    report = collect(cache_dir, keep, dry_run=args.dry_run, started=started)
+    report = collect(cache_dir, keep, dry_run=args.dry_run, existing=existing)
     verb = "would remove" if args.dry_run else "removed"
     for line in report.lines:
         print(f"  {verb} {line}", file=stream)

@@ -20,22 +20,20 @@ class GcReport:
     lines: list[str] = field(default_factory=list)
 
 
-def _changed_since(folder: Path, started: float) -> bool:
-    """Whether ``folder`` was put in place (committed: a rename, which sets its ctime) or
-    changed at or after ``started``, allowing for coarse file-system timestamps."""
-    try:
-        st = folder.stat()
-    except OSError:
-        return False
-    return max(st.st_ctime, st.st_mtime) >= started - 2.0
+def snapshot(cache_dir: Path) -> set[tuple[str, str, str]]:
+    """What the cache holds now: ``(kind, stage, key)`` of every entry and failure record.
+    Take it before working out what to keep, and pass it to :func:`collect`."""
+    cache = Cache(cache_dir)
+    return {(kind, stage, key) for kind in ("entries", "failed")
+            for stage, key, _ in cache.iter_entries(kind)}
 
 
 def collect(cache_dir: Path, keep: set[tuple[str, str]], dry_run: bool = False,
-            started: float | None = None) -> GcReport:
+            existing: set[tuple[str, str, str]] | None = None) -> GcReport:
     """Remove entries and failure records not in ``keep``, stale temporary folders and
     unused lock files. Anything whose lock is held (being written) is left alone, and so is
-    anything committed since ``started`` (when gc began working out ``keep``): a run
-    beside gc may save an entry whose key ``keep`` could not know yet."""
+    anything not in ``existing`` (a :func:`snapshot` taken before ``keep`` was worked
+    out): a run beside gc may save an entry whose key ``keep`` could not know yet."""
     cache = Cache(cache_dir)
     report = GcReport()
     for kind in ("entries", "failed"):
@@ -46,7 +44,7 @@ def collect(cache_dir: Path, keep: set[tuple[str, str]], dry_run: bool = False,
             lock = cache.lock(stage, key)
             if not lock.acquire(blocking=False):
                 continue
-            if started is not None and _changed_since(folder, started):
+            if existing is not None and (kind, stage, key) not in existing:
                 lock.release()
                 report.kept += kind == "entries"
                 continue

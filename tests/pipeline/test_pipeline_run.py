@@ -344,15 +344,14 @@ def test_gc_keeps_an_entry_a_run_saves_while_it_decides(toy, executions):
     """gc works out what to keep, then scans; entries a concurrent run commits in between
     (their keys unknown to gc: they depend on outputs that did not exist yet) are kept, and
     the run finds them afterwards."""
-    import time
+    from pipeline.gc import snapshot
 
-    started = time.time()
+    existing = snapshot(toy.cache)
     keep = referenced_keys([str(toy.path)], toys.registry(), [], toy.cache)  # on an empty cache
-    time.sleep(0.05)
     assert toy.run().exit_code == 0  # the run beside gc saves every entry
     saved = {(r.stage, r.key) for r in entries(toy.load(), toy.cache)}
     assert saved - keep  # downstream keys gc could not know
-    collect(toy.cache, keep, started=started)
+    collect(toy.cache, keep, existing=existing)
     assert saved <= {(s, k) for s, k, _ in Cache(toy.cache).iter_entries()}
     executions.reset()
     assert toy.run().exit_code == 0 and executions.lines() == []
