@@ -282,11 +282,11 @@ class Cache:
 
 
 def ref_record(key: str, status: str, version: Any, params: Any, inputs: Any, device: str,
-               item: str) -> dict:
+               item: str, data: Optional[dict] = None) -> dict:
     """What ``refs/`` remembers of a slot's last run (compared by ``--dry-run``)."""
     return {"key": key, "status": status, "version": version, "params": params,
             "inputs": inputs, "device": device, "item": item, "time": time.time(),
-            "params_sha": sha256_text(canonical_json(params))}
+            "params_sha": sha256_text(canonical_json(params)), "data": data or {}}
 
 
 def dir_size(path: Path) -> int:

@@ -2,8 +2,9 @@
 the state of each task in a cache (done / stale / missing / failed / corrupt) with reasons.
 
 A task's cache key is the sha256 of the canonical JSON of
-``{stage, version, params, item, attrs, inputs: {artifact: output hash}, device}``
-(``device`` only for stages that declare ``uses_device``). Input hashes are the content
+``{stage, version, params, item, attrs, inputs: {artifact: output hash}, device, data}``
+(``device`` only for stages that declare ``uses_device``; ``data``, stat fingerprints of
+the files and folders the params and attributes name, only where they name some). Input hashes are the content
 hashes recorded in upstream manifests, so a key is known only once every upstream task is
 done; until then the task is *pending* on them.
 """
@@ -150,7 +151,7 @@ class OutputTable:
 
 def key_document(task: Task, workflow: Workflow, hashes: Mapping[str, Any]) -> dict[str, Any]:
     stage = task.stage
-    return {
+    doc = {
         "stage": stage.name,
         "version": stage.version,
         "params": task.params.json,
@@ -159,6 +160,10 @@ def key_document(task: Task, workflow: Workflow, hashes: Mapping[str, Any]) -> d
         "inputs": hashes,
         "device": workflow.settings.device if stage.uses_device else None,
     }
+    data = workflow.data_fingerprints(task.item, task.params.value)
+    if data:  # (absent when no path is named: such keys are unchanged)
+        doc["data"] = data
+    return doc
 
 
 def task_key(task: Task, workflow: Workflow, hashes: Mapping[str, Any]) -> str:
@@ -289,6 +294,11 @@ def diff_reasons(task: Task, wf: Workflow, ref: Mapping[str, Any],
         old_in = ref.get("inputs") or {}
         names = [n for n in hashes if old_in.get(n) != hashes[n]]
         reasons.append("input changed (" + ", ".join(names) + ")")
+    if "data" in ref:
+        old_data, new_data = ref.get("data") or {}, wf.data_fingerprints(task.item, task.params.value)
+        changed = sorted(k for k in set(old_data) | set(new_data) if old_data.get(k) != new_data.get(k))
+        if changed:
+            reasons.append("data on disk changed (" + ", ".join(changed[:3]) + ")")
     if not reasons and hashes is not None:
         reasons.append("item attributes changed")
     return reasons

@@ -44,6 +44,7 @@ from typing import Any, Mapping, Optional, Sequence
 from . import params as P
 from .errors import PipelineError, WorkflowError, unknown_key_hint
 from .graph import Graph
+from .hashing import stat_fingerprint
 from .items import VALUE_RE, Axes, Axis, Item, check_value_name
 from .registry import Registry
 from .stage import NAME_RE, Stage
@@ -88,6 +89,7 @@ class Workflow:
         self._cli_layers, self._key_attrs = cli_layers, key_attrs
         self.registry = registry
         self._params_cache: dict[tuple, ResolvedParams] = {}
+        self._fingerprints: dict[str, str] = {}
 
     @property
     def id(self) -> str:
@@ -123,6 +125,27 @@ class Workflow:
         parent = self.axes[pair[0]].parent
         return (pair[0], f"{item[parent]}/{pair[1]}") if parent else pair
 
+    def data_fingerprints(self, item: Item, params: Any) -> dict[str, str]:
+        """Fingerprints (:func:`~pipeline.hashing.stat_fingerprint`) of the files and folders
+        that the item's key attributes and ``params`` name (every ``Path`` value), keyed
+        by where the path is set: external data read by a task enter its cache key, so a
+        changed dataset, mask folder or model folder is recomputed, not served stale.
+        Memoised per loaded workflow (one walk per folder per command)."""
+        found: dict[str, Path] = {}
+        for axis, attrs in item.attrs.items():
+            keep = self._key_attrs.get(axis)
+            for name, value in _paths(attrs, f"{axis}"):
+                if keep is None or name.split(".")[1] in keep:
+                    found[name] = value
+        found.update(_paths(params, "params"))
+        out = {}
+        for name, path in sorted(found.items()):
+            k = os.fspath(path)
+            if k not in self._fingerprints:
+                self._fingerprints[k] = stat_fingerprint(Path(k))
+            out[name] = self._fingerprints[k]
+        return out
+
     def key_attrs(self, item: Item) -> dict[str, Any]:
         """The attributes of ``item`` that enter cache keys, as JSON."""
         out: dict[str, Any] = {}
@@ -133,6 +156,17 @@ class Workflow:
                 data = {k: v for k, v in data.items() if k in keep}
             out[axis] = data
         return out
+
+
+def _paths(value: Any, prefix: str) -> list[tuple[str, Path]]:
+    """``(dotted name, path)`` of every ``Path`` in a (nested) params / attributes dataclass."""
+    out: list[tuple[str, Path]] = []
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        for f in dataclasses.fields(value):
+            out += _paths(getattr(value, f.name), f"{prefix}.{f.name}")
+    elif isinstance(value, Path):
+        out.append((prefix, value))
+    return out
 
 
 def expand_env(value: Any, source: str, key: str, environ: Mapping[str, str]) -> Any:

@@ -307,6 +307,40 @@ def test_masks_from_a_folder_of_released_masks(tiny, tmp_path):
     assert json.loads((refined / "refine.json").read_text())["mask_route"] == "released masks (files)"
 
 
+def test_changed_data_on_disk_is_recomputed_not_served_stale(tiny, tmp_path):
+    """External data named by a path (here an object's mask_dir) enter the cache key by a
+    stat fingerprint: replacing a mask file re-runs the masks task and what follows, and
+    --dry-run says why; unchanged data stays cached."""
+    import os
+    import shutil
+
+    import cv2
+
+    path, cache, wf, _ = tiny
+    clean = _entry(wf, cache, "masks", "tiny/ball").output("masks")
+    folder = tmp_path / "mine"
+    shutil.copytree(clean, folder, ignore=shutil.ignore_patterns("*.json"))
+    wf_path = tmp_path / "mine.toml"
+    wf_path.write_text(path.read_text() + f'[axes.object.tiny.mine]\nmask = "ball"\nmask_dir = "{folder}"\n')
+    _, summary, log = _run(wf_path, cache, only=("masks",), items="tiny/mine")
+    assert summary.exit_code == 0, log
+    _, again, _ = _run(wf_path, cache, only=("masks",), items="tiny/mine")
+    assert _states(again)[("masks", "tiny/mine")] == "cached"
+    first = sorted(folder.glob("*.png"))[0]
+    m = cv2.imread(str(first), cv2.IMREAD_GRAYSCALE)
+    m[:, : m.shape[1] // 2] = 0  # the user fixes a mask
+    cv2.imwrite(str(first), m)
+    st = first.stat()
+    os.utime(first, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
+    _, dry, _ = _run(wf_path, cache, dry_run=True, only=("masks",), items="tiny/mine")
+    notes = {dry.plan.tasks[i].item.id: o.note for i, o in dry.outcomes.items()}
+    assert "data on disk changed (object.mask_dir)" in notes["tiny/mine"], notes
+    wf3, summary, log = _run(wf_path, cache, only=("masks",), items="tiny/mine")
+    assert _states(summary)[("masks", "tiny/mine")] == "done", log
+    out = _entry(wf3, cache, "masks", "tiny/mine").output("masks")
+    assert (cv2.imread(str(out / first.name), cv2.IMREAD_GRAYSCALE)[:, : m.shape[1] // 2] == 0).all()
+
+
 def test_missing_mask_dir_is_refused_when_the_workflow_loads(tiny, tmp_path):
     path, cache, wf, _ = tiny
     wf_path = tmp_path / "bad.toml"
