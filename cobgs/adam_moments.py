@@ -24,6 +24,7 @@ with one entry per optimised model tensor (``means``, ``sh0``, ``shN``,
 
 from __future__ import annotations
 
+import io
 import os
 import tempfile
 from pathlib import Path
@@ -127,7 +128,13 @@ def save_moments(path: os.PathLike | str, moments: Moments, num_gaussians: int) 
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(fd)
     try:
-        torch.save(payload, tmp)
+        # Through a buffer: torch.save names the archive's records after the file it writes,
+        # and the temporary name is random, so saving to it directly made every file
+        # different; from a buffer the same moments are the same bytes.
+        buf = io.BytesIO()
+        torch.save(payload, buf)
+        with open(tmp, "wb") as f:
+            f.write(buf.getbuffer())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

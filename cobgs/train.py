@@ -33,6 +33,7 @@ state and the densification statistics, so a resumed run continues bit-identical
 from __future__ import annotations
 
 import dataclasses
+import io
 import math
 import os
 import pickle
@@ -472,7 +473,10 @@ def save_atomic(obj, path: os.PathLike | str) -> Path:
     fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
     os.close(fd)
     try:
-        torch.save(obj, tmp)
+        buf = io.BytesIO()  # (torch.save names records after the file: the same bytes via a buffer)
+        torch.save(obj, buf)
+        with open(tmp, "wb") as f:
+            f.write(buf.getbuffer())
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

@@ -171,9 +171,19 @@ def _rows(results: list[Result]) -> list[dict]:
     for r in results:
         if r.ok:
             row = dict(r.row)
-            row.update(scene=r.scene, method=r.method, object=r.object)
+            row.update(scene=r.scene, method=r.method, object=r.object, refine_s=_refine_s(r))
             out.append(row)
     return out
+
+
+def _refine_note(r: Result) -> dict:
+    """What the refine task recorded in its manifest (timings, memory: not in artifacts)."""
+    t = _refine_task(r)
+    return ((t.manifest or {}).get("extra") or {}) if t is not None else {}
+
+
+def _refine_s(r: Result) -> Optional[float]:
+    return finite(_refine_note(r).get("refine_s"))
 
 
 def object_records(data: RunData, infos: dict, log_href: LogHref) -> list[dict]:
@@ -189,7 +199,7 @@ def object_records(data: RunData, infos: dict, log_href: LogHref) -> list[dict]:
             "psnr": row.get("psnr"), "psnr_delta": row.get("psnr_delta"), "num_gaussians": row.get("num_gaussians"),
             "splits": row.get("splits"), "pruned": row.get("pruned"),
             "ambiguous_final": amb if amb is not None and amb >= 0 else None,
-            "refine_s": row.get("refine_s"), "peak_rss": _peak_rss(r) if r.ok else None,
+            "refine_s": _refine_s(r) if r.ok else None, "peak_rss": _peak_rss(r) if r.ok else None,
             "peak_gpu": _peak_gpu(r) if r.ok else None,
             "_class": {"status": cls, "method": _ref_class(infos, r.method)},
             "_href": {"status": href} if href else {},
@@ -320,10 +330,16 @@ def scene_records(data: RunData) -> list[dict]:
                      "views": len(spec.get("views") or []) or None, "test_views": len(spec.get("test_views") or [])
                      if spec else None, "objects": ", ".join(spec.get("objects") or []),
                      "iterations": t.get("iterations"), "num_gaussians": t.get("num_gaussians"),
-                     "train_s": t.get("wall_s"), "psnr": ev.get("psnr"), "ssim": ev.get("ssim"),
+                     "train_s": _train_s(sc, t), "psnr": ev.get("psnr"), "ssim": ev.get("ssim"),
                      "status": sc.train_task.state if sc.train_task else "not in workflow",
                      "notes": "; ".join(spec.get("notes") or [])})
     return recs
+
+
+def _train_s(sc, t: dict) -> Optional[float]:
+    """Training wall time, from the train task's manifest (older entries: train.json)."""
+    m = (sc.train_task.manifest or {}) if sc.train_task is not None else {}
+    return finite((m.get("extra") or {}).get("train_s", t.get("wall_s")))
 
 
 # -- plot data ---------------------------------------------------------------------------
@@ -417,7 +433,8 @@ def refine_stage_records(data: RunData, method: Optional[str]) -> list[dict]:
     for r in data.results:
         if r.method != method or r.refine is None:
             continue
-        for s in r.refine.get("stages") or []:
+        walls = _refine_note(r).get("stage_wall_s") or []
+        for i, s in enumerate(r.refine.get("stages") or []):
             amb = s.get("ambiguous", -1)
             large = s.get("ambiguous_large", -1)
             recs.append({"scene": r.scene, "object": r.object, "index": s.get("index"), "kind": s.get("kind"),
@@ -425,7 +442,7 @@ def refine_stage_records(data: RunData, method: Optional[str]) -> list[dict]:
                          "g_end": s.get("gaussians_end"), "ambiguous": amb if amb is not None and amb >= 0 else None,
                          "ambiguous_large": large if large is not None and large >= 0 else None,
                          "split": s.get("split"), "pruned": s.get("pruned"), "loss": s.get("mean_loss"),
-                         "wall_s": s.get("wall_s")})
+                         "wall_s": walls[i] if i < len(walls) else s.get("wall_s")})
     return recs
 
 

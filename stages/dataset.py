@@ -20,7 +20,6 @@ Kinds:
 from __future__ import annotations
 
 import os
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
@@ -190,7 +189,6 @@ def _run(ctx, inputs):
     p: DatasetParams = ctx.params
     attrs: SceneAttrs = ctx.item.attrs["scene"]
     name = ctx.item["scene"]
-    t0 = time.perf_counter()
     spec: dict = {"format": SPEC_FORMAT, "version": SPEC_VERSION, "scene": name, "kind": attrs.kind,
                   "protocol": "none", "objects": [], "sfm_downscale": 1.0}
     reader: dict = {"format": _POSED_FORMATS.get(attrs.kind), "path": None, "downscale": p.downscale,
@@ -286,7 +284,6 @@ def _run(ctx, inputs):
                         protocol="exact" if with_gt else "none",
                         scene_type=attrs.scene_type or ("360" if attrs.kind == "blender" else "forward"))
     spec["reader"] = reader
-    spec["seconds"] = round(time.perf_counter() - t0, 3)
     write_json(ctx.out_dir / "dataset.json", spec)
     ctx.log.info("dataset %s (%s): %d views, %d held out, objects %s, protocol %s", name, attrs.kind,
                  len(spec["views"]), len(spec["test_views"]), spec["objects"], spec["protocol"])
@@ -306,7 +303,7 @@ def _detect(root: Path) -> str:
 
 
 STAGE = Stage(
-    name="dataset", version=2, run=_run, inputs=(), outputs=("dataset",), params=DatasetParams,
+    name="dataset", version=3, run=_run, inputs=(), outputs=("dataset",), params=DatasetParams,
     level=("scene",), resources=Resources(cpus=1),
     description="generate a synthetic scene or ingest an external one (dataset.json)",
 )

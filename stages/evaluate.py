@@ -112,8 +112,7 @@ def _run(ctx, inputs):
     row.update(psnr=pr["psnr"], psnr_vanilla=pv["psnr"], psnr_delta=pr["psnr"] - pv["psnr"],
                num_gaussians_vanilla=train["num_gaussians"], num_gaussians=ref["num_gaussians_end"],
                object_gaussians=seg["object_gaussians"], splits=ref["splits"], pruned=ref["pruned"],
-               ambiguous_final=ref["ambiguous_final"], refine_s=ref["wall_s"],
-               refine_peak_mem_bytes=ref["peak_mem_bytes"], extract_ms=seg["extract_ms"],
+               ambiguous_final=ref["ambiguous_final"],
                train_psnr_eval=(train.get("eval") or {}).get("psnr"),
                mask_route=ref.get("mask_route"))
     write_json(ctx.out_dir / "metrics.json", {"row": row, "details": details,
@@ -133,7 +132,7 @@ def _run(ctx, inputs):
 
 
 STAGE = Stage(
-    name="evaluate", version=3, run=_run, inputs=("dataset", "poses", "scene", "refined", "segmentation"),
+    name="evaluate", version=4, run=_run, inputs=("dataset", "poses", "scene", "refined", "segmentation"),
     outputs=("metrics",), params=EvaluateParams, level=("scene", "method", "object"),
     resources=Resources(cpus=1),
     description="protocol metrics (exact GT, NVOS, LERF-mask) and PSNR vs the vanilla scene",

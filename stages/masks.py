@@ -158,8 +158,7 @@ def _run(ctx, inputs):
             areas[v.name] = int((a >= 128).sum())
     info.update(views=len(areas), train_views=len(views), area_px=areas,
                 empty=sorted(k for k, a in areas.items() if a == 0),
-                without_mask=sorted(v.name for v in views if v.name not in areas),
-                seconds=round(time.perf_counter() - t0, 3))
+                without_mask=sorted(v.name for v in views if v.name not in areas))
     if not areas or all(a == 0 for a in areas.values()):
         hint = ""
         if p.source in ("files", "noisy") and mask_dir is None:
@@ -170,7 +169,8 @@ def _run(ctx, inputs):
                               f"(source {p.source!r}); nothing to segment{hint}")
     write_json(ctx.out_dir / "masks.json", info)
     ctx.log.info("masks of %r (%s): %d views, %d empty", obj, p.source, len(areas), len(info["empty"]))
-    ctx.note(source=p.source, object=obj, views=len(areas), empty=len(info["empty"]))
+    ctx.note(source=p.source, object=obj, views=len(areas), empty=len(info["empty"]),
+             seconds=round(time.perf_counter() - t0, 3))
     return {"masks": ctx.out_dir}
 
 
@@ -294,7 +294,7 @@ def _generate(ctx, p: MasksParams, spec: dict, obj: str, views, info: dict) -> N
 
 
 STAGE = Stage(
-    name="masks", version=2, run=_run, inputs=("dataset", "poses"), outputs=("masks",), params=MasksParams,
+    name="masks", version=3, run=_run, inputs=("dataset", "poses"), outputs=("masks",), params=MasksParams,
     level=("scene", "object"), uses_device=True, resources=Resources(cpus=2),
     description="an object's training-view masks: dataset files, noisy copies, ONNX text or NVOS scribbles",
 )

@@ -76,6 +76,7 @@ def _run(ctx, inputs):
     # Paths inside the artifact, relative (the scratch folder SfM ran in is gone).
     summary.update(root=".", model_dir="sparse/0", image_dir="images")
     summary.update(ran=True, reason=f"mode {p.mode!r}" + ("" if has_poses else ", the dataset has no poses"))
+    summary.pop("timings_s", None)  # in the manifest (ctx.note below): same bytes on a recompute
     write_json(ctx.out_dir / "sfm.json", summary)
     ctx.note(ran=True, registered=len(res.registered), unregistered=len(res.unregistered),
              points3d=res.num_points3d, reprojection_error_px=res.mean_reprojection_error_px,
@@ -84,7 +85,7 @@ def _run(ctx, inputs):
 
 
 STAGE = Stage(
-    name="sfm", version=1, run=_run, inputs=("dataset",), outputs=("poses",), params=SfmParams,
+    name="sfm", version=2, run=_run, inputs=("dataset",), outputs=("poses",), params=SfmParams,
     level=("scene",), uses_device=True, resources=Resources(cpus=2),
     description="pycolmap SfM (skipped when the dataset has poses, unless mode = 'always')",
 )

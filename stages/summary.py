@@ -26,8 +26,9 @@ from pipeline import Resources, Stage
 
 from ._common import read_json, write_json
 
-METRICS = ("iou", "acc", "biou", "iou_object_only", "biou_object_only", "psnr", "psnr_vanilla", "psnr_delta", "num_gaussians", "object_gaussians",
-           "refine_s", "refine_peak_mem_bytes", "extract_ms")
+# (results only: timings come from the manifests, into timings.csv / scenes.csv)
+METRICS = ("iou", "acc", "biou", "iou_object_only", "biou_object_only", "psnr", "psnr_vanilla", "psnr_delta",
+           "num_gaussians", "object_gaussians")
 
 
 @dataclass(frozen=True)
@@ -79,7 +80,7 @@ def _write_csv(path: Path, rows: list[dict]) -> None:
 
 def _run(ctx, inputs):
     from cobgs.evaluate import aggregate, nanmean
-    from pipeline import entry_of
+    from pipeline import entry_of, load_manifest
 
     p: SummaryParams = ctx.params
     scenes, seen = [], {}
@@ -88,10 +89,12 @@ def _run(ctx, inputs):
         entry = entry_of(path)
         _walk(entry, seen)
         ev = t.get("eval") or {}
+        extra = (load_manifest(entry).get("extra") or {})
         scenes.append({"scene": item["scene"], "psnr": ev.get("psnr"), "ssim": ev.get("ssim"),
                        "num_gaussians": t["num_gaussians"], "iterations": t["iterations"],
                        "train_views": len(t["train_views"]), "test_views": len(t["test_views"]),
-                       "train_s": t["wall_s"], "s_per_it": t["s_per_it"], "entries": _chain(entry, entry.parents[2])})
+                       "train_s": extra.get("train_s"), "s_per_it": extra.get("s_per_it"),
+                       "entries": _chain(entry, entry.parents[2])})
     rows, heads = [], []
     for item, path in sorted(inputs["metrics"].items(), key=lambda kv: kv[0].id):
         row = dict(read_json(Path(path) / "metrics.json")["row"])
@@ -145,7 +148,7 @@ def _run(ctx, inputs):
 
 
 STAGE = Stage(
-    name="summary", version=1, run=_run, inputs=("metrics", "scene"), outputs=("summary",), params=SummaryParams,
+    name="summary", version=2, run=_run, inputs=("metrics", "scene"), outputs=("summary",), params=SummaryParams,
     level=(), resources=Resources(cpus=1),
     description="JSON/CSV summary over every scene x method x object, with per-stage timings",
 )

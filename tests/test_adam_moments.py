@@ -169,3 +169,20 @@ def test_refine_objects_chains_the_texture_moments(baseline, monkeypatch):
     # The second object continues where the first object's texture stage left the Adam.
     assert seen == [24.0, 24.0 + len(views)]
     assert [r["config"]["texture_adam"] for r in mo.refinements] == ["baseline", "baseline"]
+
+
+def test_the_same_moments_are_the_same_bytes(tmp_path):
+    """Two saves of the same moments give identical files (torch.save names its records
+    after the file, and the temporary name is random): a recomputed train entry with the
+    same content has the same hash, so nothing downstream re-runs."""
+    import subprocess
+    import sys
+
+    code = ("import sys, torch\nfrom cobgs.adam_moments import save_moments\n"
+            "g = torch.Generator().manual_seed(0)\n"
+            "m = {'means': {'exp_avg': torch.randn(7, 3, generator=g), 'exp_avg_sq': torch.rand(7, 3, generator=g),"
+            " 'step': torch.tensor(5.0)}}\n"
+            "save_moments(sys.argv[1], m, 7)\n")
+    for name in ("a", "b"):  # separate processes, as two runs are
+        subprocess.run([sys.executable, "-c", code, str(tmp_path / name / "adam_moments.pt")], check=True)
+    assert (tmp_path / "a" / "adam_moments.pt").read_bytes() == (tmp_path / "b" / "adam_moments.pt").read_bytes()
