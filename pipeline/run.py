@@ -178,7 +178,9 @@ def run_workflow(workflow: Workflow, options: RunOptions, stream: Optional[TextI
     plan = Plan(workflow)
     sel = select(plan, options)
     if options.dry_run:
+        check_params(plan, sel, cache)
         return dry_run(plan, sel, cache, stream, t0)
+    check_params(plan, sel, cache)
     cache.ensure()
     cache.note_workflow(workflow.id, workflow.path, workflow.name)
     for note in sel.notes:
@@ -188,6 +190,30 @@ def run_workflow(workflow: Workflow, options: RunOptions, stream: Optional[TextI
         return _Scheduler(plan, sel, cache, options, executor, stream).run(t0)
     finally:
         executor.close()
+
+
+def check_params(plan: Plan, sel: Selection, cache: Cache) -> None:
+    """Run each stage's ``check`` on the params of the tasks this run will execute (not
+    done in the cache, or forced), once per distinct params, before anything runs; a
+    refused value raises :class:`WorkflowError` naming the file and key that set it."""
+    todo = [i for i in sel.relevant if plan.tasks[i].stage.check is not None]
+    if not todo:
+        return
+    states = {st.task.index: st.state for st in inspect(plan, cache, with_reasons=False)}
+    seen: set[tuple[str, str]] = set()
+    for i in todo:
+        task = plan.tasks[i]
+        if states.get(i) == "done" and i not in sel.forced:
+            continue
+        sig = (task.stage.name, canonical_json(task.params.json))
+        if sig in seen:
+            continue
+        seen.add(sig)
+        try:
+            task.stage.check(task.params.value)
+        except (ValueError, TypeError) as exc:
+            source, key = plan.workflow.locate(task.stage.name, task.item, str(exc))
+            raise WorkflowError(f"stage {task.stage.name!r} ({task.id}): {exc}", source, key) from None
 
 
 class _Scheduler:

@@ -25,7 +25,7 @@ from __future__ import annotations
 import dataclasses
 import re
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, Callable, Mapping, Union
+from typing import TYPE_CHECKING, Any, Callable, Mapping, Optional, Union
 
 from .errors import StageSpecError
 
@@ -84,6 +84,12 @@ class Stage:
             enters the cache key, and a CUDA device requests ``gpus``.
         resources: a :class:`Resources`, or a function of the workflow settings giving one.
         description: one line for ``cobgs stages``.
+        check: optional ``check(params)`` raising ``ValueError`` for values the params
+            class cannot judge alone (they need the library, e.g. the config the params
+            become); called once per distinct params for the tasks a run will execute,
+            before any of them runs, so a bad value stops the run before hours of upstream
+            work, with the file and key that set it. It may import heavy modules: a fully
+            cached run never calls it.
     """
 
     name: str
@@ -96,6 +102,7 @@ class Stage:
     uses_device: bool = False
     resources: ResourcesSpec = field(default_factory=Resources)
     description: str = ""
+    check: Optional[Callable[[Any], None]] = None
 
     def __post_init__(self) -> None:
         where = f"stage {self.name!r}"

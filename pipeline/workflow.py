@@ -120,6 +120,29 @@ class Workflow:
             self._params_cache[(stage, memo)] = hit
         return hit
 
+    def locate(self, stage: str, item: Item, message: str) -> tuple[Optional[str], Optional[str]]:
+        """Where the value a check refused was set: ``(source, dotted key)`` of the first
+        param that ``message`` names among those the layers of ``stage`` x ``item`` set
+        (the last layer setting it wins); ``(None, None)`` when it names none."""
+        layers: list[P.Layer] = []
+        if stage in self._stage_layers:
+            layers.append(self._stage_layers[stage])
+        for pair in item.pairs:
+            layer = self._item_layers.get(self._slot(item, pair), {}).get(stage)
+            if layer is not None:
+                layers.append(layer)
+        if stage in self._cli_layers:
+            layers.append(self._cli_layers[stage])
+        leaves: dict[tuple[str, ...], tuple[Any, P.Layer, str]] = {}
+        for layer in layers:
+            P._flatten(self.stages[stage].params, layer.values, layer, layer.prefix, leaves, ())
+        best = None
+        for path, (_, layer, key) in leaves.items():
+            m = re.search(rf"(?<![A-Za-z0-9_]){re.escape(path[-1])}(?![A-Za-z0-9_])", message)
+            if m and (best is None or m.start() < best[0]):
+                best = (m.start(), layer.source, key)
+        return (best[1], best[2]) if best else (None, None)
+
     def _slot(self, item: Item, pair: tuple[str, str]) -> tuple[str, str]:
         """Key of an axis value in ``item_layers``; nested values are ``parent/value``."""
         parent = self.axes[pair[0]].parent

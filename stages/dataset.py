@@ -302,10 +302,19 @@ def _detect(root: Path) -> str:
     return fmt
 
 
+def _check(p: DatasetParams) -> None:
+    """A synthetic preset the generator knows, before any task runs (the check needs the
+    generator's modules: numpy and friends)."""
+    from cobgs.data.synth_presets import PRESETS
+
+    if p.preset not in PRESETS:
+        raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {p.preset!r}")
+
+
 STAGE = Stage(
     name="dataset", version=3, run=_run, inputs=(), outputs=("dataset",), params=DatasetParams,
     level=("scene",), resources=Resources(cpus=1),
-    description="generate a synthetic scene or ingest an external one (dataset.json)",
+    description="generate a synthetic scene or ingest an external one (dataset.json)", check=_check,
 )
 
 AXIS_SCHEMAS = {"scene": SceneAttrs}

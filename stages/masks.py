@@ -293,10 +293,26 @@ def _generate(ctx, p: MasksParams, spec: dict, obj: str, views, info: dict) -> N
             write_png(ctx.out_dir / f"{v.name}.png", read_mask_png(f, v.width, v.height).numpy())
 
 
+def _check(p: MasksParams) -> None:
+    """The library's checks of the option sets the source uses, before any task runs."""
+    if p.source == "noisy":
+        from cobgs.data.mask_noise import MaskNoiseParams
+
+        to_config(p.noise, MaskNoiseParams)
+    elif p.source == "onnx":
+        from cobgs.masks import TwoStageConfig
+
+        to_config(p.two_stage, TwoStageConfig)
+    elif p.source == "nvos":
+        from cobgs.masks import ScribbleConfig
+
+        to_config(p.scribbles, ScribbleConfig)
+
+
 STAGE = Stage(
     name="masks", version=3, run=_run, inputs=("dataset", "poses"), outputs=("masks",), params=MasksParams,
     level=("scene", "object"), uses_device=True, resources=Resources(cpus=2),
-    description="an object's training-view masks: dataset files, noisy copies, ONNX text or NVOS scribbles",
+    description="an object's training-view masks: dataset files, noisy copies, ONNX text or NVOS scribbles", check=_check,
 )
 
 AXIS_SCHEMAS = {"object": ObjectAttrs}

@@ -137,8 +137,15 @@ def _run(ctx, inputs):
     return {"refined": ctx.out_dir}
 
 
+def _check(p: RefineParams) -> None:
+    """The library's checks of the method's config (RefineConfig / SA3DConfig /
+    FlashSplatConfig), before any task runs (the scene type is the dataset's: any valid
+    one serves the check)."""
+    method_config(p, "forward")
+
+
 STAGE = Stage(
     name="refine", version=5, run=_run, inputs=("dataset", "poses", "scene", "masks"), outputs=("refined",),
     params=RefineParams, level=("scene", "method", "object"), uses_device=True, resources=Resources(cpus=2),
-    description="COB-GS (or an ablation row / a peer) on one object: labels, splits, refined scene",
+    description="COB-GS (or an ablation row / a peer) on one object: labels, splits, refined scene", check=_check,
 )

@@ -39,6 +39,9 @@ class SegmentParams:
     def __post_init__(self) -> None:
         if self.views not in ("test", "all"):
             raise ValueError(f"views must be 'test' or 'all', got {self.views!r}")
+        if not 0.0 < self.mask_threshold < 1.0:  # a rendered mask lies in [0, 1]
+            raise ValueError(f"mask_threshold must be in (0, 1) (the rendered mask is in [0, 1]), "
+                             f"got {self.mask_threshold}")
 
 
 def _run(ctx, inputs):

@@ -84,8 +84,18 @@ def _run(ctx, inputs):
     return {"poses": ctx.out_dir}
 
 
+def _check(p: SfmParams) -> None:
+    """The library's checks of the SfM options (SfmOptions, and the camera model against
+    pycolmap's list), before any task runs."""
+    import pycolmap
+
+    from cobgs.sfm import SfmOptions, _check_camera
+
+    _check_camera(pycolmap, to_config(p.options, SfmOptions, device="cpu"))
+
+
 STAGE = Stage(
     name="sfm", version=2, run=_run, inputs=("dataset",), outputs=("poses",), params=SfmParams,
     level=("scene",), uses_device=True, resources=Resources(cpus=2),
-    description="pycolmap SfM (skipped when the dataset has poses, unless mode = 'always')",
+    description="pycolmap SfM (skipped when the dataset has poses, unless mode = 'always')", check=_check,
 )

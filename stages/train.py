@@ -127,8 +127,15 @@ def _import_trained(ctx, cfg, scene, dev, path: Path):
     return {"scene": ctx.out_dir}
 
 
+def _check(p: TrainOptions) -> None:
+    """The library's own checks of the values (TrainConfig), before any task runs."""
+    from cobgs.train import TrainConfig
+
+    to_config(p, TrainConfig).schedule()
+
+
 STAGE = Stage(
     name="train", version=3, run=_run, inputs=("dataset", "poses"), outputs=("scene",), params=TrainOptions,
     level=("scene",), uses_device=True, resources=Resources(cpus=2),
-    description="baseline 3DGS optimisation (scene.ply, held-out renders and PSNR)",
+    description="baseline 3DGS optimisation (scene.ply, held-out renders and PSNR)", check=_check,
 )

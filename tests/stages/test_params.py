@@ -80,3 +80,30 @@ def test_kind_images_without_an_images_folder_is_refused_at_load(tmp_path):
         _load(tmp_path, f'[axes.scene.s]\nkind = "images"\npath = "{tmp_path / "photos"}"\n')
     text = str(info.value)
     assert "axes.scene.s.path" in text and "no images/ subfolder" in text and "IMG_1.jpg" in text
+
+
+@pytest.mark.parametrize("sets, where, message", [
+    (["train.iterations=-5"], "--set: train.iterations", "iterations must be >= 1"),
+    (["refine.cobgs.delta=-2"], "--set: refine.cobgs.delta", "delta must be in [0, 1]"),
+    (["dataset.preset=nope"], "--set: dataset.preset", "preset must be one of"),
+    (["sfm.options.camera_model=FISHEYEZ"], "--set: sfm.options.camera_model", "not a COLMAP camera model"),
+    (["segment.mask_threshold=7"], "--set: segment.mask_threshold", "must be in (0, 1)"),
+    ([], "w.toml: params.train.iterations", "iterations must be >= 1"),
+])
+def test_bad_values_stop_the_run_before_any_task(tmp_path, sets, where, message):
+    """Values only the library can judge (TrainConfig, RefineConfig, SfmOptions and
+    pycolmap's camera models, the generator's presets) stop `cobgs run` before the first
+    task, naming the file (or --set) and the key; nothing is written to the cache."""
+    from pipeline import RunOptions, WorkflowError, load_workflow, run_workflow
+    from stages.registry import load_registry
+
+    path = tmp_path / "w.toml"
+    path.write_text('[workflow]\nnested = { object = "scene" }\n'
+                    + ("" if sets else "[params.train]\niterations = -5\n")
+                    + '[axes.scene.s]\nkind = "synthetic"\n[axes.method.cobgs]\n[axes.object.s.ball]\n')
+    wf = load_workflow(path, load_registry(), sets)
+    with pytest.raises(WorkflowError) as info:
+        run_workflow(wf, RunOptions(cache_dir=tmp_path / "cache"))
+    text = str(info.value)
+    assert where in text and message in text, text
+    assert not (tmp_path / "cache" / "entries").exists() or not any((tmp_path / "cache" / "entries").iterdir())
