@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any, Iterator, Optional
 
 from .errors import CacheError
-from .hashing import canonical_json, sha256_text
+from .hashing import canonical_json, file_sha256, is_small, sha256_text
 from .locks import EntryLock
 from .publish import exchange_paths
 
@@ -91,6 +91,10 @@ def outputs_problem(outputs: Any) -> str:
             return f"output {name!r} has kind {out.get('kind')!r}"
         if out["kind"] == "file" and not isinstance(out.get("bytes"), int):
             return f"output {name!r} has no byte count"
+        small = out.get("small")
+        if small is not None and (not isinstance(small, dict)
+                                  or not all(isinstance(v, str) for v in small.values())):
+            return f"output {name!r} has a malformed list of small files"
         sizes = out.get("sizes")
         if out["kind"] == "dir" and sizes is not None and (
                 not isinstance(sizes, dict) or not all(isinstance(v, int) for v in sizes.values())):
@@ -172,6 +176,23 @@ class Cache:
                     except OSError:
                         return EntryCheck("corrupt", manifest,
                                           f"output {name!r}: {rel} is missing")
+            # The small result files are re-hashed: a same-size edit is caught too.
+            if out.get("kind") == "dir":
+                pairs = [(folder / out["path"] / rel, sha, rel)
+                         for rel, sha in (out.get("small") or {}).items()]
+            elif is_small(out["path"], st.st_size):
+                pairs = [(folder / out["path"], out.get("sha256"), out["path"])]
+            else:
+                pairs = []
+            for path, sha, rel in pairs:
+                try:
+                    ok = file_sha256(path) == sha
+                except OSError:
+                    ok = False
+                if not ok:
+                    return EntryCheck("corrupt", manifest,
+                                      f"output {name!r}: {rel} does not match the hash recorded "
+                                      "when it was written (edited since?)")
         return EntryCheck("done", manifest)
 
     def load_failed(self, stage: str, key: str) -> Optional[dict]:

@@ -259,6 +259,8 @@ def _run_locked(job: Job, cache: Cache) -> JobResult:
                              "kind": h.kind, "bytes": h.bytes, "files": h.files}
             if h.sizes is not None:
                 outputs[name]["sizes"] = h.sizes
+            if h.small:
+                outputs[name]["small"] = h.small
         measures["hash_s"] = round(time.perf_counter() - t_hash, 6)
     except BaseException as exc:  # noqa: BLE001 - every failure is recorded, Ctrl-C included
         error = exc

@@ -14,6 +14,14 @@ from pathlib import Path
 from typing import Any, Optional
 
 _CHUNK = 1 << 20
+#: Files whose recorded hash is checked each time a cached entry is used (by a downstream
+#: task, status, a report): the small result files a same-size edit could silently change.
+SMALL_SUFFIXES = (".json", ".csv", ".npz", ".txt", ".toml")
+SMALL_MAX_BYTES = 4 << 20
+
+
+def is_small(name: str, size: int) -> bool:
+    return name.lower().endswith(SMALL_SUFFIXES) and size <= SMALL_MAX_BYTES
 
 
 def canonical_json(value: Any) -> str:
@@ -40,6 +48,7 @@ class TreeHash:
     bytes: int
     files: int
     sizes: Optional[dict[str, int]] = None  # folder: relative file path -> bytes
+    small: Optional[dict[str, str]] = None  # folder: relative path -> sha256 of small files
 
 
 def tree_hash(path: Path) -> TreeHash:
@@ -57,6 +66,7 @@ def tree_hash(path: Path) -> TreeHash:
     digest = hashlib.sha256(b"dir\n")
     total = files = 0
     sizes: dict[str, int] = {}
+    small: dict[str, str] = {}
     for root, dirs, names in os.walk(path):
         dirs.sort()
         rel_root = os.path.relpath(root, path)
@@ -66,16 +76,19 @@ def tree_hash(path: Path) -> TreeHash:
             if os.path.islink(full):
                 line = f"L {rel} {os.readlink(full)}\n"
             else:
-                line = f"F {rel} {file_sha256(Path(full))}\n"
+                sha = file_sha256(Path(full))
+                line = f"F {rel} {sha}\n"
                 sizes[rel] = os.path.getsize(full)
                 total += sizes[rel]
+                if is_small(rel, sizes[rel]):
+                    small[rel] = sha
             files += 1
             digest.update(line.encode("utf-8", "surrogateescape"))
         for d in dirs:
             if not os.path.islink(os.path.join(root, d)):
                 rel = os.path.normpath(os.path.join(rel_root, d)).replace(os.sep, "/")
                 digest.update(f"D {rel}\n".encode("utf-8", "surrogateescape"))
-    return TreeHash(digest.hexdigest(), "dir", total, files, sizes)
+    return TreeHash(digest.hexdigest(), "dir", total, files, sizes, small)
 
 
 def stat_fingerprint(path: Path) -> str:

@@ -423,7 +423,8 @@ def test_a_kill_during_a_replacing_commit_keeps_an_entry(tmp_path, monkeypatch, 
         t = cache.new_tmp("s", "k1")
         (t / "out.txt").write_text(text)
         C.write_json_atomic(t / C.MANIFEST, {"key": "k1", "status": "ok", "outputs": {
-            "o": {"path": "out.txt", "kind": "file", "bytes": len(text)}}})
+            "o": {"path": "out.txt", "kind": "file", "bytes": len(text),
+                  "sha256": C.file_sha256(t / "out.txt")}}})
         return t
 
     cache.commit(entry("old"), "s", "k1")

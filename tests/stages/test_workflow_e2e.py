@@ -198,6 +198,34 @@ def test_two_clean_runs_give_the_same_keys_and_results(tiny, tmp_path):
     assert {st for (stage, _), st in states.items() if stage != "train"} == {"cached"}, states
 
 
+def test_a_same_size_edit_of_a_result_is_caught_and_recomputed(tiny, tmp_path):
+    """A result read from the cache is the result that was written: a same-size edit of a
+    cached metrics.json (here: its IoU digits reversed) makes that entry corrupt, and
+    `--from summary` recomputes it instead of summarising the edited numbers."""
+    import re
+    import shutil
+
+    path, cache, wf, _ = tiny
+    work = tmp_path / "cache"
+    shutil.copytree(cache, work)
+    recs = {(r.stage, r.item.id): r for r in entries(wf, work)}
+    metrics = recs[("evaluate", "tiny/cobgs/ball")].output("metrics") / "metrics.json"
+    before = (recs[("summary", "")].output("summary") / "summary.csv").read_bytes()
+    text = metrics.read_text()
+    m = re.search(r'"iou": 0\.(\d{4})', text)
+    edited = text[:m.start(1)] + m.group(1)[::-1] + text[m.end(1):]
+    assert len(edited) == len(text) and edited != text
+    metrics.write_text(edited)
+    state = {(r.stage, r.item.id): r for r in entries(wf, work)}[("evaluate", "tiny/cobgs/ball")]
+    assert state.state == "corrupt" and "does not match the hash" in " ".join(state.reasons)
+    _, summary, log = _run(path, work, from_stages=("summary",))
+    assert summary.exit_code == 0, log
+    states = _states(summary)
+    assert states[("evaluate", "tiny/cobgs/ball")] == "done" and states[("summary", "")] == "done"
+    after = {(r.stage, r.item.id): r for r in entries(wf, work)}
+    assert (after[("summary", "")].output("summary") / "summary.csv").read_bytes() == before
+
+
 def test_export_copies_the_ply_layout(tiny, tmp_path):
     from stages.cli import main
 
