@@ -391,6 +391,36 @@ def test_changed_data_on_disk_is_recomputed_not_served_stale(tiny, tmp_path):
     assert (cv2.imread(str(out / first.name), cv2.IMREAD_GRAYSCALE)[:, : m.shape[1] // 2] == 0).all()
 
 
+def test_masks_saved_as_0_1_get_a_hint(tmp_path):
+    """Dataset masks saved with values 0/1 (instead of 0/255) read as empty; the masks
+    task says so and what to do, instead of only 'no non-empty mask'."""
+    import cv2
+    import numpy as np
+
+    root = tmp_path / "scene"
+    frames = []
+    for i in range(4):
+        img = np.full((24, 32, 3), 40 * i, np.uint8)
+        (root / "images").mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(root / "images" / f"{i:04d}.png"), img)
+        m = np.zeros((24, 32), np.uint8)
+        m[4:12, 8:20] = 1  # 0/1, as some tools save masks
+        (root / "masks" / "box").mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(root / "masks" / "box" / f"{i:04d}.png"), m)
+        c2w = np.eye(4)
+        c2w[:3, 3] = [0.3 * i, 0.0, 4.0]
+        frames.append({"file_path": f"images/{i:04d}.png", "transform_matrix": c2w.tolist()})
+    (root / "transforms.json").write_text(json.dumps({"fl_x": 30.0, "fl_y": 30.0, "cx": 16.0, "cy": 12.0,
+                                                      "w": 32, "h": 24, "frames": frames}))
+    wf_path = tmp_path / "w.toml"
+    wf_path.write_text('[workflow]\nnested = { object = "scene" }\n[params.dataset]\ntest_every = 0\n'
+                       f'[axes.scene.s]\nkind = "transforms"\npath = "{root}"\n'
+                       '[axes.method.cobgs]\n[axes.object.s.box]\n')
+    _, summary, log = _run(wf_path, tmp_path / "cache", only=("dataset", "sfm", "masks"))
+    assert summary.exit_code == 1
+    assert "no training view got a non-empty mask" in log and "masks holding 0/1 read as empty" in log, log
+
+
 def test_missing_mask_dir_is_refused_when_the_workflow_loads(tiny, tmp_path):
     path, cache, wf, _ = tiny
     wf_path = tmp_path / "bad.toml"
