@@ -26,13 +26,13 @@ from __future__ import annotations
 
 import dataclasses
 import time
-from dataclasses import dataclass
 from typing import Mapping, Optional, Sequence
 
 import torch
 from torch import Tensor
 
 from .data.scene import View
+from .configs import FlashSplatConfig, SA3DConfig  # noqa: F401 (defined there)
 from .errors import InputError
 from .gaussians import GaussianModel
 from .refine import RefineConfig, refine
@@ -54,47 +54,6 @@ __all__ = [
 ]
 
 METHODS = ("cobgs", "nosplit", "sa3d", "flashsplat")
-
-
-@dataclass(frozen=True)
-class SA3DConfig:
-    """SA3D-GS parameters (SPEC §3).
-
-    Attributes:
-        lr: Adam lr of the raw labels.
-        neg_weight: weight of the background term of the loss.
-        passes: passes over the training views.
-        threshold: foreground = label > threshold at the end.
-        seed: view order.
-        adam_eps: Adam epsilon.
-        backend: rasterizer backend.
-    """
-
-    lr: float = 1.0
-    neg_weight: float = 0.3
-    passes: int = 2
-    threshold: float = 0.5
-    seed: int = 0
-    adam_eps: float = 1e-15
-    backend: str = "native"
-
-    def __post_init__(self):
-        if self.passes < 1 or self.lr <= 0:
-            raise InputError("SA3DConfig.passes must be >= 1 and lr > 0")
-
-
-@dataclass(frozen=True)
-class FlashSplatConfig:
-    """FlashSplat parameters (SPEC §3).
-
-    Attributes:
-        background_bias: added to the normalised background entry before the argmax
-            (upstream tunes it per scene in about [−0.98, 0.88]).
-        backend: rasterizer backend.
-    """
-
-    background_bias: float = 0.0
-    backend: str = "native"
 
 
 def nosplit_config(base: RefineConfig = RefineConfig()) -> RefineConfig:

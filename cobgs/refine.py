@@ -67,7 +67,6 @@ from .gaussians import GaussianModel
 from .losses import photometric_loss
 from .refine_result import PeakMemory, RefineResult, StageStats
 from .refine_scores import (
-    LABEL,
     ScoreAccumulator,
     ensure_label,
     mask_loss,
@@ -75,10 +74,10 @@ from .refine_scores import (
     render_label_mask,
     view_scores,
 )
-from .refine_split import RAEM_VARIANTS, boundary_split, raem_prune_mask, split_candidates
+from .refine_split import boundary_split, raem_prune_mask, split_candidates
 from .render import render
 from ._memory import retain_freed_memory
-from .train import TrainConfig
+from .configs import RefineConfig  # noqa: F401 (defined there, torch-free; re-exported)
 
 __all__ = [
     "RefineConfig",
@@ -98,125 +97,7 @@ BG_THRESHOLD = 0.1  # background = label < 0.1
 OBJECT_LOGITS = "object_logits"
 OBJECT_ID = "object_id"
 
-_SCENE_DEFAULTS = {"forward": (0.5, 6), "360": (0.8, 4)}  # δ, mask stages (SPEC §2)
-TEXTURE_ADAM = ("baseline", "fresh")
 log = logging.getLogger(__name__)
-_TC = TrainConfig  # the baseline's learning rates are the texture stage's (SPEC §2)
-
-
-@dataclass(frozen=True)
-class RefineConfig:
-    """Every parameter of the COB-GS refinement (defaults: the released behaviour).
-
-    Attributes:
-        scene_type: "forward" (δ 0.5, 6 mask + 5 texture stages) or "360" (δ 0.8, 4 + 3).
-        delta: ambiguity threshold δ; None = the scene type's.
-        mask_stages: number of MASK stages; None = the scene type's. TEXTURE stages sit
-            between consecutive MASK stages (mask_stages − 1 of them) when ``bgtr``.
-        stage_length_views: stage length in units of V (2 → 2V iterations).
-        bags: boundary-adaptive Gaussian splitting on/off (Table 5).
-        bgtr: boundary-guided texture restoration (TEXTURE stages) on/off (Table 5).
-        raem: final pruning: "off", "released" (every ambiguous Gaussian) or "paper"
-            (ambiguous and below the pixel footprint; :mod:`cobgs.refine_split`).
-        score: "count" (pixel counts N⁺/N⁻, released) or "weight" (Σ α·T, ablation).
-        texture_adam: "baseline" — the TEXTURE stages' Adam starts from the baseline's
-            moments when the caller passes them (``texture_moments``; the released code
-            restores the 3DGS checkpoint's optimizer), zero moments otherwise; "fresh" —
-            always zero moments (ablation).
-        split_size_fraction: split only ambiguous Gaussians with max scale > this × extent.
-        split_children: children per split parent.
-        split_scale_divisor: child scale = parent scale / this.
-        raem_footprint_px: pixel-footprint threshold of the "paper" RAEM.
-        mask_lambda: λ of the mask loss (weight of the background term).
-        label_lr: Adam lr of the label logits.
-        adam_eps: Adam epsilon of both optimizers.
-        position_lr: texture-stage position lr (× extent): the baseline's final lr.
-        sh0_lr, shN_lr, opacity_lr, scaling_lr, rotation_lr: texture-stage lrs (3DGS).
-        ssim_weight: λ of the photometric loss 0.8·L1 + 0.2·(1 − SSIM).
-        seed: seeds the view order and the split samples.
-        backend: rasterizer backend.
-        label_name: name of the label-logit extra.
-        record_scores: keep every mask stage's mean scores in the result (δ sweep).
-    """
-
-    scene_type: str = "forward"
-    delta: Optional[float] = None
-    mask_stages: Optional[int] = None
-    stage_length_views: float = 2.0
-    bags: bool = True
-    bgtr: bool = True
-    raem: str = "released"
-    score: str = "count"
-    texture_adam: str = "baseline"
-    split_size_fraction: float = 0.01
-    split_children: int = 2
-    split_scale_divisor: float = 1.6
-    raem_footprint_px: float = 1.0
-    mask_lambda: float = 1.0
-    label_lr: float = 0.1
-    adam_eps: float = 1e-15
-    position_lr: float = _TC.position_lr_final
-    sh0_lr: float = _TC.sh0_lr
-    shN_lr: float = _TC.shN_lr
-    opacity_lr: float = _TC.opacity_lr
-    scaling_lr: float = _TC.scaling_lr
-    rotation_lr: float = _TC.rotation_lr
-    ssim_weight: float = _TC.ssim_weight
-    seed: int = 0
-    backend: str = "native"
-    label_name: str = LABEL
-    record_scores: bool = True
-
-    def __post_init__(self):
-        if self.scene_type not in _SCENE_DEFAULTS:
-            raise InputError(f"RefineConfig.scene_type must be 'forward' or '360', got {self.scene_type!r}")
-        if self.raem not in RAEM_VARIANTS:
-            raise InputError(f"RefineConfig.raem must be one of {RAEM_VARIANTS}, got {self.raem!r}")
-        if self.score not in ("count", "weight"):
-            raise InputError(f"RefineConfig.score must be 'count' or 'weight', got {self.score!r}")
-        if self.texture_adam not in TEXTURE_ADAM:
-            raise InputError(f"RefineConfig.texture_adam must be one of {TEXTURE_ADAM}, got {self.texture_adam!r}")
-        if self.delta is not None and not (0.0 <= self.delta <= 1.0):
-            raise InputError(f"RefineConfig.delta must be in [0, 1], got {self.delta}")
-        if self.mask_stages is not None and (not isinstance(self.mask_stages, int) or self.mask_stages < 1):
-            raise InputError(f"RefineConfig.mask_stages must be an int >= 1, got {self.mask_stages!r}")
-        if not self.stage_length_views > 0:
-            raise InputError(f"RefineConfig.stage_length_views must be > 0, got {self.stage_length_views}")
-        if self.split_children < 1 or self.split_scale_divisor <= 0:
-            raise InputError("RefineConfig.split_children must be >= 1 and split_scale_divisor > 0")
-        if self.mask_lambda < 0:
-            raise InputError(f"RefineConfig.mask_lambda must be >= 0, got {self.mask_lambda}")
-        for name in ("label_lr", "adam_eps"):
-            if not getattr(self, name) > 0:
-                raise InputError(f"RefineConfig.{name} must be > 0")
-
-    @property
-    def threshold(self) -> float:
-        """δ actually used."""
-        return _SCENE_DEFAULTS[self.scene_type][0] if self.delta is None else float(self.delta)
-
-    @property
-    def num_mask_stages(self) -> int:
-        return _SCENE_DEFAULTS[self.scene_type][1] if self.mask_stages is None else self.mask_stages
-
-    def stage_length(self, num_views: int) -> int:
-        """Iterations per stage: round(stage_length_views × V), at least 1."""
-        return max(1, int(round(self.stage_length_views * num_views)))
-
-    def plan(self) -> list[str]:
-        """Stage kinds in order: "mask" / "texture", starting and ending with "mask"."""
-        out = []
-        for i in range(self.num_mask_stages):
-            out.append("mask")
-            if self.bgtr and i < self.num_mask_stages - 1:
-                out.append("texture")
-        return out
-
-    def as_dict(self) -> dict:
-        d = dataclasses.asdict(self)
-        d["threshold"] = self.threshold
-        d["num_mask_stages"] = self.num_mask_stages
-        return d
 
 
 def masks_for(views: Sequence[View], object_name: str) -> list[Optional[Tensor]]:

@@ -33,7 +33,7 @@ from .camera import Camera
 from .errors import InputError
 from .gaussians import GaussianModel
 
-LABEL = "mask_logit"  # name of the per-Gaussian label-logit extra
+from .configs import LABEL  # noqa: E402  (name of the per-Gaussian label-logit extra)
 SCORE_EPS = 1e-6  # ε of Eq. 6, as in the released code
 
 

@@ -31,7 +31,7 @@ from .errors import InputError
 from .gaussians import GaussianModel
 from .reference import NEAR_PLANE
 
-RAEM_VARIANTS = ("off", "released", "paper")
+from .configs import RAEM_VARIANTS  # noqa: E402,F401
 
 
 def split_candidates(model: GaussianModel, ambiguous: Tensor, extent: float, size_fraction: float = 0.01) -> Tensor:

@@ -27,72 +27,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
 
+from .configs import MATCHERS, SfmOptions  # noqa: F401 (defined there, torch-free; re-exported)
 from .errors import DataError, InputError
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
-MATCHERS = ("auto", "exhaustive", "sequential")
 _MAX_NAMES_IN_ERROR = 30
-
-
-@dataclass(frozen=True)
-class SfmOptions:
-    """Options of :func:`run_sfm`.
-
-    Attributes:
-        matcher: "exhaustive" (every pair), "sequential" (each image with the next
-            ``sequential_overlap`` in name order; for ordered captures) or "auto"
-            (exhaustive up to ``exhaustive_max_images`` images, sequential above).
-        exhaustive_max_images: the "auto" threshold.
-        sequential_overlap: neighbours matched per image by the sequential matcher.
-        camera_model: COLMAP model fitted during mapping (SIMPLE_RADIAL is COLMAP's default
-            for unknown lenses; undistortion turns any model into PINHOLE).
-        single_camera: all images share one camera (one capture device).
-        camera_params: known intrinsics in ``camera_model``'s parameter order, or None to
-            estimate them (from EXIF or a default focal of 1.2 x max(width, height)).
-        max_image_size_px: images are downscaled to this longest side for extraction.
-        max_num_features: SIFT features kept per image.
-        min_num_matches: verified matches a pair needs to join the view graph.
-        min_registered_fraction: :class:`DataError` when fewer images register.
-        num_threads: CPU threads for every step; 0 = all cores of this machine.
-        device: "cpu" or "cuda" (SIFT extraction and matching; mapping is CPU).
-        seed: seeds COLMAP's random generator (RANSAC, mapper) for repeatable runs.
-        verbose: let COLMAP log INFO lines (otherwise warnings and errors only).
-    """
-
-    matcher: str = "auto"
-    exhaustive_max_images: int = 150
-    sequential_overlap: int = 10
-    camera_model: str = "SIMPLE_RADIAL"
-    single_camera: bool = True
-    camera_params: Optional[Tuple[float, ...]] = None
-    max_image_size_px: int = 3200
-    max_num_features: int = 8192
-    min_num_matches: int = 15
-    min_registered_fraction: float = 1.0
-    num_threads: int = 0
-    device: str = "cpu"
-    seed: int = 0
-    verbose: bool = False
-
-    def __post_init__(self) -> None:
-        if self.matcher not in MATCHERS:
-            raise InputError(f"SfmOptions.matcher must be one of {MATCHERS}, got {self.matcher!r}")
-        if self.device not in ("cpu", "cuda"):
-            raise InputError(f"SfmOptions.device must be 'cpu' or 'cuda', got {self.device!r}")
-        if not 0.0 <= self.min_registered_fraction <= 1.0:
-            raise InputError("SfmOptions.min_registered_fraction must be in [0, 1], got "
-                             f"{self.min_registered_fraction}")
-        for name in ("exhaustive_max_images", "sequential_overlap", "max_image_size_px",
-                     "max_num_features", "min_num_matches"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or v < 1:
-                raise InputError(f"SfmOptions.{name} must be a positive int, got {v!r}")
-        if not isinstance(self.num_threads, int) or self.num_threads < 0:
-            raise InputError(f"SfmOptions.num_threads must be an int >= 0, got {self.num_threads!r}")
-
-    def threads(self) -> int:
-        """The thread count actually passed to COLMAP."""
-        return self.num_threads or (os.cpu_count() or 1)
 
 
 @dataclass(frozen=True)

@@ -50,6 +50,7 @@ from torch import Tensor
 from ._memory import retain_freed_memory
 from .adam_moments import export_moments
 from .data.scene import Scene, View
+from .configs import Schedule, TrainConfig  # noqa: F401 (defined there, torch-free; re-exported)
 from .errors import DataError, InputError
 from .gaussians import GaussianModel, inverse_sigmoid
 from .losses import photometric_loss
@@ -58,97 +59,6 @@ from .metrics import ssim as ssim_metric
 from .render import render
 
 CHECKPOINT_VERSION = 1
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    """Every knob of the baseline optimisation (defaults: the 3DGS paper's)."""
-
-    iterations: int = 30_000
-    seed: int = 0
-    # Schedule scaling (see the module docstring).
-    scale_schedule: bool = True
-    scale_densify_interval: bool = False
-    reference_iterations: int = 30_000
-    # Spherical harmonics.
-    sh_degree: int = 3
-    sh_degree_interval_its: int = 1_000
-    # Learning rates (Adam, eps 1e-15). Position lr is multiplied by the scene extent.
-    position_lr_init: float = 1.6e-4
-    position_lr_final: float = 1.6e-6
-    position_lr_decay_its: int = 30_000
-    sh0_lr: float = 2.5e-3
-    shN_lr: float = 2.5e-3 / 20.0
-    opacity_lr: float = 0.025
-    scaling_lr: float = 5e-3
-    rotation_lr: float = 1e-3
-    adam_eps: float = 1e-15
-    ssim_weight: float = 0.2
-    # Densification.
-    densify_from_its: int = 500
-    densify_until_its: int = 15_000
-    densify_interval_its: int = 100
-    densify_grad_threshold_ndc: float = 2e-4
-    dense_scale_fraction: float = 0.01  # clone if max scale <= this x extent, else split
-    split_children: int = 2
-    split_scale_divisor: float = 1.6
-    prune_min_opacity: float = 0.005
-    prune_max_world_scale_fraction: float = 0.1  # x extent, after the first opacity reset
-    prune_max_screen_radius_px: float = 0.0  # 0 = off (see the module docstring)
-    max_gaussians: int = 0  # 0 = unlimited; otherwise densification stops adding
-    opacity_reset_interval_its: int = 3_000
-    opacity_reset_value: float = 0.01
-    # Initialisation.
-    random_init_points: int = 100_000
-    init_opacity: float = 0.1
-    # Rendering / bookkeeping.
-    background: Optional[tuple[float, float, float]] = None  # None: the scene's
-    # A fresh uniform-random background colour every iteration (3DGS's ``--random_background``):
-    # a fully opaque capture can then no longer be fitted by letting a fixed black
-    # background show through semi-transparent layers; only for opaque photographs
-    # (not RGBA-composited scenes, whose targets contain the fixed background).
-    random_background: bool = False
-    backend: str = "native"
-    log_interval_its: int = 10
-    checkpoint_interval_its: int = 0  # 0 = only at the end (when a folder is given)
-
-    def __post_init__(self):
-        if self.iterations < 1:
-            raise InputError(f"TrainConfig.iterations must be >= 1, got {self.iterations}")
-        if not 0 <= self.sh_degree <= 3:
-            raise InputError(f"TrainConfig.sh_degree must be in 0..3, got {self.sh_degree}")
-        if self.reference_iterations < 1:
-            raise InputError("TrainConfig.reference_iterations must be >= 1")
-        if self.split_children < 1:
-            raise InputError("TrainConfig.split_children must be >= 1")
-
-    def schedule(self) -> "Schedule":
-        """Iteration-valued fields after scaling to ``iterations`` (see module docstring)."""
-        f = self.iterations / self.reference_iterations if self.scale_schedule else 1.0
-
-        def s(v: int) -> int:
-            return max(1, int(round(v * f)))
-
-        return Schedule(
-            sh_degree_interval=s(self.sh_degree_interval_its),
-            position_lr_decay=s(self.position_lr_decay_its),
-            densify_from=s(self.densify_from_its),
-            densify_until=s(self.densify_until_its),
-            densify_interval=s(self.densify_interval_its) if self.scale_densify_interval else self.densify_interval_its,
-            opacity_reset_interval=s(self.opacity_reset_interval_its),
-        )
-
-
-@dataclass(frozen=True)
-class Schedule:
-    """Resolved iteration counts of one run (see :meth:`TrainConfig.schedule`)."""
-
-    sh_degree_interval: int
-    position_lr_decay: int
-    densify_from: int
-    densify_until: int
-    densify_interval: int
-    opacity_reset_interval: int
 
 
 @dataclass

@@ -27,10 +27,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
+from cobgs.configs import MaskNoiseParams, ScribbleConfig, TwoStageConfig
 from pipeline import Resources, Stage
 
 from ._common import StageInputError, load_scene, object_name, read_json, read_spec, write_json, write_png
-from .params import MaskNoiseOptions, ScribbleOptions, TwoStageOptions, to_config
 
 SOURCES = ("files", "noisy", "onnx", "nvos")
 
@@ -80,9 +80,9 @@ class MasksParams:
 
     source: str = "files"
     models_dir: Optional[Path] = None
-    noise: MaskNoiseOptions = field(default_factory=MaskNoiseOptions)
-    two_stage: TwoStageOptions = field(default_factory=TwoStageOptions)
-    scribbles: ScribbleOptions = field(default_factory=ScribbleOptions)
+    noise: MaskNoiseParams = field(default_factory=MaskNoiseParams)
+    two_stage: TwoStageConfig = field(default_factory=TwoStageConfig)
+    scribbles: ScribbleConfig = field(default_factory=ScribbleConfig)
     intra_op_threads: int = 0
     files_threshold: int = 0
     files_root: Optional[Path] = None
@@ -135,9 +135,9 @@ def _run(ctx, inputs):
         else:
             masks = _dataset_masks(views, obj, spec)
         if p.source == "noisy":
-            from cobgs.data.mask_noise import MaskNoiseParams, mask_rng, apply_mask_noise
+            from cobgs.data.mask_noise import apply_mask_noise, mask_rng
 
-            noise = to_config(p.noise, MaskNoiseParams)
+            noise = p.noise
             records = {}
             for name in list(masks):
                 m, rec = apply_mask_noise(masks[name], noise, mask_rng(noise, f"{obj}/{name}"))
@@ -253,7 +253,7 @@ def _need_models(p: MasksParams) -> Path:
 
 
 def _generate(ctx, p: MasksParams, spec: dict, obj: str, views, info: dict) -> None:
-    from cobgs.masks import RunOptions, ScribbleConfig, TwoStageConfig, load_manifest
+    from cobgs.masks import RunOptions, load_manifest
     from cobgs.masks import generate_masks, generate_masks_from_scribbles
 
     models = _need_models(p)
@@ -268,7 +268,7 @@ def _generate(ctx, p: MasksParams, spec: dict, obj: str, views, info: dict) -> N
     if p.source == "onnx":
         attrs = ctx.item.attrs.get("object")
         prompt = (getattr(attrs, "prompt", "") if attrs is not None else "") or obj.replace("_", " ")
-        res = generate_masks(paths, prompt, models, out, config=to_config(p.two_stage, TwoStageConfig),
+        res = generate_masks(paths, prompt, models, out, config=p.two_stage,
                              log_path=ctx.scratch_dir / "generated.json", options=options)
         info["prompt"] = prompt
     else:
@@ -281,7 +281,7 @@ def _generate(ctx, p: MasksParams, spec: dict, obj: str, views, info: dict) -> N
             raise StageInputError(f"NVOS reference view {task['reference']!r} is not a training view")
         res = generate_masks_from_scribbles(
             paths, names.index(task["reference"]), task["positive_scribbles"], task["negative_scribbles"],
-            models, out, config=to_config(p.scribbles, ScribbleConfig),
+            models, out, config=p.scribbles,
             log_path=ctx.scratch_dir / "generated.json", options=options)
     info["generator"] = read_json(res.log_path)
     # The generator writes each image's own size; the training size may be smaller.
@@ -293,26 +293,10 @@ def _generate(ctx, p: MasksParams, spec: dict, obj: str, views, info: dict) -> N
             write_png(ctx.out_dir / f"{v.name}.png", read_mask_png(f, v.width, v.height).numpy())
 
 
-def _check(p: MasksParams) -> None:
-    """The library's checks of the option sets the source uses, before any task runs."""
-    if p.source == "noisy":
-        from cobgs.data.mask_noise import MaskNoiseParams
-
-        to_config(p.noise, MaskNoiseParams)
-    elif p.source == "onnx":
-        from cobgs.masks import TwoStageConfig
-
-        to_config(p.two_stage, TwoStageConfig)
-    elif p.source == "nvos":
-        from cobgs.masks import ScribbleConfig
-
-        to_config(p.scribbles, ScribbleConfig)
-
-
 STAGE = Stage(
     name="masks", version=3, run=_run, inputs=("dataset", "poses"), outputs=("masks",), params=MasksParams,
     level=("scene", "object"), uses_device=True, resources=Resources(cpus=2),
-    description="an object's training-view masks: dataset files, noisy copies, ONNX text or NVOS scribbles", check=_check,
+    description="an object's training-view masks: dataset files, noisy copies, ONNX text or NVOS scribbles",
 )
 
 AXIS_SCHEMAS = {"object": ObjectAttrs}

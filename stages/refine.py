@@ -19,15 +19,16 @@ elsewhere) refines with fresh moments, and ``refine.json`` says which (``texture
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from cobgs.configs import FlashSplatConfig, RefineConfig, SA3DConfig
 from pipeline import Resources, Stage
 
 from ._common import (StageInputError, load_scene, masks_for_views, object_name, read_json, read_spec,
                       to_device, torch_device, write_json)
-from .params import FlashSplatOptions, RefineOptions, SA3DOptions, to_config
 
 METHODS = ("cobgs", "nosplit", "sa3d", "flashsplat")
 
@@ -46,28 +47,28 @@ class RefineParams:
 
     method: str = "cobgs"
     scene_type: str = "auto"
-    cobgs: RefineOptions = field(default_factory=RefineOptions)
-    sa3d: SA3DOptions = field(default_factory=SA3DOptions)
-    flashsplat: FlashSplatOptions = field(default_factory=FlashSplatOptions)
+    cobgs: RefineConfig = field(default_factory=RefineConfig)
+    sa3d: SA3DConfig = field(default_factory=SA3DConfig)
+    flashsplat: FlashSplatConfig = field(default_factory=FlashSplatConfig)
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
             raise ValueError(f"method must be one of {list(METHODS)}, got {self.method!r}")
         if self.scene_type not in ("auto", "forward", "360"):
             raise ValueError(f"scene_type must be 'auto', 'forward' or '360', got {self.scene_type!r}")
+        if self.cobgs.scene_type != RefineConfig.scene_type:
+            raise ValueError("set refine.scene_type ('auto' takes the dataset's), not "
+                             f"refine.cobgs.scene_type (got {self.cobgs.scene_type!r}): the stage sets it")
 
 
 def method_config(p: RefineParams, dataset_scene_type: str):
     """The library config object :func:`cobgs.peers.run_method` takes for ``p.method``."""
-    from cobgs.peers import FlashSplatConfig, SA3DConfig
-    from cobgs.refine import RefineConfig
-
     if p.method in ("cobgs", "nosplit"):
         st = dataset_scene_type if p.scene_type == "auto" else p.scene_type
-        return to_config(p.cobgs, RefineConfig, scene_type=st or "forward")
+        return dataclasses.replace(p.cobgs, scene_type=st or "forward")
     if p.method == "sa3d":
-        return to_config(p.sa3d, SA3DConfig)
-    return to_config(p.flashsplat, FlashSplatConfig)
+        return p.sa3d
+    return p.flashsplat
 
 
 def _run(ctx, inputs):
@@ -137,15 +138,8 @@ def _run(ctx, inputs):
     return {"refined": ctx.out_dir}
 
 
-def _check(p: RefineParams) -> None:
-    """The library's checks of the method's config (RefineConfig / SA3DConfig /
-    FlashSplatConfig), before any task runs (the scene type is the dataset's: any valid
-    one serves the check)."""
-    method_config(p, "forward")
-
-
 STAGE = Stage(
     name="refine", version=5, run=_run, inputs=("dataset", "poses", "scene", "masks"), outputs=("refined",),
     params=RefineParams, level=("scene", "method", "object"), uses_device=True, resources=Resources(cpus=2),
-    description="COB-GS (or an ablation row / a peer) on one object: labels, splits, refined scene", check=_check,
+    description="COB-GS (or an ablation row / a peer) on one object: labels, splits, refined scene",
 )

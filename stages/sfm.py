@@ -12,13 +12,14 @@ when SfM ran, ``images/`` (undistorted, PINHOLE) and ``sparse/0/``.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from cobgs.configs import SfmOptions
 from pipeline import Resources, Stage
 
 from ._common import StageInputError, read_json, read_spec, spec_path, write_json
-from .params import SfmOptionsParams, to_config
 
 
 @dataclass(frozen=True)
@@ -29,15 +30,18 @@ class SfmParams:
     """
 
     mode: str = "auto"
-    options: SfmOptionsParams = field(default_factory=SfmOptionsParams)
+    options: SfmOptions = field(default_factory=SfmOptions)
 
     def __post_init__(self) -> None:
         if self.mode not in ("auto", "always", "never"):
             raise ValueError(f"mode must be 'auto', 'always' or 'never', got {self.mode!r}")
+        if self.options.device != SfmOptions.device:
+            raise ValueError("sfm.options.device is the workflow's device (settings.device, "
+                             f"--set device=cuda), not a param; got {self.options.device!r}")
 
 
 def _run(ctx, inputs):
-    from cobgs.sfm import SfmOptions, run_sfm
+    from cobgs.sfm import run_sfm
 
     p: SfmParams = ctx.params
     spec = read_spec(inputs["dataset"])
@@ -64,7 +68,7 @@ def _run(ctx, inputs):
             ctx.log.info("pycolmap %s has no CUDA: SIFT extraction and matching run on the CPU "
                          "(the rest of the workflow stays on %s)", pycolmap.__version__, ctx.device)
             device = "cpu"
-    opts = to_config(p.options, SfmOptions, device=device)
+    opts = dataclasses.replace(p.options, device=device)
     ctx.log.info("SfM on %d images of %s (%s matcher, %s)", len(images["names"]), image_dir,
                  opts.matcher, opts.camera_model)
     res = run_sfm(image_dir, ctx.scratch_dir / "sfm", opts, image_names=images["names"])
@@ -89,9 +93,9 @@ def _check(p: SfmParams) -> None:
     pycolmap's list), before any task runs."""
     import pycolmap
 
-    from cobgs.sfm import SfmOptions, _check_camera
+    from cobgs.sfm import _check_camera
 
-    _check_camera(pycolmap, to_config(p.options, SfmOptions, device="cpu"))
+    _check_camera(pycolmap, p.options)
 
 
 STAGE = Stage(

@@ -1,6 +1,6 @@
 """Stage ``train``: the baseline 3DGS scene (cobgs.train) that every method refines.
 
-Params mirror :class:`cobgs.train.TrainConfig` (``--set train.iterations=3000``).
+Params are :class:`cobgs.configs.TrainConfig` itself (``--set train.iterations=3000``).
 Output ``scene``: ``scene.ply`` (standard 3DGS layout), ``adam_moments.pt`` (the
 optimizer's final Adam moments, which COB-GS's texture stages continue from, as the
 released code continues its 3DGS checkpoint; :mod:`cobgs.adam_moments`), ``train.json`` (config, resolved
@@ -20,10 +20,10 @@ import dataclasses
 import time
 from pathlib import Path
 
+from cobgs.configs import TrainConfig
 from pipeline import Resources, Stage
 
 from ._common import load_scene, to_device, torch_device, write_json, write_png
-from .params import TrainOptions, to_config
 
 
 def _run(ctx, inputs):
@@ -32,9 +32,9 @@ def _run(ctx, inputs):
     from cobgs.adam_moments import MOMENTS_FILE, save_moments
     from cobgs.ply import save_ply
     from cobgs.render import render_image
-    from cobgs.train import TrainConfig, train
+    from cobgs.train import train
 
-    cfg = to_config(ctx.params, TrainConfig)
+    cfg: TrainConfig = ctx.params
     scene = to_device(load_scene(inputs["dataset"], inputs["poses"]), ctx.device)
     dev = torch_device(ctx.device)
     trained = getattr(ctx.item.attrs.get("scene"), "trained", None)
@@ -127,15 +127,8 @@ def _import_trained(ctx, cfg, scene, dev, path: Path):
     return {"scene": ctx.out_dir}
 
 
-def _check(p: TrainOptions) -> None:
-    """The library's own checks of the values (TrainConfig), before any task runs."""
-    from cobgs.train import TrainConfig
-
-    to_config(p, TrainConfig).schedule()
-
-
 STAGE = Stage(
-    name="train", version=3, run=_run, inputs=("dataset", "poses"), outputs=("scene",), params=TrainOptions,
+    name="train", version=3, run=_run, inputs=("dataset", "poses"), outputs=("scene",), params=TrainConfig,
     level=("scene",), uses_device=True, resources=Resources(cpus=2),
-    description="baseline 3DGS optimisation (scene.ply, held-out renders and PSNR)", check=_check,
+    description="baseline 3DGS optimisation (scene.ply, held-out renders and PSNR)",
 )

@@ -30,59 +30,8 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from ..configs import MaskNoiseParams  # noqa: F401 (defined there)
 from ..errors import DataError, InputError
-
-
-@dataclass(frozen=True)
-class MaskNoiseParams:
-    """How often and how strongly masks are corrupted. Rates are probabilities per mask
-    (one object in one view).
-
-    Attributes:
-        drop_rate: the mask is replaced by an empty one (then nothing else applies).
-        morph_rate: the mask is eroded or dilated.
-        morph_max_px: the erosion/dilation radius is uniform in 1..morph_max_px pixels.
-        dilate_fraction: share of dilations among erosions/dilations.
-        jitter_rate: the boundary is jittered.
-        jitter_amplitude_px: the largest boundary displacement.
-        jitter_scale_px: correlation length of the displacement along the boundary.
-        blob_rate: spurious blobs are added.
-        blob_count_max: blobs per affected mask, uniform in 1..blob_count_max.
-        blob_radius_min_px, blob_radius_max_px: blob disc radius range.
-        seed: base seed of every mask's random stream.
-    """
-
-    drop_rate: float = 0.05
-    morph_rate: float = 0.3
-    morph_max_px: int = 3
-    dilate_fraction: float = 0.5
-    jitter_rate: float = 0.3
-    jitter_amplitude_px: float = 2.0
-    jitter_scale_px: float = 6.0
-    blob_rate: float = 0.2
-    blob_count_max: int = 3
-    blob_radius_min_px: int = 2
-    blob_radius_max_px: int = 5
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        for name in ("drop_rate", "morph_rate", "dilate_fraction", "jitter_rate", "blob_rate"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and 0.0 <= v <= 1.0):
-                raise InputError(f"MaskNoiseParams.{name} must be a probability in [0, 1], got {v!r}")
-        for name in ("morph_max_px", "blob_count_max", "blob_radius_min_px", "blob_radius_max_px"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or v < 1:
-                raise InputError(f"MaskNoiseParams.{name} must be an int >= 1, got {v!r}")
-        if self.blob_radius_max_px < self.blob_radius_min_px:
-            raise InputError("MaskNoiseParams.blob_radius_max_px must be >= blob_radius_min_px, "
-                             f"got {self.blob_radius_max_px} < {self.blob_radius_min_px}")
-        for name in ("jitter_amplitude_px", "jitter_scale_px"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and v > 0):
-                raise InputError(f"MaskNoiseParams.{name} must be > 0, got {v!r}")
-        if not isinstance(self.seed, int) or self.seed < 0:
-            raise InputError(f"MaskNoiseParams.seed must be an int >= 0, got {self.seed!r}")
 
 
 @dataclass(frozen=True)

@@ -12,28 +12,14 @@ onto the reference frame's pixels.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
 from typing import Sequence, Tuple, Union
 
 import numpy as np
 
+from cobgs.configs import ScribbleConfig  # noqa: F401 (defined there)
 from cobgs.errors import DataError, InputError
 
 PathLike = Union[str, os.PathLike]
-
-
-@dataclass(frozen=True)
-class ScribbleConfig:
-    """Sampling of skeleton points; the thresholds are the protocol's."""
-
-    keep_positive_above: float = 0.98
-    keep_negative_above: float = 0.995
-    seed: int = 0
-    # A scribble pixel has some colour channel above this (8-bit images; 0 = any non-zero
-    # channel, the protocol's: pure red or blue strokes and anti-aliased edges count).
-    binarize_above: int = 0
-    # a scribble too short to leave any point still contributes its middle pixel
-    at_least_one_per_scribble: bool = True
 
 
 def _load_scribble(path: PathLike, threshold: int) -> np.ndarray:

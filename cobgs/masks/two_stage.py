@@ -24,6 +24,7 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
+from cobgs.configs import TwoStageConfig  # noqa: F401 (defined there)
 from cobgs.errors import CobgsError, InputError
 
 from .gdino import Detection, GroundingDino
@@ -35,21 +36,6 @@ log = logging.getLogger("cobgs.masks")
 
 class NoDetectionError(CobgsError):
     """Grounding DINO found nothing on the prompt frame: tracking would silently fail."""
-
-
-@dataclass(frozen=True)
-class TwoStageConfig:
-    """Thresholds of Alg. 1 as the authors ran it (SPEC section 4)."""
-
-    prompt_frame: int = 0
-    box_threshold: float = 0.3
-    text_threshold: float = 0.45
-    keep_ratio_of_best: float = 0.7
-    stage2_box_threshold_min: float = 0.6
-    stage2_ratio_of_best: float = 0.85
-    stage2_text_threshold_min: float = 0.65
-    stage2_backward: bool = True
-    run_stage2: bool = True
 
 
 @dataclass

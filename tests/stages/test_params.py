@@ -1,47 +1,60 @@
-"""The stages' params mirror the library configs exactly (stages/params.py says why)."""
+"""Stage params are the library's own config classes (cobgs/configs.py, torch-free):
+checked where they are set, and importing the stages or building the CLI imports no torch."""
 
 from __future__ import annotations
 
-import dataclasses
-import importlib
 import subprocess
 import sys
 
 import pytest
 
-from stages.params import MIRRORS, to_config
 
-
-def _norm(annotation) -> str:
-    """Annotations as text, typing aliases spelled like the builtins (Tuple -> tuple)."""
-    text = str(annotation)
-    for alias in ("Tuple", "List", "Dict"):
-        text = text.replace(alias + "[", alias.lower() + "[")
-    return text
-
-
-@pytest.mark.parametrize("mirror", list(MIRRORS), ids=lambda m: m.__name__)
-def test_mirror_matches_library(mirror):
-    module, name, left_out = MIRRORS[mirror]
-    lib = getattr(importlib.import_module(module), name)
-    lib_fields = {f.name: f for f in dataclasses.fields(lib) if f.name not in left_out}
-    ours = {f.name: f for f in dataclasses.fields(mirror)}
-    assert list(ours) == list(lib_fields), f"{mirror.__name__} fields differ from {module}.{name}"
-    for k, f in lib_fields.items():
-        assert ours[k].default == f.default, f"{mirror.__name__}.{k}: {ours[k].default!r} != {f.default!r}"
-        assert _norm(ours[k].type) == _norm(f.type), f"{mirror.__name__}.{k}: type {ours[k].type} != {f.type}"
-    # and the conversion builds the library object with the same values
-    cfg = to_config(mirror(), lib)
-    assert all(getattr(cfg, k) == v for k, v in dataclasses.asdict(mirror()).items())
-
-
-def test_stage_modules_import_without_torch():
-    """`cobgs status` / a cached `cobgs run` import every stage module: keep torch out."""
+def test_stage_modules_and_the_cli_import_without_torch():
+    """`cobgs --help`, `cobgs status` and a cached `cobgs run` import every stage module and
+    build the CLI parser: none of that may import torch (or numpy, OpenCV, pycolmap)."""
     code = ("import sys; from stages.registry import load_registry; load_registry(); "
+            "from stages.cli import build_parser; build_parser(); "
+            "import pipeline, cobgs.configs; "
             "bad = [m for m in ('torch', 'numpy', 'cv2', 'pycolmap') if m in sys.modules]; "
             "print(','.join(bad))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == ""
+
+
+def test_stage_params_are_the_library_configs():
+    """One definition of every config: the stages declare the library's classes."""
+    from cobgs import configs
+    from stages.masks import MasksParams
+    from stages.refine import RefineParams
+    from stages.registry import load_registry
+    from stages.sfm import SfmParams
+
+    graph = load_registry().graph()
+    assert graph.stages["train"].params is configs.TrainConfig
+    import typing
+
+    hints = {c: typing.get_type_hints(c) for c in (RefineParams, MasksParams, SfmParams)}
+    assert hints[RefineParams]["sa3d"] is configs.SA3DConfig
+    assert hints[RefineParams]["flashsplat"] is configs.FlashSplatConfig
+    assert hints[MasksParams]["two_stage"] is configs.TwoStageConfig
+    assert hints[MasksParams]["scribbles"] is configs.ScribbleConfig
+    assert hints[MasksParams]["noise"] is configs.MaskNoiseParams
+    assert hints[SfmParams]["options"] is configs.SfmOptions
+    from cobgs.refine import RefineConfig
+    from cobgs.train import TrainConfig
+
+    assert RefineConfig is configs.RefineConfig and TrainConfig is configs.TrainConfig  # re-exported
+
+
+@pytest.mark.parametrize("sets, message", [
+    (["refine.cobgs.scene_type=360"], "set refine.scene_type"),
+    (["sfm.options.device=cuda"], "workflow's device"),
+])
+def test_fields_the_stage_sets_are_refused_as_params(tmp_path, sets, message):
+    from pipeline import WorkflowError
+
+    with pytest.raises(WorkflowError, match=message):
+        _load(tmp_path, '[axes.scene.s]\nkind = "synthetic"\n', sets)
 
 
 def _load(tmp_path, text, sets=()):

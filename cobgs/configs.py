@@ -1,0 +1,421 @@
+"""Every configuration of the library, in one module that imports nothing heavy.
+
+The dataclasses and their validation only: the algorithm modules import them from here
+(and re-export them under their old names), and the pipeline's stages declare them as
+their params directly, so ``cobgs --help`` and a fully cached ``cobgs run`` never import
+torch (or numpy) to read a workflow, and every value is checked where it is set.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+from dataclasses import dataclass
+from typing import Optional, Tuple
+
+from .errors import InputError
+
+__all__ = ["TrainConfig", "Schedule", "RefineConfig", "SA3DConfig", "FlashSplatConfig",
+           "TwoStageConfig", "ScribbleConfig", "MaskNoiseParams", "SfmOptions", "LABEL",
+           "RAEM_VARIANTS", "TEXTURE_ADAM", "SCENE_DEFAULTS", "MATCHERS"]
+
+LABEL = "mask_logit"  # name of the per-Gaussian label-logit extra
+RAEM_VARIANTS = ("off", "released", "paper")
+SCENE_DEFAULTS = {"forward": (0.5, 6), "360": (0.8, 4)}  # δ, mask stages (SPEC §2)
+TEXTURE_ADAM = ("baseline", "fresh")
+MATCHERS = ("auto", "exhaustive", "sequential")
+
+
+# -- baseline training (cobgs.train) ---------------------------------------------------------
+@dataclass(frozen=True)
+class TrainConfig:
+    """Every knob of the baseline optimisation (defaults: the 3DGS paper's)."""
+
+    iterations: int = 30_000
+    seed: int = 0
+    # Schedule scaling (see the module docstring).
+    scale_schedule: bool = True
+    scale_densify_interval: bool = False
+    reference_iterations: int = 30_000
+    # Spherical harmonics.
+    sh_degree: int = 3
+    sh_degree_interval_its: int = 1_000
+    # Learning rates (Adam, eps 1e-15). Position lr is multiplied by the scene extent.
+    position_lr_init: float = 1.6e-4
+    position_lr_final: float = 1.6e-6
+    position_lr_decay_its: int = 30_000
+    sh0_lr: float = 2.5e-3
+    shN_lr: float = 2.5e-3 / 20.0
+    opacity_lr: float = 0.025
+    scaling_lr: float = 5e-3
+    rotation_lr: float = 1e-3
+    adam_eps: float = 1e-15
+    ssim_weight: float = 0.2
+    # Densification.
+    densify_from_its: int = 500
+    densify_until_its: int = 15_000
+    densify_interval_its: int = 100
+    densify_grad_threshold_ndc: float = 2e-4
+    dense_scale_fraction: float = 0.01  # clone if max scale <= this x extent, else split
+    split_children: int = 2
+    split_scale_divisor: float = 1.6
+    prune_min_opacity: float = 0.005
+    prune_max_world_scale_fraction: float = 0.1  # x extent, after the first opacity reset
+    prune_max_screen_radius_px: float = 0.0  # 0 = off (see the module docstring)
+    max_gaussians: int = 0  # 0 = unlimited; otherwise densification stops adding
+    opacity_reset_interval_its: int = 3_000
+    opacity_reset_value: float = 0.01
+    # Initialisation.
+    random_init_points: int = 100_000
+    init_opacity: float = 0.1
+    # Rendering / bookkeeping.
+    background: Optional[tuple[float, float, float]] = None  # None: the scene's
+    # A fresh uniform-random background colour every iteration (3DGS's ``--random_background``):
+    # a fully opaque capture can then no longer be fitted by letting a fixed black
+    # background show through semi-transparent layers; only for opaque photographs
+    # (not RGBA-composited scenes, whose targets contain the fixed background).
+    random_background: bool = False
+    backend: str = "native"
+    log_interval_its: int = 10
+    checkpoint_interval_its: int = 0  # 0 = only at the end (when a folder is given)
+
+    def __post_init__(self):
+        if self.iterations < 1:
+            raise InputError(f"TrainConfig.iterations must be >= 1, got {self.iterations}")
+        if not 0 <= self.sh_degree <= 3:
+            raise InputError(f"TrainConfig.sh_degree must be in 0..3, got {self.sh_degree}")
+        if self.reference_iterations < 1:
+            raise InputError("TrainConfig.reference_iterations must be >= 1")
+        if self.split_children < 1:
+            raise InputError("TrainConfig.split_children must be >= 1")
+
+    def schedule(self) -> "Schedule":
+        """Iteration-valued fields after scaling to ``iterations`` (see module docstring)."""
+        f = self.iterations / self.reference_iterations if self.scale_schedule else 1.0
+
+        def s(v: int) -> int:
+            return max(1, int(round(v * f)))
+
+        return Schedule(
+            sh_degree_interval=s(self.sh_degree_interval_its),
+            position_lr_decay=s(self.position_lr_decay_its),
+            densify_from=s(self.densify_from_its),
+            densify_until=s(self.densify_until_its),
+            densify_interval=s(self.densify_interval_its) if self.scale_densify_interval else self.densify_interval_its,
+            opacity_reset_interval=s(self.opacity_reset_interval_its),
+        )
+
+
+@dataclass(frozen=True)
+class Schedule:
+    """Resolved iteration counts of one run (see :meth:`TrainConfig.schedule`)."""
+
+    sh_degree_interval: int
+    position_lr_decay: int
+    densify_from: int
+    densify_until: int
+    densify_interval: int
+    opacity_reset_interval: int
+
+
+# -- COB-GS refinement (cobgs.refine); the texture stage's lrs are the baseline's (SPEC §2)
+@dataclass(frozen=True)
+class RefineConfig:
+    """Every parameter of the COB-GS refinement (defaults: the released behaviour).
+
+    Attributes:
+        scene_type: "forward" (δ 0.5, 6 mask + 5 texture stages) or "360" (δ 0.8, 4 + 3).
+        delta: ambiguity threshold δ; None = the scene type's.
+        mask_stages: number of MASK stages; None = the scene type's. TEXTURE stages sit
+            between consecutive MASK stages (mask_stages − 1 of them) when ``bgtr``.
+        stage_length_views: stage length in units of V (2 → 2V iterations).
+        bags: boundary-adaptive Gaussian splitting on/off (Table 5).
+        bgtr: boundary-guided texture restoration (TEXTURE stages) on/off (Table 5).
+        raem: final pruning: "off", "released" (every ambiguous Gaussian) or "paper"
+            (ambiguous and below the pixel footprint; :mod:`cobgs.refine_split`).
+        score: "count" (pixel counts N⁺/N⁻, released) or "weight" (Σ α·T, ablation).
+        texture_adam: "baseline" — the TEXTURE stages' Adam starts from the baseline's
+            moments when the caller passes them (``texture_moments``; the released code
+            restores the 3DGS checkpoint's optimizer), zero moments otherwise; "fresh" —
+            always zero moments (ablation).
+        split_size_fraction: split only ambiguous Gaussians with max scale > this × extent.
+        split_children: children per split parent.
+        split_scale_divisor: child scale = parent scale / this.
+        raem_footprint_px: pixel-footprint threshold of the "paper" RAEM.
+        mask_lambda: λ of the mask loss (weight of the background term).
+        label_lr: Adam lr of the label logits.
+        adam_eps: Adam epsilon of both optimizers.
+        position_lr: texture-stage position lr (× extent): the baseline's final lr.
+        sh0_lr, shN_lr, opacity_lr, scaling_lr, rotation_lr: texture-stage lrs (3DGS).
+        ssim_weight: λ of the photometric loss 0.8·L1 + 0.2·(1 − SSIM).
+        seed: seeds the view order and the split samples.
+        backend: rasterizer backend.
+        label_name: name of the label-logit extra.
+        record_scores: keep every mask stage's mean scores in the result (δ sweep).
+    """
+
+    scene_type: str = "forward"
+    delta: Optional[float] = None
+    mask_stages: Optional[int] = None
+    stage_length_views: float = 2.0
+    bags: bool = True
+    bgtr: bool = True
+    raem: str = "released"
+    score: str = "count"
+    texture_adam: str = "baseline"
+    split_size_fraction: float = 0.01
+    split_children: int = 2
+    split_scale_divisor: float = 1.6
+    raem_footprint_px: float = 1.0
+    mask_lambda: float = 1.0
+    label_lr: float = 0.1
+    adam_eps: float = 1e-15
+    position_lr: float = TrainConfig.position_lr_final
+    sh0_lr: float = TrainConfig.sh0_lr
+    shN_lr: float = TrainConfig.shN_lr
+    opacity_lr: float = TrainConfig.opacity_lr
+    scaling_lr: float = TrainConfig.scaling_lr
+    rotation_lr: float = TrainConfig.rotation_lr
+    ssim_weight: float = TrainConfig.ssim_weight
+    seed: int = 0
+    backend: str = "native"
+    label_name: str = LABEL
+    record_scores: bool = True
+
+    def __post_init__(self):
+        if self.scene_type not in SCENE_DEFAULTS:
+            raise InputError(f"RefineConfig.scene_type must be 'forward' or '360', got {self.scene_type!r}")
+        if self.raem not in RAEM_VARIANTS:
+            raise InputError(f"RefineConfig.raem must be one of {RAEM_VARIANTS}, got {self.raem!r}")
+        if self.score not in ("count", "weight"):
+            raise InputError(f"RefineConfig.score must be 'count' or 'weight', got {self.score!r}")
+        if self.texture_adam not in TEXTURE_ADAM:
+            raise InputError(f"RefineConfig.texture_adam must be one of {TEXTURE_ADAM}, got {self.texture_adam!r}")
+        if self.delta is not None and not (0.0 <= self.delta <= 1.0):
+            raise InputError(f"RefineConfig.delta must be in [0, 1], got {self.delta}")
+        if self.mask_stages is not None and (not isinstance(self.mask_stages, int) or self.mask_stages < 1):
+            raise InputError(f"RefineConfig.mask_stages must be an int >= 1, got {self.mask_stages!r}")
+        if not self.stage_length_views > 0:
+            raise InputError(f"RefineConfig.stage_length_views must be > 0, got {self.stage_length_views}")
+        if self.split_children < 1 or self.split_scale_divisor <= 0:
+            raise InputError("RefineConfig.split_children must be >= 1 and split_scale_divisor > 0")
+        if self.mask_lambda < 0:
+            raise InputError(f"RefineConfig.mask_lambda must be >= 0, got {self.mask_lambda}")
+        for name in ("label_lr", "adam_eps"):
+            if not getattr(self, name) > 0:
+                raise InputError(f"RefineConfig.{name} must be > 0")
+
+    @property
+    def threshold(self) -> float:
+        """δ actually used."""
+        return SCENE_DEFAULTS[self.scene_type][0] if self.delta is None else float(self.delta)
+
+    @property
+    def num_mask_stages(self) -> int:
+        return SCENE_DEFAULTS[self.scene_type][1] if self.mask_stages is None else self.mask_stages
+
+    def stage_length(self, num_views: int) -> int:
+        """Iterations per stage: round(stage_length_views × V), at least 1."""
+        return max(1, int(round(self.stage_length_views * num_views)))
+
+    def plan(self) -> list[str]:
+        """Stage kinds in order: "mask" / "texture", starting and ending with "mask"."""
+        out = []
+        for i in range(self.num_mask_stages):
+            out.append("mask")
+            if self.bgtr and i < self.num_mask_stages - 1:
+                out.append("texture")
+        return out
+
+    def as_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["threshold"] = self.threshold
+        d["num_mask_stages"] = self.num_mask_stages
+        return d
+
+
+# -- peers (cobgs.peers) ------------------------------------------------------------------
+@dataclass(frozen=True)
+class SA3DConfig:
+    """SA3D-GS parameters (SPEC §3).
+
+    Attributes:
+        lr: Adam lr of the raw labels.
+        neg_weight: weight of the background term of the loss.
+        passes: passes over the training views.
+        threshold: foreground = label > threshold at the end.
+        seed: view order.
+        adam_eps: Adam epsilon.
+        backend: rasterizer backend.
+    """
+
+    lr: float = 1.0
+    neg_weight: float = 0.3
+    passes: int = 2
+    threshold: float = 0.5
+    seed: int = 0
+    adam_eps: float = 1e-15
+    backend: str = "native"
+
+    def __post_init__(self):
+        if self.passes < 1 or self.lr <= 0:
+            raise InputError("SA3DConfig.passes must be >= 1 and lr > 0")
+
+
+@dataclass(frozen=True)
+class FlashSplatConfig:
+    """FlashSplat parameters (SPEC §3).
+
+    Attributes:
+        background_bias: added to the normalised background entry before the argmax
+            (upstream tunes it per scene in about [−0.98, 0.88]).
+        backend: rasterizer backend.
+    """
+
+    background_bias: float = 0.0
+    backend: str = "native"
+
+
+# -- two-stage masks and scribbles (cobgs.masks) ------------------------------------------
+@dataclass(frozen=True)
+class TwoStageConfig:
+    """Thresholds of Alg. 1 as the authors ran it (SPEC section 4)."""
+
+    prompt_frame: int = 0
+    box_threshold: float = 0.3
+    text_threshold: float = 0.45
+    keep_ratio_of_best: float = 0.7
+    stage2_box_threshold_min: float = 0.6
+    stage2_ratio_of_best: float = 0.85
+    stage2_text_threshold_min: float = 0.65
+    stage2_backward: bool = True
+    run_stage2: bool = True
+
+
+@dataclass(frozen=True)
+class ScribbleConfig:
+    """Sampling of skeleton points; the thresholds are the protocol's."""
+
+    keep_positive_above: float = 0.98
+    keep_negative_above: float = 0.995
+    seed: int = 0
+    # A scribble pixel has some colour channel above this (8-bit images; 0 = any non-zero
+    # channel, the protocol's: pure red or blue strokes and anti-aliased edges count).
+    binarize_above: int = 0
+    # a scribble too short to leave any point still contributes its middle pixel
+    at_least_one_per_scribble: bool = True
+
+
+# -- mask noise (cobgs.data.mask_noise) ---------------------------------------------------
+@dataclass(frozen=True)
+class MaskNoiseParams:
+    """How often and how strongly masks are corrupted. Rates are probabilities per mask
+    (one object in one view).
+
+    Attributes:
+        drop_rate: the mask is replaced by an empty one (then nothing else applies).
+        morph_rate: the mask is eroded or dilated.
+        morph_max_px: the erosion/dilation radius is uniform in 1..morph_max_px pixels.
+        dilate_fraction: share of dilations among erosions/dilations.
+        jitter_rate: the boundary is jittered.
+        jitter_amplitude_px: the largest boundary displacement.
+        jitter_scale_px: correlation length of the displacement along the boundary.
+        blob_rate: spurious blobs are added.
+        blob_count_max: blobs per affected mask, uniform in 1..blob_count_max.
+        blob_radius_min_px, blob_radius_max_px: blob disc radius range.
+        seed: base seed of every mask's random stream.
+    """
+
+    drop_rate: float = 0.05
+    morph_rate: float = 0.3
+    morph_max_px: int = 3
+    dilate_fraction: float = 0.5
+    jitter_rate: float = 0.3
+    jitter_amplitude_px: float = 2.0
+    jitter_scale_px: float = 6.0
+    blob_rate: float = 0.2
+    blob_count_max: int = 3
+    blob_radius_min_px: int = 2
+    blob_radius_max_px: int = 5
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("drop_rate", "morph_rate", "dilate_fraction", "jitter_rate", "blob_rate"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and 0.0 <= v <= 1.0):
+                raise InputError(f"MaskNoiseParams.{name} must be a probability in [0, 1], got {v!r}")
+        for name in ("morph_max_px", "blob_count_max", "blob_radius_min_px", "blob_radius_max_px"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < 1:
+                raise InputError(f"MaskNoiseParams.{name} must be an int >= 1, got {v!r}")
+        if self.blob_radius_max_px < self.blob_radius_min_px:
+            raise InputError("MaskNoiseParams.blob_radius_max_px must be >= blob_radius_min_px, "
+                             f"got {self.blob_radius_max_px} < {self.blob_radius_min_px}")
+        for name in ("jitter_amplitude_px", "jitter_scale_px"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and v > 0):
+                raise InputError(f"MaskNoiseParams.{name} must be > 0, got {v!r}")
+        if not isinstance(self.seed, int) or self.seed < 0:
+            raise InputError(f"MaskNoiseParams.seed must be an int >= 0, got {self.seed!r}")
+
+
+# -- SfM (cobgs.sfm) -----------------------------------------------------------------------
+@dataclass(frozen=True)
+class SfmOptions:
+    """Options of :func:`run_sfm`.
+
+    Attributes:
+        matcher: "exhaustive" (every pair), "sequential" (each image with the next
+            ``sequential_overlap`` in name order; for ordered captures) or "auto"
+            (exhaustive up to ``exhaustive_max_images`` images, sequential above).
+        exhaustive_max_images: the "auto" threshold.
+        sequential_overlap: neighbours matched per image by the sequential matcher.
+        camera_model: COLMAP model fitted during mapping (SIMPLE_RADIAL is COLMAP's default
+            for unknown lenses; undistortion turns any model into PINHOLE).
+        single_camera: all images share one camera (one capture device).
+        camera_params: known intrinsics in ``camera_model``'s parameter order, or None to
+            estimate them (from EXIF or a default focal of 1.2 x max(width, height)).
+        max_image_size_px: images are downscaled to this longest side for extraction.
+        max_num_features: SIFT features kept per image.
+        min_num_matches: verified matches a pair needs to join the view graph.
+        min_registered_fraction: :class:`DataError` when fewer images register.
+        num_threads: CPU threads for every step; 0 = all cores of this machine.
+        device: "cpu" or "cuda" (SIFT extraction and matching; mapping is CPU).
+        seed: seeds COLMAP's random generator (RANSAC, mapper) for repeatable runs.
+        verbose: let COLMAP log INFO lines (otherwise warnings and errors only).
+    """
+
+    matcher: str = "auto"
+    exhaustive_max_images: int = 150
+    sequential_overlap: int = 10
+    camera_model: str = "SIMPLE_RADIAL"
+    single_camera: bool = True
+    camera_params: Optional[Tuple[float, ...]] = None
+    max_image_size_px: int = 3200
+    max_num_features: int = 8192
+    min_num_matches: int = 15
+    min_registered_fraction: float = 1.0
+    num_threads: int = 0
+    device: str = "cpu"
+    seed: int = 0
+    verbose: bool = False
+
+    def __post_init__(self) -> None:
+        if self.matcher not in MATCHERS:
+            raise InputError(f"SfmOptions.matcher must be one of {MATCHERS}, got {self.matcher!r}")
+        if self.device not in ("cpu", "cuda"):
+            raise InputError(f"SfmOptions.device must be 'cpu' or 'cuda', got {self.device!r}")
+        if not 0.0 <= self.min_registered_fraction <= 1.0:
+            raise InputError("SfmOptions.min_registered_fraction must be in [0, 1], got "
+                             f"{self.min_registered_fraction}")
+        for name in ("exhaustive_max_images", "sequential_overlap", "max_image_size_px",
+                     "max_num_features", "min_num_matches"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or v < 1:
+                raise InputError(f"SfmOptions.{name} must be a positive int, got {v!r}")
+        if not isinstance(self.num_threads, int) or self.num_threads < 0:
+            raise InputError(f"SfmOptions.num_threads must be an int >= 0, got {self.num_threads!r}")
+
+    def threads(self) -> int:
+        """The thread count actually passed to COLMAP."""
+        return self.num_threads or (os.cpu_count() or 1)
