@@ -35,7 +35,8 @@ from .plan import Plan, TaskState, inspect
 from .registry import Registry
 from .run import RunOptions, RunSummary, run_workflow
 from .stage import NoParams, Resources, Stage
-from .workflow import Settings, Workflow, load_workflow
+from .values import Settings
+from .workflow import Workflow, load_workflow
 
 __all__ = [
     "Cache", "CacheError", "CycleError", "DuplicateOutputError", "ExecutorError", "Graph",

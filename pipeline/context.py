@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any, Iterable, Iterator, Optional
 
 from .items import Item
-from .workflow import Settings
+from .values import Settings
 
 
 @dataclass

@@ -32,7 +32,7 @@ from .hashing import tree_hash
 from .items import Item
 from .measure import Meter
 from .stage import Stage
-from .workflow import Settings
+from .values import Settings
 
 MANIFEST_FORMAT = 1
 

@@ -31,7 +31,7 @@ from .errors import StageSpecError
 
 if TYPE_CHECKING:  # pragma: no cover
     from .context import StageContext
-    from .workflow import Settings
+    from .values import Settings
 
 NAME_RE = re.compile(r"^[a-z][a-z0-9_]*$")
 #: Words that mean something else on the command line (``--force all``) or in a workflow.

@@ -48,21 +48,11 @@ from .hashing import stat_fingerprint
 from .items import VALUE_RE, Axes, Axis, Item, check_value_name
 from .registry import Registry
 from .stage import NAME_RE, Stage
+from .values import Settings
 
 TOP_KEYS = ("workflow", "settings", "params", "axes")
 WORKFLOW_KEYS = ("name", "description", "stages", "nested")
 _ENV_RE = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)(?::-([^}]*))?\}")
-
-
-@dataclass(frozen=True)
-class Settings:
-    """Workflow-wide settings every stage can read from ``ctx.settings``."""
-
-    device: str = "cpu"
-
-    def __post_init__(self) -> None:
-        if not re.fullmatch(r"cpu|cuda(:\d+)?", self.device):
-            raise ValueError(f"device must be 'cpu', 'cuda' or 'cuda:N', got {self.device!r}")
 
 
 @dataclass(frozen=True)

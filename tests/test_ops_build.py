@@ -116,7 +116,7 @@ def test_second_process_waits_for_the_builder(tmp_path):
 
 
 def test_cli_build_reports_the_library():
-    proc = subprocess.run([sys.executable, "-m", "stages.cli", "build"], capture_output=True,
+    proc = subprocess.run([sys.executable, "-m", "stages.commands.cli", "build"], capture_output=True,
                           text=True, cwd=REPO, timeout=600)
     assert proc.returncode == 0, proc.stderr
     assert "cobgs native extension ready:" in proc.stdout and ".so" in proc.stdout

@@ -315,7 +315,7 @@ def _cli(argv) -> int:
     """Run a `cobgs` command through this provider only (others may be mid-edit)."""
     import argparse
 
-    from stages import synth_cmd
+    from stages.commands import synth as synth_cmd
 
     parser = argparse.ArgumentParser(prog="cobgs")
     synth_cmd.register(parser.add_subparsers(dest="command"))
@@ -325,7 +325,7 @@ def _cli(argv) -> int:
 
 def test_cli_matches_library(tmp_path):
     from cobgs.data.mask_noise import MaskNoiseParams
-    from stages import synth_cmd
+    from stages.commands import synth as synth_cmd
 
     assert set(synth_cmd.PRESET_NAMES) == set(synthetic.PRESETS)
     noise_fields = {f.name for f in dataclasses.fields(MaskNoiseParams)} - {"seed"}

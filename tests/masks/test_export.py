@@ -107,21 +107,21 @@ def test_cli_registered_and_lazy():
     import sys
 
     # only this provider is checked: the others belong to other modules
-    code = ("import argparse, sys, stages.onnx_cmd as m; "
+    code = ("import argparse, sys, stages.commands.onnx as m; "
             "m.register(argparse.ArgumentParser().add_subparsers()); "
             "print(any(k in sys.modules for k in ('onnxruntime', 'torch', 'sam2')))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True)
     assert out.stdout.strip() == "False"  # `cobgs --help` stays fast
-    from stages.cli import PROVIDERS, main
+    from stages.commands.cli import PROVIDERS, main
 
-    assert "stages.onnx_cmd" in PROVIDERS
+    assert "stages.commands.onnx" in PROVIDERS
     with pytest.raises(SystemExit):
         main(["export-onnx", "sam2", "--help"])
 
 
 def test_cli_missing_checkpoint_reports_one_line(tmp_path, capsys):
-    from stages.cli import main
+    from stages.commands.cli import main
 
     rc = main(["export-onnx", "gdino", "--config", str(tmp_path / "c.py"), "--checkpoint",
                str(tmp_path / "w.pth"), "--out", str(tmp_path / "o")])

@@ -11,7 +11,7 @@ from pipeline_testutil import REPO, cli_env
 
 
 def cobgs(*args, cwd=REPO, check=None, **env):
-    proc = subprocess.run([sys.executable, "-m", "stages.cli", *map(str, args)], cwd=cwd,
+    proc = subprocess.run([sys.executable, "-m", "stages.commands.cli", *map(str, args)], cwd=cwd,
                           env=cli_env(**env), capture_output=True, text=True, timeout=120)
     if check is not None:
         assert proc.returncode == check, proc.stdout + proc.stderr
@@ -64,7 +64,7 @@ def test_errors_are_one_clear_line(toy, text, args, env, message):
     if text is not None:
         toy.path.write_text(toy.path.read_text() + text)
     if "--executor" in args:  # hide an installed Ray from this process
-        code = ("import sys; sys.modules['ray'] = None; from stages.cli import main; "
+        code = ("import sys; sys.modules['ray'] = None; from stages.commands.cli import main; "
                 f"sys.exit(main({['run', str(toy.path), '--cache-dir', str(toy.cache), *args]!r}))")
         proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=cli_env(**env),
                               capture_output=True, text=True, timeout=120)
@@ -163,7 +163,7 @@ def test_wrong_shaped_cache_files_are_corrupt_entries_not_crashes(toy):
 def test_a_closed_pipe_ends_quietly():
     """`cobgs stages --toml | head -1`: the reader leaves early; no BrokenPipe traceback,
     exit status 141 (what a shell reports for SIGPIPE)."""
-    proc = subprocess.Popen([sys.executable, "-m", "stages.cli", "stages", "--toml"], cwd=REPO,
+    proc = subprocess.Popen([sys.executable, "-m", "stages.commands.cli", "stages", "--toml"], cwd=REPO,
                             env=cli_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     proc.stdout.readline()
     proc.stdout.close()

@@ -19,7 +19,7 @@ from pipeline.cache import Cache
 def start_run(toy, *args, **env):
     if "PIPELINE_TOYS_HANG" in env:
         Path(env["PIPELINE_TOYS_HANG"] + ".arm").touch()
-    cmd = [sys.executable, "-m", "stages.cli", "run", str(toy.path), "--cache-dir",
+    cmd = [sys.executable, "-m", "stages.commands.cli", "run", str(toy.path), "--cache-dir",
            str(toy.cache), *args]
     return subprocess.Popen(cmd, cwd=REPO, env=cli_env(**env), stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True, start_new_session=True)

@@ -273,7 +273,7 @@ def test_never_run_workflow_reports_missing_everything(recorded, tmp_path):
 
 
 def test_cli(recorded, tmp_path, monkeypatch, capsys):
-    from stages.cli import main
+    from stages.commands.cli import main
 
     monkeypatch.setenv("COBGS_BUILTIN_STAGES", "0")
     monkeypatch.setenv("COBGS_STAGE_MODULES", "report_fixture_run")

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from tiny_recipe import tiny_recipe  # tests/ is on sys.path
 
 pytestmark = pytest.mark.slow
 
@@ -29,24 +30,7 @@ preset = "demo"
 num_views = 16
 workers = 1
 
-[params.sfm]
-mode = "never"
-
-[params.train]
-iterations = 300
-scale_schedule = false
-densify_from_its = 50
-densify_until_its = 250
-densify_interval_its = 50
-opacity_reset_interval_its = 1000
-position_lr_decay_its = 300
-sh_degree_interval_its = 100
-max_gaussians = 6000
-
-[params.refine.cobgs]
-stage_length_views = 1.0
-mask_stages = 3
-
+{recipe}
 [axes.scene.tiny]
 kind = "synthetic"
 
@@ -57,7 +41,7 @@ refine = { method = "nosplit" }
 refine = { method = "flashsplat" }
 
 [axes.object.tiny.ball]
-"""
+""".replace("{recipe}", tiny_recipe(iterations=300, densify_until_its=250, sfm="never", stage_length_views=1.0))
 
 
 @pytest.fixture(scope="module")
@@ -73,7 +57,7 @@ def real(tmp_path_factory):
     summary = run_workflow(load_workflow(path, load_registry(), []), RunOptions(cache_dir=cache, package_version="test"),
                            stream=out)
     assert summary.exit_code == 0, out.getvalue()
-    from stages.cli import main
+    from stages.commands.cli import main
 
     assert main(["report", str(path), "--cache-dir", str(cache), "--out", str(root / "report")]) == 0
     return path, cache, root / "report" / "index.html"

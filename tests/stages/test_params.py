@@ -13,7 +13,7 @@ def test_stage_modules_and_the_cli_import_without_torch():
     """`cobgs --help`, `cobgs status` and a cached `cobgs run` import every stage module and
     build the CLI parser: none of that may import torch (or numpy, OpenCV, pycolmap)."""
     code = ("import sys; from stages.registry import load_registry; load_registry(); "
-            "from stages.cli import build_parser; build_parser(); "
+            "from stages.commands.cli import build_parser; build_parser(); "
             "import pipeline, cobgs.configs; "
             "bad = [m for m in ('torch', 'numpy', 'cv2', 'pycolmap') if m in sys.modules]; "
             "print(','.join(bad))")

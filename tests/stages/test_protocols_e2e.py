@@ -19,33 +19,14 @@ from pipeline import RunOptions, WorkflowError, entries, load_workflow, run_work
 from stages.registry import load_registry
 
 from protocol_fixtures import to_lerf_mask, to_nvos  # tests/stages is on sys.path
+from tiny_recipe import tiny_recipe  # tests/ is on sys.path
 
 WORKFLOW = """
 [workflow]
 name = "protocols"
 nested = {{ object = "scene" }}
 
-[params.sfm]
-mode = "always"
-
-[params.sfm.options]
-camera_model = "SIMPLE_PINHOLE"
-num_threads = 1                     # COLMAP with 2 threads is not repeatable
-
-[params.train]
-iterations = 500
-scale_schedule = false
-densify_from_its = 50
-densify_until_its = 350
-densify_interval_its = 50
-opacity_reset_interval_its = 1000
-position_lr_decay_its = 500
-sh_degree_interval_its = 100
-max_gaussians = 6000
-
-[params.refine.cobgs]
-mask_stages = 3
-
+{recipe}
 [axes.scene.synthball]
 kind = "nvos"
 path = "{llff}"
@@ -85,7 +66,7 @@ def test_nvos_and_lerf_mask_workflows(tmp_path):
     llff, labels = to_nvos(scene, tmp_path / "nvos", "synthball", "ball", target="0008", reference="0003")
     lerf, test_views = to_lerf_mask(scene, tmp_path / "lerf", {"ball": "ball", "can": "can"})
     path = tmp_path / "protocols.toml"
-    path.write_text(WORKFLOW.format(llff=llff, labels=labels, lerf=lerf))
+    path.write_text(WORKFLOW.format(llff=llff, labels=labels, lerf=lerf, recipe=tiny_recipe()))
     wf = load_workflow(path, load_registry())
     out = io.StringIO()
     summary = run_workflow(wf, RunOptions(cache_dir=tmp_path / "cache"), stream=out)
@@ -218,7 +199,7 @@ def test_nvos_on_the_published_llff_copies_with_released_masks(tmp_path, layout)
     scene = generate_scene(tmp_path / "synth", "demo", seed=0, num_views=12, workers=1)
     llff, labels = to_nvos(scene, tmp_path / "nvos", "synthball", "ball", target="0008",
                            reference="0003", layout=layout)
-    text = WORKFLOW.format(llff=llff, labels=labels, lerf=llff)
+    text = WORKFLOW.format(llff=llff, labels=labels, lerf=llff, recipe=tiny_recipe())
     text = text[:text.index("[axes.scene.lerf]")] + text[text.index("[axes.method.cobgs]"):]
     text = text.replace("[axes.object.lerf.ball]\n[axes.object.lerf.can]\n", "")
     text = text.replace("[axes.object.synthball.ball]",

@@ -16,6 +16,7 @@ import pytest
 
 from pipeline import RunOptions, entries, load_workflow, run_workflow
 from stages.registry import load_registry
+from tiny_recipe import tiny_recipe  # tests/ is on sys.path
 
 WORKFLOW = """
 [workflow]
@@ -27,30 +28,7 @@ preset = "demo"
 num_views = 16
 workers = 1
 
-[params.sfm]
-mode = "always"
-
-[params.sfm.options]
-camera_model = "SIMPLE_PINHOLE"
-# One thread: COLMAP is only repeatable single-threaded (with 2 threads the held-out IoUs
-# below moved between 0.78 and 0.95 from run to run and failed a full-suite run once).
-num_threads = 1
-
-[params.train]
-iterations = 500
-scale_schedule = false
-densify_from_its = 50
-densify_until_its = 350
-densify_interval_its = 50
-opacity_reset_interval_its = 1000
-position_lr_decay_its = 500
-sh_degree_interval_its = 100
-max_gaussians = 6000
-
-[params.refine.cobgs]
-stage_length_views = 2.0
-mask_stages = 3
-
+{recipe}
 [axes.scene.tiny]
 kind = "synthetic"
 
@@ -60,7 +38,7 @@ kind = "synthetic"
 refine = { method = "nosplit" }
 
 [axes.object.tiny.ball]
-"""
+""".replace("{recipe}", tiny_recipe())
 
 
 def _run(path: Path, cache: Path, sets=(), **opts):
@@ -227,7 +205,7 @@ def test_a_same_size_edit_of_a_result_is_caught_and_recomputed(tiny, tmp_path):
 
 
 def test_export_copies_the_ply_layout(tiny, tmp_path):
-    from stages.cli import main
+    from stages.commands.cli import main
 
     path, cache, _, _ = tiny
     rc = main(["export", str(path), "--to", str(tmp_path / "out"), "--cache-dir", str(cache)])
@@ -249,9 +227,9 @@ def test_export_replaces_the_folder_as_a_whole(tiny, tmp_path, monkeypatch):
     refused."""
     import os
 
-    import stages.export_cmd as ex
+    import stages.commands.export as ex
     from pipeline import PipelineError
-    from stages.cli import main
+    from stages.commands.cli import main
 
     path, cache, wf, _ = tiny
     out = tmp_path / "out"

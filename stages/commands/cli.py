@@ -15,12 +15,12 @@ from typing import Optional, Sequence
 
 # Order here is the order of `cobgs --help`.
 PROVIDERS = (
-    "stages.build_cmd",
-    "stages.synth_cmd",
-    "stages.workflow_cmd",
-    "stages.export_cmd",
-    "stages.onnx_cmd",
-    "stages.report_cmd",
+    "stages.commands.build",
+    "stages.commands.synth",
+    "stages.commands.workflow",
+    "stages.commands.export",
+    "stages.commands.onnx",
+    "stages.commands.report",
 )
 
 

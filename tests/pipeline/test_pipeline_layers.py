@@ -1,0 +1,102 @@
+"""The engine's modules form a layered order, and the packages' arrows point one way.
+
+Imports are read from the source (every ``import`` / ``from`` statement, including those
+inside functions and ``if TYPE_CHECKING:`` blocks), so a cycle that only shows up in type
+hints or in a late import is caught too.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[2]
+PACKAGES = ("cobgs", "pipeline", "stages", "reports")
+
+
+def _imports(path: Path, package: str) -> set[str]:
+    """Absolute dotted names ``path`` imports (relative imports resolved)."""
+    rel = path.relative_to(REPO).with_suffix("")
+    parts = list(rel.parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    here = parts if path.name == "__init__.py" else parts[:-1]
+    out = set()
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            out.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = here[: len(here) - node.level + 1]
+                mod = ".".join(base + ([node.module] if node.module else []))
+                if node.module:
+                    out.add(mod)
+                else:
+                    out.update(f"{mod}.{a.name}" for a in node.names)
+            elif node.module:
+                out.add(node.module)
+    return out
+
+
+def _module_graph(package: str) -> dict[str, set[str]]:
+    graph = {}
+    for f in sorted((REPO / package).glob("*.py")):
+        name = f"{package}.{f.stem}" if f.stem != "__init__" else package
+        deps = set()
+        for imp in _imports(f, package):
+            # pipeline.x.y -> pipeline.x (the module), pipeline -> the package itself
+            parts = imp.split(".")
+            if parts[0] == package and len(parts) > 1:
+                deps.add(f"{package}.{parts[1]}")
+        graph[name] = deps - {name, package}
+    return graph
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    state, stack, found = {}, [], []
+
+    def visit(u):
+        state[u] = 1
+        stack.append(u)
+        for v in sorted(graph.get(u, ())):
+            if v not in graph:
+                continue
+            if state.get(v) == 1:
+                found.append(stack[stack.index(v):] + [v])
+            elif not state.get(v):
+                visit(v)
+        stack.pop()
+        state[u] = 2
+
+    for u in sorted(graph):
+        if not state.get(u):
+            visit(u)
+    return found
+
+
+def test_pipeline_modules_have_no_import_cycle():
+    cycles = _cycles(_module_graph("pipeline"))
+    assert not cycles, "import cycles in pipeline/: " + "; ".join(" -> ".join(c) for c in cycles)
+
+
+def test_the_cycle_finder_finds_a_cycle():
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == [["a", "b", "c", "a"]]
+    assert _cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_arrows_between_packages_point_one_way():
+    """cobgs/ imports none of the others; pipeline/ imports none of cobgs / stages /
+    reports; stages/ (stage files) never import reports/ (the layer above them)."""
+    allowed = {"cobgs": set(), "pipeline": set(), "stages": {"cobgs", "pipeline"},
+               "reports": {"cobgs", "pipeline", "stages"}}
+    bad = []
+    for package in PACKAGES:
+        for f in sorted((REPO / package).rglob("*.py")):
+            rel = f.relative_to(REPO)
+            if package == "stages" and "commands" in rel.parts:
+                continue  # the CLI commands sit above every layer
+            for imp in _imports(f, package):
+                top = imp.split(".")[0]
+                if top in PACKAGES and top != package and top not in allowed[package]:
+                    bad.append(f"{rel} imports {imp}")
+    assert not bad, "\n".join(bad)
