@@ -279,3 +279,66 @@ def run_sfm(image_dir: os.PathLike | str, out_dir: os.PathLike | str,
         raise
     finally:
         pycolmap.logging.minloglevel = level
+
+
+def undistort_masks(sfm_root: os.PathLike | str, mask_root: os.PathLike | str,
+                    out_dir: os.PathLike | str) -> dict:
+    """Undistort a dataset's masks (``mask_root/masks/<object>/<image stem>.*``, made for
+    the original photos) with the same mapping COLMAP's undistorter applied to the images,
+    so they line up with ``sfm_root/images``; nearest-neighbour sampling keeps 0 / 255.
+
+    Each undistorted pixel centre is taken through the undistorted (PINHOLE) camera to a
+    viewing ray and through the distorted camera back to the original image (COLMAP's
+    half-pixel convention), where the mask is sampled. A mask at another size than the
+    image SfM ran on is first resized (nearest) when its aspect matches; otherwise it is
+    refused naming the file.
+
+    Returns:
+        ``{"masks": n written, "objects": [...], "resized": [...]}``; the masks go to
+        ``out_dir/<object>/<image stem>.png``.
+    """
+    import cv2
+    import numpy as np
+    import pycolmap
+
+    from .data.scene import find_object_files
+
+    root = Path(sfm_root)
+    dist = pycolmap.Reconstruction(str(root / "distorted" / "sparse" / "0"))
+    if all(c.model.name in ("SIMPLE_PINHOLE", "PINHOLE") for c in dist.cameras.values()):
+        # no distortion: undistortion keeps every pixel where it is
+        return {"masks": 0, "objects": [], "resized": [], "reason": "pinhole cameras: masks line up as they are"}
+    und = pycolmap.Reconstruction(str(root / "sparse" / "0"))
+    und_by_name = {im.name: im for im in und.images.values()}
+    out, written, objects, resized = Path(out_dir), 0, set(), []
+    for im in dist.images.values():
+        stem = Path(im.name).stem
+        files = find_object_files(mask_root, stem, "masks")
+        if not files or im.name not in und_by_name:
+            continue
+        dc = dist.cameras[im.camera_id]
+        uc = und.cameras[und_by_name[im.name].camera_id]
+        ys, xs = np.mgrid[0:uc.height, 0:uc.width].astype(np.float64)
+        pix = np.stack([xs.ravel() + 0.5, ys.ravel() + 0.5], axis=1)
+        rays = uc.cam_from_img(pix)
+        src = dc.img_from_cam(np.concatenate([rays, np.ones((len(rays), 1))], axis=1), False)
+        map_x = (src[:, 0] - 0.5).reshape(uc.height, uc.width).astype(np.float32)
+        map_y = (src[:, 1] - 0.5).reshape(uc.height, uc.width).astype(np.float32)
+        for obj, f in files.items():
+            m = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+            if m is None:
+                raise DataError("unreadable mask", f)
+            if m.shape != (dc.height, dc.width):
+                h, w = m.shape
+                if abs(w / h - dc.width / dc.height) > 0.01:
+                    raise DataError(f"mask is {w}x{h}; the image SfM ran on is {dc.width}x{dc.height} "
+                                    "(another aspect ratio: a mask must be made for its photo)", f)
+                m = cv2.resize(m, (dc.width, dc.height), interpolation=cv2.INTER_NEAREST)
+                resized.append(f"{obj}/{f.name}")
+            u = cv2.remap(m, map_x, map_y, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            (out / obj).mkdir(parents=True, exist_ok=True)
+            if not cv2.imwrite(str(out / obj / f"{stem}.png"), np.where(u >= 128, 255, 0).astype(np.uint8)):
+                raise DataError("could not write an undistorted mask", out / obj / f"{stem}.png")
+            written += 1
+            objects.add(obj)
+    return {"masks": written, "objects": sorted(objects), "resized": sorted(resized)}

@@ -111,9 +111,10 @@ def load_scene(dataset_dir: Path, poses_dir: Optional[Path]):
     """The posed views of a scene, split as the dataset spec says.
 
     With an SfM model in ``poses_dir`` the cameras come from it (images undistorted by
-    SfM, GT masks still read from the dataset's ``masks/`` folders, which SfM does not
-    move: PINHOLE undistortion keeps the image size and pixels); otherwise the dataset's
-    own reader is used. Views not in the spec's ``views`` list are dropped.
+    SfM; masks from the SfM artifact's ``masks/`` when the camera had distortion, which
+    the SfM stage undistorted like the images, else from the dataset's ``masks/``
+    folders, which a pinhole undistortion leaves in place); otherwise the dataset's own
+    reader is used. Views not in the spec's ``views`` list are dropped.
 
     Returns:
         :class:`cobgs.data.scene.Scene`.
@@ -129,7 +130,8 @@ def load_scene(dataset_dir: Path, poses_dir: Optional[Path]):
         from cobgs.data.colmap import read_colmap
 
         poses_dir = Path(poses_dir)
-        mask_root = root if root is not None else poses_dir
+        # masks undistorted by the SfM stage (a distorted camera) replace the dataset's
+        mask_root = poses_dir if (poses_dir / "masks").is_dir() or root is None else root
         scene = read_colmap(mask_root, images_dir=poses_dir / "images", model_dir=poses_dir / "sparse" / "0",
                             downscale=float(spec.get("sfm_downscale", 1.0)), test_names=test or None,
                             test_every=0)

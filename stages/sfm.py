@@ -74,6 +74,18 @@ def _run(ctx, inputs):
     res = run_sfm(image_dir, ctx.scratch_dir / "sfm", opts, image_names=images["names"])
     # The result folder is built in scratch (run_sfm renames its own temporary folder into
     # place); move its parts into the artifact.
+    # Masks made for the original photos, undistorted like the images (nearest), so they
+    # line up with them; readers then take the masks from this artifact.
+    mask_info = None
+    src = spec.get("reader", {}).get("path")
+    if src is not None and (spec_path(Path(inputs["dataset"]), src) / "masks").is_dir():
+        from cobgs.sfm import undistort_masks
+
+        mask_info = undistort_masks(res.root, spec_path(Path(inputs["dataset"]), src), ctx.out_dir / "masks")
+        if mask_info["masks"]:
+            ctx.log.info("undistorted %d masks of %s like the images%s", mask_info["masks"],
+                         mask_info["objects"], f" (resized first: {len(mask_info['resized'])})"
+                         if mask_info["resized"] else "")
     for part in ("images", "sparse", "sfm.json"):
         (res.root / part).rename(ctx.out_dir / part)
     summary = read_json(ctx.out_dir / "sfm.json")
@@ -81,6 +93,8 @@ def _run(ctx, inputs):
     summary.update(root=".", model_dir="sparse/0", image_dir="images")
     summary.update(ran=True, reason=f"mode {p.mode!r}" + ("" if has_poses else ", the dataset has no poses"))
     summary.pop("timings_s", None)  # in the manifest (ctx.note below): same bytes on a recompute
+    if mask_info is not None:
+        summary["undistorted_masks"] = mask_info
     write_json(ctx.out_dir / "sfm.json", summary)
     ctx.note(ran=True, registered=len(res.registered), unregistered=len(res.unregistered),
              points3d=res.num_points3d, reprojection_error_px=res.mean_reprojection_error_px,
@@ -99,7 +113,7 @@ def _check(p: SfmParams) -> None:
 
 
 STAGE = Stage(
-    name="sfm", version=2, run=_run, inputs=("dataset",), outputs=("poses",), params=SfmParams,
+    name="sfm", version=3, run=_run, inputs=("dataset",), outputs=("poses",), params=SfmParams,
     level=("scene",), uses_device=True, resources=Resources(cpus=2),
     description="pycolmap SfM (skipped when the dataset has poses, unless mode = 'always')", check=_check,
 )
