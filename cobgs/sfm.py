@@ -342,3 +342,90 @@ def undistort_masks(sfm_root: os.PathLike | str, mask_root: os.PathLike | str,
             written += 1
             objects.add(obj)
     return {"masks": written, "objects": sorted(objects), "resized": sorted(resized)}
+
+
+def triangulate_known_poses(image_dir: os.PathLike | str, cameras: Dict[str, tuple],
+                            work_dir: os.PathLike | str, options: SfmOptions = SfmOptions()) -> dict:
+    """Sparse points of a posed scene without any: SIFT features and matches as in
+    :func:`run_sfm`, then COLMAP's point triangulator with the given cameras held fixed
+    (``pycolmap.triangulate_points``), so the points are in the scene's own frame.
+
+    Args:
+        image_dir: the images (read only).
+        cameras: image name in ``image_dir`` -> ``(fx, fy, cx, cy, width, height, w2c)``:
+            pinhole intrinsics at ``width`` x ``height`` (scaled to the image's actual
+            size) and a 4x4 world-to-camera matrix (OpenCV axes).
+        work_dir: an empty folder for the database (removed by the caller).
+        options: extraction / matching options (camera model and device are not used).
+
+    Returns:
+        ``{"xyz": float [N, 3], "rgb": uint8 [N, 3], "points": N, "images": n,
+        "reprojection_error_px": e, "mean_track_length": l}`` (N may be 0).
+    """
+    import numpy as np
+    import pycolmap
+    from PIL import Image
+
+    image_dir, work = Path(image_dir), Path(work_dir)
+    names = sorted(cameras)
+    if len(names) < 2:
+        raise DataError(f"triangulation needs at least 2 posed images, got {len(names)}", image_dir)
+    db = work / "database.db"
+    threads = options.threads()
+    level = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = 0 if options.verbose else 1
+    try:
+        pycolmap.set_random_seed(options.seed)
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.num_threads = threads
+        extraction.max_image_size = options.max_image_size_px
+        extraction.sift.max_num_features = options.max_num_features
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = "PINHOLE"
+        pycolmap.extract_features(db, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.PER_IMAGE,
+                                  reader_options=reader, extraction_options=extraction)
+        matching = pycolmap.FeatureMatchingOptions()
+        matching.num_threads = threads
+        pycolmap.match_exhaustive(db, matching_options=matching)
+        database = pycolmap.Database.open(str(db))
+        try:
+            images = database.read_all_images()
+            cams = {c.camera_id: c for c in database.read_all_cameras()}
+            rigs, frames = database.read_all_rigs(), database.read_all_frames()
+        finally:
+            database.close()
+        rec = pycolmap.Reconstruction()
+        by_frame = {}
+        for im in images:
+            fx, fy, cx, cy, w, h, _ = cameras[im.name]
+            with Image.open(image_dir / im.name) as pic:
+                iw, ih = pic.size
+            sx, sy = iw / w, ih / h
+            cam = cams[im.camera_id]
+            cam.model = pycolmap.CameraModelId.PINHOLE
+            cam.width, cam.height = iw, ih
+            cam.params = [fx * sx, fy * sy, cx * sx, cy * sy]
+            by_frame[im.frame_id] = im
+        for c in cams.values():
+            rec.add_camera(c)
+        for r in rigs:
+            rec.add_rig(r)
+        for f in frames:
+            w2c = np.asarray(cameras[by_frame[f.frame_id].name][6], dtype=np.float64)
+            f.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(w2c[:3, :3]), w2c[:3, 3])
+            rec.add_frame(f)
+        for im in images:
+            rec.add_image(im)
+        for f in frames:
+            rec.register_frame(f.frame_id)
+        out = work / "triangulated"
+        out.mkdir()
+        tri = pycolmap.triangulate_points(rec, db, image_dir, out)
+    finally:
+        pycolmap.logging.minloglevel = level
+    pts = list(tri.points3D.values())
+    xyz = np.array([p.xyz for p in pts], dtype=np.float64).reshape(-1, 3)
+    rgb = np.array([p.color for p in pts], dtype=np.uint8).reshape(-1, 3)
+    return {"xyz": xyz, "rgb": rgb, "points": len(pts), "images": len(names),
+            "reprojection_error_px": float(tri.compute_mean_reprojection_error()) if pts else None,
+            "mean_track_length": float(np.mean([p.track.length() for p in pts])) if pts else None}

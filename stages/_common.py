@@ -146,6 +146,14 @@ def load_scene(dataset_dir: Path, poses_dir: Optional[Path]):
             kw["test_names"] = test or None
             kw["test_every"] = 0
         scene = read_scene(root, format=rd["format"], downscale=float(rd.get("downscale", 1.0)), **kw)
+        pts = Path(poses_dir) / "points.npz" if poses_dir is not None else None
+        if (scene.points is None or len(scene.points) == 0) and pts is not None and pts.is_file():
+            import numpy as np
+            import torch
+
+            with np.load(pts) as z:  # triangulated by the SfM stage with the known poses
+                scene.points = torch.from_numpy(z["xyz"].astype(np.float32))
+                scene.points_rgb = torch.from_numpy(z["rgb"].astype(np.float32) / 255.0)
     keep = set(spec["views"])
     scene.train = [v for v in scene.train if v.name in keep]
     scene.test = [v for v in scene.test if v.name in keep]

@@ -19,7 +19,7 @@ from pathlib import Path
 from cobgs.configs import SfmOptions
 from pipeline import Resources, Stage
 
-from ._common import StageInputError, read_json, read_spec, spec_path, write_json
+from ._common import StageInputError, load_scene, read_json, read_spec, spec_path, write_json
 
 
 @dataclass(frozen=True)
@@ -27,10 +27,16 @@ class SfmParams:
     """Attributes:
         mode: "auto" (only without poses), "always", "never".
         options: the SfM options.
+        triangulate: a posed scene without 3D points (a transforms.json without a point
+            cloud, LLFF poses_bounds, NeX's copy) gets them by COLMAP's point triangulator
+            with its own poses held fixed, instead of training from a random box (which
+            holds only empty space near the cameras of a forward-facing capture); the
+            random box stays where triangulation finds nothing. sfm.json says which.
     """
 
     mode: str = "auto"
     options: SfmOptions = field(default_factory=SfmOptions)
+    triangulate: bool = True
 
     def __post_init__(self) -> None:
         if self.mode not in ("auto", "always", "never"):
@@ -51,9 +57,12 @@ def _run(ctx, inputs):
         reason = ("mode 'never'" if p.mode == "never" else "the dataset has poses")
         if not has_poses:
             raise StageInputError(f"scene {spec['scene']!r} has no poses and sfm.mode is 'never'")
-        write_json(ctx.out_dir / "sfm.json", {"ran": False, "reason": reason})
+        info = {"ran": False, "reason": reason}
+        if p.triangulate:
+            info["initial_points"] = _triangulate(ctx, p, spec, inputs)
+        write_json(ctx.out_dir / "sfm.json", info)
         ctx.log.info("SfM skipped: %s", reason)
-        ctx.note(ran=False, reason=reason)
+        ctx.note(ran=False, reason=reason, initial_points=(info.get("initial_points") or {}).get("source"))
         return {"poses": ctx.out_dir}
     images = spec.get("images")
     if not images:
@@ -102,6 +111,47 @@ def _run(ctx, inputs):
     return {"poses": ctx.out_dir}
 
 
+def _triangulate(ctx, p: SfmParams, spec: dict, inputs) -> dict:
+    """Initial points of a posed scene that has none (see ``SfmParams.triangulate``):
+    ``points.npz`` in the artifact, and what was done."""
+    images = spec.get("images")
+    if not images:
+        return {"source": "none needed or possible", "why": "the dataset has no image folder"}
+    scene = load_scene(inputs["dataset"], None)
+    if scene.points is not None and len(scene.points) > 0:
+        return {"source": "the dataset's", "points": int(len(scene.points))}
+    import shutil
+
+    import numpy as np
+
+    from cobgs.sfm import triangulate_known_poses
+
+    image_dir = spec_path(Path(inputs["dataset"]), images["dir"])
+    views = {v.name: v for v in scene.views}
+    cams = {}
+    for n in images["names"]:
+        v = views.get(Path(n).stem)
+        if v is not None:
+            c = v.camera
+            cams[n] = (c.fx, c.fy, c.cx, c.cy, c.width, c.height, c.viewmat.double().cpu().numpy())
+    work = ctx.scratch_dir / "triangulate"
+    work.mkdir(parents=True)
+    ctx.log.info("triangulating %d posed images (%s) with their known poses", len(cams), image_dir)
+    try:
+        res = triangulate_known_poses(image_dir, cams, work, p.options)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    if res["points"] == 0:
+        ctx.log.warning("triangulation found no point: training starts from a random box")
+        return {"source": "random box", "why": "triangulation with the known poses found no point",
+                "images": res["images"]}
+    np.savez_compressed(ctx.out_dir / "points.npz", xyz=res["xyz"].astype(np.float32), rgb=res["rgb"])
+    ctx.log.info("triangulated %d points (reprojection error %.2f px)", res["points"], res["reprojection_error_px"])
+    return {"source": "triangulated with the known poses", "points": res["points"], "images": res["images"],
+            "reprojection_error_px": round(res["reprojection_error_px"], 4),
+            "mean_track_length": round(res["mean_track_length"], 3)}
+
+
 def _check(p: SfmParams) -> None:
     """The library's checks of the SfM options (SfmOptions, and the camera model against
     pycolmap's list), before any task runs."""
@@ -113,7 +163,7 @@ def _check(p: SfmParams) -> None:
 
 
 STAGE = Stage(
-    name="sfm", version=3, run=_run, inputs=("dataset",), outputs=("poses",), params=SfmParams,
+    name="sfm", version=4, run=_run, inputs=("dataset",), outputs=("poses",), params=SfmParams,
     level=("scene",), uses_device=True, resources=Resources(cpus=2),
     description="pycolmap SfM (skipped when the dataset has poses, unless mode = 'always')", check=_check,
 )

@@ -76,6 +76,8 @@ def _run(ctx, inputs):
         "background": list(bg),
         "eval": ev,
         "history": res.history,
+        "initial_points": (int(len(scene.points)) if scene.points is not None and len(scene.points)
+                           else f"random box ({cfg.random_init_points})"),
     })  # timings are in the manifest (ctx.note): a recompute gives the same bytes
     ctx.log.info("trained: %d Gaussians, held-out PSNR %s dB, %.1f s (%.3f s/it)", len(model),
                  f"{ev['psnr']:.2f}" if ev else "n/a", wall, res.s_per_it)
@@ -128,7 +130,7 @@ def _import_trained(ctx, cfg, scene, dev, path: Path):
 
 
 STAGE = Stage(
-    name="train", version=3, run=_run, inputs=("dataset", "poses"), outputs=("scene",), params=TrainConfig,
+    name="train", version=4, run=_run, inputs=("dataset", "poses"), outputs=("scene",), params=TrainConfig,
     level=("scene",), uses_device=True, resources=Resources(cpus=2),
     description="baseline 3DGS optimisation (scene.ply, held-out renders and PSNR)",
 )

@@ -134,3 +134,43 @@ def test_bad_inputs(tmp_path, demo):
     (tmp_path / "full" / "f").write_text("x")
     with pytest.raises(InputError, match="not empty"):
         run_sfm(demo / "images", tmp_path / "full")
+
+
+def test_triangulation_with_known_poses_lands_on_the_surfaces(demo, tmp_path):
+    """A posed scene without points (transforms.json, LLFF poses): COLMAP's triangulator
+    with the given cameras held fixed gives points in the scene's own frame, on its
+    surfaces: each point's depth in a view agrees with the generator's exact first-hit
+    depth at the pixel it projects to."""
+    from cobgs.data.synth_render import make_caster
+    from cobgs.data.synthetic import build_scene
+    from cobgs.sfm import triangulate_known_poses
+
+    meta = json.loads((demo / "scene.json").read_text())
+    w, h = meta["image_size"]
+    _, synth, cams = build_scene(meta["preset"], meta["seed"], num_views=meta["num_views"], width_px=w, height_px=h)
+    names = sorted(p.name for p in (demo / "images").iterdir())
+    known = {}
+    for n, c in zip(names, cams):
+        known[n] = (c.fx, c.fy, c.cx, c.cy, c.width, c.height, np.linalg.inv(c.c2w_array))
+    res = triangulate_known_poses(demo / "images", known, tmp_path, OPTS)
+    assert res["points"] > 300 and res["reprojection_error_px"] < 1.0
+    caster = make_caster(synth)
+    errs = []
+    for c in cams[::6]:
+        w2c = np.linalg.inv(c.c2w_array)
+        pc = res["xyz"] @ w2c[:3, :3].T + w2c[:3, 3]
+        front = pc[:, 2] > 0.05
+        u = c.fx * pc[front, 0] / pc[front, 2] + c.cx
+        v = c.fy * pc[front, 1] / pc[front, 2] + c.cy
+        inside = (u >= 0) & (u < c.width) & (v >= 0) & (v < c.height)
+        d = np.stack([(u[inside] - c.cx) / c.fx, (v[inside] - c.cy) / c.fy, np.ones(inside.sum())], 1)
+        world = d @ c.c2w_array[:3, :3].T
+        norm = np.linalg.norm(world, axis=1)
+        t, _ = caster.first_hit(c.c2w_array[:3, 3], world / norm[:, None])
+        depth_true = t / norm
+        errs.append(np.abs(pc[front][inside, 2] - depth_true) / depth_true)
+    rel = np.concatenate(errs)
+    # a point hidden behind another surface in this view measures the occluder's depth:
+    # the median, not every point, must agree. Measured: 969 points, reprojection error
+    # 0.23 px, median relative depth error 0.30 % over 3373 projections.
+    assert len(rel) > 300 and np.median(rel) < 0.02, np.median(rel)

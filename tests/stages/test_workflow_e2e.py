@@ -511,3 +511,26 @@ def test_sfm_failure_names_the_images_that_did_not_register(tiny, tmp_path):
     failed = next(o for o in summary.outcomes.values() if o.state == "failed")
     text = Path(failed.log_path).read_text()
     assert "zz_noise_a.png" in text and "zz_noise_b.png" in text and "registered 8 of 10" in text
+
+
+def test_a_posed_scene_without_points_is_triangulated(tmp_path):
+    """A transforms.json scene with poses but no point cloud: the SfM stage (not running
+    SfM: the poses are given) triangulates points with those poses, training starts from
+    them, and sfm.json / train.json say so; sfm.triangulate = false keeps the random box."""
+    from cobgs.data.synthetic import generate_scene
+
+    scene = generate_scene(tmp_path / "scene", "demo", seed=2, num_views=12, workers=1, progress=False)
+    wf_path = tmp_path / "posed.toml"
+    wf_path.write_text('[workflow]\nnested = { object = "scene" }\n[params.train]\niterations = 30\n'
+                       f'[axes.scene.s]\nkind = "transforms"\npath = "{scene}"\n'
+                       '[axes.method.cobgs]\n[axes.object.s.ball]\n')
+    for sets, expect in (([], "triangulated with the known poses"), (["sfm.triangulate=false"], None)):
+        wf, summary, log = _run(wf_path, tmp_path / "cache", sets, only=("dataset", "sfm", "train"))
+        assert summary.exit_code == 0, log
+        sfm = json.loads((_entry(wf, tmp_path / "cache", "sfm", "s").output("poses") / "sfm.json").read_text())
+        train = json.loads((_entry(wf, tmp_path / "cache", "train", "s").output("scene") / "train.json").read_text())
+        if expect:
+            assert sfm["ran"] is False and sfm["initial_points"]["source"] == expect
+            assert sfm["initial_points"]["points"] > 200 and train["initial_points"] == sfm["initial_points"]["points"]
+        else:
+            assert "initial_points" not in sfm and train["initial_points"].startswith("random box")
