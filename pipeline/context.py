@@ -59,6 +59,13 @@ class StageContext:
         manifest's ``extra`` section."""
         self.extra.update(values)
 
+    def warn(self, message: str) -> None:
+        """Something the user should see although the task succeeded: kept in the
+        manifest (``extra["warnings"]``), logged, and shown on the task's progress line
+        (also when the entry is later reused from the cache)."""
+        self.extra.setdefault("warnings", []).append(message)
+        self.log.warning(message)
+
     def progress(self, iterable: Optional[Iterable] = None, total: Optional[int] = None,
                  desc: Optional[str] = None, unit: str = "it") -> Any:
         """Inner progress: a tqdm bar on an interactive terminal, else log lines every

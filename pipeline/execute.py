@@ -284,7 +284,13 @@ def _run_locked(job: Job, cache: Cache) -> JobResult:
             return JobResult(job.index, "failed", job.key, wall_s=measures["wall_s"],
                              error=f"cannot commit the entry: {exc}")
     return JobResult(job.index, "ok", job.key, outputs, os.fspath(final),
-                     wall_s=measures["wall_s"], measures=measures)
+                     wall_s=measures["wall_s"], measures=measures, note=warnings_note(ctx.extra))
+
+
+def warnings_note(extra: Any) -> str:
+    """The progress-line note of a task's warnings (``ctx.warn``), "" without any."""
+    w = (extra or {}).get("warnings") if isinstance(extra, dict) else None
+    return ("WARNING: " + " | ".join(str(x) for x in w)) if isinstance(w, list) and w else ""
 
 
 def _fail(job: Job, cache: Cache, tmp: Path, log: logging.Logger, handler: logging.Handler,

@@ -23,7 +23,7 @@ from typing import Any, Optional, TextIO
 
 from .cache import Cache, ref_record
 from .errors import ExecutorError, WorkflowError
-from .execute import Job, JobResult
+from .execute import Job, JobResult, warnings_note
 from .executors import ForkExecutor, InlineExecutor
 from .items import ItemFilter, Item
 from .plan import OutputTable, Plan, Task, inspect, key_document
@@ -149,7 +149,7 @@ class Progress:
              final: bool = True) -> None:
         if final:
             self.count += 1
-        if self.quiet and state in ("cached", "reused"):
+        if self.quiet and state in ("cached", "reused") and not note.startswith("WARNING"):
             return
         num = f"[{self.count:>{self.w_num}}/{self.total}]" if final else " " * (2 * self.w_num + 3)
         secs = f"{seconds:8.2f} s" if seconds is not None else " " * 10
@@ -293,8 +293,9 @@ class _Scheduler:
             ref = self.cache.read_ref(self.wf.id, stage, task.item.id)
             if ref is None or ref.get("key") != key:
                 self._write_ref(task, key, "ok", hashes)
-            self.progress.line(task, "cached")
-            self._settle(index, Outcome("cached", key=key))
+            warn = warnings_note((check.manifest or {}).get("extra"))
+            self.progress.line(task, "cached", note=warn)
+            self._settle(index, Outcome("cached", note=warn, key=key))
             return True
         resources = task.stage.resources_for(self.wf.settings)
         if self.executor.capacity() is not None and resources.gpus > 0:

@@ -199,6 +199,8 @@ def _write(data: RunData, root: Path, sets: list[str]) -> None:
         "waiting": waiting, "eval_gaps": eval_gaps, "stages": meta.stage_records(data), "kind_labels": KIND_LABELS,
         "methods": data.methods, "n_results": len(data.results), "n_ok": sum(r.ok for r in data.results),
         "scenes": list(data.scenes),
+        "warnings": [{"scene": r.scene, "method": r.method, "object": r.object, "message": m}
+                     for r in data.results for m in (r.row or {}).get("warnings") or []],
     }
     html = _env().get_template("report.html.j2").render(**ctx)
     record = {"format": REPORT_FORMAT, "version": 1, "workflow": run["workflow"]["path"],

@@ -37,10 +37,17 @@ class EvaluateParams:
     """Attributes:
         boundary_ratio: boundary IoU width, as a fraction of the image diagonal.
         skip_empty_gt: exact protocol: skip held-out views where the object is not visible.
+        warn_psnr_drop_db: warn (console, summary, report) when the refined scene's
+            held-out PSNR is more than this below the vanilla scene's.
     """
 
     boundary_ratio: float = 0.02
     skip_empty_gt: bool = True
+    warn_psnr_drop_db: float = 2.0
+
+    def __post_init__(self) -> None:
+        if not self.warn_psnr_drop_db > 0:
+            raise ValueError(f"warn_psnr_drop_db must be > 0 (dB), got {self.warn_psnr_drop_db}")
 
 
 def _read_preds(folder: Path, names) -> dict:
@@ -115,6 +122,15 @@ def _run(ctx, inputs):
                ambiguous_final=ref["ambiguous_final"],
                train_psnr_eval=(train.get("eval") or {}).get("psnr"),
                mask_route=ref.get("mask_route"))
+    drop = row["psnr_vanilla"] - row["psnr"]
+    if np.isfinite(drop) and drop > p.warn_psnr_drop_db:
+        msg = (f"the refined scene's held-out PSNR is {row['psnr']:.2f} dB, {drop:.1f} dB below the "
+               f"vanilla scene's {row['psnr_vanilla']:.2f} dB: the refinement removed or moved Gaussians "
+               f"the views need ({row['pruned']} pruned). Try refine.cobgs.raem = \"off\" (keeps every "
+               "ambiguous Gaussian) or \"paper\" (prunes only the smallest), and check the object's masks "
+               "(a rough mask spreading onto the background marks background Gaussians as object)")
+        row["warnings"] = [msg]
+        ctx.warn(msg)
     write_json(ctx.out_dir / "metrics.json", {"row": row, "details": details,
                                               "psnr_per_view": {"refined": pr["per_view"],
                                                                 "vanilla": pv["per_view"]}})
@@ -132,7 +148,7 @@ def _run(ctx, inputs):
 
 
 STAGE = Stage(
-    name="evaluate", version=4, run=_run, inputs=("dataset", "poses", "scene", "refined", "segmentation"),
+    name="evaluate", version=5, run=_run, inputs=("dataset", "poses", "scene", "refined", "segmentation"),
     outputs=("metrics",), params=EvaluateParams, level=("scene", "method", "object"),
     resources=Resources(cpus=1),
     description="protocol metrics (exact GT, NVOS, LERF-mask) and PSNR vs the vanilla scene",

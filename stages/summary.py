@@ -103,6 +103,8 @@ def _run(ctx, inputs):
         _walk(entry, seen)
         heads.append((row, entry))
         rows.append(row)
+        if row.get("warnings"):
+            row["warning"] = " | ".join(row["warnings"])
     root = next(iter(seen)).parents[2] if seen else None
     for row, entry in heads:
         row["entries"] = _chain(entry, root)
@@ -129,9 +131,14 @@ def _run(ctx, inputs):
         s["cpu_s"] += t["cpu_s"] or 0.0
 
     protocols = sorted({r["protocol"] for r in rows})
+    warnings = [{"item": r["item"], "message": m} for r in rows for m in r.get("warnings") or []]
+    if warnings:
+        ctx.warn(f"{len(warnings)} result(s) with a warning: " + ", ".join(w["item"] for w in warnings[:5])
+                 + (" ..." if len(warnings) > 5 else "") + " (summary.json 'warnings')")
     out = {"format": "cobgs-summary", "version": 1, "scenes": scenes, "protocols": protocols, "rows": rows, "by_scene_method": by_scene_method, "by_method": by_method,
            "stage_totals": per_stage, "timings": timings, "cache_root": str(root) if root else None,
-           "overall": {"miou": nanmean(r["iou"] for r in by_method), "target_miou": p.target_miou or None}}
+           "overall": {"miou": nanmean(r["iou"] for r in by_method), "target_miou": p.target_miou or None},
+           "warnings": warnings}
     write_json(ctx.out_dir / "summary.json", out)
     _write_csv(ctx.out_dir / "summary.csv", rows)
     _write_csv(ctx.out_dir / "by_method.csv", by_method)
@@ -148,7 +155,7 @@ def _run(ctx, inputs):
 
 
 STAGE = Stage(
-    name="summary", version=2, run=_run, inputs=("metrics", "scene"), outputs=("summary",), params=SummaryParams,
+    name="summary", version=3, run=_run, inputs=("metrics", "scene"), outputs=("summary",), params=SummaryParams,
     level=(), resources=Resources(cpus=1),
     description="JSON/CSV summary over every scene x method x object, with per-stage timings",
 )

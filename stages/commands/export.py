@@ -140,6 +140,11 @@ def _print_summary(path: str, dest: str) -> None:
               f"{fmt(r.get('acc'), '.4f'):>7} {fmt(r.get('iou_object_only'), '.4f'):>8} "
               f"{fmt(r.get('psnr'), '.2f'):>8} "
               f"{fmt(r.get('psnr_vanilla'), '.2f'):>8}  {r.get('objects')}")
+    for w in data.get("warnings") or []:
+        print(f"WARNING {w['item']}: {w['message']}")
+    if any(r.get("protocol") == "none" for r in data.get("rows", [])):
+        print("mIoU n/a: the held-out views have no ground-truth masks (your own data): only the "
+              "PSNR columns and the pictures say how the segmentation went")
     for s in data.get("scenes", []):
         print(f"scene {s['scene']}: {s['num_gaussians']} Gaussians, held-out PSNR "
               f"{fmt(s.get('psnr'), '.2f')} dB ({s['test_views']} views)")
