@@ -1,7 +1,8 @@
-"""Your own photos end to end: a capture through a real lens (distortion), masks made for
-the original photos, no ground truth; SfM with COLMAP's default camera model, the masks
-undistorted like the images, training, COB-GS, and a report that builds and loads in a
-browser without an error or a broken image."""
+"""Your own photos end to end, as a new user runs them: `cobgs new` on a folder of photos
+taken through a real lens (distortion) with masks made for those photos and no ground
+truth; SfM with COLMAP's default camera model, the masks undistorted like the images,
+training, COB-GS, warnings, export, and a report that builds and loads in a browser
+without an error or a broken image."""
 
 from __future__ import annotations
 
@@ -14,36 +15,28 @@ import pytest
 from own_data_fixture import make  # tests/stages is on sys.path
 from pipeline import RunOptions, entries, load_workflow, run_workflow
 from stages.registry import load_registry
-from tiny_recipe import tiny_recipe  # tests/ is on sys.path
 
-WORKFLOW = """
-[workflow]
-name = "own"
-nested = {{ object = "scene" }}
-
-[params.dataset]
-test_every = 8
-
-{recipe}
-[axes.scene.mine]
-kind = "images"
-path = "{photos}"
-
-[axes.method.cobgs]
-
-[axes.object.mine.ball]
-"""
+# The short training of the e2e tests, as --set overrides of what `cobgs new` wrote.
+SHORT = ["train.iterations=500", "train.scale_schedule=false", "train.densify_from_its=50",
+         "train.densify_until_its=350", "train.densify_interval_its=50",
+         "train.opacity_reset_interval_its=1000", "train.position_lr_decay_its=500",
+         "train.sh_degree_interval_its=100", "train.max_gaussians=6000",
+         "refine.cobgs.stage_length_views=2.0", "refine.cobgs.mask_stages=3"]
 
 
 @pytest.fixture(scope="module")
 def own(tmp_path_factory):
+    """The own-data flow as a user runs it: `cobgs new` on the photo folder, then the
+    workflow it wrote (COLMAP's default camera, masks from files), shortened with --set."""
+    from stages.commands.cli import main
+
     root = tmp_path_factory.mktemp("own")
     photos = make(root)
-    # COLMAP's default camera (SIMPLE_RADIAL), as a user's run gets it
-    recipe = tiny_recipe().replace('camera_model = "SIMPLE_PINHOLE"\n', "")
-    path = root / "own.toml"
-    path.write_text(WORKFLOW.format(recipe=recipe, photos=photos))
-    wf = load_workflow(path, load_registry())
+    path = root / "photos.toml"
+    assert main(["new", str(photos), "--out", str(path)]) == 0
+    text = path.read_text()
+    assert 'kind = "images"' in text and 'source = "files"' in text and 'camera_model = "SIMPLE_RADIAL"' in text
+    wf = load_workflow(path, load_registry(), SHORT)
     out = io.StringIO()
     summary = run_workflow(wf, RunOptions(cache_dir=root / "cache", package_version="test"), stream=out)
     assert summary.exit_code == 0, out.getvalue()
@@ -56,13 +49,13 @@ def test_masks_made_for_the_photos_are_undistorted_like_them(own):
     import pycolmap
 
     root, _, _, recs = own
-    sfm = recs[("sfm", "mine")].output("poses")
+    sfm = recs[("sfm", "photos")].output("poses")
     info = json.loads((sfm / "sfm.json").read_text())["undistorted_masks"]
     n_masks = len(list((root / "photos" / "masks" / "ball").iterdir()))
     assert info["masks"] == n_masks and info["objects"] == ["ball"]
     cam = pycolmap.Reconstruction(str(sfm / "sparse" / "0")).cameras[1]
     assert (cam.width, cam.height) != (320, 240)  # the undistorted images changed size
-    masks = recs[("masks", "mine/ball")].output("masks")
+    masks = recs[("masks", "photos/ball")].output("masks")
     tf = json.loads((root / "synth" / "transforms.json").read_text())
     fx, fy, cx, cy = cam.params
     ys, xs = np.mgrid[0:cam.height, 0:cam.width].astype(np.float32)
@@ -84,9 +77,9 @@ def test_the_report_builds_and_loads_cleanly_without_ground_truth(own, tmp_path)
     from reports import build_report
 
     root, path, _, recs = own
-    index = build_report(path, out_dir=tmp_path / "report", cache_dir=root / "cache")
+    index = build_report(path, out_dir=tmp_path / "report", cache_dir=root / "cache", sets=SHORT)
     html = index.read_text()
-    assert "mine" in html and "ball" in html
+    assert "photos" in html and "ball" in html
     import sys
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "reports"))
@@ -113,12 +106,12 @@ def test_a_psnr_drop_beyond_the_margin_is_a_warning_everywhere(own, tmp_path):
     from reports import build_report
 
     root, path, wf, recs = own
-    row = json.loads((recs[("evaluate", "mine/cobgs/ball")].output("metrics") / "metrics.json").read_text())["row"]
+    row = json.loads((recs[("evaluate", "photos/cobgs/ball")].output("metrics") / "metrics.json").read_text())["row"]
     drop = row["psnr_vanilla"] - row["psnr"]
     assert "warnings" not in row  # the default margin (2 dB) is not crossed here (measured 0.7 dB)
     if drop <= 0:
         pytest.skip(f"no PSNR drop on this run ({drop:.2f} dB)")
-    sets = [f"evaluate.warn_psnr_drop_db={drop / 2}"]
+    sets = SHORT + [f"evaluate.warn_psnr_drop_db={drop / 2}"]
     wf2 = load_workflow(path, load_registry(), sets)
     out = io.StringIO()
     summary = run_workflow(wf2, RunOptions(cache_dir=root / "cache", package_version="test"), stream=out)
@@ -127,16 +120,16 @@ def test_a_psnr_drop_beyond_the_margin_is_a_warning_everywhere(own, tmp_path):
     assert "WARNING: the refined scene's held-out PSNR" in log and 'refine.cobgs.raem = "off"' in log
     recs2 = {(r.stage, r.item.id): r for r in entries(wf2, root / "cache")}
     summ = recs2[("summary", "")].output("summary")
-    assert [w["item"] for w in json.loads((summ / "summary.json").read_text())["warnings"]] == ["mine/cobgs/ball"]
+    assert [w["item"] for w in json.loads((summ / "summary.json").read_text())["warnings"]] == ["photos/cobgs/ball"]
     assert "warning" in (summ / "summary.csv").read_text().splitlines()[0].split(",")
     index = build_report(path, out_dir=tmp_path / "report", cache_dir=root / "cache", sets=sets)
-    assert "Warning — mine / cobgs / ball" in index.read_text()
+    assert "Warning — photos / cobgs / ball" in index.read_text()
     from stages.commands.cli import main
 
     import contextlib
 
     buf = io.StringIO()
     with contextlib.redirect_stdout(buf):
-        main(["export", str(path), "--cache-dir", str(root / "cache"), "--to", str(tmp_path / "out"),
-              "--set", sets[0]])
-    assert "WARNING mine/cobgs/ball" in buf.getvalue() and "mIoU n/a: the held-out views have no" in buf.getvalue()
+        main(["export", str(path), "--cache-dir", str(root / "cache"), "--to", str(tmp_path / "out")]
+             + [a for s in sets for a in ("--set", s)])
+    assert "WARNING photos/cobgs/ball" in buf.getvalue() and "mIoU n/a: the held-out views have no" in buf.getvalue()

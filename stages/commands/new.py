@@ -1,0 +1,187 @@
+"""``cobgs new FOLDER``: a ready workflow for a folder of your own data.
+
+It looks at the folder (which layout it is: photos in ``images/``, a COLMAP model, LLFF
+``poses_bounds.npy``, a ``transforms.json``; which ``masks/<object>/`` folders it has),
+then writes a workflow TOML with every choice it made written beside it as a comment, so
+the next steps are ``cobgs run`` and ``cobgs report``. Only the standard library is used.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import sys
+from pathlib import Path
+
+_IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp")
+
+
+def _images(folder: Path) -> list[Path]:
+    if not folder.is_dir():
+        return []
+    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in _IMAGE_SUFFIXES)
+
+
+def _image_size(path: Path) -> str:
+    """``WxH`` of an image from its header (PNG / JPEG), without an imaging library."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(64 * 1024)
+    except OSError:
+        return "?"
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and len(head) >= 24:
+        return f"{int.from_bytes(head[16:20], 'big')}x{int.from_bytes(head[20:24], 'big')}"
+    i = 2
+    while head[:2] == b"\xff\xd8" and i + 9 < len(head):
+        if head[i] != 0xFF:
+            break
+        marker, length = head[i + 1], int.from_bytes(head[i + 2:i + 4], "big")
+        if marker in (0xC0, 0xC1, 0xC2):
+            return f"{int.from_bytes(head[i + 7:i + 9], 'big')}x{int.from_bytes(head[i + 5:i + 7], 'big')}"
+        i += 2 + length
+    return "?"
+
+
+def detect(folder: Path) -> dict:
+    """What the folder holds: kind, why, image count and size, mask objects."""
+    if (folder / "transforms.json").is_file():
+        kind, why = "transforms", "transforms.json (NeRF / nerfstudio cameras) found"
+    elif (folder / "transforms_train.json").is_file():
+        kind, why = "blender", "transforms_train.json (NeRF-synthetic layout) found"
+    elif any((folder / "sparse" / "0" / f"cameras.{e}").is_file() for e in ("bin", "txt")) or \
+            any((folder / f"cameras.{e}").is_file() for e in ("bin", "txt")):
+        kind, why = "colmap", "a COLMAP model (sparse/0) found: its cameras and points are used"
+    elif (folder / "poses_bounds.npy").is_file():
+        kind, why = "llff", "poses_bounds.npy (LLFF poses) found; points come from triangulation"
+    elif _images(folder / "images"):
+        kind, why = "images", "photos in images/ and no cameras: SfM (pycolmap) will find them"
+    elif _images(folder):
+        raise SystemExit(f"cobgs new: {folder} holds photos ({_images(folder)[0].name} ...) but no images/ "
+                         "subfolder: move them into images/ (masks go to masks/<object>/, named after "
+                         "the photos) and run this again")
+    else:
+        raise SystemExit(f"cobgs new: {folder} has no images/ folder, transforms.json, COLMAP model "
+                         "or poses_bounds.npy: nothing to build a scene from")
+    imgs = _images(folder / "images")
+    objects = sorted(p.name for p in (folder / "masks").iterdir()
+                     if p.is_dir() and _images(p)) if (folder / "masks").is_dir() else []
+    return {"kind": kind, "why": why, "images": len(imgs), "size": _image_size(imgs[0]) if imgs else "?",
+            "objects": objects}
+
+
+def _name(text: str) -> str:
+    """A workflow / item name from free text: no separators, no leading dot."""
+    s = re.sub(r"[/\\,=\x00-\x1f]+", "_", text).strip().lstrip(".")
+    return s or "scene"
+
+
+def _toml_str(text: str) -> str:
+    return '"' + text.replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
+def workflow_text(folder: Path, info: dict, name: str, prompts: list[str], views_every: int) -> str:
+    scene = _name(folder.name)
+    lines = [
+        f"# Written by `cobgs new {folder}`: the choices below are cobgs new's; change any of them.",
+        f"#   data: {folder}",
+        f"#   kind = {info['kind']!r}: {info['why']}",
+        f"#   {info['images']} images" + (f", {info['size']} (first image)" if info["size"] != "?" else ""),
+    ]
+    if prompts:
+        source = "onnx"
+        objects = prompts
+        lines.append(f"#   masks: text prompts {prompts} -> Grounding DINO + SAM2 (two-stage), through the "
+                     "ONNX exports in $COBGS_MODELS_DIR (`cobgs export-onnx sam2 ...` and `gdino ...`)")
+    elif info["objects"]:
+        source = "files"
+        objects = info["objects"]
+        lines.append(f"#   masks: from files, masks/<object>/ named after the photos: {objects} "
+                     "(any resolution; a pixel counts when it is >= 128: save masks as 0/255)")
+    else:
+        raise SystemExit(f"cobgs new: {folder} has no masks/<object>/ folder of masks named after the "
+                         "photos; give them, or segment by text with --prompt \"a red mug\" (needs the ONNX "
+                         "models: `cobgs export-onnx`)")
+    lines += [
+        f"#   held-out views: every {views_every}th image (not trained on; the report's PSNR and",
+        "#   pictures use them; without ground-truth masks there is no mIoU, only PSNR and pictures)",
+        "# Next:  cobgs run THIS.toml   then   cobgs report THIS.toml   (and cobgs export THIS.toml --to DIR)",
+        "",
+        "[workflow]",
+        f"name = {_toml_str(name)}",
+        f"description = {_toml_str(f'COB-GS on {folder.name} ({len(objects)} object(s))')}",
+        'nested = { object = "scene" }',
+        "",
+        "[settings]",
+        'device = "cpu"                 # or `--set device=cuda` on a machine with a GPU',
+        "",
+        "[params.dataset]",
+        f"test_every = {views_every}",
+        "",
+        "[params.train]",
+        "# 7000 iterations: the 3DGS paper's short schedule (its 30 000 improve fine texture, rarely",
+        "# the segmentation); the whole schedule is compressed to this length (scale_schedule).",
+        "iterations = 7000",
+        "",
+    ]
+    if info["kind"] == "images":
+        lines += [
+            "[params.sfm.options]",
+            '# SIMPLE_RADIAL: COLMAP\'s default for photos from an unknown lens (undistorted afterwards,',
+            '# masks too); use "SIMPLE_PINHOLE" for rendered or already undistorted images.',
+            'camera_model = "SIMPLE_RADIAL"',
+            "num_threads = 1                # repeatable (COLMAP on several threads is not)",
+            "",
+        ]
+    lines += ["[params.masks]", f'source = "{source}"']
+    if source == "onnx":
+        lines.append('models_dir = "${COBGS_MODELS_DIR}"')
+    lines += ["", f"[axes.scene.{_toml_str(scene)}]", f'kind = "{info["kind"]}"',
+              f"path = {_toml_str(os.fspath(folder))}", "",
+              "[axes.method.cobgs]", "# peers, to compare: uncomment",
+              '# [axes.method.nosplit]\n# refine = { method = "nosplit" }', ""]
+    for obj in objects:
+        lines.append(f"[axes.object.{_toml_str(scene)}.{_toml_str(_name(obj))}]")
+        if source == "onnx":
+            lines.append(f"prompt = {_toml_str(obj)}")
+    return "\n".join(lines) + "\n"
+
+
+def _new(args) -> int:
+    folder = Path(args.folder).resolve()
+    if not folder.is_dir():
+        print(f"cobgs new: {folder} is not a folder", file=sys.stderr)
+        return 2
+    try:
+        info = detect(folder)
+        name = _name(args.name or folder.name)
+        text = workflow_text(folder, info, name, list(args.prompt or []), args.test_every)
+    except SystemExit as exc:
+        print(exc, file=sys.stderr)
+        return 2
+    out = Path(args.out or f"{name}.toml")
+    if out.exists() and not args.force:
+        print(f"cobgs new: {out} exists (pass --force to replace it)", file=sys.stderr)
+        return 2
+    tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, out)
+    print(f"wrote {out}: kind {info['kind']!r}, {info['images']} images, "
+          f"objects {list(args.prompt or info['objects'])}")
+    print(f"next: cobgs run {out} && cobgs report {out}")
+    return 0
+
+
+def register(sub) -> None:
+    p = sub.add_parser("new", help="write a ready workflow for a folder of your own data",
+                       description="Look at FOLDER (photos in images/, or a COLMAP / LLFF / "
+                       "transforms.json scene; masks/<object>/ folders) and write a workflow TOML "
+                       "with the choices it made as comments. Then: cobgs run, cobgs report.")
+    p.add_argument("folder", help="the data folder")
+    p.add_argument("--prompt", action="append", metavar="TEXT",
+                   help="segment this object by text (Grounding DINO + SAM2; repeatable) instead of "
+                   "masks/<object>/ files")
+    p.add_argument("--name", help="workflow name (default: the folder's name)")
+    p.add_argument("--out", help="TOML file to write (default: NAME.toml here)")
+    p.add_argument("--test-every", type=int, default=8, help="hold out every k-th image (default 8)")
+    p.add_argument("--force", action="store_true", help="replace an existing TOML file")
+    p.set_defaults(func=_new)
