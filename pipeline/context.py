@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import os
 import sys
 import time
 from dataclasses import dataclass, field
@@ -71,7 +72,8 @@ class StageContext:
         """Inner progress: a tqdm bar on an interactive terminal, else log lines every
         ~10 % (or 30 s). Use as ``for x in ctx.progress(xs): ...`` or as a context
         manager with ``.update(n)``."""
-        desc = desc or f"{self.stage}[{self.item.label}]"
+        who = f"{self.stage}[{self.item.label}]"
+        desc = desc or who
         if sys.stderr.isatty():
             try:
                 from tqdm import tqdm
@@ -79,11 +81,14 @@ class StageContext:
                 return tqdm(iterable, total=total, desc=desc, unit=unit, leave=False)
             except ImportError:  # tqdm is optional for the engine
                 pass
-        return _LogProgress(iterable, total, desc, self.log)
+        return _LogProgress(iterable, total, desc if desc.startswith(who) else f"{who} {desc}", self.log)
 
 
 class _LogProgress:
-    """Progress for non-interactive runs: a log line at every ~10 % or 30 s."""
+    """Progress for non-interactive runs: a console line (standard error, which a forked
+    worker shares with the run and Ray forwards to the driver) every few seconds
+    (``$COBGS_PROGRESS_INTERVAL_S``, default 5) with the count, the stage's own figures
+    (``set_postfix``: loss, Gaussians ...) and an ETA; and a log line at every ~10 %."""
 
     def __init__(self, iterable: Optional[Iterable], total: Optional[int], desc: str,
                  log: logging.Logger):
@@ -91,16 +96,36 @@ class _LogProgress:
         if total is None and iterable is not None and hasattr(iterable, "__len__"):
             total = len(iterable)  # type: ignore[arg-type]
         self.total, self.n = total, 0
-        self._last_t, self._last_frac = time.monotonic(), 0.0
+        self.postfix: dict[str, Any] = {}
+        self._t0 = self._last_t = self._last_print = time.monotonic()
+        self._last_frac = 0.0
+        try:
+            self.interval = float(os.environ.get("COBGS_PROGRESS_INTERVAL_S", "5"))
+        except ValueError:
+            self.interval = 5.0
+
+    def _text(self, now: float) -> str:
+        parts = [f"{self.desc}: {self.n}" + (f"/{self.total} ({100 * self.n / self.total:.0f}%)"
+                                             if self.total else "")]
+        parts += [f"{k} {v}" for k, v in self.postfix.items()]
+        if self.total and 0 < self.n < self.total:
+            eta = (now - self._t0) / self.n * (self.total - self.n)
+            parts.append(f"ETA {eta:.0f} s" if eta < 120 else f"ETA {eta / 60:.1f} min")
+        return ", ".join(parts)
 
     def update(self, n: int = 1) -> None:
         self.n += n
         now = time.monotonic()
         frac = self.n / self.total if self.total else 0.0
         if frac - self._last_frac >= 0.1 or now - self._last_t >= 30 or frac >= 1:
-            total = f"/{self.total}" if self.total else ""
-            self.log.info("%s: %d%s", self.desc, self.n, total)
+            self.log.info("%s", self._text(now))
             self._last_t, self._last_frac = now, frac
+        if now - self._last_print >= self.interval:
+            self._last_print = now
+            try:
+                print(f"  {self._text(now)}", file=sys.__stderr__ or sys.stderr, flush=True)
+            except (OSError, ValueError):  # a closed console must not fail the task
+                pass
 
     def __iter__(self) -> Iterator:
         for x in self.iterable or ():
@@ -117,4 +142,6 @@ class _LogProgress:
         pass
 
     def set_postfix(self, *args: Any, **kwargs: Any) -> None:
-        pass
+        if args and isinstance(args[0], dict):
+            self.postfix.update(args[0])
+        self.postfix.update(kwargs)

@@ -50,7 +50,7 @@ def _run(ctx, inputs):
         if trainer.iteration % max(1, cfg.log_interval_its) == 0:
             last["n"] = len(trainer.model)
             if hasattr(bar, "set_postfix"):
-                bar.set_postfix(loss=f"{info['loss']:.4f}", psnr=f"{info['psnr']:.2f}", n=last["n"])
+                bar.set_postfix(loss=f"{info['loss']:.4f}", psnr=f"{info['psnr']:.2f}", gaussians=last["n"])
 
     t0 = time.perf_counter()
     res = train(scene, cfg, progress=False, callback=callback)

@@ -169,3 +169,14 @@ def test_a_closed_pipe_ends_quietly():
     proc.stdout.close()
     err = proc.stderr.read().decode()
     assert proc.wait(timeout=60) in (0, 141) and "Traceback" not in err and "BrokenPipe" not in err, err
+
+
+def test_progress_of_a_running_task_reaches_a_non_tty_console(toy):
+    """Not on a terminal (a CI log, `cobgs run ... > log`), a running task's progress is a
+    console line every few seconds (here: every update) with its count, percentage and
+    ETA, not only a line in the entry's log file."""
+    proc = cobgs("run", toy.path, "--cache-dir", toy.cache, "--items", "alpha/full", check=0,
+                 COBGS_PROGRESS_INTERVAL_S="0", PIPELINE_TOYS_SLEEP="0.05")
+    lines = [l.strip() for l in proc.stderr.splitlines() if l.strip().startswith("refine[alpha/full]")]
+    assert lines and lines[0].startswith("refine[alpha/full] refining: 1/3 (33%)") and "ETA" in lines[0], proc.stderr
+    assert any(l.startswith("refine[alpha/full] refining: 3/3 (100%)") for l in lines), lines
