@@ -316,5 +316,6 @@ def defaults_toml(cls: type, table: str) -> str:
         elif default is None:
             lines.append(f"# {f.name} = ...  # default: none ({type_name(tp)})")
         else:
-            lines.append(f"{f.name} = {_toml_value(to_json(default))}")
+            note = f.metadata.get("help") if f.metadata else None
+            lines.append(f"{f.name} = {_toml_value(to_json(default))}" + (f"  # {note}" if note else ""))
     return "\n".join(lines + ([""] + nested if nested else []))

@@ -73,6 +73,7 @@ class RunSummary:
     outcomes: dict[int, Outcome] = field(default_factory=dict)
     interrupted: bool = False
     wall_s: float = 0.0
+    total: int = 0  # tasks the run set out to settle (selected and their upstream)
 
     def tasks_in(self, *states: str) -> list[Task]:
         return [self.plan.tasks[i] for i, o in sorted(self.outcomes.items()) if o.state in states]
@@ -223,7 +224,7 @@ class _Scheduler:
         self.executor, self.stream = executor, stream
         self.wf = plan.workflow
         self.table = OutputTable(plan)
-        self.summary = RunSummary(plan)
+        self.summary = RunSummary(plan, total=len(sel.relevant))
         self.relevant = set(sel.relevant)
         self.progress = Progress(plan, len(sel.relevant), stream, options.quiet)
         self.waiting = {i: sum(1 for d in plan.tasks[i].deps) for i in sel.relevant}
@@ -396,9 +397,19 @@ def print_summary(summary: RunSummary, stream: TextIO) -> None:
         counts[o.state] = counts.get(o.state, 0) + 1
     order = ("done", "cached", "reused", "failed", "blocked", "unavailable", "interrupted")
     parts = [f"{counts[s]} {s}" for s in order if counts.get(s)]
-    head = "interrupted" if summary.interrupted else "run finished"
-    print(f"{head}: {len(summary.outcomes)} tasks: {', '.join(parts) or 'nothing to do'} "
-          f"({summary.wall_s:.2f} s)", file=stream)
+    if summary.interrupted:
+        # say what each number counts: an interrupted run settles only part of its tasks
+        finished = sum(counts.get(s, 0) for s in ("done", "cached", "reused"))
+        total = max(summary.total, len(summary.outcomes))
+        stopped = counts.get("interrupted", 0)
+        rest = ", ".join(f"{counts[s]} {s}" for s in ("done", "cached", "reused", "failed", "blocked",
+                                                     "unavailable") if counts.get(s))
+        print(f"interrupted: {finished} of {total} tasks finished ({rest or 'none'}); {stopped} running "
+              f"or waiting on them were stopped, {total - len(summary.outcomes)} not started "
+              f"({summary.wall_s:.2f} s)", file=stream)
+    else:
+        print(f"run finished: {len(summary.outcomes)} tasks: {', '.join(parts) or 'nothing to do'} "
+              f"({summary.wall_s:.2f} s)", file=stream)
     for task in summary.tasks_in("failed"):
         o = summary.outcomes[task.index]
         log = f"\n    log: {o.log_path}" if o.log_path else ""

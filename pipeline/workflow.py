@@ -182,8 +182,26 @@ def _paths(value: Any, prefix: str) -> list[tuple[str, Path]]:
     return out
 
 
-def expand_env(value: Any, source: str, key: str, environ: Mapping[str, str]) -> Any:
-    """``${NAME}`` / ``${NAME:-default}`` expanded in every string of ``value``."""
+def expand_env(value: Any, source: str, key: str, environ: Mapping[str, str],
+               missing: Optional[dict] = None) -> Any:
+    """``${NAME}`` / ``${NAME:-default}`` expanded in every string of ``value``. Unset
+    variables without a default are all reported at once (one error naming each variable
+    and the keys that need it), not one per attempt."""
+    top = missing is None
+    missing = {} if top else missing
+    out = _expand(value, key, environ, missing)
+    if top and missing:
+        names = sorted(missing)
+        raise WorkflowError(
+            "; ".join(f"environment variable {n} is not set ({', '.join(missing[n][:3])}"
+                      f"{' ...' if len(missing[n]) > 3 else ''} need{'s' if len(missing[n]) == 1 else ''} it)"
+                      for n in names)
+            + "; set " + ("it" if len(names) == 1 else "them") + ", e.g. `export "
+            + " ".join(f"{n}=..." for n in names) + "`", source)
+    return out
+
+
+def _expand(value: Any, key: str, environ: Mapping[str, str], missing: dict) -> Any:
     if isinstance(value, str):
         def sub(match: re.Match) -> str:
             name, default = match.group(1), match.group(2)
@@ -192,15 +210,13 @@ def expand_env(value: Any, source: str, key: str, environ: Mapping[str, str]) ->
                 return got
             if default is not None:
                 return default
-            raise WorkflowError(f"environment variable {name} is not set (the value "
-                                f"{value!r} needs it); set it, e.g. `export {name}=...`",
-                                source, key)
+            missing.setdefault(name, []).append(key)
+            return match.group(0)
         return _ENV_RE.sub(sub, value)
     if isinstance(value, dict):
-        return {k: expand_env(v, source, f"{key}.{k}" if key else k, environ)
-                for k, v in value.items()}
+        return {k: _expand(v, f"{key}.{k}" if key else k, environ, missing) for k, v in value.items()}
     if isinstance(value, list):
-        return [expand_env(v, source, f"{key}[{i}]", environ) for i, v in enumerate(value)]
+        return [_expand(v, f"{key}[{i}]", environ, missing) for i, v in enumerate(value)]
     return value
 
 

@@ -9,6 +9,7 @@ Layout written (README "Exports")::
     DIR/<scene>/<method>/<object>/object.ply      the object (standard 3DGS layout)
     DIR/<scene>/<method>/<object>/background.ply  the scene without the object
     DIR/<scene>/<method>/<object>/metrics.json
+    DIR/<scene>/<method>/<object>/pred_masks/<view>.png  the 2D predicted masks (held-out views)
     DIR/export.json                               what was copied from which cache entry
 
 Only finished entries of the workflow's *current* configuration are copied (what
@@ -24,7 +25,7 @@ import os
 EXPORTS = (
     ("train", "scene", ("scene.ply", "train.json"), "scene"),
     ("refine", "refined", ("refined.ply",), "object"),
-    ("segment", "segmentation", ("object.ply", "background.ply"), "object"),
+    ("segment", "segmentation", ("object.ply", "background.ply", "pred_masks"), "object"),
     ("evaluate", "metrics", ("metrics.json",), "object"),
     ("summary", "summary", ("summary.json", "summary.csv", "by_method.csv", "by_scene_method.csv",
                             "timings.csv", "scenes.csv"), "root"),
@@ -35,7 +36,10 @@ def _copy(src, dst) -> None:
     import shutil
 
     dst.parent.mkdir(parents=True, exist_ok=True)
-    shutil.copyfile(src, dst)
+    if src.is_dir():  # a folder of files (the 2D predicted masks)
+        shutil.copytree(src, dst)
+    else:
+        shutil.copyfile(src, dst)
 
 
 def export(workflow, cache_dir, to, stream=None) -> dict:

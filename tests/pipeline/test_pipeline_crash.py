@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -135,6 +136,10 @@ def test_ctrl_c_discards_running_entries_and_keeps_finished_ones(toy, jobs):
     out, _ = proc.communicate(timeout=60)
     assert proc.returncode == 130, out
     assert "interrupted" in out and "Traceback" not in out
+    # the summary line says what each number counts, out of the run's 13 tasks
+    line = next(l for l in out.splitlines() if l.startswith("interrupted:"))
+    assert re.match(r"interrupted: \d+ of 13 tasks finished \(.*\); \d+ running or waiting on them "
+                    r"were stopped, \d+ not started", line), line
     recs = by_task(toy)
     key = recs[("refine", "alpha/full")].key
     assert recs[("refine", "alpha/full")].state == "missing"

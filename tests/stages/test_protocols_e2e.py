@@ -147,6 +147,19 @@ def test_benchmark_workflows_fail_fast_without_data(name, env, message):
         load_workflow(path, load_registry(), environ=env)
 
 
+def test_every_missing_variable_is_named_at_once():
+    """A user missing two variables learns both from one run, with the keys needing them."""
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[2] / "workflows" / "nvos.toml"
+    with pytest.raises(WorkflowError) as info:
+        load_workflow(path, load_registry(), environ={})
+    text = str(info.value)
+    assert "NVOS_LLFF_DIR is not set (axes.scene.fern.path" in text
+    assert "NVOS_LABELS_DIR is not set (axes.scene.fern.labels" in text
+    assert "export NVOS_LABELS_DIR=... NVOS_LLFF_DIR=..." in text
+
+
 @pytest.mark.parametrize("name, scenes", [
     ("nvos.toml", ("fern", "flower", "fortress", "horns", "leaves", "orchids", "trex")),
     ("lerf_mask.toml", ("figurines", "ramen", "teatime")),

@@ -216,6 +216,8 @@ def test_export_copies_the_ply_layout(tiny, tmp_path):
     for method in ("cobgs", "nosplit"):
         for f in ("refined.ply", "object.ply", "background.ply", "metrics.json"):
             assert (out / "tiny" / method / "ball" / f).is_file(), (method, f)
+        masks = sorted((out / "tiny" / method / "ball" / "pred_masks").glob("*.png"))
+        assert masks, method  # the 2D predicted masks travel too
     rec = json.loads((out / "export.json").read_text())
     assert rec["missing"] == [] and len(rec["copied"]) >= 15
 
