@@ -280,7 +280,10 @@ def _run(ctx, inputs):
                 spec["images"] = {"dir": os.fspath(sfm_dir), "names": [n for n in _names(sfm_dir)
                                                                         if Path(n).stem in kept]}
                 spec["sfm_downscale"] = post
-            spec.update(views=sorted(kept), test_views=test, objects=sorted({k for v in scene.views for k in v.masks}),
+            have = sorted({k for v in scene.views for k in v.masks})
+            if attrs.kind == "blender":
+                _check_blender_objects(ctx, root, have)
+            spec.update(views=sorted(kept), test_views=test, objects=have,
                         protocol="exact" if with_gt else "none",
                         scene_type=attrs.scene_type or ("360" if attrs.kind == "blender" else "forward"))
     spec["reader"] = reader
@@ -290,6 +293,25 @@ def _run(ctx, inputs):
     ctx.note(kind=attrs.kind, views=len(spec["views"]), test_views=len(spec["test_views"]),
              objects=spec["objects"], protocol=spec["protocol"], scene_type=spec["scene_type"])
     return {"dataset": ctx.out_dir}
+
+
+def _check_blender_objects(ctx, root: Path, have: list) -> None:
+    """A NeRF-synthetic scene's objects come from the images' alpha channel (``object``) or
+    ``masks/<object>/`` folders; an object the workflow asks for that neither gives fails
+    here, in the first task, naming the folder (objects with a text prompt are exempt)."""
+    for it in ctx.items:
+        if "object" not in it.axes:
+            continue
+        attrs = it.attrs.get("object")
+        name = (getattr(attrs, "mask", "") or it["object"]) if attrs is not None else it["object"]
+        if name in have or (attrs is not None and getattr(attrs, "prompt", "")) or \
+                (attrs is not None and getattr(attrs, "mask_dir", None) is not None):
+            continue
+        why = ", ".join(w for w in ("its images have no alpha channel" if "object" not in have else "",
+                                    f"it has masks of {have} only" if have else "") if w)
+        raise StageInputError(f"object {it['object']!r} of scene {ctx.item['scene']!r}: {root} gives no "
+                              f"mask of {name!r} ({why}, and there is no masks/{name}/ folder); add "
+                              f"masks/{name}/<image>.png, or set the object's mask / prompt")
 
 
 def _detect(root: Path) -> str:
@@ -312,7 +334,7 @@ def _check(p: DatasetParams) -> None:
 
 
 STAGE = Stage(
-    name="dataset", version=3, run=_run, inputs=(), outputs=("dataset",), params=DatasetParams,
+    name="dataset", version=4, run=_run, inputs=(), outputs=("dataset",), params=DatasetParams,
     level=("scene",), resources=Resources(cpus=1),
     description="generate a synthetic scene or ingest an external one (dataset.json)", check=_check,
 )

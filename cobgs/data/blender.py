@@ -17,7 +17,8 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import DataError
-from .scene import Scene, View, load_rgb, make_scene, read_image_array, target_size
+from .scene import (Scene, View, find_object_files, load_rgb, make_scene, read_image_array,
+                    read_mask_array, resize_mask, target_size)
 
 # 3DGS initialises NeRF-synthetic scenes with random points in this cube.
 NERF_SYNTHETIC_BOUNDS = ([-1.3, -1.3, -1.3], [1.3, 1.3, 1.3])
@@ -58,7 +59,7 @@ def read_blender(
         background=tuple(float(b) for b in background),
     )
     scene.test = test
-    scene.object_names = [mask_name]
+    scene.object_names = sorted({k for v in train + test for k in v.masks})
     return scene
 
 
@@ -78,7 +79,7 @@ def _read_split(root: Path, split: str, downscale, background, mask_name) -> lis
     for i, frame in enumerate(meta["frames"]):
         if "file_path" not in frame or "transform_matrix" not in frame:
             raise DataError(f"frame {i} lacks 'file_path' or 'transform_matrix'", jf)
-        img_path = _resolve(root, frame["file_path"])
+        img_path = resolve_image(root, frame["file_path"])
         if native is None:  # NeRF-synthetic frames share one size; decode once to learn it
             a = read_image_array(img_path)
             native = (a.shape[1], a.shape[0])
@@ -94,6 +95,10 @@ def _read_split(root: Path, split: str, downscale, background, mask_name) -> lis
         if alpha is not None:
             masks[mask_name] = alpha > 0.5
             coverage[mask_name] = alpha
+        # masks/<object>/<stem>.png beside the split files (the NeRF-synthetic layout plus
+        # masks, e.g. for images without alpha or for several objects)
+        for obj, f in find_object_files(root, img_path.stem, "masks").items():
+            masks[obj] = resize_mask(read_mask_array(f, [native, size]), size)[0]
         views.append(View(cam, image, img_path.stem, masks, coverage, os.fspath(img_path)))
     return views
 
@@ -123,13 +128,19 @@ def check_pose(value, where: str, jf: Path) -> np.ndarray:
     return c2w
 
 
-def _resolve(root: Path, file_path: str) -> Path:
+def resolve_image(root: Path, file_path: str) -> Path:
+    """The image a transforms file's ``file_path`` names; as the NeRF readers do, a path
+    without an extension (``./train/r_0``) is looked up as .png, then .jpg / .jpeg."""
     p = root / file_path
-    if p.suffix.lower() not in (".png", ".jpg", ".jpeg"):
-        p = p.with_name(p.name + ".png")
-    if not p.is_file():
-        raise DataError("image listed in the transforms file not found", p)
-    return p
+    if p.suffix.lower() in (".png", ".jpg", ".jpeg") or p.is_file():
+        if not p.is_file():
+            raise DataError("image listed in the transforms file not found", p)
+        return p
+    for ext in (".png", ".jpg", ".jpeg", ".PNG", ".JPG", ".JPEG"):
+        q = p.with_name(p.name + ext)
+        if q.is_file():
+            return q
+    raise DataError("image listed in the transforms file not found (tried .png, .jpg, .jpeg)", p)
 
 
 def _load_json(path: Path) -> dict:

@@ -21,7 +21,7 @@ import torch
 
 from ..camera import Camera
 from ..errors import DataError
-from .blender import _load_json, check_pose
+from .blender import _load_json, check_pose, resolve_image
 from .scene import (
     Scene,
     View,
@@ -174,9 +174,11 @@ def _read_point_cloud(path: Path, jf: Path) -> tuple[torch.Tensor, torch.Tensor]
 def _read_frame(root: Path, jf: Path, meta: dict, frame: dict, i: int, downscale, background) -> View:
     if not isinstance(frame, dict) or "file_path" not in frame or "transform_matrix" not in frame:
         raise DataError(f"frame {i} lacks 'file_path' or 'transform_matrix'", jf)
-    img_path = root / frame["file_path"]
-    if not img_path.is_file():
-        raise DataError(f"image of frame {i} not found (listed in {jf.name})", img_path)
+    try:
+        img_path = resolve_image(root, str(frame["file_path"]))
+    except DataError:
+        raise DataError(f"image of frame {i} not found (listed in {jf.name}; a path without an "
+                        "extension is tried as .png / .jpg)", root / str(frame["file_path"])) from None
 
     def get(key, default=None):
         return frame.get(key, meta.get(key, default))

@@ -536,3 +536,48 @@ def test_a_posed_scene_without_points_is_triangulated(tmp_path):
             assert sfm["initial_points"]["points"] > 200 and train["initial_points"] == sfm["initial_points"]["points"]
         else:
             assert "initial_points" not in sfm and train["initial_points"].startswith("random box")
+
+
+def test_nerf_synthetic_layout_with_mask_folders(tmp_path):
+    """transforms_train.json / transforms_test.json (file_path without an extension, as the
+    NeRF readers accept) with RGB images and masks/<object>/ folders: read by the blender
+    kind, masks from the folders; an object with neither alpha nor a mask folder fails in
+    the dataset task, naming the folder."""
+    import math
+    import shutil
+
+    import cv2
+
+    from cobgs.data.synthetic import generate_scene
+
+    src = generate_scene(tmp_path / "synth", "demo", seed=3, num_views=8, workers=1, progress=False)
+    tf = json.loads((src / "transforms.json").read_text())
+    root = tmp_path / "nerf"
+    for split, idx in (("train", range(0, 6)), ("test", range(6, 8))):
+        frames = []
+        for i in idx:
+            k = i
+            f = tf["frames"][i]
+            stem = Path(f["file_path"]).stem
+            (root / split).mkdir(parents=True, exist_ok=True)
+            shutil.copy(src / f["file_path"], root / split / f"r_{k}.png")  # RGB: no alpha
+            (root / "masks" / "ball").mkdir(parents=True, exist_ok=True)
+            shutil.copy(src / "masks" / "ball" / f"{stem}.png", root / "masks" / "ball" / f"r_{k}.png")
+            frames.append({"file_path": f"./{split}/r_{k}", "transform_matrix": f["transform_matrix"]})
+        angle = 2 * math.atan(tf["w"] / (2 * tf["fl_x"]))
+        (root / f"transforms_{split}.json").write_text(json.dumps({"camera_angle_x": angle, "frames": frames}))
+    wf_path = tmp_path / "nerf.toml"
+    wf_path.write_text('[workflow]\nnested = { object = "scene" }\n'
+                       f'[axes.scene.s]\nkind = "blender"\npath = "{root}"\n'
+                       '[axes.method.cobgs]\n[axes.object.s.ball]\n')
+    wf, summary, log = _run(wf_path, tmp_path / "cache", only=("dataset",))
+    assert summary.exit_code == 0, log
+    spec = json.loads((_entry(wf, tmp_path / "cache", "dataset", "s").output("dataset") / "dataset.json").read_text())
+    assert spec["objects"] == ["ball"] and len(spec["views"]) == 8
+    wf_path.write_text(wf_path.read_text() + "[axes.object.s.crate]\n")
+    _, summary, log = _run(wf_path, tmp_path / "cache2", only=("dataset",))
+    assert summary.exit_code == 1
+    note = next(o.note for o in summary.outcomes.values() if o.state == "failed")
+    assert "object 'crate'" in note and "no masks/crate/ folder" in note and "masks of ['ball'] only" in note, note
+    img = cv2.imread(str(root / "train" / "r_0.png"), cv2.IMREAD_UNCHANGED)
+    assert img.ndim == 3 and img.shape[2] == 3  # really no alpha
