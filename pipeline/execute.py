@@ -190,6 +190,7 @@ def _base_manifest(job: Job, measures: dict) -> dict[str, Any]:
         "device": job.settings.device,
         "uses_device": job.stage.uses_device,
         "host": socket.gethostname(),
+        "node": os.environ.get("COBGS_RAY_NODE"),  # the Ray node id under the Ray executor
         "pid": os.getpid(),
         "python": platform.python_version(),
         "package_version": job.package_version,

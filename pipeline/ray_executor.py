@@ -12,6 +12,7 @@ Peak memory of a Ray task is measured in the Ray worker process the same way as 
 
 from __future__ import annotations
 
+import sys
 import time
 from typing import Any, Optional
 
@@ -24,6 +25,14 @@ INSTALL_HINT = ("the Ray executor needs Ray, an optional extra: pip install 'cob
 
 
 def _ray_execute(job: Job) -> JobResult:
+    import os
+
+    try:  # the manifest records which Ray node ran the task (see execute's manifest)
+        import ray
+
+        os.environ["COBGS_RAY_NODE"] = ray.get_runtime_context().get_node_id()
+    except Exception:  # noqa: BLE001 - only a record; never fail the task for it
+        pass
     result = execute(job)
     if result.status == "interrupted":
         # ray.cancel raised KeyboardInterrupt in the task and execute() cleaned up; Ray
@@ -62,6 +71,11 @@ class RayExecutor:
         self._running: dict[Any, Job] = {}
         self._rejected: list[JobResult] = []
         self._cluster = ray.cluster_resources()
+        nodes = [n for n in ray.nodes() if n.get("Alive")]
+        # the largest single node: a task cannot span nodes
+        self._node_max = {what: max((float(n.get("Resources", {}).get(what, 0.0)) for n in nodes), default=0.0)
+                          for what in ("CPU", "GPU")}
+        self._fitted: set[str] = set()
 
     def capacity(self) -> Optional[int]:
         return None
@@ -77,7 +91,23 @@ class RayExecutor:
                     error=f"needs {need:g} {what}(s) (device={job.settings.device}) but the "
                           f"Ray cluster has {have:g}"))
                 return
-        options: dict[str, Any] = {"num_cpus": resources.cpus, "num_gpus": resources.gpus,
+        # A request larger than every node waits forever in Ray's queue ("No available node
+        # types can fulfill resource request"): CPUs are fitted to the largest node (a
+        # stage's CPU count sizes its threads, it still runs with fewer); GPUs cannot be.
+        if resources.gpus > self._node_max["GPU"]:
+            self._rejected.append(JobResult(
+                job.index, "failed", job.key,
+                error=f"needs {resources.gpus:g} GPU(s) on one node but the largest Ray node has "
+                      f"{self._node_max['GPU']:g}"))
+            return
+        cpus = resources.cpus
+        if cpus > self._node_max["CPU"] > 0:
+            cpus = self._node_max["CPU"]
+            if job.stage.name not in self._fitted:
+                self._fitted.add(job.stage.name)
+                print(f"note: stage {job.stage.name!r} asks for {resources.cpus:g} CPUs; the largest Ray "
+                      f"node has {cpus:g}: its tasks run with {cpus:g}", file=sys.stderr, flush=True)
+        options: dict[str, Any] = {"num_cpus": cpus, "num_gpus": resources.gpus,
                                    "name": f"{job.stage.name}[{job.item.label}]"}
         if resources.memory_gb:
             options["memory"] = int(resources.memory_gb * 2**30)

@@ -454,7 +454,8 @@ def task_records(data: RunData, log_href: LogHref) -> list[dict]:
         recs.append({"order": i, "stage": t.stage, "item": t.item_id, "state": t.state, "key": t.key or "",
                      "version": m.get("version"), "wall_s": m.get("wall_s"), "cpu_s": m.get("cpu_s"),
                      "peak_rss": m.get("peak_rss_bytes"), "peak_gpu": m.get("gpu_peak_bytes"),
-                     "host": m.get("host"), "device": m.get("device"),
+                     "host": (f"{m.get('host')} (Ray node {m['node'][:8]})" if m.get("node")
+                              else m.get("host")), "device": m.get("device"),
                      "started": m.get("started"), "log": "log" if href else "",
                      "_href": {"log": href} if href else {}, "_class": {"state": [t.state]},
                      "_title": {"key": t.key or "", "state": t.error}})
