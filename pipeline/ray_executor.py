@@ -55,6 +55,7 @@ class RayExecutor:
     ``address`` (``auto``, ``ray://host:10001``, ``host:6379``) is given."""
 
     name = "ray"
+    submitted_state = "queued"  # Ray starts it when a node has room
 
     def __init__(self, address: Optional[str] = None):
         ray = import_ray()

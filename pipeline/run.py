@@ -310,7 +310,10 @@ class _Scheduler:
                   "recomputing", file=sys.stderr)
         job = self._job(task, key, doc, hashes, force=index in self.sel.forced)
         self.jobs[index] = (job, resources.gpus if self.executor.capacity() is not None else 0)
-        self.progress.line(task, "running", note=note, final=False)
+        # Ray queues a submitted task until a node has room: say "queued" there (its own
+        # progress lines, forwarded from the node, show when it runs); a local executor
+        # starts what it is given.
+        self.progress.line(task, getattr(self.executor, "submitted_state", "running"), note=note, final=False)
         self.executor.submit(job, resources)
         return True
 

@@ -50,6 +50,7 @@ def executions(ray_log, monkeypatch):
 def test_ray_executor_runs_the_workflow_end_to_end(toy, executions, local_ray):
     s = toy.run(executor="ray", sets=["train.fail_on=beta"])
     assert s.exit_code == 1, s.output
+    assert "queued" in s.output and " running" not in s.output  # Ray queues what it is given
     assert [t.id for t in s.tasks_in("failed")] == ["train[beta]"]
     assert executions.stages() == {"load": 2, "train": 2, "refine": 2, "evaluate": 2}
     recs = {(r.stage, r.item.id): r for r in entries(toy.load(["train.fail_on=beta"]),
