@@ -14,6 +14,48 @@ from typing import Any, Callable, Optional, Sequence
 from .fmt import finite
 
 
+#: What each column means, shown under every table that has it (and as its tooltip).
+GLOSSARY = {
+    "iou": "intersection over union of the predicted and the ground-truth object mask on the held-out "
+           "views (TP / (TP + FP + FN)); mIoU: its mean over objects, then scenes (NVOS: over tasks; "
+           "LERF-mask: over prompts)",
+    "biou": "boundary IoU: IoU of the two masks' boundary bands (mask minus its erosion, width 2 % of "
+            "the image diagonal): how clean the object's outline is; mBIoU: its mean",
+    "acc": "pixel accuracy ((TP + TN) / all pixels); mAcc: its mean",
+    "iou_object_only": "IoU of the render of the object's Gaussians alone (label > 0.9, mask > 0.5), the "
+                       "released evaluation's render, against the GT",
+    "psnr": "peak signal-to-noise ratio (dB) of the scene the method leaves, rendered at the held-out "
+            "views, against the photos",
+    "psnr_delta": "ΔPSNR: the method's held-out PSNR minus the vanilla (trained, unrefined) scene's; "
+                  "below 0: the refinement lost texture",
+    "num_gaussians": "Gaussians in the scene (after the method)", "objects": "objects evaluated",
+    "splits": "Gaussians split on the object's boundary (BAGS)",
+    "pruned": "ambiguous Gaussians removed at the end (RAEM)",
+    "ambiguous_final": "Gaussians still ambiguous (neither object nor background) after the last stage",
+    "ambiguous": "Gaussians ambiguous in this stage (mean score between δ and 1 − δ)",
+    "ambiguous_large": "ambiguous Gaussians large enough to split",
+    "refine_s": "wall time of the method on one object (from the refine task's manifest)",
+    "peak_rss": "peak resident memory of the task's process", "peak_gpu": "peak of PyTorch's CUDA allocator",
+    "mask_route": "how the training masks were made: files, released masks, scribbles -> SAM2, text -> "
+                  "Grounding DINO + SAM2", "status": "whether every task of the row finished",
+    "scene": "scene", "method": "method (COB-GS, an ablation row or a peer)", "object": "object",
+    "scenes": "scenes with results", "views": "held-out views scored",
+    "kind": "data layout / stage kind", "protocol": "evaluation protocol: exact GT, NVOS, LERF-mask, or none "
+                                                   "(own data: no ground truth)",
+    "scene_type": "forward-facing or 360° (sets δ and the stage count)", "test_views": "views held out of training",
+    "iterations": "training iterations", "train_s": "wall time of the 3DGS training",
+    "ssim": "structural similarity of the held-out renders", "notes": "what the reader decided (e.g. a "
+            "distortion dropped, names matched by sorted order)",
+    "index": "stage number in the alternation", "g_start": "Gaussians at the stage's start",
+    "g_end": "Gaussians at its end", "split": "Gaussians split in the stage", "loss": "mean mask loss of the stage",
+    "wall_s": "wall-clock time", "cpu_s": "CPU time (user + system)", "order": "order in the plan",
+    "stage": "pipeline stage", "item": "the task's scene / method / object", "state": "done, failed, stale, missing",
+    "key": "cache key (hash of the stage, its params, its inputs' content and its data)", "version": "stage version",
+    "host": "machine (and Ray node) that ran the task", "device": "cpu or cuda", "started": "start time",
+    "log": "the task's log",
+}
+
+
 @dataclass
 class Column:
     """Attributes:
@@ -35,6 +77,8 @@ class Column:
     quoted: bool = False
 
     def __post_init__(self) -> None:
+        if not self.title:  # every column is defined on the page (glossary below its table)
+            object.__setattr__(self, "title", GLOSSARY.get(self.key, ""))
         if self.better not in (None, "max", "min"):
             raise ValueError(f"column {self.key!r}: better must be 'max', 'min' or None, got {self.better!r}")
 

@@ -340,3 +340,16 @@ def test_gpu_peak_column_only_when_tasks_recorded_one(recorded, report, tmp_path
     html = index.read_text(encoding="utf-8")
     assert html.count(">Peak GPU<") >= 3  # by method, by scene, per object, tasks
     assert any(cell == "3.0 GiB" for row in rows["t-method"] for cell, _ in row)
+
+
+def test_every_column_is_defined_on_the_page(recorded, tmp_path):
+    """Each table header carries its definition (tooltip) and each table lists its columns'
+    definitions under it: a reader never meets an unexplained mBIoU or ΔPSNR."""
+    import re
+
+    html = recorded.build(tmp_path / "r").read_text()
+    tables = re.findall(r'<table id="[^"]*" class="data.*?</thead>', html, re.S)
+    headers = [h for t in tables for h in re.findall(r"<th scope=\"col\"[^>]*>", t)]
+    assert headers and all('title="' in h for h in headers), [h for h in headers if 'title="' not in h][:5]
+    assert html.count('<details class="columns">') >= html.count("<table id=") > 0
+    assert "<dt>mBIoU</dt>" in html or "<dt>BIoU</dt>" in html
