@@ -45,10 +45,13 @@ def picture_sets(data: RunData, infos: dict, root: Path) -> list[PictureSet]:
                 view = pick["name"]
                 image = read_rgb(held.folder / pick["image"])
                 gt = read_mask(held.folder / pick["gt"]) if pick.get("gt") else None
-                notes.append(f"Held-out view {view}: the first of the {len(with_gt)} held-out view(s) with a "
-                             f"ground-truth mask that the heldout stage wrote (not chosen by result).")
-                if gt is None:
-                    notes.append("No ground-truth mask for this view: no error overlay or crop.")
+                if with_gt:
+                    notes.append(f"Held-out view {view}: the first of the {len(with_gt)} held-out view(s) with a "
+                                 f"ground-truth mask that the heldout stage wrote (not chosen by result).")
+                else:
+                    notes.append(f"Held-out view {view}: the first of the {len(views)} held-out view(s); none "
+                                 "has a ground-truth mask (e.g. your own photos), so there is no error "
+                                 "overlay or crop: judge the predicted mask and the renders by eye.")
         else:
             notes.append("No held-out image or ground truth: the heldout stage has not run for this object "
                          f"(`cobgs run {data.workflow.path} --only heldout`); predicted masks and renders only.")

@@ -231,6 +231,11 @@ def score_curves(path: Path, panels: Sequence[tuple[str, Sequence[tuple[str, np.
         # few hundred near δ readable next to the jump at 1.
         ax.set_yscale("symlog", linthresh=10)
         ax.set_ylim(bottom=0)
+        # plain tick labels: the default log formatter writes math text, which labels are not
+        # parsed as (text.parse_math is off so that names with "$" stay text)
+        from matplotlib.ticker import FuncFormatter
+
+        ax.yaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:,.0f}"))
     axes[0][0].set_ylabel("Gaussians with score < δ (log)")
     longest = max(panels[:n], key=lambda p: len(p[1]))
     handles = [plt.Line2D([], [], color=cmap(i / max(1, most - 1)), lw=1.2) for i in range(most)]

@@ -205,3 +205,16 @@ def test_plot_labels_are_text_not_tex(tmp_path):
     assert plots.time_breakdown(tmp_path / "t.svg", [(name, {"train": 3.0, "refine": 1.0})],
                                 ["train", "refine"])
     assert name in (tmp_path / "t.svg").read_text()
+
+
+def test_log_axis_ticks_are_plain_numbers(tmp_path):
+    """With math text off (names are text), the score curves' log axis must not print raw
+    math markup such as $\\mathdefault{10^{3}}$ as its tick labels."""
+    import numpy as np
+
+    from reports import plots
+
+    scores = np.linspace(0, 1, 5000) ** 3
+    assert plots.score_curves(tmp_path / "s.svg", [("scene / obj", [("mask stage 1", scores)], 0.5)])
+    svg = (tmp_path / "s.svg").read_text()
+    assert "mathdefault" not in svg and "$" not in svg
