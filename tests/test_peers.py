@@ -113,7 +113,11 @@ def test_nosplit_is_table5_first_row():
     r = run_method("nosplit", model, views, masks_for(views, "ball"), extent,
                    config=RefineConfig(mask_stages=2, stage_length_views=1), progress=False, object_name="ball")
     assert r.method == "nosplit" and len(r.model) == len(model)
-    assert [s.kind for s in r.stages] == ["mask", "mask"] and sum(s.split for s in r.stages) == 0
+    # as long as the released labels-only run: COB-GS's 2 mask + 1 texture stages -> 3 mask stages
+    assert [s.kind for s in r.stages] == ["mask", "mask", "mask"] and sum(s.split for s in r.stages) == 0
+    # the defaults: forward 6 + 5 -> 11 stages of 2V = 22V iterations; 360: 4 + 3 -> 7 (14V)
+    assert nosplit_config(RefineConfig()).num_mask_stages == 11
+    assert nosplit_config(RefineConfig(scene_type="360")).num_mask_stages == 7
 
 
 def test_run_method_dispatch_and_errors():
