@@ -334,7 +334,7 @@ def _check(p: DatasetParams) -> None:
 
 
 STAGE = Stage(
-    name="dataset", version=4, run=_run, inputs=(), outputs=("dataset",), params=DatasetParams,
+    name="dataset", version=5, run=_run, inputs=(), outputs=("dataset",), params=DatasetParams,
     level=("scene",), resources=Resources(cpus=1),
     description="generate a synthetic scene or ingest an external one (dataset.json)", check=_check,
 )

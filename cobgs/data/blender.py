@@ -7,6 +7,7 @@ object mask: alpha > 0.5 (after area downscaling) marks the object.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import os
@@ -50,6 +51,14 @@ def read_blender(
     root = Path(path)
     train = _read_split(root, train_split, downscale, background, mask_name)
     test = _read_split(root, test_split, downscale, background, mask_name) if test_split else []
+    # The published NeRF-synthetic splits reuse names (train/r_0 and test/r_0 are different
+    # images): a held-out view must never share a name with a training view, or it would be
+    # trained on and scored; such test views are named "<split>_<stem>".
+    taken = {v.name for v in train}
+    for v in test:
+        if v.name in taken:
+            v.name = f"{test_split}_{v.name}"
+            v.camera = dataclasses.replace(v.camera, name=v.name)
     scene = make_scene(
         train,
         test_every=0,
