@@ -135,8 +135,14 @@ def workflow_text(folder: Path, info: dict, name: str, prompts: list[str], views
     lines += ["[params.masks]", f'source = "{source}"']
     if source == "onnx":
         lines.append('models_dir = "${COBGS_MODELS_DIR}"')
+    st_default = "360" if info["kind"] in ("images", "blender") else "forward"  # as the dataset stage
+    other = "forward" if st_default == "360" else "360"
+    why = {"forward": "a forward-facing capture: δ 0.5, 6 mask stages",
+           "360": "the camera goes around the object: δ 0.8, 4 mask stages"}
     lines += ["", f"[axes.scene.{_toml_str(scene)}]", f'kind = "{info["kind"]}"',
-              f"path = {_toml_str(os.fspath(folder))}", "",
+              f"path = {_toml_str(os.fspath(folder))}",
+              f'# scene_type = "{other}"   # if {why[other]} (default for this kind: {st_default},',
+              f"#                           {why[st_default]})", "",
               "[axes.method.cobgs]", "# peers, to compare: uncomment",
               '# [axes.method.nosplit]\n# refine = { method = "nosplit" }', ""]
     for obj in objects:

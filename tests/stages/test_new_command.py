@@ -42,6 +42,7 @@ def test_detects_the_layout_and_writes_a_workflow_that_loads(tmp_path, layout, k
     assert main(["new", str(root), "--out", str(out)]) == 0
     text = out.read_text()
     assert f'kind = "{kind}"' in text and 'source = "files"' in text and "# Written by `cobgs new" in text
+    assert "# scene_type = " in text  # the forward / 360 choice is spelled out
     assert f"{kind!r}" in capsys.readouterr().out
     if kind == "images":
         plan = _load(out)
