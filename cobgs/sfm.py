@@ -98,6 +98,23 @@ def _prepare_out(out: Path) -> None:
     out.parent.mkdir(parents=True, exist_ok=True)
 
 
+def _extraction_options(pycolmap, options: SfmOptions, threads: int):
+    """SIFT extraction options of :func:`run_sfm` and :func:`triangulate_known_poses`."""
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = threads
+    extraction.use_gpu = options.device == "cuda"
+    extraction.max_image_size = options.max_image_size_px
+    extraction.sift.max_num_features = options.max_num_features
+    return extraction
+
+
+def _matching_options(pycolmap, options: SfmOptions, threads: int):
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = threads
+    matching.use_gpu = options.device == "cuda"
+    return matching
+
+
 def _check_camera(pycolmap, options: SfmOptions) -> None:
     """Raise InputError for an unknown camera model or a wrong number of its parameters."""
     try:
@@ -182,21 +199,15 @@ def run_sfm(image_dir: os.PathLike | str, out_dir: os.PathLike | str,
         reader.camera_model = options.camera_model
         if options.camera_params is not None:
             reader.camera_params = ",".join(repr(float(v)) for v in options.camera_params)
-        extraction = pycolmap.FeatureExtractionOptions()
-        extraction.num_threads = threads
-        extraction.use_gpu = options.device == "cuda"
-        extraction.max_image_size = options.max_image_size_px
-        extraction.sift.max_num_features = options.max_num_features
         pycolmap.extract_features(
             db, image_dir, image_names=names,
             camera_mode=pycolmap.CameraMode.SINGLE if options.single_camera else pycolmap.CameraMode.AUTO,
-            reader_options=reader, extraction_options=extraction, device=device)
+            reader_options=reader, extraction_options=_extraction_options(pycolmap, options, threads),
+            device=device)
         timings["extract"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
-        matching = pycolmap.FeatureMatchingOptions()
-        matching.num_threads = threads
-        matching.use_gpu = options.device == "cuda"
+        matching = _matching_options(pycolmap, options, threads)
         if matcher == "exhaustive":
             pycolmap.match_exhaustive(db, matching_options=matching, device=device)
         else:
@@ -376,17 +387,12 @@ def triangulate_known_poses(image_dir: os.PathLike | str, cameras: Dict[str, tup
     pycolmap.logging.minloglevel = 0 if options.verbose else 1
     try:
         pycolmap.set_random_seed(options.seed)
-        extraction = pycolmap.FeatureExtractionOptions()
-        extraction.num_threads = threads
-        extraction.max_image_size = options.max_image_size_px
-        extraction.sift.max_num_features = options.max_num_features
         reader = pycolmap.ImageReaderOptions()
         reader.camera_model = "PINHOLE"
         pycolmap.extract_features(db, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.PER_IMAGE,
-                                  reader_options=reader, extraction_options=extraction)
-        matching = pycolmap.FeatureMatchingOptions()
-        matching.num_threads = threads
-        pycolmap.match_exhaustive(db, matching_options=matching)
+                                  reader_options=reader,
+                                  extraction_options=_extraction_options(pycolmap, options, threads))
+        pycolmap.match_exhaustive(db, matching_options=_matching_options(pycolmap, options, threads))
         database = pycolmap.Database.open(str(db))
         try:
             images = database.read_all_images()

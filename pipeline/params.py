@@ -26,7 +26,7 @@ import types
 import typing
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping, Optional
+from typing import Any, Iterable, Mapping, Optional
 
 from .errors import WorkflowError, unknown_key_hint
 
@@ -195,9 +195,7 @@ def _flatten(cls: type, values: Mapping[str, Any], layer: Layer, prefix: str,
 def check(cls: type, layer: Layer) -> None:
     """Validate one layer's keys and value types against ``cls`` without building it
     (so a layer that sets only some of the required fields can be checked alone)."""
-    leaves: dict[tuple[str, ...], tuple[Any, Layer, str]] = {}
-    _flatten(cls, layer.values, layer, layer.prefix, leaves, ())
-    for path, (value, lay, key) in leaves.items():
+    for path, (value, lay, key) in set_values(cls, [layer]).items():
         owner, tp = cls, Any
         for name in path:
             tp = field_types(owner)[name]
@@ -214,10 +212,28 @@ def build(cls: type, layers: list[Layer], owner: str, base: Any = _MISSING) -> A
         owner: what the params belong to (``"stage 'train'"``), for messages.
         base: an instance to start from instead of the class defaults.
     """
+    return _assemble(cls, set_values(cls, layers), (), owner, base)
+
+
+def set_values(cls: type, layers: list[Layer]) -> dict[tuple[str, ...], tuple[Any, Layer, str]]:
+    """Every value ``layers`` set, by field path: ``(value, the layer that set it last, its
+    dotted key)``."""
     leaves: dict[tuple[str, ...], tuple[Any, Layer, str]] = {}
     for layer in layers:
         _flatten(cls, layer.values, layer, layer.prefix, leaves, ())
-    return _assemble(cls, leaves, (), owner, base)
+    return leaves
+
+
+def first_named(candidates: Iterable[tuple[str, Any]], message: str) -> Any:
+    """The value of the candidate ``(name, value)`` whose name ``message`` mentions first
+    (as a whole word); None when it names none. How a refused value is traced back to the
+    key that set it: the checks name the field they refuse."""
+    best = None
+    for name, value in candidates:
+        m = re.search(rf"(?<![A-Za-z0-9_]){re.escape(name)}(?![A-Za-z0-9_])", message)
+        if m and (best is None or m.start() < best[0]):
+            best = (m.start(), value)
+    return best[1] if best else None
 
 
 def _assemble(cls: type, leaves: dict, path: tuple[str, ...], owner: str, base: Any) -> Any:
@@ -251,13 +267,8 @@ def _assemble(cls: type, leaves: dict, path: tuple[str, ...], owner: str, base: 
         msg = str(exc)
         set_here = [(f.name, leaves[path + (f.name,)]) for f in dataclasses.fields(cls)
                     if path + (f.name,) in leaves]
-        found = []
-        for x in set_here:
-            m = re.search(rf"(?<![A-Za-z0-9_]){re.escape(x[0])}(?![A-Za-z0-9_])", msg)
-            if m:
-                found.append((m.start(), x))
-        named = [x for _, x in sorted(found, key=lambda t: t[0])][:1]  # the first one named
-        culprits = named or set_here
+        named = first_named(((x[0], x) for x in set_here), msg)
+        culprits = [named] if named is not None else set_here
         if len(culprits) == 1:
             _, (_, layer, key) = culprits[0]
             who = owner.removeprefix(f"{layer.source}: ")

@@ -92,15 +92,7 @@ class Workflow:
 
     def params_for(self, stage: str, item: Item) -> ResolvedParams:
         """The params of ``stage`` for ``item``, layered and typed (memoised)."""
-        layers: list[P.Layer] = []
-        if stage in self._stage_layers:
-            layers.append(self._stage_layers[stage])
-        for pair in item.pairs:
-            layer = self._item_layers.get(self._slot(item, pair), {}).get(stage)
-            if layer is not None:
-                layers.append(layer)
-        if stage in self._cli_layers:
-            layers.append(self._cli_layers[stage])
+        layers = self._layers(stage, item)
         memo = tuple(id(layer) for layer in layers)
         hit = self._params_cache.get((stage, memo))
         if hit is None:
@@ -114,6 +106,14 @@ class Workflow:
         """Where the value a check refused was set: ``(source, dotted key)`` of the first
         param that ``message`` names among those the layers of ``stage`` x ``item`` set
         (the last layer setting it wins); ``(None, None)`` when it names none."""
+        leaves = P.set_values(self.stages[stage].params, self._layers(stage, item))
+        hit = P.first_named(((path[-1], (layer.source, key)) for path, (_, layer, key) in leaves.items()),
+                            message)
+        return hit if hit is not None else (None, None)
+
+    def _layers(self, stage: str, item: Item) -> list[P.Layer]:
+        """The value layers of ``stage`` for ``item``, lowest precedence first: the
+        workflow's table, each axis value's overrides (in axis order), then ``--set``."""
         layers: list[P.Layer] = []
         if stage in self._stage_layers:
             layers.append(self._stage_layers[stage])
@@ -123,15 +123,7 @@ class Workflow:
                 layers.append(layer)
         if stage in self._cli_layers:
             layers.append(self._cli_layers[stage])
-        leaves: dict[tuple[str, ...], tuple[Any, P.Layer, str]] = {}
-        for layer in layers:
-            P._flatten(self.stages[stage].params, layer.values, layer, layer.prefix, leaves, ())
-        best = None
-        for path, (_, layer, key) in leaves.items():
-            m = re.search(rf"(?<![A-Za-z0-9_]){re.escape(path[-1])}(?![A-Za-z0-9_])", message)
-            if m and (best is None or m.start() < best[0]):
-                best = (m.start(), layer.source, key)
-        return (best[1], best[2]) if best else (None, None)
+        return layers
 
     def _slot(self, item: Item, pair: tuple[str, str]) -> tuple[str, str]:
         """Key of an axis value in ``item_layers``; nested values are ``parent/value``."""

@@ -87,10 +87,11 @@ def _run(ctx, inputs):
     # line up with them; readers then take the masks from this artifact.
     mask_info = None
     src = spec.get("reader", {}).get("path")
-    if src is not None and (spec_path(Path(inputs["dataset"]), src) / "masks").is_dir():
+    data_root = spec_path(Path(inputs["dataset"]), src) if src is not None else None
+    if data_root is not None and (data_root / "masks").is_dir():
         from cobgs.sfm import undistort_masks
 
-        mask_info = undistort_masks(res.root, spec_path(Path(inputs["dataset"]), src), ctx.out_dir / "masks")
+        mask_info = undistort_masks(res.root, data_root, ctx.out_dir / "masks")
         if mask_info["masks"]:
             ctx.log.info("undistorted %d masks of %s like the images%s", mask_info["masks"],
                          mask_info["objects"], f" (resized first: {len(mask_info['resized'])})"
