@@ -135,6 +135,10 @@ def _triangulate(ctx, p: SfmParams, spec: dict, inputs) -> dict:
         if v is not None:
             c = v.camera
             cams[n] = (c.fx, c.fy, c.cx, c.cy, c.width, c.height, c.viewmat.double().cpu().numpy())
+    if len(cams) < 2:  # nothing to triangulate between
+        ctx.log.warning("%d posed image(s) match the views: training starts from a random box", len(cams))
+        return {"source": "random box", "why": f"{len(cams)} posed image(s) match the views; "
+                                                "triangulation needs 2", "images": len(cams)}
     work = ctx.scratch_dir / "triangulate"
     work.mkdir(parents=True)
     ctx.log.info("triangulating %d posed images (%s) with their known poses", len(cams), image_dir)

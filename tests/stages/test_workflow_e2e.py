@@ -581,3 +581,23 @@ def test_nerf_synthetic_layout_with_mask_folders(tmp_path):
     assert "object 'crate'" in note and "no masks/crate/ folder" in note and "masks of ['ball'] only" in note, note
     img = cv2.imread(str(root / "train" / "r_0.png"), cv2.IMREAD_UNCHANGED)
     assert img.ndim == 3 and img.shape[2] == 3  # really no alpha
+
+
+def test_a_single_posed_image_falls_back_to_the_random_box(tmp_path):
+    """Triangulation needs two posed images; with one the SfM stage says so and keeps the
+    random box instead of failing."""
+    from cobgs.data.synthetic import generate_scene
+
+    scene = generate_scene(tmp_path / "scene", "demo", seed=2, num_views=2, workers=1, progress=False)
+    tf = json.loads((scene / "transforms.json").read_text())
+    tf["frames"] = tf["frames"][:1]  # one posed image (the generator makes at least two)
+    tf.pop("test_filenames", None)
+    (scene / "transforms.json").write_text(json.dumps(tf))
+    wf_path = tmp_path / "one.toml"
+    wf_path.write_text('[workflow]\nnested = { object = "scene" }\n[params.dataset]\ntest_every = 0\n'
+                       f'[axes.scene.s]\nkind = "transforms"\npath = "{scene}"\n'
+                       '[axes.method.cobgs]\n[axes.object.s.ball]\n')
+    wf, summary, log = _run(wf_path, tmp_path / "cache", only=("dataset", "sfm"))
+    assert summary.exit_code == 0, log
+    sfm = json.loads((_entry(wf, tmp_path / "cache", "sfm", "s").output("poses") / "sfm.json").read_text())
+    assert sfm["initial_points"]["source"] == "random box" and "needs 2" in sfm["initial_points"]["why"]
