@@ -239,14 +239,24 @@ class RefineConfig:
 # -- peers (cobgs.peers) ------------------------------------------------------------------
 @dataclass(frozen=True)
 class SA3DConfig:
-    """SA3D-GS parameters (SPEC §3).
+    """SA3D-GS parameters (SPEC §3). The defaults are the official ``sa3d-gs`` rules;
+    :meth:`strict` is the stricter variant this project ran before (a stronger peer, kept
+    as an option and a benchmark row).
 
     Attributes:
         lr: Adam lr of the raw labels.
         neg_weight: weight of the background term of the loss.
         passes: passes over the training views.
-        threshold: foreground = label > threshold at the end.
-        seed: view order.
+        order: "fixed" (the views in their given order each pass, official) or "random"
+            (shuffled per pass with ``seed``).
+        skip_iou: a view whose mask rendered from the current labels (> ``render_threshold``)
+            has IoU below this with the view's mask is skipped (official: 0.5; the first
+            view trained is never skipped: nothing is labelled before it); 0 = never skip.
+        label_threshold: foreground = raw label > this at the end (official: 0).
+        render_values: what the object render composites per foreground Gaussian:
+            "label" (its raw label, official) or "one".
+        render_threshold: the object render is foreground above this (official: 0.1).
+        seed: view order when ``order`` is "random".
         adam_eps: Adam epsilon.
         backend: rasterizer backend.
     """
@@ -254,7 +264,11 @@ class SA3DConfig:
     lr: float = 1.0
     neg_weight: float = 0.3
     passes: int = 2
-    threshold: float = 0.5
+    order: str = "fixed"
+    skip_iou: float = 0.5
+    label_threshold: float = 0.0
+    render_values: str = "label"
+    render_threshold: float = 0.1
     seed: int = 0
     adam_eps: float = 1e-15
     backend: str = "native"
@@ -262,6 +276,19 @@ class SA3DConfig:
     def __post_init__(self):
         if self.passes < 1 or self.lr <= 0:
             raise InputError("SA3DConfig.passes must be >= 1 and lr > 0")
+        if self.order not in ("fixed", "random"):
+            raise InputError(f"SA3DConfig.order must be 'fixed' or 'random', got {self.order!r}")
+        if self.render_values not in ("label", "one"):
+            raise InputError(f"SA3DConfig.render_values must be 'label' or 'one', got {self.render_values!r}")
+        if not 0.0 <= self.skip_iou <= 1.0:
+            raise InputError(f"SA3DConfig.skip_iou must be in [0, 1], got {self.skip_iou}")
+
+    @classmethod
+    def strict(cls, **kw) -> "SA3DConfig":
+        """The stricter variant: random order, no skipped views, label > 0.5 and the
+        object's render (mask value 1 per foreground Gaussian) thresholded at 0.5."""
+        return cls(**{"order": "random", "skip_iou": 0.0, "label_threshold": 0.5, "render_values": "one",
+                      "render_threshold": 0.5, **kw})
 
 
 @dataclass(frozen=True)

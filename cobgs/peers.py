@@ -6,10 +6,16 @@ and returns the same :class:`~cobgs.refine_result.RefineResult`, so
 
 * **nosplit** — COB-GS's label optimisation without splitting (paper Table 5, first row):
   the same MASK stages, BAGS / BGTR / RAEM off.
-* **sa3d** — SA3D-GS: raw unbounded labels (init 0) blended as the mask channel, Adam
-  lr 1.0, loss ``−Σ G·M + 0.3·Σ (1−G)·M`` (not normalised), two passes over the views in
-  random order; after the first pass the Gaussians with label ≤ 0 are removed from the
-  optimised set (they are background and no longer rendered); foreground = label > 0.5.
+* **sa3d** — SA3D-GS as its official ``sa3d-gs`` branch runs it: raw unbounded labels
+  (init 0) blended as the mask channel, Adam lr 1.0, loss ``−Σ G·M + 0.3·Σ (1−G)·M`` (not
+  normalised), two passes over the views in their fixed order, a view skipped when the
+  mask rendered from the current labels (> 0.1) has IoU < 0.5 with its mask (the first
+  view trained never is); after the first pass the Gaussians with label ≤ 0 leave the
+  optimised set (background, no longer rendered; counted as ``dropped``, not pruned:
+  they stay in the scene); foreground = raw label > 0, and the object's render composites
+  the raw labels, thresholded at 0.1 (``mask_threshold`` of the result).
+  :meth:`SA3DConfig.strict` is the stricter variant (random order, no skipping, label > 0.5,
+  mask value 1 thresholded at 0.5).
 * **flashsplat** — FlashSplat: no optimisation. One forward pass per view accumulates,
   per Gaussian and GT label, ``Σ α·T`` over the pixels of that label; each Gaussian's
   vector is L2-normalised, the background bias ("slackness") is added to the background
@@ -110,45 +116,71 @@ def run_sa3d(
             from tqdm import tqdm
 
             bar = tqdm(total=config.passes * len(views), desc=f"sa3d {object_name}".strip(), dynamic_ncols=True)
+        trained_any = False
         try:
             for p in range(config.passes):
-                ts, n0, losses = time.perf_counter(), len(work), []
-                for i in torch.randperm(len(views), generator=rng).tolist():
+                ts, losses, skipped = time.perf_counter(), [], 0
+                order = (list(range(len(views))) if config.order == "fixed"
+                         else torch.randperm(len(views), generator=rng).tolist())
+                for i in order:
                     out = render_label_mask(work, views[i].camera, work.data["sa3d_label"], None, config.backend)
+                    if trained_any and config.skip_iou > 0:
+                        iou = _mask_iou(out.image[..., 0].detach() > config.render_threshold, labels_px[i])
+                        if not iou >= config.skip_iou:  # (nan: no mask in this view)
+                            skipped += 1
+                            if bar is not None:
+                                bar.update(1)
+                            continue
                     loss = mask_loss(out.image[..., 0], labels_px[i], config.neg_weight, normalise=False)
                     loss.backward()
                     opt.step()
                     opt.zero_grad(set_to_none=True)
+                    trained_any = True
                     losses.append(float(loss.detach()))
                     if bar is not None:
                         bar.update(1)
-                        bar.set_postfix(pass_=p, loss=f"{losses[-1]:.4g}", n=len(work))
-                pruned = 0
+                        bar.set_postfix(pass_=p, loss=f"{losses[-1]:.4g}", n=len(work), skipped=skipped)
+                dropped = 0
                 if p == 0 and config.passes > 1:
                     keep = work.data["sa3d_label"].detach() > 0
-                    pruned = int((~keep).sum())
+                    dropped = int((~keep).sum())
                     work.keep(keep, [opt])
-                stats.append(StageStats(kind="sa3d_pass", index=p, iterations=len(views), gaussians_start=n0,
-                                        gaussians_end=len(work), pruned=pruned,
-                                        mean_loss=sum(losses) / len(losses), wall_s=time.perf_counter() - ts))
+                stats.append(StageStats(kind="sa3d_pass", index=p, iterations=len(views) - skipped,
+                                        gaussians_start=n, gaussians_end=n, dropped=dropped, skipped_views=skipped,
+                                        mean_loss=sum(losses) / len(losses) if losses else float("nan"),
+                                        wall_s=time.perf_counter() - ts))
         finally:
             if bar is not None:
                 bar.close()
         fg = torch.zeros(n, dtype=torch.bool, device=dev)
         label = torch.full((n,), float("-inf"), device=dev)
         src = work.data["source_index"]
-        label[src] = work.data["sa3d_label"].detach()
-        fg[src[work.data["sa3d_label"].detach() > config.threshold]] = True
+        final = work.data["sa3d_label"].detach()
+        label[src] = final
+        fg[src[final > config.label_threshold]] = True
         out_model = model.clone()
         if "sa3d_label" in out_model.data:
             out_model.remove_extra("sa3d_label")
-        # Gaussians removed after the first pass keep −inf (they are background).
+        # Gaussians dropped after the first pass keep −inf (they are background).
         out_model.add_extra("sa3d_label", label, fill=0.0)
+    # The official evaluation render composites the raw labels; the strict variant renders
+    # the foreground with mask value 1.
+    values = (torch.where(fg, label, torch.zeros((), device=dev)) if config.render_values == "label"
+              else torch.ones(n, device=dev))
     return RefineResult(method="sa3d", object_name=object_name, model=out_model, foreground=fg, background=~fg,
-                        mask_values=torch.ones(n, device=dev), stages=stats, num_gaussians_start=n,
-                        num_gaussians_end=n,
+                        mask_values=values, stages=stats, num_gaussians_start=n, num_gaussians_end=n,
                         wall_s=time.perf_counter() - t0, peak_mem_bytes=mem.peak_bytes,
-                        config=dataclasses.asdict(config))
+                        config=dataclasses.asdict(config), mask_threshold=config.render_threshold)
+
+
+def _mask_iou(pred: Tensor, labels: Tensor) -> float:
+    """IoU of a predicted [H, W] bool mask with pixel labels (1 object, 0 background,
+    −1 ignored); nan when neither has a pixel."""
+    valid = labels >= 0
+    gt = labels == 1
+    inter = int((pred & gt & valid).sum())
+    union = int(((pred | gt) & valid).sum())
+    return inter / union if union else float("nan")
 
 
 def flashsplat_votes(

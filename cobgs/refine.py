@@ -173,6 +173,9 @@ class Refiner:
         self.split_rng = torch.Generator().manual_seed(c.seed + 1)
         self.queue: list[int] = []
         self.scores = ScoreAccumulator(len(model), model.device)
+        # what RAEM removed at the end (None while nothing was): the scene before it
+        self.raem_keep: Optional[Tensor] = None
+        self.raem_removed: Optional[GaussianModel] = None
         self.iteration = 0
 
     @property
@@ -230,6 +233,7 @@ class Refiner:
             prune = raem_prune_mask(m, amb, c.raem, [v.camera for v in self.views], c.raem_footprint_px)
             info["pruned"] = int(prune.sum())
             if info["pruned"]:
+                self.raem_keep, self.raem_removed = ~prune, m.select(prune)
                 m.keep(~prune, self.optimizers)
         elif c.bags:
             info["split"] = boundary_split(
@@ -377,6 +381,8 @@ def refine(
         peak_mem_bytes=mem.peak_bytes,
         config=dict(config.as_dict(), texture_adam=r.texture_adam),
         texture_moments=export_moments(r.texture_opt) if return_moments else None,
+        raem_keep=r.raem_keep,
+        raem_removed=r.raem_removed,
     )
 
 
@@ -422,6 +428,7 @@ def apply_raem(
     t0 = time.perf_counter()
     prune = raem_prune_mask(result.model, amb, variant, [v.camera for v in views], fp)
     m = result.model.clone()
+    removed = m.select(prune) if bool(prune.any()) else None
     m.keep(~prune)
     logits = m.data[cfg["label_name"]]
     fg, bg = _label_sets(logits)
@@ -433,6 +440,8 @@ def apply_raem(
         mask_values=torch.sigmoid(logits.detach()), stages=stages, num_gaussians_end=len(m),
         wall_s=result.wall_s + time.perf_counter() - t0,
         config=dict(cfg, raem=variant, raem_footprint_px=fp),
+        raem_keep=None if removed is None else ~prune,
+        raem_removed=removed,
     )
 
 

@@ -14,6 +14,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Optional
 
+import torch
 from torch import Tensor
 
 from ._memory import release_free_memory
@@ -35,7 +36,11 @@ class StageStats:
             where not applicable).
         ambiguous_large: of those, the ones above the split size (−1 where n/a).
         split: parents split at the end of the stage.
-        pruned: Gaussians removed at the end of the stage.
+        pruned: Gaussians removed from the scene at the end of the stage.
+        dropped: Gaussians taken out of the optimised set but kept in the scene
+            (SA3D-GS's label <= 0 after its first pass); not ``pruned``.
+        skipped_views: views of the stage left out by the method's own rule
+            (SA3D-GS: render-vs-mask IoU below its bar).
         mean_loss: mean loss over the stage's iterations (nan where there is none).
         wall_s: wall time of the stage.
     """
@@ -49,6 +54,8 @@ class StageStats:
     ambiguous_large: int = -1
     split: int = 0
     pruned: int = 0
+    dropped: int = 0
+    skipped_views: int = 0
     mean_loss: float = float("nan")
     wall_s: float = 0.0
 
@@ -79,6 +86,13 @@ class RefineResult:
         config: the method's parameters as a plain dict.
         texture_moments: the COB-GS texture Adam's final moments (only when asked for:
             :func:`cobgs.refine.refine` ``return_moments``), else None.
+        mask_threshold: the bar of this method's object render (None: the caller's,
+            0.5 in SPEC §2; SA3D-GS's official render: 0.1 on composited raw labels).
+        raem_keep: [N before RAEM] bool, the Gaussians RAEM kept (None: RAEM removed
+            nothing or did not run).
+        raem_removed: the Gaussians RAEM removed, as a model (None as above); with
+            ``raem_keep`` they give back the scene before the final pruning
+            (:meth:`model_before_raem`: paper Table 4 measures texture there).
     """
 
     method: str
@@ -96,6 +110,15 @@ class RefineResult:
     peak_mem_bytes: int = 0
     config: dict = field(default_factory=dict)
     texture_moments: Optional[dict] = None
+    mask_threshold: Optional[float] = None
+    raem_keep: Optional[Tensor] = None
+    raem_removed: Optional[GaussianModel] = None
+
+    def model_before_raem(self) -> GaussianModel:
+        """The scene before RAEM's pruning (``model`` itself when nothing was pruned)."""
+        if self.raem_keep is None or self.raem_removed is None:
+            return self.model
+        return restore_pruned(self.model, self.raem_keep, self.raem_removed)
 
     def summary(self) -> dict:
         """JSON-ready numbers (no tensors) for manifests and reports."""
@@ -111,9 +134,37 @@ class RefineResult:
             "pruned": sum(s.pruned for s in self.stages),
             "wall_s": self.wall_s,
             "peak_mem_bytes": self.peak_mem_bytes,
+            "dropped": sum(s.dropped for s in self.stages),
+            "skipped_views": sum(s.skipped_views for s in self.stages),
+            "raem_pruned": 0 if self.raem_keep is None else int((~self.raem_keep).sum()),
+            "mask_threshold": self.mask_threshold,
             "stages": [s.as_dict() for s in self.stages],
             "config": dict(self.config),
         }
+
+
+def restore_pruned(kept: GaussianModel, keep: Tensor, removed: GaussianModel) -> GaussianModel:
+    """The model before a pruning ``keep`` ([N] bool) that left ``kept`` and removed
+    ``removed``: every Gaussian back at its old index, extras included."""
+    from .errors import InputError
+
+    keep = keep.to(torch.bool)
+    if int(keep.sum()) != len(kept) or int((~keep).sum()) != len(removed):
+        raise InputError(f"cannot restore a pruning: the mask keeps {int(keep.sum())} of {keep.numel()} "
+                         f"Gaussians, the models hold {len(kept)} kept and {len(removed)} removed")
+    if set(kept.data) != set(removed.data):
+        raise InputError(f"kept and removed Gaussians differ in their tensors: {sorted(kept.data)} vs "
+                         f"{sorted(removed.data)}")
+    keep = keep.to(kept.device)
+    rows = {}
+    for k, a in kept.data.items():
+        b = removed.data[k].to(a.device)
+        out = torch.empty((keep.numel(),) + tuple(a.shape[1:]), dtype=a.dtype, device=a.device)
+        out[keep] = a.detach()
+        out[~keep] = b.detach()
+        rows[k] = out
+    return GaussianModel.from_state_dict({"tensors": rows, "fill": dict(kept.fill),
+                                          "active_sh_degree": kept.active_sh_degree})
 
 
 def current_rss_bytes() -> int:

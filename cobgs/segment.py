@@ -42,6 +42,7 @@ __all__ = [
     "export_objects",
     "object_index",
     "render_object_mask",
+    "method_threshold",
     "render_object_rgb",
     "render_removed_rgb",
     "evaluate_masks",
@@ -164,11 +165,13 @@ def _safe(name: str) -> str:
 def render_object_mask(
     result: RefineResult,
     camera: Camera,
-    threshold: float = 0.5,
+    threshold: Optional[float] = None,
     backend: str = "native",
     soft: bool = False,
 ) -> Tensor:
-    """The object's mask at ``camera``: foreground Gaussians only, mask channel, > 0.5.
+    """The object's mask at ``camera``: foreground Gaussians only, mask channel, above
+    ``threshold`` (None: the method's own bar, ``result.mask_threshold``, else 0.5 as
+    SPEC §2).
 
     Returns:
         [H, W] bool (or the float mask channel when ``soft``).
@@ -186,7 +189,15 @@ def render_object_mask(
                         m.opacities.detach()[fg], result.mask_values.detach()[fg][:, None].float(),
                         cam.viewmat, cam.K, int(cam.width), int(cam.height), backend=backend)
     mask = out.image[..., 0]
-    return mask if soft else mask > threshold
+    return mask if soft else mask > method_threshold(result, threshold)
+
+
+def method_threshold(result: RefineResult, threshold: Optional[float] = None) -> float:
+    """The bar of ``result``'s object render: ``threshold`` when given, else the method's
+    own (``result.mask_threshold``), else 0.5."""
+    if threshold is not None:
+        return float(threshold)
+    return 0.5 if result.mask_threshold is None else float(result.mask_threshold)
 
 
 def _render_part(result: RefineResult, part: Tensor, camera: Camera, background, backend: str) -> Tensor:

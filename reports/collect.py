@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
 
+from cobgs.evaluate import ORACLE_METHOD, oracle_choice
+
 from .errors import ReportError
 
 #: artifact -> the JSON file that describes it
@@ -245,11 +247,30 @@ def collect(workflow, cache_dir: os.PathLike | str) -> RunData:
             st = task_for("segmentation", mt.item)
             r.segment, r.segment_dir = load(st, "segmentation")
             results.append(r)
+    results += _oracle_results(results)
     order = _order(workflow)
     results.sort(key=lambda r: (order["scene"].get(r.scene, 1e9), order["method"].get(r.method, 1e9),
                                 order["object"].get((r.scene, r.object), 1e9), r.scene, r.method, r.object))
+    methods = _axis_names(workflow, "method")
+    if any(r.method == ORACLE_METHOD for r in results):
+        methods.append(ORACLE_METHOD)
     return RunData(workflow=workflow, cache_dir=cache_dir, tasks=tasks, results=results, scenes=scenes,
-                   methods=_axis_names(workflow, "method"))
+                   methods=methods)
+
+
+def _oracle_results(results: list) -> list:
+    """FlashSplat at its best bias per scene (:func:`cobgs.evaluate.oracle_choice`): copies
+    of the chosen item's results under the method ``flashsplat_oracle``."""
+    import dataclasses
+
+    rows = [dict(r.row, scene=r.scene, method=r.method, object=r.object, method_kind=r.method_kind)
+            for r in results if r.ok]
+    choice = oracle_choice(rows)
+    out = []
+    for r in results:
+        if r.ok and choice.get(r.scene) == r.method:
+            out.append(dataclasses.replace(r, method=ORACLE_METHOD, row=dict(r.row, oracle_choice=r.method)))
+    return out
 
 
 def _first_problem(tasks: dict, chain: list[str]) -> Optional[Problem]:

@@ -14,9 +14,12 @@ from . import paper
 from .collect import Result, RunData, Task
 from .fmt import finite
 
+from cobgs.evaluate import ORACLE_METHOD
+
 KIND_LABELS = {"cobgs": "COB-GS", "nosplit": "labels only, no split", "sa3d": "SA3D-GS", "flashsplat": "FlashSplat"}
-METRICS = ("iou", "acc", "biou", "psnr", "psnr_vanilla", "psnr_delta", "num_gaussians", "num_gaussians_vanilla",
-           "object_gaussians", "refine_s", "splits", "pruned")
+METRICS = ("iou", "acc", "biou", "iou_released", "biou_released", "iou_occlusion", "biou_occlusion", "psnr",
+           "psnr_before_raem", "psnr_vanilla", "psnr_delta", "psnr_delta_before_raem", "num_gaussians",
+           "num_gaussians_vanilla", "object_gaussians", "refine_s", "splits", "pruned", "dropped")
 # The params section of the refine stage each method kind reads.
 _SECTIONS = {"cobgs": "cobgs", "nosplit": "cobgs", "sa3d": "sa3d", "flashsplat": "flashsplat"}
 
@@ -104,6 +107,11 @@ def method_infos(data: RunData) -> dict[str, MethodInfo]:
         if len(variants) > 1:  # per-scene overrides: say so rather than pick one
             infos[m].options = infos[m].options + ["(varies by scene)"]
             infos[m].paper = None
+    if ORACLE_METHOD in infos:
+        picks = sorted({str((r.row or {}).get("oracle_choice")) for r in data.results if r.method == ORACLE_METHOD})
+        infos[ORACLE_METHOD] = MethodInfo(ORACLE_METHOD, kind="flashsplat", options=[
+            "best background bias per scene, chosen on the held-out GT (an oracle in its favour; "
+            f"picked: {', '.join(picks)})"])
     ref = reference_method(infos)
     for m, info in infos.items():
         info.role = "reference" if m == ref else ("variant" if info.kind in ("cobgs", "nosplit") else "peer")
@@ -195,9 +203,13 @@ def object_records(data: RunData, infos: dict, log_href: LogHref) -> list[dict]:
         recs.append({
             "scene": r.scene, "method": r.method, "object": r.object, "status": status,
             "iou": row.get("iou"), "acc": row.get("acc"), "biou": row.get("biou"), "views": row.get("views"),
-            "iou_object_only": row.get("iou_object_only"), "mask_route": row.get("mask_route"),
+            "biou_released": row.get("biou_released"), "biou_occlusion": row.get("biou_occlusion"),
+            "iou_released": row.get("iou_released"), "iou_occlusion": row.get("iou_occlusion"),
+            "mask_route": row.get("mask_route"),
             "psnr": row.get("psnr"), "psnr_delta": row.get("psnr_delta"), "num_gaussians": row.get("num_gaussians"),
-            "splits": row.get("splits"), "pruned": row.get("pruned"),
+            "psnr_before_raem": row.get("psnr_before_raem"),
+            "psnr_delta_before_raem": row.get("psnr_delta_before_raem"),
+            "splits": row.get("splits"), "pruned": row.get("pruned"), "dropped": row.get("dropped"),
             "ambiguous_final": amb if amb is not None and amb >= 0 else None,
             "refine_s": _refine_s(r) if r.ok else None, "peak_rss": _peak_rss(r) if r.ok else None,
             "peak_gpu": _peak_gpu(r) if r.ok else None,

@@ -215,7 +215,9 @@ def _run(ctx, inputs):
                     distractors=[o["name"] for o in meta["objects"] if not o.get("target", True)],
                     scene_type=attrs.scene_type or ("360" if meta["trajectory"] == "orbit" else "forward"),
                     images={"dir": "scene/images", "names": [Path(f["file_path"]).name for f in tf["frames"]]},
-                    has_poses=True)
+                    has_poses=True,
+                    amodal={"source": "files", "dir": "scene/amodal",
+                            "objects": [o["name"] for o in meta["objects"]]})
         kept = _subset(views, p)
         spec.update(views=kept, test_views=[v for v in test if v in set(kept)])
     else:
@@ -283,6 +285,9 @@ def _run(ctx, inputs):
             have = sorted({k for v in scene.views for k in v.masks})
             if attrs.kind == "blender":
                 _check_blender_objects(ctx, root, have)
+                if have == ["object"] and not (root / "masks").is_dir():
+                    # one object, nothing in front of it: the alpha matte is its whole silhouette
+                    spec["amodal"] = {"source": "visible", "objects": ["object"]}
             spec.update(views=sorted(kept), test_views=test, objects=have,
                         protocol="exact" if with_gt else "none",
                         scene_type=attrs.scene_type or ("360" if attrs.kind == "blender" else "forward"))
@@ -334,7 +339,7 @@ def _check(p: DatasetParams) -> None:
 
 
 STAGE = Stage(
-    name="dataset", version=5, run=_run, inputs=(), outputs=("dataset",), params=DatasetParams,
+    name="dataset", version=6, run=_run, inputs=(), outputs=("dataset",), params=DatasetParams,
     level=("scene",), resources=Resources(cpus=1),
     description="generate a synthetic scene or ingest an external one (dataset.json)", check=_check,
 )

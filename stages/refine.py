@@ -9,8 +9,11 @@ Output ``refined``: ``refined.ply`` (the scene after the method, with its label 
 ``mask_logit`` for COB-GS), ``segmentation.npz`` (``foreground``, ``background`` [N] bool,
 ``mask_values`` [N] float32 — what the segment stage extracts and renders),
 ``stage_scores.npz`` (the stage-mean ambiguity score of every Gaussian after each mask
-stage: the δ sweep of paper Fig. 7) and ``refine.json`` (the method's summary: Gaussian
-counts, splits, prunes, per-stage statistics, wall time, peak memory, config).
+stage: the δ sweep of paper Fig. 7), ``refine.json`` (the method's summary: Gaussian
+counts, splits, prunes, per-stage statistics, the method's render threshold, config) and,
+when RAEM pruned anything, ``raem_removed.ply`` (the pruned Gaussians, extras included)
+with ``raem_keep`` in ``segmentation.npz``: together with ``refined.ply`` they give the
+scene before the final pruning, where paper Table 4 measures texture.
 
 COB-GS's texture stages continue the baseline's Adam from the ``adam_moments.pt`` the
 train stage writes beside ``scene.ply``; a scene without that file (e.g. a PLY trained
@@ -105,10 +108,14 @@ def _run(ctx, inputs):
                         texture_moments=moments)
     out_model = result.model.to(torch.device("cpu")) if dev.type != "cpu" else result.model
     save_ply(ctx.out_dir / "refined.ply", out_model)
+    raem = {}
+    if result.raem_keep is not None and result.raem_removed is not None:
+        save_ply(ctx.out_dir / "raem_removed.ply", result.raem_removed.to(torch.device("cpu")))
+        raem = {"raem_keep": result.raem_keep.cpu().numpy().astype(bool)}
     np.savez_compressed(ctx.out_dir / "segmentation.npz",
                         foreground=result.foreground.cpu().numpy().astype(bool),
                         background=result.background.cpu().numpy().astype(bool),
-                        mask_values=result.mask_values.detach().cpu().numpy().astype(np.float32))
+                        mask_values=result.mask_values.detach().cpu().numpy().astype(np.float32), **raem)
     np.savez_compressed(ctx.out_dir / "stage_scores.npz",
                         **{f"stage_{i}": s.cpu().numpy().astype(np.float32)
                            for i, s in enumerate(result.stage_scores)})
@@ -139,7 +146,7 @@ def _run(ctx, inputs):
 
 
 STAGE = Stage(
-    name="refine", version=5, run=_run, inputs=("dataset", "poses", "scene", "masks"), outputs=("refined",),
+    name="refine", version=6, run=_run, inputs=("dataset", "poses", "scene", "masks"), outputs=("refined",),
     params=RefineParams, level=("scene", "method", "object"), uses_device=True, resources=Resources(cpus=2),
     description="COB-GS (or an ablation row / a peer) on one object: labels, splits, refined scene",
 )

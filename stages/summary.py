@@ -7,7 +7,9 @@ this artifact plus the manifests alone.
 
 Output ``summary``:
   summary.json          rows (one per scene x method x object: the evaluate row plus the
-                        cache entries of each stage that made it), aggregates per scene x
+                        cache entries of each stage that made it; where the workflow sweeps
+                        FlashSplat's bias, ``flashsplat_oracle`` rows copy the best item's
+                        per scene, ``oracle_choice`` naming it), aggregates per scene x
                         method and per method (mean over objects, then over scenes: NVOS's
                         mean over tasks and LERF-mask's mean over prompts), per-stage timings
   summary.csv           the rows
@@ -27,7 +29,8 @@ from pipeline import Resources, Stage
 from ._common import read_json, write_json
 
 # (results only: timings come from the manifests, into timings.csv / scenes.csv)
-METRICS = ("iou", "acc", "biou", "iou_object_only", "biou_object_only", "psnr", "psnr_vanilla", "psnr_delta",
+METRICS = ("iou", "acc", "biou", "iou_released", "acc_released", "biou_released", "iou_occlusion", "acc_occlusion",
+           "biou_occlusion", "psnr", "psnr_before_raem", "psnr_vanilla", "psnr_delta", "psnr_delta_before_raem",
            "num_gaussians", "object_gaussians")
 
 
@@ -79,7 +82,7 @@ def _write_csv(path: Path, rows: list[dict]) -> None:
 
 
 def _run(ctx, inputs):
-    from cobgs.evaluate import aggregate, nanmean
+    from cobgs.evaluate import ORACLE_METHOD, aggregate, nanmean, oracle_choice
     from pipeline import entry_of, load_manifest
 
     p: SummaryParams = ctx.params
@@ -108,6 +111,11 @@ def _run(ctx, inputs):
     root = next(iter(seen)).parents[2] if seen else None
     for row, entry in heads:
         row["entries"] = _chain(entry, root)
+    # FlashSplat at its best background bias per scene (an oracle chosen on the held-out GT,
+    # SPEC §3), where the workflow sweeps the bias: copies of the chosen item's rows.
+    oracle = oracle_choice(rows)
+    for r in [r for r in rows if oracle.get(r["scene"]) == r["method"]]:
+        rows.append(dict(r, method=ORACLE_METHOD, oracle_choice=r["method"], item=f"{r['item']}#oracle"))
 
     by_scene_method = aggregate(rows, METRICS, by=("scene", "method"), within="scene", over="object")
     by_method = aggregate(rows, METRICS, by=("method",), within="scene", over="object")
@@ -136,7 +144,7 @@ def _run(ctx, inputs):
         ctx.warn(f"{len(warnings)} result(s) with a warning: " + ", ".join(w["item"] for w in warnings[:5])
                  + (" ..." if len(warnings) > 5 else "") + " (summary.json 'warnings')")
     out = {"format": "cobgs-summary", "version": 1, "scenes": scenes, "protocols": protocols, "rows": rows, "by_scene_method": by_scene_method, "by_method": by_method,
-           "stage_totals": per_stage, "timings": timings, "cache_root": str(root) if root else None,
+           "oracle_choice": oracle, "stage_totals": per_stage, "timings": timings, "cache_root": str(root) if root else None,
            "overall": {"miou": nanmean(r["iou"] for r in by_method), "target_miou": p.target_miou or None},
            "warnings": warnings}
     write_json(ctx.out_dir / "summary.json", out)
@@ -155,7 +163,7 @@ def _run(ctx, inputs):
 
 
 STAGE = Stage(
-    name="summary", version=3, run=_run, inputs=("metrics", "scene"), outputs=("summary",), params=SummaryParams,
+    name="summary", version=4, run=_run, inputs=("metrics", "scene"), outputs=("summary",), params=SummaryParams,
     level=(), resources=Resources(cpus=1),
     description="JSON/CSV summary over every scene x method x object, with per-stage timings",
 )

@@ -75,12 +75,63 @@ def test_sa3d_two_passes_prune_and_threshold():
     assert [s.kind for s in r.stages] == ["sa3d_pass", "sa3d_pass"]
     # Pass 1 (one Adam step of lr 1): A's raw label rises to 1; B, on the edge, rises too
     # (the 0.3-weighted background term is outweighed: SA3D-GS's foreground bias); C has
-    # no gradient and stays at 0 -> removed (label <= 0).
-    assert r.stages[0].pruned == 1 and r.stages[1].gaussians_start == 2
+    # no gradient and stays at 0 -> out of the optimised set (label <= 0): "dropped", not
+    # pruned — it stays in the scene.
+    assert r.stages[0].dropped == 1 and r.stages[0].pruned == 0
+    assert all(s.gaussians_end == 3 for s in r.stages) and len(r.model) == 3
+    assert r.summary()["pruned"] == 0 and r.summary()["dropped"] == 1
     assert r.foreground.tolist() == [True, True, False]
     lab = r.model.data["sa3d_label"]
     assert lab[0] > 0.5 and lab[1] > 0.5 and torch.isinf(lab[2])
     assert "sa3d_label" not in model.data  # input untouched
+    # official render: the raw labels of the foreground composited, bar 0.1
+    assert r.mask_threshold == 0.1
+    assert torch.equal(r.mask_values, torch.where(r.foreground, lab, torch.zeros(())))
+
+
+def test_sa3d_official_keeps_label_above_zero_strict_above_half():
+    model, view = three_gaussians()
+    cfg = SA3DConfig(passes=1, lr=0.3)  # one step of lr 0.3: labels of A and B reach 0.3
+    off = run_sa3d(model, [view], [view.masks["obj"]], cfg, progress=False)
+    strict = run_sa3d(model, [view], [view.masks["obj"]], SA3DConfig.strict(passes=1, lr=0.3), progress=False)
+    lab = off.model.data["sa3d_label"]
+    assert 0 < lab[0] < 0.5 and 0 < lab[1] < 0.5
+    assert off.foreground.tolist() == [True, True, False]  # label > 0
+    assert strict.foreground.tolist() == [False, False, False]  # label > 0.5
+    assert strict.mask_threshold == 0.5 and torch.all(strict.mask_values == 1)
+    from cobgs.segment import render_object_mask
+
+    m = render_object_mask(off, view.camera, soft=True)
+    assert torch.equal(render_object_mask(off, view.camera), m > 0.1)  # the method's own bar
+    assert torch.equal(render_object_mask(off, view.camera, threshold=0.5), m > 0.5)
+
+
+def test_sa3d_skips_views_whose_render_disagrees_with_the_mask():
+    """Official rule: after the first trained view, a view whose mask rendered from the
+    current labels (> 0.1) has IoU < 0.5 with its mask is skipped; the order is fixed."""
+    from cobgs.refine_scores import render_label_mask
+
+    model, view = three_gaussians()
+    half = view.masks["obj"]  # the left half: A inside, B on its edge
+    # After the first step (Adam, lr 1) A's and B's labels are 1: the render (> 0.1) of
+    # those labels is a mask the current labels agree with (IoU 1) ...
+    agree = render_label_mask(model, view.camera, torch.tensor([1.0, 1.0, 0.0]), None).image[..., 0] > 0.1
+    wrong = ~agree  # ... and its complement one they do not (IoU 0)
+    r = run_sa3d(model, [view, view, view], [half, wrong, agree], SA3DConfig(passes=1), progress=False)
+    assert r.stages[0].skipped_views == 1 and r.stages[0].iterations == 2
+    # Without the rule the wrong mask trains too: other labels.
+    r0 = run_sa3d(model, [view, view, view], [half, wrong, agree], SA3DConfig(passes=1, skip_iou=0.0),
+                  progress=False)
+    assert r0.stages[0].skipped_views == 0 and r0.stages[0].iterations == 3
+    assert not torch.equal(r.model.data["sa3d_label"], r0.model.data["sa3d_label"])
+    # Skipping the view is training on the other two alone.
+    r2 = run_sa3d(model, [view, view], [half, agree], SA3DConfig(passes=1), progress=False)
+    assert torch.equal(r.model.data["sa3d_label"], r2.model.data["sa3d_label"])
+    # The first view is never skipped, even though nothing is labelled before it.
+    r1 = run_sa3d(model, [view], [wrong], SA3DConfig(passes=1), progress=False)
+    assert r1.stages[0].skipped_views == 0 and r1.stages[0].iterations == 1
+    with pytest.raises(InputError, match="order"):
+        SA3DConfig(order="shuffled")
 
 
 def test_sa3d_unnormalised_weighted_loss():
@@ -88,7 +139,7 @@ def test_sa3d_unnormalised_weighted_loss():
     with torch.no_grad():
         model.data["means"][1, 0] = 0.02  # B's centre at 16.5 px: ~55 % of its weight is object
     mask = view.masks["obj"]
-    r = run_sa3d(model, [view, view], [mask, mask], SA3DConfig(passes=1), progress=False)
+    r = run_sa3d(model, [view, view], [mask, mask], SA3DConfig(passes=1, skip_iou=0.0), progress=False)
     lab = r.model.data["sa3d_label"]
     # Step 1 at labels 0: d/dlabel = -sum_obj aT + 0.3 sum_bg aT < 0 for A and for B.
     # Step 2: Adam keeps moving both up; C never moves.

@@ -415,3 +415,29 @@ def test_final_scores_are_full_stage_means_over_split_children():
     # A and C are the first two rows (kept), the children follow; C is unseen: exactly 1.
     assert r.stage_scores[-1][0] == pytest.approx(1.0) and r.stage_scores[-1][1] == 1.0
     assert last.ambiguous == int((expect < 0.5).sum())
+
+
+def test_scene_before_raem_is_the_run_without_raem():
+    """RAEM is the last edit: the pruned Gaussians put back at their indices give exactly
+    the scene of the same run with RAEM off (paper Table 4 measures texture there)."""
+    from cobgs.refine_result import restore_pruned
+
+    model, views, extent = tiny_scene(n_views=4)
+    masks = masks_for(views, "ball")
+    cfg = RefineConfig(mask_stages=2, stage_length_views=1.0, delta=0.6)
+    on = refine(model, views, masks, extent, cfg, progress=False)
+    off = refine(model, views, masks, extent, dataclasses.replace(cfg, raem="off"), progress=False)
+    pruned = on.stages[-1].pruned
+    assert pruned > 0 and on.summary()["raem_pruned"] == pruned and off.raem_keep is None
+    before = on.model_before_raem()
+    assert len(before) == len(off.model) == len(on.model) + pruned
+    for k in off.model.data:
+        assert torch.equal(before.data[k], off.model.data[k]), k
+    assert off.model_before_raem() is off.model  # nothing pruned: the model itself
+    # apply_raem records the same pieces
+    from cobgs.refine import apply_raem
+
+    again = apply_raem(off, "released", views)
+    assert torch.equal(again.raem_keep, on.raem_keep)
+    with pytest.raises(InputError, match="restore"):
+        restore_pruned(on.model, on.raem_keep[1:], on.raem_removed)

@@ -142,6 +142,17 @@ class _Caster:
             which[sel] = i
         return t_best, which
 
+    def silhouettes(self, o: np.ndarray, d: np.ndarray, k: int) -> np.ndarray:
+        """[k, N] bool: does the ray o + t d hit object i at all (i < k), whatever lies
+        in front of it — each object's whole (amodal) silhouette."""
+        out = np.zeros((k, len(d)), dtype=bool)
+        no_limit = np.full(len(d), np.inf)
+        for i in range(k):
+            idx = self._candidates(i, o, d, no_limit)
+            if len(idx):
+                out[i, idx] = np.isfinite(self.surfaces[i].shape.intersect(self._rows(o, idx), d[idx]))
+        return out
+
     def occluded(self, o: np.ndarray, d: np.ndarray) -> np.ndarray:
         """[N] bool: does anything lie along the shadow rays o [N, 3] + t d, t > 0, with a
         shared direction d [3] (directional light)."""
@@ -211,30 +222,17 @@ def render_view(scene: Scene, camera: PinholeCamera, supersampling: int,
     Returns:
         The colour image and per-object first-hit counts.
     """
-    if not (isinstance(supersampling, int) and 1 <= supersampling <= 16):
-        raise InputError(f"supersampling must be an int in [1, 16], got {supersampling!r}")
     caster = caster or _Caster(scene)
     w, h = camera.width, camera.height
     s2 = supersampling * supersampling
-    offs = subsample_offsets(supersampling)
-    c2w = camera.c2w_array
-    rot, eye = c2w[:3, :3], c2w[:3, 3]
     npix = w * h
-    px_chunk = max(1, chunk_rays // s2)
     rgb = np.empty((npix, 3))
     k = len(scene.objects)
     hits = np.zeros((k, npix), dtype=np.uint16)
     # Map surface index -> object channel (background and sky -> none).
     chan = np.full(len(caster.surfaces) + 1, -1, dtype=np.int64)
     chan[: k] = np.arange(k)
-    for p0 in range(0, npix, px_chunk):
-        pix = np.arange(p0, min(npix, p0 + px_chunk))
-        u = ((pix % w)[:, None] + offs[None, :, 0]).ravel()
-        v = ((pix // w)[:, None] + offs[None, :, 1]).ravel()
-        dc = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy,
-                       np.ones_like(u)], axis=1)
-        d = dc @ rot.T
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
+    for pix, eye, d in _ray_chunks(camera, supersampling, chunk_rays):
         col, which = caster.shade(eye, d)
         rgb[pix] = col.reshape(len(pix), s2, 3).mean(axis=1)
         # Count, per pixel, the subsamples of each object in one bincount; channel k
@@ -246,6 +244,44 @@ def render_view(scene: Scene, camera: PinholeCamera, supersampling: int,
         hits[:, pix] = counts[:, :k].T
     img = np.clip(np.rint(rgb * 255.0), 0, 255).astype(np.uint8).reshape(h, w, 3)
     return RenderedView(rgb=img, hits=hits.reshape(k, h, w), subsamples=s2)
+
+
+def _ray_chunks(camera: PinholeCamera, supersampling: int, chunk_rays: int):
+    """Yield (pixel indices [P], eye [3], unit ray directions [P * s * s, 3]) over the
+    image in chunks of about ``chunk_rays`` rays, each pixel sampled on an s x s grid."""
+    if not (isinstance(supersampling, int) and 1 <= supersampling <= 16):
+        raise InputError(f"supersampling must be an int in [1, 16], got {supersampling!r}")
+    w, h = camera.width, camera.height
+    s2 = supersampling * supersampling
+    offs = subsample_offsets(supersampling)
+    c2w = camera.c2w_array
+    rot, eye = c2w[:3, :3], c2w[:3, 3]
+    npix = w * h
+    px_chunk = max(1, chunk_rays // s2)
+    for p0 in range(0, npix, px_chunk):
+        pix = np.arange(p0, min(npix, p0 + px_chunk))
+        u = ((pix % w)[:, None] + offs[None, :, 0]).ravel()
+        v = ((pix // w)[:, None] + offs[None, :, 1]).ravel()
+        dc = np.stack([(u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy,
+                       np.ones_like(u)], axis=1)
+        d = dc @ rot.T
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        yield pix, eye, d
+
+
+def silhouette_hits(scene: Scene, camera: PinholeCamera, supersampling: int,
+                    chunk_rays: int = 1 << 14, caster: "_Caster | None" = None) -> np.ndarray:
+    """[K, H, W] uint16: per object, how many of the pixel's subsamples hit it at all,
+    occluders ignored (its amodal silhouette; the mask rule of :func:`render_view`'s hits
+    applies: a strict majority of subsamples)."""
+    caster = caster or _Caster(scene)
+    s2 = supersampling * supersampling
+    k = len(scene.objects)
+    out = np.zeros((k, camera.width * camera.height), dtype=np.uint16)
+    for pix, eye, d in _ray_chunks(camera, supersampling, chunk_rays):
+        sil = caster.silhouettes(eye, d, k)
+        out[:, pix] = sil.reshape(k, len(pix), s2).sum(axis=2)
+    return out.reshape(k, camera.height, camera.width)
 
 
 def make_caster(scene: Scene) -> _Caster:

@@ -4,7 +4,9 @@
 NeRF-style layout of ``docs/data_formats.md``: ``transforms.json`` (camera->world in OpenGL
 axes, per-frame intrinsics, ``test_filenames``), ``images/``, ``masks/<object>/`` (a pixel
 is in an object's mask when a strict majority of its subsamples see that object first),
-``coverage/<object>/`` (round(255 x fraction of subsamples)) and ``scene.json``.
+``coverage/<object>/`` (round(255 x fraction of subsamples)), ``amodal/<object>/`` for
+the held-out views (the object's whole silhouette, occluders ignored, same majority rule:
+the GT of the headline protocol, SPEC §5) and ``scene.json``.
 
 The output is deterministic: the same preset, seed and overrides give bit-identical files.
 It is written to a temporary sibling folder and renamed into place at the end, so an
@@ -26,7 +28,7 @@ import numpy as np
 from ..errors import DataError, InputError
 from .synth_cameras import PinholeCamera, intrinsics_from_fov, opencv_to_opengl
 from .synth_presets import BUILDERS, PRESETS, SynthPreset
-from .synth_render import RenderedView, Scene, make_caster, render_view
+from .synth_render import RenderedView, Scene, make_caster, render_view, silhouette_hits
 
 GENERATOR = "cobgs.data.synthetic"
 FORMAT_VERSION = 1
@@ -78,7 +80,7 @@ def render_scene_view(scene: Scene, camera: PinholeCamera, supersampling: int) -
 _WORKER: dict = {}
 
 
-def _init_worker(scene: Scene, cams: List[PinholeCamera], s: int, parent_pid: int) -> None:
+def _init_worker(scene: Scene, cams: List[PinholeCamera], s: int, parent_pid: int, test_every: int) -> None:
     # A render worker must not outlive the process that started it (a SIGKILLed run would
     # leave it waiting on its task queue forever): Linux's PR_SET_PDEATHSIG ends it then.
     try:
@@ -90,25 +92,31 @@ def _init_worker(scene: Scene, cams: List[PinholeCamera], s: int, parent_pid: in
         pass
     if os.getppid() != parent_pid:
         os._exit(1)
-    _WORKER.update(scene=scene, cams=cams, s=s, caster=make_caster(scene))
+    _WORKER.update(scene=scene, cams=cams, s=s, caster=make_caster(scene), test_every=test_every)
 
 
-def _render_index(i: int) -> RenderedView:
+def _render_one(scene: Scene, cam: PinholeCamera, s: int, caster, held_out: bool):
+    view = render_view(scene, cam, s, caster=caster)
+    return view, (silhouette_hits(scene, cam, s, caster=caster) if held_out else None)
+
+
+def _render_index(i: int):
     w = _WORKER
-    return render_view(w["scene"], w["cams"][i], w["s"], caster=w["caster"])
+    return _render_one(w["scene"], w["cams"][i], w["s"], w["caster"], i % w["test_every"] == 0)
 
 
-def _render_all(scene: Scene, cams: List[PinholeCamera], s: int, progress: bool, workers: int):
-    """Yield the rendered views in order; views are independent, so ``workers``
-    processes render them in parallel with identical results."""
+def _render_all(scene: Scene, cams: List[PinholeCamera], s: int, progress: bool, workers: int,
+                test_every: int):
+    """Yield (view, silhouette hits of the held-out views, else None) in order; views are
+    independent, so ``workers`` processes render them in parallel with identical results."""
     from tqdm import tqdm
 
     bar = tqdm(total=len(cams), desc="synth: rendering views", unit="view", disable=not progress)
     try:
         if workers <= 1:
             caster = make_caster(scene)
-            for cam in cams:
-                yield render_view(scene, cam, s, caster=caster)
+            for i, cam in enumerate(cams):
+                yield _render_one(scene, cam, s, caster, i % test_every == 0)
                 bar.update()
             return
         import multiprocessing as mp
@@ -117,7 +125,7 @@ def _render_all(scene: Scene, cams: List[PinholeCamera], s: int, progress: bool,
         methods = mp.get_all_start_methods()
         ctx = mp.get_context("fork" if "fork" in methods else "spawn")
         pool = ProcessPoolExecutor(workers, mp_context=ctx, initializer=_init_worker,
-                                   initargs=(scene, cams, s, os.getpid()))
+                                   initargs=(scene, cams, s, os.getpid(), test_every))
         try:
             for view in pool.map(_render_index, range(len(cams))):
                 yield view
@@ -194,12 +202,12 @@ def _write(root: Path, p: SynthPreset, scene: Scene, cams: List[PinholeCamera], 
            progress: bool, workers: int) -> None:
     names = [o.name for o in scene.objects]
     (root / "images").mkdir()
-    for sub in ("masks", "coverage"):
+    for sub in ("masks", "coverage", "amodal"):
         for n in names:
             (root / sub / n).mkdir(parents=True)
     frames, test = [], []
     s = p.supersampling
-    for i, view in enumerate(_render_all(scene, cams, s, progress, workers)):
+    for i, (view, silhouettes) in enumerate(_render_all(scene, cams, s, progress, workers, p.test_every)):
         stem = f"{i:04d}"
         rel = f"images/{stem}.png"
         _write_png(root / rel, view.rgb)
@@ -211,6 +219,9 @@ def _write(root: Path, p: SynthPreset, scene: Scene, cams: List[PinholeCamera], 
                        np.where(2 * hits > view.subsamples, 255, 0).astype(np.uint8))
             cov = np.rint(255.0 * hits / view.subsamples).astype(np.uint8)
             _write_png(root / "coverage" / n / f"{stem}.png", cov)
+            if silhouettes is not None:
+                _write_png(root / "amodal" / n / f"{stem}.png",
+                           np.where(2 * silhouettes[k].astype(np.int64) > view.subsamples, 255, 0).astype(np.uint8))
         frames.append(_frame_json(cams[i], rel))
         if i % p.test_every == 0:
             test.append(rel)
@@ -226,6 +237,7 @@ def _write(root: Path, p: SynthPreset, scene: Scene, cams: List[PinholeCamera], 
         "supersampling": s, "subsamples_per_pixel": s * s, "num_views": len(cams),
         "test_every": p.test_every, "hfov_deg": p.hfov_deg, "world_up": [0.0, 0.0, 1.0],
         "mask_rule": "2 * hits > subsamples_per_pixel",
+        "amodal_masks": "amodal/<object>/<view>.png, held-out views: the whole silhouette, occluders ignored",
         "objects": [o.to_json() for o in scene.objects],
         "background": [b.to_json() for b in scene.background],
         "light": {"direction": (light / np.linalg.norm(light)).tolist(), "ambient": scene.ambient,

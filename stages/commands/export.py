@@ -137,12 +137,13 @@ def _print_summary(path: str, dest: str) -> None:
     def fmt(v, spec):
         return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else format(v, spec)
 
-    print(f"\n{'method':<14} {'mIoU':>7} {'mBIoU':>7} {'mAcc':>7} {'obj-only':>8} {'PSNR dB':>8} {'vanilla':>8}"
-          "  objects")
+    print(f"\n{'method':<14} {'mIoU':>7} {'mBIoU':>7} {'mAcc':>7} {'BIoU rel':>8} {'BIoU occ':>8} {'PSNR dB':>8} "
+          f"{'pre-RAEM':>8} {'vanilla':>8}  objects   (mIoU / mBIoU / mAcc: the headline protocol)")
     for r in data.get("by_method", []):
         print(f"{r['method']:<14} {fmt(r.get('iou'), '.4f'):>7} {fmt(r.get('biou'), '.4f'):>7} "
-              f"{fmt(r.get('acc'), '.4f'):>7} {fmt(r.get('iou_object_only'), '.4f'):>8} "
-              f"{fmt(r.get('psnr'), '.2f'):>8} "
+              f"{fmt(r.get('acc'), '.4f'):>7} {fmt(r.get('biou_released'), '.4f'):>8} "
+              f"{fmt(r.get('biou_occlusion'), '.4f'):>8} {fmt(r.get('psnr'), '.2f'):>8} "
+              f"{fmt(r.get('psnr_before_raem'), '.2f'):>8} "
               f"{fmt(r.get('psnr_vanilla'), '.2f'):>8}  {r.get('objects')}")
     for w in data.get("warnings") or []:
         print(f"WARNING {w['item']}: {w['message']}")

@@ -136,13 +136,41 @@ def test_masks_follow_majority_of_subsamples(scene_dir):
         assert total.max() <= s
 
 
+def test_amodal_masks_hold_the_visible_ones(scene_dir):
+    """amodal/<object>/ holds the held-out views only: the whole silhouette (occluders
+    ignored) contains the visible mask, and is larger where something hides the object."""
+    from cobgs.data.synth_render import Scene as SynthScene, render_view
+    from cobgs.data.synthetic import build_scene
+    import dataclasses as dc
+
+    meta = json.loads((scene_dir / "scene.json").read_text())
+    names = [o["name"] for o in meta["objects"]]
+    assert sorted(p.name for p in (scene_dir / "amodal").iterdir()) == sorted(names)
+    hidden = 0
+    for n in names:
+        assert sorted(p.name for p in (scene_dir / "amodal" / n).iterdir()) == ["0000.png", "0008.png"]
+        for stem in ("0000", "0008"):
+            am = _read(scene_dir / "amodal" / n / f"{stem}.png") == 255
+            vis = _read(scene_dir / "masks" / n / f"{stem}.png") == 255
+            assert not (vis & ~am).any()
+            hidden += int((am & ~vis).sum())
+    assert hidden > 0  # the demo scene has objects partly hidden behind others
+    # One object alone, ray-cast as an ordinary scene: its first-hit mask is the silhouette.
+    p, synth, cams = build_scene("demo", 3, width_px=120, height_px=90, supersampling=2, num_views=9)
+    alone = SynthScene(objects=(dc.replace(synth.objects[0], id=1),), background=(), light_dir=synth.light_dir,
+                       ambient=synth.ambient, sky=synth.sky)
+    rv = render_view(alone, cams[8], 2)
+    expect = 2 * rv.hits[0].astype(np.int64) > rv.subsamples
+    assert np.array_equal(_read(scene_dir / "amodal" / names[0] / "0008.png") == 255, expect)
+
+
 def test_deterministic_for_a_seed(scene_dir, tmp_path):
     """Bit-identical files for the same seed, also when views render in worker processes."""
     again = synthetic.generate_scene(tmp_path / "again", "demo", seed=3, progress=False,
                                      workers=2, **SMALL)
     cmp = filecmp.dircmp(scene_dir, again)
     files = [p.relative_to(scene_dir) for p in scene_dir.rglob("*") if p.is_file()]
-    assert len(files) == 2 + 9 * (1 + 2 * 3)
+    assert len(files) == 2 + 9 * (1 + 2 * 3) + 2 * 3  # + amodal masks of the 2 held-out views
     for rel in files:
         assert (scene_dir / rel).read_bytes() == (again / rel).read_bytes(), rel
     assert not cmp.left_only and not cmp.right_only
