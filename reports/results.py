@@ -243,17 +243,29 @@ def _scene_task(data: RunData, scene: str) -> str:
     return scene
 
 
+def _route(r: Result) -> str:
+    return str((r.row or {}).get("mask_route") or "")
+
+
 def scene_method_records(data: RunData, infos: dict, log_href: LogHref) -> list[dict]:
+    """Per scene x method, and per mask route where a scene mixes routes (exact and noisy
+    masks are different experiments: their objects are never averaged together)."""
+    routes: dict[str, set] = {}
+    for r in data.results:
+        if r.ok:
+            routes.setdefault(r.scene, set()).add(_route(r))
     groups: dict[tuple, list[Result]] = {}
     for r in data.results:
-        groups.setdefault((r.scene, r.method), []).append(r)
+        split = len(routes.get(r.scene, ())) > 1
+        groups.setdefault((r.scene, r.method, _route(r) if split else None), []).append(r)
     recs = []
-    for (scene, method), rs in groups.items():
+    for (scene, method, route), rs in groups.items():
         agg = _aggregate(_rows(rs), ("scene", "method"))
         rec = dict(agg[0]) if agg else {"scene": scene, "method": method}
         status, cls, href, title = _status(rs, log_href)
         info = infos.get(method, MethodInfo(method))
-        rec.update(scene=scene, method=method, config=info.config, status=status,
+        rec.update(scene=scene, method=method, config=info.config, status=status, masks=route,
+                   _group=f"{scene}/{route or ''}",
                    objects=sum(r.ok for r in rs), objects_total=len(rs), peak_rss=_max_or_none(_peak_rss(r) for r in rs if r.ok),
                    peak_gpu=_max_or_none(_peak_gpu(r) for r in rs if r.ok),
                    _class={"status": cls, "method": _ref_class(infos, method)}, _href={"status": href} if href else {},

@@ -101,9 +101,13 @@ def result_tables(data: RunData, infos: dict, logs: R.LogHref) -> dict:
                        "done (a mean over fewer is not comparable); not marked when all are equal."])
     t_scene = build_table(
         "t-scene", "Results per scene × method (mean over the scene's objects); best per scene marked",
-        [Column("scene", "Scene", numeric=False), Column("method", "Method", numeric=False),
+        [Column("scene", "Scene", numeric=False),
+         *([Column("masks", "Masks", numeric=False, title="how the training masks were made; a scene that mixes "
+                   "exact and noisy masks gets one row per kind (never averaged together)")]
+           if any(r.get("masks") for r in by_scene) else []),
+         Column("method", "Method", numeric=False),
          Column("objects", "Objects", fmt.count)] + _cols_metrics(by_scene) + paper_s + [status], by_scene,
-        group_by="scene", notes=[n for n in notes if paper_s])
+        group_by="_group", notes=[n for n in notes if paper_s])
     recs = R.object_records(data, infos, logs)
     for r in recs:  # best values per (scene, object): objects differ too much to compare across
         r["_group"] = f"{r['scene']}/{r['object']}"
