@@ -55,6 +55,7 @@ __all__ = [
     "psnr_scores",
     "aggregate",
     "oracle_choice",
+    "bootstrap_mean_diff",
     "ORACLE_METHOD",
     "nanmean",
     "visible_object_mask",
@@ -436,3 +437,31 @@ def oracle_choice(rows: Sequence[Mapping], kind: str = "flashsplat", metric: str
         if best is not None:
             out[scene] = best
     return out
+
+
+def bootstrap_mean_diff(pairs: Mapping[str, Sequence[tuple]], reps: int = 2000, seed: int = 0) -> Optional[dict]:
+    """Difference of two methods' benchmark mean (per-view values averaged per object, then
+    over objects), in points (x100), with a 95 % percentile interval from resampling each
+    object's held-out views (stratified bootstrap, fixed seed).
+
+    Args:
+        pairs: object -> [(method A's value, method B's value) per view both scored].
+
+    Returns:
+        {"diff", "lo", "hi", "objects", "views"} or None when no view is shared.
+    """
+    import random
+    import statistics
+
+    by_obj = {o: [100.0 * (float(a) - float(b)) for a, b in v] for o, v in pairs.items() if v}
+    if not by_obj:
+        return None
+
+    def stat(samples: Mapping[str, list]) -> float:
+        return statistics.fmean(statistics.fmean(v) for v in samples.values())
+
+    rng = random.Random(seed)
+    boots = sorted(stat({o: rng.choices(v, k=len(v)) for o, v in by_obj.items()}) for _ in range(reps))
+    lo, hi = boots[int(0.025 * reps)], boots[min(reps - 1, int(math.ceil(0.975 * reps)) - 1)]
+    return {"diff": stat(by_obj), "lo": lo, "hi": hi, "objects": len(by_obj),
+            "views": sum(len(v) for v in by_obj.values())}

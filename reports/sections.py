@@ -144,7 +144,19 @@ def result_tables(data: RunData, infos: dict, logs: R.LogHref) -> dict:
          Column("notes", "Reader notes", numeric=False,
                 title="what the reader decided about the data: distortion read as a pinhole, "
                       "images matched to poses by sorted order, ...")], R.scene_records(data))
-    return {"method": t_method, "scene": t_scene, "object": t_object, "scenes": t_scenes,
+    ref = R.reference_method(infos)
+    drecs, compared = R.difference_records(data, infos, ref)
+    t_diff = build_table(
+        "t-diff", f"mBIoU of {ref} minus each peer's, per scene (headline protocol; points, 95 % interval from "
+                  "resampling the held-out views of each object)",
+        [Column("scene", "Scene", numeric=False),
+         *([Column("masks", "Masks", numeric=False)] if any(r.get("masks") for r in drecs) else []),
+         *[Column(f"d:{m}", f"− {m}", lambda v: fmt.db(v, signed=True),
+                  title=f"{ref}'s mBIoU minus {m}'s on the same objects and views") for m in compared]],
+        drecs if compared else [],
+        notes=["An interval entirely below 0 means the reference is significantly below that method on the "
+               "scene; entirely above, significantly above."]) if compared else None
+    return {"method": t_method, "scene": t_scene, "object": t_object, "scenes": t_scenes, "diff": t_diff,
             "raw": {"by_method": by_method, "by_scene_method": by_scene, "by_object": recs}}
 
 

@@ -10,8 +10,6 @@ scene × object × row, with a ``per_view`` map) and returns Markdown text.
 
 from __future__ import annotations
 
-import math
-import random
 import statistics
 from typing import Mapping, Sequence
 
@@ -74,28 +72,10 @@ def paired_views(per_obj, objects: Sequence[str], row: str, other: str, key: str
 
 def bootstrap_mean_diff(per_obj, objects: Sequence[str], row: str, other: str, key: str = "biou",
                         reps: int = 2000, seed: int = 0) -> dict | None:
-    """Difference of the benchmark's mean (views averaged per object, then objects) between
-    two rows, with a 95 % percentile interval from resampling each object's held-out views
-    (stratified bootstrap, fixed seed). In points (×100).
+    """:func:`cobgs.evaluate.bootstrap_mean_diff` of two rows' per-view ``key`` values."""
+    from cobgs.evaluate import bootstrap_mean_diff as diff
 
-    Returns:
-        {"diff", "lo", "hi"} or None when the rows share no view.
-    """
-    by_obj = {}
-    for o in objects:
-        p = paired_views(per_obj, [o], row, other, key)
-        if p:
-            by_obj[o] = [100.0 * (a - b) for a, b in p]
-    if not by_obj:
-        return None
-
-    def stat(samples: Mapping[str, list[float]]) -> float:
-        return statistics.fmean(statistics.fmean(v) for v in samples.values())
-
-    rng = random.Random(seed)
-    boots = sorted(stat({o: rng.choices(v, k=len(v)) for o, v in by_obj.items()}) for _ in range(reps))
-    lo, hi = boots[int(0.025 * reps)], boots[min(reps - 1, int(math.ceil(0.975 * reps)) - 1)]
-    return {"diff": stat(by_obj), "lo": lo, "hi": hi}
+    return diff({o: paired_views(per_obj, [o], row, other, key) for o in objects}, reps=reps, seed=seed)
 
 
 def comparisons(name: str, objects: Sequence[str], per_obj, rows: Sequence[str]) -> str:

@@ -42,3 +42,27 @@ def test_flashsplat_oracle_copies_the_best_bias_per_scene():
     assert all(r.method == "flashsplat_oracle" for r in out)
     # one FlashSplat item only: no sweep, no oracle
     assert _oracle_results([r for r in results if r.method != "fs1"]) == []
+
+
+def test_difference_to_each_peer_with_a_view_bootstrap_interval():
+    from reports.results import MethodInfo
+
+    def res(method, obj, vals, kind):
+        r = _res("s", method, obj, sum(vals) / len(vals), "m", kind)
+        r.per_view = {f"v{i}": {"biou": v} for i, v in enumerate(vals)}
+        return r
+
+    results = [res("cobgs", "a", [0.9, 0.8, 0.85], "cobgs"), res("cobgs", "b", [0.7, 0.75, 0.8], "cobgs"),
+               res("fs", "a", [0.6, 0.5, 0.55], "flashsplat"), res("fs", "b", [0.5, 0.5, 0.6], "flashsplat"),
+               res("same", "a", [0.9, 0.8, 0.85], "sa3d"), res("same", "b", [0.7, 0.75, 0.8], "sa3d")]
+    data = RunData(workflow=None, cache_dir=Path("."), tasks=[], results=results, scenes={},
+                   methods=["cobgs", "fs", "same"])
+    infos = {"cobgs": MethodInfo("cobgs", kind="cobgs", role="reference"),
+             "fs": MethodInfo("fs", kind="flashsplat"), "same": MethodInfo("same", kind="sa3d")}
+    recs, used = R.difference_records(data, infos, "cobgs")
+    assert used == ["fs", "same"] and len(recs) == 1
+    rec = recs[0]
+    # means over views per object, then over objects: a 0.85 - 0.55, b 0.75 - 0.533..
+    assert rec["d:fs"] == pytest.approx(100 * ((0.85 - 0.55) + (0.75 - 0.5333333333)) / 2)
+    assert rec["_class"]["d:fs"] == ["better"] and "significantly above" in rec["_title"]["d:fs"]
+    assert rec["d:same"] == 0 and rec["_text"]["d:same"] == "+0.00 [+0.00, +0.00]"

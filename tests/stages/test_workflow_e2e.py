@@ -655,3 +655,4 @@ refine = { method = "flashsplat", flashsplat = { background_bias = -0.3 } }
     index = build_report(extra, out_dir=tmp_path / "report", cache_dir=cache2)
     html = Path(index).read_text(encoding="utf-8")
     assert "flashsplat_oracle" in html and "an oracle in its favour" in html and "mBIoU released" in html
+    assert 'id="t-diff"' in html  # the reference minus each peer, with view-bootstrap intervals
