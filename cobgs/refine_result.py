@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from ._memory import release_free_memory
+from .errors import InputError
 from .gaussians import GaussianModel
 
 
@@ -146,8 +147,6 @@ class RefineResult:
 def restore_pruned(kept: GaussianModel, keep: Tensor, removed: GaussianModel) -> GaussianModel:
     """The model before a pruning ``keep`` ([N] bool) that left ``kept`` and removed
     ``removed``: every Gaussian back at its old index, extras included."""
-    from .errors import InputError
-
     keep = keep.to(torch.bool)
     if int(keep.sum()) != len(kept) or int((~keep).sum()) != len(removed):
         raise InputError(f"cannot restore a pruning: the mask keeps {int(keep.sum())} of {keep.numel()} "

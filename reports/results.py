@@ -247,17 +247,25 @@ def _route(r: Result) -> str:
     return str((r.row or {}).get("mask_route") or "")
 
 
+def _scene_route_key(results: list[Result]):
+    """key(result) -> (scene, mask route), the route None where the scene uses one route
+    only: exact- and noisy-mask objects of a scene are different experiments, never
+    averaged or compared together."""
+    routes: dict[str, set] = {}
+    for r in results:
+        if r.ok:
+            routes.setdefault(r.scene, set()).add(_route(r))
+    return lambda r: (r.scene, _route(r) if len(routes.get(r.scene, ())) > 1 else None)
+
+
 def scene_method_records(data: RunData, infos: dict, log_href: LogHref) -> list[dict]:
     """Per scene x method, and per mask route where a scene mixes routes (exact and noisy
     masks are different experiments: their objects are never averaged together)."""
-    routes: dict[str, set] = {}
-    for r in data.results:
-        if r.ok:
-            routes.setdefault(r.scene, set()).add(_route(r))
+    key = _scene_route_key(data.results)
     groups: dict[tuple, list[Result]] = {}
     for r in data.results:
-        split = len(routes.get(r.scene, ())) > 1
-        groups.setdefault((r.scene, r.method, _route(r) if split else None), []).append(r)
+        scene, route = key(r)
+        groups.setdefault((scene, r.method, route), []).append(r)
     recs = []
     for (scene, method, route), rs in groups.items():
         agg = _aggregate(_rows(rs), ("scene", "method"))
@@ -500,15 +508,11 @@ def difference_records(data: RunData, infos: dict, ref: Optional[str]) -> tuple[
         return [], []
     others = [m for m in data.methods if m != ref and m in infos
               and (infos[m].role == "peer" or infos[m].kind == "nosplit")]
-    routes: dict[str, set] = {}
-    for r in data.results:
-        if r.ok:
-            routes.setdefault(r.scene, set()).add(_route(r))
+    key = _scene_route_key(data.results)
     groups: dict[tuple, dict] = {}
     for r in data.results:
         if r.ok:
-            key = (r.scene, _route(r) if len(routes.get(r.scene, ())) > 1 else None)
-            groups.setdefault(key, {}).setdefault(r.method, {})[r.object] = r
+            groups.setdefault(key(r), {}).setdefault(r.method, {})[r.object] = r
     recs, used = [], []
     for (scene, route), by_method in groups.items():
         mine = by_method.get(ref, {})

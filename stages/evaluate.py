@@ -206,17 +206,11 @@ def _run(ctx, inputs):
                         details.get("per_view_released", {}).get(n, {}).get("biou", ""),
                         details.get("per_view_occlusion", {}).get(n, {}).get("biou", ""),
                         pr["per_view"].get(n, ""), pb["per_view"].get(n, ""), pv["per_view"].get(n, ""),
-                        _skip_reason(details["skipped"], n)])
+                        details["skipped"].get(n, "")])
     ctx.log.info("%s / %s / %s: IoU %.4f, BIoU %.4f, PSNR %.2f (vanilla %.2f) dB", row["scene"], row["method"],
                  row["object"], row["iou"], row["biou"], row["psnr"], row["psnr_vanilla"])
     ctx.note(**{k: (None if isinstance(v, float) and not np.isfinite(v) else v) for k, v in row.items()})
     return {"metrics": ctx.out_dir}
-
-
-def _skip_reason(skipped, name: str) -> str:
-    if isinstance(skipped, dict):
-        return skipped.get(name, "")
-    return "skipped" if name in skipped else ""
 
 
 STAGE = Stage(

@@ -57,7 +57,7 @@ def _run(ctx, inputs):
     from cobgs.ply import load_ply, save_ply
     from cobgs.refine_result import RefineResult
     from cobgs.evaluate import visible_object_mask
-    from cobgs.segment import extract, render_object_mask, render_object_rgb, render_removed_rgb
+    from cobgs.segment import extract, method_threshold, render_object_mask, render_object_rgb, render_removed_rgb
     from cobgs.render import render_image
 
     p: SegmentParams = ctx.params
@@ -109,7 +109,7 @@ def _run(ctx, inputs):
     out = {"method": info["method"], "object": info["object"], "scene": spec["scene"],
            "num_gaussians": len(model), "object_gaussians": len(obj_model),
            "num_gaussians_before_raem": len(before_raem) if before_raem is not None else len(model),
-           "mask_threshold": p.mask_threshold if p.mask_threshold is not None else result.mask_threshold,
+           "mask_threshold": method_threshold(result, p.mask_threshold),
            "background_gaussians": len(rest_model), "views": [v.name for v in views],
            "files": {"object": "object.ply", "background": "background.ply", "pred_masks": "pred_masks",
                      "pred_visible": "pred_visible",
