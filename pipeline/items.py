@@ -103,11 +103,20 @@ class Item:
 
 
 class Axes:
-    """The ordered axes of a workflow and the instances of any level."""
+    """The ordered axes of a workflow and the instances of any level.
 
-    def __init__(self, axes: Sequence[Axis]):
+    ``only`` restricts where a value takes part: ``{(axis, slot): ItemFilter}`` (``slot`` is
+    the value's name, ``parent/value`` for a nested axis). A full item holding a restricted
+    value exists only when the value's filter selects it; an item of a smaller level holding
+    one exists only when it is the projection of such a full item (so no task runs for a
+    combination nothing downstream asks for). Items holding no restricted value are the
+    plain product, as without restrictions.
+    """
+
+    def __init__(self, axes: Sequence[Axis], only: Optional[Mapping[tuple[str, str], "ItemFilter"]] = None):
         self._axes = {a.name: a for a in axes}
         self.order = tuple(a.name for a in axes)
+        self.only = dict(only or {})
         self._instances: dict[tuple[str, ...], list[Item]] = {}
 
     def __contains__(self, name: str) -> bool:
@@ -131,11 +140,31 @@ class Axes:
                                     source, "axes")
         return tuple(a for a in self.order if a in level)
 
+    def slot(self, axis: str, pairs: Iterable[tuple[str, str]]) -> tuple[str, str]:
+        """Key of ``axis``'s value in ``pairs`` among per-value tables (``parent/value`` when nested)."""
+        values = dict(pairs)
+        parent = self._axes[axis].parent
+        return (axis, f"{values[parent]}/{values[axis]}" if parent is not None else values[axis])
+
+    def _restricted(self, item: Item) -> list["ItemFilter"]:
+        return [f for a, _ in item.pairs if (f := self.only.get(self.slot(a, item.pairs))) is not None]
+
     def instances(self, level: tuple[str, ...]) -> list[Item]:
         """Every item of ``level`` (already normalised), in declaration order."""
         cached = self._instances.get(level)
         if cached is not None:
             return cached
+        items = self._product(level)
+        if self.only:
+            if level == self.order:
+                items = [i for i in items if all(f.selects_full(i) for f in self._restricted(i))]
+            else:
+                shadows = {f.project(level) for f in self.instances(self.order)}
+                items = [i for i in items if not self._restricted(i) or i in shadows]
+        self._instances[level] = items
+        return items
+
+    def _product(self, level: tuple[str, ...]) -> list[Item]:
         partial: list[tuple[tuple[tuple[str, str], ...], dict[str, Any]]] = [((), {})]
         for name in level:
             axis = self._axes[name]
@@ -146,9 +175,7 @@ class Axes:
                     grown.append((pairs + ((name, value),),
                                   {**attrs, name: axis.attrs(value, parent_value)}))
             partial = grown
-        items = [Item(pairs, attrs) for pairs, attrs in partial]
-        self._instances[level] = items
-        return items
+        return [Item(pairs, attrs) for pairs, attrs in partial]
 
     def all_items(self) -> list[Item]:
         return self.instances(self.order)

@@ -23,6 +23,11 @@ Schema (every table optional except ``[axes]`` when a stage runs per item)::
     [axes.method.no_bags]
     refine.split = false              # dotted keys are tables too
 
+    [axes.method.delta_03]
+    only = "scene=lego/object=crate"  # takes part in these items only (a list of patterns, or
+                                      # one; every part names its axis). Not hashed: it says
+                                      # which items exist, not what they compute.
+
 Precedence, lowest first: stage defaults, ``[params.<stage>]``, item overrides (in axis
 order, so a method's override beats its scene's), ``--set stage.param=value``. A value may
 reference environment variables as ``${NAME}`` or ``${NAME:-default}``; an unset one fails
@@ -45,7 +50,7 @@ from . import params as P
 from .errors import PipelineError, WorkflowError, unknown_key_hint
 from .graph import Graph
 from .hashing import stat_fingerprint
-from .items import VALUE_RE, Axes, Axis, Item, check_value_name
+from .items import VALUE_RE, Axes, Axis, Item, ItemFilter, check_value_name
 from .registry import Registry
 from .stage import NAME_RE, Stage
 from .values import Settings
@@ -389,6 +394,7 @@ def _load_axes(axes_raw: dict, nested: dict, graph: Graph, registry: Registry, s
     item_layers: dict[tuple[str, str], dict[str, P.Layer]] = {}
     key_attrs: dict[str, tuple[str, ...]] = {}
     axes: list[Axis] = []
+    only_raw: dict[tuple[str, str], Any] = {}
     for child, parent in nested.items():
         if child not in axes_raw or not isinstance(parent, str) or parent not in axes_raw:
             raise WorkflowError(f"expected an axis nested in a declared axis, got {child!r} in "
@@ -413,7 +419,7 @@ def _load_axes(axes_raw: dict, nested: dict, graph: Graph, registry: Registry, s
             values = {}
             for value, vt in table.items():
                 values[value] = _load_value(axis_name, value, vt, f"axes.{axis_name}.{value}",
-                                            schema, graph, source, base, item_layers)
+                                            schema, graph, source, base, item_layers, only_raw)
             axes.append(Axis(axis_name, values))
         else:
             parent_values = next(a for a in axes if a.name == parent).values
@@ -425,20 +431,50 @@ def _load_axes(axes_raw: dict, nested: dict, graph: Graph, registry: Registry, s
                 sub = _table(sub, source, f"axes.{axis_name}.{pv}")
                 per_parent[pv] = {
                     value: _load_value(axis_name, value, vt, f"axes.{axis_name}.{pv}.{value}",
-                                       schema, graph, source, base, item_layers, slot=pv)
+                                       schema, graph, source, base, item_layers, only_raw, slot=pv)
                     for value, vt in sub.items()}
             axes.append(Axis(axis_name, per_parent, parent=parent))
-    return Axes(axes), item_layers, key_attrs
+    plain = Axes(axes)
+    only = {slot: _parse_only(text, slot, plain, source) for slot, text in only_raw.items()}
+    return Axes(axes, only), item_layers, key_attrs
+
+
+def _parse_only(text: Any, slot: tuple[str, str], axes: Axes, source: str) -> ItemFilter:
+    """``only = "scene=forward/object=crate"`` (or a list of such patterns): where a value
+    takes part. Every part names its axis; the patterns must select at least one item
+    holding the value (a typo would otherwise silently drop it from the run)."""
+    axis, value = slot
+    key = f"axes.{axis}.{value.replace('/', '.')}.only"
+    patterns = [text] if isinstance(text, str) else text
+    if not isinstance(patterns, list) or not patterns or not all(isinstance(t, str) for t in patterns):
+        raise WorkflowError(f"expected an item pattern such as \"scene=lego/object=crate\" or a list of "
+                            f"them, got {text!r}", source, key)
+    try:
+        filt = ItemFilter.parse(",".join(patterns), axes)
+    except WorkflowError as exc:
+        raise WorkflowError(str(exc), source, key) from None
+    for pattern in filt.patterns:
+        bare = [g for a, g in pattern if a is None]
+        if bare:
+            raise WorkflowError(f"each part of an 'only' pattern names its axis (axis=glob); "
+                                f"{bare[0]!r} does not (axes: {list(axes.order)})", source, key)
+    holding = [i for i in axes.all_items() if axes.slot(axis, i.pairs) == slot]
+    if not any(filt.selects_full(i) for i in holding):
+        raise WorkflowError(f"{patterns!r} selects no item holding {axis} {value.split('/')[-1]!r}; "
+                            "it would never run", source, key)
+    return filt
 
 
 def _load_value(axis: str, value: str, table: Any, key: str, schema: Optional[type],
-                graph: Graph, source: str, base: Path, item_layers: dict,
+                graph: Graph, source: str, base: Path, item_layers: dict, only_raw: dict,
                 slot: Optional[str] = None) -> Any:
     check_value_name(value, axis, source)
     table = _table(table, source, key)
     attrs, overrides = {}, {}
     for k, v in table.items():
-        if k in graph.stages:
+        if k == "only":  # reserved: where the value takes part (not an attribute, not hashed)
+            only_raw[(axis, f"{slot}/{value}" if slot is not None else value)] = v
+        elif k in graph.stages:
             overrides[k] = P.Layer(_table(v, source, f"{key}.{k}"), source, base,
                                    prefix=f"{key}.{k}")
         else:

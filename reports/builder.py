@@ -1,7 +1,7 @@
 """``build_report``: one self-contained report folder from a workflow's cache.
 
 The folder (``index.html``, ``static/``, ``img/``, ``plots/``, ``logs/``, ``workflow.toml``,
-``report.json``) uses relative links only and no network resource, so it opens from
+``report.json``, ``data/*.csv``, ``tables.md``: the result tables as Markdown) uses relative links only and no network resource, so it opens from
 ``file://`` anywhere it is copied. It is written to a temporary sibling folder and swapped
 into place as a whole (:func:`pipeline.publish.publish_folder`), so a kill leaves either the
 previous report or the new one; an existing report at the destination is replaced, any other
@@ -25,6 +25,7 @@ from .errors import ReportError
 from .gallery import picture_sets
 from .pictures import KIND_LABELS, slug
 from .sections import detail_tables, result_tables
+from .tables import to_markdown
 
 MARKER = "report.json"
 REPORT_FORMAT = "cobgs-report"
@@ -195,6 +196,7 @@ def _write(data: RunData, root: Path, sets: list[str]) -> None:
     (root / "workflow.toml").write_text(run["workflow"]["text"], encoding="utf-8")
     ctx = {
         "run": run, "env": env_info, "infos": infos, "reference": ref, "tables": tables, "pictures": pictures,
+        "picture_scenes": _by_scene(pictures),
         "plots": plots, "stage_table": stage_table, "task_table": task_table, "failures": failures,
         "waiting": waiting, "eval_gaps": eval_gaps, "stages": meta.stage_records(data), "kind_labels": KIND_LABELS,
         "methods": data.methods, "n_results": len(data.results), "n_ok": sum(r.ok for r in data.results),
@@ -210,6 +212,15 @@ def _write(data: RunData, root: Path, sets: list[str]) -> None:
               "failures": failures, "plots": plots}
     for name, recs in tables["raw"].items():  # the tables as data, for an appendix's own typesetting
         _write_csv(root / "data" / f"{name}.csv", _plain(recs))
+    wf_path = os.path.relpath(data.workflow.path) if not os.path.relpath(data.workflow.path).startswith("..") \
+        else os.fspath(data.workflow.path)
+    md = [f"# {data.workflow.name}: result tables", "",
+          f"From `cobgs report {wf_path}` ({fmt.timestamp(env_info['generated'])}); the same numbers as index.html, "
+          "means as the summary stage (over objects within a scene, then over scenes). Bold: best in its group.", ""]
+    for key in ("method", "scene", "diff", "ablation", "psnr", "scenes"):
+        if tables.get(key) is not None:
+            md += [to_markdown(tables[key]), ""]
+    (root / "tables.md").write_text("\n".join(md), encoding="utf-8")
     (root / MARKER).write_text(json.dumps(record, indent=1, default=str) + "\n", encoding="utf-8")
     (root / "index.html").write_text(html, encoding="utf-8")  # last: the page is the report
 
@@ -233,6 +244,14 @@ def _count(values) -> dict:
     for v in values:
         out[v] = out.get(v, 0) + 1
     return out
+
+
+def _by_scene(pictures: list) -> list[tuple[str, list]]:
+    """[(scene, its picture sets)] in the order the sets come (scene order)."""
+    out: dict[str, list] = {}
+    for ps in pictures:
+        out.setdefault(ps.scene, []).append(ps)
+    return list(out.items())
 
 
 def _plain(records: list[dict]) -> list[dict]:

@@ -44,6 +44,7 @@ class MethodInfo:
     options: list[str] = field(default_factory=list)
     role: str = "peer"
     paper: Optional[tuple] = None
+    raem: Optional[str] = None  # COB-GS's RAEM variant ("released", "paper", "off")
 
     @property
     def kind_label(self) -> str:
@@ -102,6 +103,9 @@ def method_infos(data: RunData) -> dict[str, MethodInfo]:
         if r.method not in seen:
             info.kind, info.options = r.method_kind, opts
             info.paper = paper.paper_method(r.method_kind, r.refine_params)
+            if r.method_kind == "cobgs":
+                info.raem = str(((r.refine_params.get("cobgs") or {}).get("raem")
+                                 or (defaults.get("cobgs") or {}).get("raem") or "released"))
         seen.setdefault(r.method, set()).add(tuple(opts))
     for m, variants in seen.items():
         if len(variants) > 1:  # per-scene overrides: say so rather than pick one
@@ -314,6 +318,7 @@ def method_records(data: RunData, infos: dict, log_href: LogHref) -> tuple[list[
     """Per method over every scene; also the notes the paper columns need."""
     notes: list[str] = []
     scenes = list(data.scenes)
+    covered = {(r.scene, r.object) for r in data.results}  # a method run on part of it (`only`) is not ranked
     recs = []
     for method in data.methods:
         rs = [r for r in data.results if r.method == method]
@@ -331,7 +336,8 @@ def method_records(data: RunData, infos: dict, log_href: LogHref) -> tuple[list[
                    _href={"status": href} if href else {},
                    _title={"status": title}, _sub={"method": _method_sub(info)},
                    # a mean over fewer scenes or objects is not comparable: never "best"
-                   _nobest=not all(r.ok for r in rs), _row_class=[f"role-{info.role}"])
+                   _nobest=not all(r.ok for r in rs) or {(r.scene, r.object) for r in rs} != covered,
+                   _row_class=[f"role-{info.role}"])
         rec["_text"] = {"scenes": f"{len(done_scenes)} of {len(scenes)}" if len(done_scenes) < len(scenes)
                         else str(len(scenes)),
                         "objects": f"{rec['objects']} of {len(rs)}" if rec["objects"] < len(rs) else str(len(rs))}
@@ -532,7 +538,7 @@ def difference_records(data: RunData, infos: dict, ref: Optional[str]) -> tuple[
                 continue
             if m not in used:
                 used.append(m)
-            rec[f"d:{m}"] = d["diff"]
+            rec[f"d:{m}"], rec[f"lo:{m}"], rec[f"hi:{m}"] = d["diff"], d["lo"], d["hi"]
             rec["_text"][f"d:{m}"] = f"{d['diff']:+.2f} [{d['lo']:+.2f}, {d['hi']:+.2f}]"
             below = d["hi"] < 0
             above = d["lo"] > 0
@@ -542,3 +548,93 @@ def difference_records(data: RunData, infos: dict, ref: Optional[str]) -> tuple[
                                           else "interval includes 0"))
         recs.append(rec)
     return recs, used
+
+
+# -- paper Tables 5 and 4 at benchmark scale ---------------------------------------------
+def _switch_order(sw: tuple) -> tuple:
+    """none, BAGS, BAGS + BGTR, all three (the paper's rows); other combinations by count."""
+    return (sum(sw), tuple(not x for x in sw))
+
+
+_RAEM_ORDER = {"off": 0, "released": 1, "paper": 2}
+
+
+def _switches(info: Optional[MethodInfo]) -> Optional[tuple]:
+    """(BAGS, BGTR, RAEM) of a Table 5 row: COB-GS and its switch ablations, no-split = none."""
+    if info is None or info.paper is None:
+        return None
+    if info.paper[0] == "nosplit":
+        return (False, False, False)
+    return info.paper[1] if info.paper[0] == "cobgs" else None
+
+
+def ablation_records(by_scene: list[dict], infos: dict) -> list[dict]:
+    """Paper Table 5 per scene (and mask route): the rows that switch BAGS, BGTR and RAEM on
+    and off (the no-split row = none of them), in the paper's order, each RAEM variant apart.
+
+    Rows are the per scene x method records (:func:`scene_method_records`), so the numbers
+    are the same as in the results table; only the selection, order and switch columns are
+    new. Best values are marked within a scene and route.
+    """
+    order = {g: i for i, g in enumerate(dict.fromkeys(r["_group"] for r in by_scene))}
+    out = []
+    for rec in by_scene:
+        info = infos.get(rec["method"])
+        sw = _switches(info)
+        if sw is None:
+            continue
+        raem = "off" if not sw[2] else (info.raem or "released")
+        row = dict(rec)
+        row.update(bags="✓" if sw[0] else "", bgtr="✓" if sw[1] else "", raem=raem,
+                   _sort=(order[rec["_group"]], _switch_order(sw), _RAEM_ORDER.get(raem, 3), rec["method"]))
+        row["_text"] = dict(rec.get("_text") or {})
+        out.append(row)
+    out.sort(key=lambda r: r["_sort"])
+    return out if len({r["_sort"][1] for r in out}) >= 2 else []
+
+
+def psnr_records(by_scene: list[dict], infos: dict, ref: Optional[str]) -> list[dict]:
+    """Paper Table 4 per scene (and mask route): held-out PSNR of the vanilla scene, after the
+    mask stages alone (BAGS, no BGTR: "M.O"), after mask + texture stages before RAEM (the
+    reference's scene before its final pruning: "M.O+T.O", the paper's measurement), and after
+    each RAEM variant. Means over the scene's objects, like every per-scene number.
+
+    The paper's "texture only" column (texture stages without splitting) has no row in
+    our ablations: left out rather than approximated.
+    """
+    groups: dict[str, list[dict]] = {}
+    for rec in by_scene:
+        groups.setdefault(rec["_group"], []).append(rec)
+    out = []
+    for g, recs in groups.items():
+        by_m = {r["method"]: r for r in recs}
+        row: dict = {"scene": recs[0]["scene"], "masks": recs[0].get("masks"), "_title": {}, "_text": {}}
+        vanilla = next((finite(r.get("psnr_vanilla")) for r in recs if finite(r.get("psnr_vanilla")) is not None),
+                       None)
+        row["vanilla"] = vanilla
+        for r in recs:
+            sw = _switches(infos.get(r["method"]))
+            if sw == (True, False, False) and "mask_only" not in row:
+                row["mask_only"], row["_title"]["mask_only"] = finite(r.get("psnr")), f"{r['method']}"
+        mine = by_m.get(ref) if ref else None
+        if mine is not None:
+            row["joint"] = finite(mine.get("psnr_before_raem"))
+            row["_title"]["joint"] = f"{ref}, its scene before RAEM"
+        for r in recs:
+            info = infos.get(r["method"])
+            if _switches(info) == (True, True, True) and info.raem:
+                key = f"raem_{info.raem}"
+                if key not in row or r["method"] == ref:
+                    row[key], row["_title"][key] = finite(r.get("psnr")), r["method"]
+        if vanilla is None or all(row.get(k) is None for k in ("mask_only", "joint")):
+            continue
+        for k in ("mask_only", "joint", "raem_released", "raem_paper"):
+            if row.get(k) is not None:
+                row[f"d_{k}"] = row[k] - vanilla
+        if row.get("joint") is not None:
+            ok = row["joint"] >= vanilla - 0.1
+            row["target"] = "met" if ok else "not met"
+            row["_class"] = {"target": ["ok" if ok else "failed"]}
+            row["_title"]["target"] = f"before-RAEM PSNR {row['joint'] - vanilla:+.3f} dB vs vanilla (bar −0.1 dB)"
+        out.append(row)
+    return out

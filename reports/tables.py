@@ -75,6 +75,7 @@ class Column:
         better: "max" or "min" to mark the best value, None for no marking.
         title: header tooltip (units, definition).
         quoted: the column holds numbers quoted from the paper (styled apart, never best).
+        wrap: long text that wraps within a bounded width (keeps wide tables on the page).
     """
 
     key: str
@@ -84,6 +85,7 @@ class Column:
     better: Optional[str] = None
     title: str = ""
     quoted: bool = False
+    wrap: bool = False
 
     def __post_init__(self) -> None:
         if not self.title:  # every column is defined on the page (glossary below its table)
@@ -170,6 +172,8 @@ def build_table(table_id: str, caption: str, columns: Sequence[Column], records:
                 classes.append("num")
             if col.quoted:
                 classes.append("quoted")
+            if col.wrap:
+                classes.append("wrap")
             if best.get((i, col.key)):
                 classes.append("best")
             sort = finite(v) if col.numeric else (v if isinstance(v, str) else text)
@@ -178,3 +182,20 @@ def build_table(table_id: str, caption: str, columns: Sequence[Column], records:
                               sub=r.get("_sub", {}).get(col.key, "")))
         rows.append(Row(cells, list(r.get("_row_class", []))))
     return Table(table_id, caption, list(columns), rows, list(notes))
+
+
+def to_markdown(table: Table) -> str:
+    """The table as GitHub Markdown, with the page's display text (the method's options and
+    other second lines in brackets, best values in bold), caption above and notes below."""
+    def cell(c: Cell) -> str:
+        text = c.text + (f" ({c.sub})" if c.sub else "")
+        text = text.replace("|", "\\|").replace("\n", " ")
+        return f"**{text}**" if "best" in c.classes and text else text
+
+    lines = [f"**{table.caption}**", "", "| " + " | ".join(c.label for c in table.columns) + " |",
+             "|" + "|".join("---:" if c.numeric else "---" for c in table.columns) + "|"]
+    lines += ["| " + " | ".join(cell(c) for c in r.cells) + " |" for r in table.rows]
+    if not table.rows:
+        lines.append("| nothing recorded |" + " |" * (len(table.columns) - 1))
+    lines += [""] + [f"{n}" for n in table.notes]
+    return "\n".join(lines).rstrip() + "\n"

@@ -251,6 +251,58 @@ nested = { object = "scene" }
         load_workflow(path, reg)
 
 
+def test_only_restricts_a_value_to_some_items(tmp_path):
+    """A δ-sweep method on one scene and object: no task anywhere else, at any level; the
+    other values' items are the plain product; a typo fails the load."""
+    def run(ctx, inputs):
+        return {}
+    reg = Registry([
+        Stage(name="train", version=1, run=run, outputs=("scene",), level=("scene",)),
+        Stage(name="prep", version=1, run=run, inputs=("scene",), outputs=("prep",),
+              level=("scene", "method")),
+        Stage(name="seg", version=1, run=run, inputs=("prep",), outputs=("seg",),
+              level=("scene", "method", "object")),
+        Stage(name="per_method", version=1, run=run, inputs=("seg",), outputs=("pm",),
+              level=("method",)),
+        Stage(name="total", version=1, run=run, inputs=("seg",), outputs=("all",), level=()),
+    ])
+    text = """
+[workflow]
+nested = { object = "scene" }
+[axes.scene.a]
+[axes.scene.b]
+[axes.scene.c]
+[axes.method.m]
+[axes.method.sweep]
+only = "scene=a/object=x*"
+[axes.object.a.x1]
+[axes.object.a.x2]
+[axes.object.a.y]
+[axes.object.b.x1]
+"""
+    path = write(tmp_path, text)
+    plan = Plan(load_workflow(path, reg))
+    ids = lambda stage: [t.item.id for t in plan.tasks if t.stage.name == stage]  # noqa: E731
+    assert ids("seg") == ["a/m/x1", "a/m/x2", "a/m/y", "a/sweep/x1", "a/sweep/x2", "b/m/x1"]
+    assert ids("prep") == ["a/m", "a/sweep", "b/m", "c/m"]  # c has no object: its m item stays
+    assert ids("per_method") == ["m", "sweep"]
+    assert [plan.tasks[s].item.id for s in plan.find("total", "").bindings[0].sources] == ids("seg")
+    assert [plan.tasks[s].item.id for s in plan.find("per_method", "sweep").bindings[0].sources] == \
+        ["a/sweep/x1", "a/sweep/x2"]
+    # a list of patterns; a nested value restricted by its sibling axis
+    path.write_text(text.replace('only = "scene=a/object=x*"', 'only = ["scene=a/object=y", "scene=b"]')
+                    + '[axes.object.b.z]\nonly = "method=m"\n')
+    plan = Plan(load_workflow(path, reg))
+    assert ids("seg") == ["a/m/x1", "a/m/x2", "a/m/y", "a/sweep/y", "b/m/x1", "b/m/z", "b/sweep/x1"]
+    for bad, msg in (('"scene=a/object=nope"', "selects no item holding method 'sweep'"),
+                     ('"a"', "names its axis"), ('"colour=red"', "unknown axis 'colour'"),
+                     ("3", "expected an item pattern")):
+        path.write_text(text.replace('"scene=a/object=x*"', bad))
+        with pytest.raises(WorkflowError, match=msg) as err:
+            load_workflow(path, reg)
+        assert "axes.method.sweep.only" in str(err.value)
+
+
 def test_item_equality_ignores_attributes():
     a = Item((("scene", "x"),), {"scene": {"k": 1}})
     b = Item((("scene", "x"),), {"scene": {"k": 2}})

@@ -259,6 +259,7 @@ def run_evaluate(ctx, inputs):
            "acc": float(np.mean([s["acc"] for s in per.values()])),
            "biou": float(np.mean([s["biou"] for s in per.values()])), "views": len(per), "mask_render": "visible",
            "psnr": psnr, "psnr_vanilla": vanilla, "psnr_delta": psnr - vanilla, "num_gaussians_vanilla": 5000,
+           "psnr_before_raem": psnr, "psnr_delta_before_raem": psnr - vanilla,  # the toy RAEM removes nothing
            "num_gaussians": ref["num_gaussians_end"], "object_gaussians": 300, "splits": ref["splits"],
            "pruned": 0, "ambiguous_final": ref["ambiguous_final"], "refine_s": ref["wall_s"],
            "refine_peak_mem_bytes": ref["peak_mem_bytes"], "extract_ms": 1.0}

@@ -353,3 +353,22 @@ def test_every_column_is_defined_on_the_page(recorded, tmp_path):
     assert headers and all('title="' in h for h in headers), [h for h in headers if 'title="' not in h][:5]
     assert html.count('<details class="columns">') >= html.count("<table id=") > 0
     assert "<dt>mBIoU</dt>" in html or "<dt>BIoU</dt>" in html
+
+
+def test_ablation_and_psnr_tables_and_their_markdown(recorded, report):
+    """Paper Table 5's rows in the paper's order (no-split = none, then BAGS + RAEM without
+    BGTR, then all three), Table 4's columns, and tables.md with the page's numbers."""
+    rows = parse(report).rows
+    abl = [[c[0] for c in r] for r in rows["t-ablation"]]
+    s1 = [r for r in abl if r[0] == "s1"]
+    assert [r[1] for r in s1] == ["nosplit", "no_bgtr", "cobgs"]  # delta_03 (not the paper's δ) and peers left out
+    assert [tuple(r[2:5]) for r in s1] == [("", "", "off"), ("✓", "", "released"), ("✓", "✓", "released")]
+    by_scene = {(r[0][0], r[1][0]): r for r in rows["t-scene"]}  # Scene, Method, Objects, mIoU, ...
+    cobgs_s1 = [r for r in rows["t-ablation"] if r[0][0] == "s1" and r[1][0] == "cobgs"][0]
+    assert cobgs_s1[5][0] == by_scene[("s1", "cobgs")][3][0]  # mIoU: the same number as the results table
+    psnr = {r[0][0]: [c[0] for c in r] for r in rows["t-psnr"]}
+    assert set(psnr) == {"s1", "s2"} and psnr["s1"][-1] in ("met", "not met")
+    md = (report.parent / "tables.md").read_text()
+    assert "| Scene | Method | BAGS | BGTR | RAEM |" in md and "Texture quality (paper Table 4)" in md
+    assert f"| {by_scene[('s1', 'cobgs')][3][0]} |" in md or f"**{by_scene[('s1', 'cobgs')][3][0]}**" in md
+    assert (report.parent / "data" / "ablation.csv").is_file() and (report.parent / "data" / "texture_psnr.csv").is_file()

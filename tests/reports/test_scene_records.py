@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -66,3 +67,81 @@ def test_difference_to_each_peer_with_a_view_bootstrap_interval():
     assert rec["d:fs"] == pytest.approx(100 * ((0.85 - 0.55) + (0.75 - 0.5333333333)) / 2)
     assert rec["_class"]["d:fs"] == ["better"] and "significantly above" in rec["_title"]["d:fs"]
     assert rec["d:same"] == 0 and rec["_text"]["d:same"] == "+0.00 [+0.00, +0.00]"
+
+
+def _infos():
+    from reports.results import MethodInfo
+
+    return {"cobgs": MethodInfo("cobgs", kind="cobgs", role="reference", paper=("cobgs", (True, True, True)),
+                                raem="released"),
+            "raem_paper": MethodInfo("raem_paper", kind="cobgs", options=["raem=paper"], role="variant",
+                                     paper=("cobgs", (True, True, True)), raem="paper"),
+            "no_raem": MethodInfo("no_raem", kind="cobgs", options=["raem=off"], role="variant",
+                                  paper=("cobgs", (True, True, False)), raem="off"),
+            "t5_bags": MethodInfo("t5_bags", kind="cobgs", options=["bgtr=false", "raem=off"], role="variant",
+                                  paper=("cobgs", (True, False, False)), raem="off"),
+            "nosplit": MethodInfo("nosplit", kind="nosplit", role="variant", paper=("nosplit",)),
+            "sa3d": MethodInfo("sa3d", kind="sa3d", paper=("sa3d",)),
+            "delta_0.3": MethodInfo("delta_0.3", kind="cobgs", options=["delta=0.3"], role="variant")}
+
+
+def _table_data():
+    """Two scenes; scene s mixes exact and noisy masks. PSNR per object: vanilla 30."""
+    psnr = {"cobgs": (29.5, 29.95), "raem_paper": (29.8, 29.95), "no_raem": (29.95, 29.95),
+            "t5_bags": (29.0, 29.0), "nosplit": (30.0, 30.0), "sa3d": (30.0, 30.0), "delta_0.3": (29.9, 29.9)}
+    biou = {"cobgs": 0.8, "raem_paper": 0.79, "no_raem": 0.78, "t5_bags": 0.75, "nosplit": 0.7, "sa3d": 0.72,
+            "delta_0.3": 0.77}
+    results = []
+    for scene, objects in (("s", (("a", "exact"), ("a_noisy", "noisy"))), ("t", (("b", "exact"),))):
+        for obj, route in objects:
+            for m, (after, before) in psnr.items():
+                if m == "delta_0.3" and scene != "s":  # a sweep run on one scene only (`only`)
+                    continue
+                kind = "cobgs" if m not in ("nosplit", "sa3d") else m
+                r = _res(scene, m, obj, biou[m] - (0.1 if route == "noisy" else 0), route, kind)
+                r.row.update(psnr=after, psnr_before_raem=before, psnr_vanilla=30.0, psnr_delta=after - 30.0,
+                             psnr_delta_before_raem=before - 30.0)
+                results.append(r)
+    return RunData(workflow=None, cache_dir=Path("."), tasks=[], results=results, scenes={n: SimpleNamespace(protocol="exact", dataset={}) for n in "st"},
+                   methods=list(psnr))
+
+
+def test_ablation_table_follows_the_paper_rows_per_scene_and_route():
+    data, infos = _table_data(), _infos()
+    by_scene = R.scene_method_records(data, infos, lambda t: None)
+    recs = R.ablation_records(by_scene, infos)
+    groups = list(dict.fromkeys((r["scene"], r["masks"]) for r in recs))
+    assert groups == [("s", "exact"), ("s", "noisy"), ("t", None)]
+    first = [r for r in recs if (r["scene"], r["masks"]) == ("s", "exact")]
+    # the paper's order; the peer (sa3d) and the δ item are not ablation rows
+    assert [r["method"] for r in first] == ["nosplit", "t5_bags", "no_raem", "cobgs", "raem_paper"]
+    assert [(r["bags"], r["bgtr"], r["raem"]) for r in first] == [
+        ("", "", "off"), ("✓", "", "off"), ("✓", "✓", "off"), ("✓", "✓", "released"), ("✓", "✓", "paper")]
+    noisy = {r["method"]: r["biou"] for r in recs if r["masks"] == "noisy"}
+    assert noisy["cobgs"] == pytest.approx(0.7) and noisy["nosplit"] == pytest.approx(0.6)
+    # a workflow with one switch setting only has no ablation to show
+    assert R.ablation_records([r for r in by_scene if r["method"] == "cobgs"], infos) == []
+
+
+def test_psnr_table_is_table_4_with_the_scene_before_raem():
+    data, infos = _table_data(), _infos()
+    by_scene = R.scene_method_records(data, infos, lambda t: None)
+    recs = {(r["scene"], r["masks"]): r for r in R.psnr_records(by_scene, infos, "cobgs")}
+    assert set(recs) == {("s", "exact"), ("s", "noisy"), ("t", None)}
+    r = recs[("t", None)]
+    assert r["vanilla"] == 30.0 and r["mask_only"] == 29.0 and r["joint"] == 29.95
+    assert r["raem_released"] == 29.5 and r["raem_paper"] == 29.8
+    assert r["d_joint"] == pytest.approx(-0.05) and r["target"] == "met"
+    # the bar is Table 4's: the scene before RAEM within 0.1 dB of vanilla
+    for res in data.results:
+        if res.method == "cobgs" and res.scene == "t":
+            res.row["psnr_before_raem"] = 29.85
+    by_scene = R.scene_method_records(data, infos, lambda t: None)
+    r = {(x["scene"], x["masks"]): x for x in R.psnr_records(by_scene, infos, "cobgs")}[("t", None)]
+    assert r["target"] == "not met" and r["_class"]["target"] == ["failed"]
+
+
+def test_a_method_run_on_part_of_the_workflow_is_never_best_by_method():
+    data, infos = _table_data(), _infos()
+    recs = {r["method"]: r for r in R.method_records(data, infos, lambda t: None)[0]}
+    assert recs["delta_0.3"]["_nobest"] and not recs["cobgs"]["_nobest"]
