@@ -317,8 +317,32 @@ class TwoStageConfig:
     stage2_box_threshold_min: float = 0.6
     stage2_ratio_of_best: float = 0.85
     stage2_text_threshold_min: float = 0.65
-    stage2_backward: bool = True
     run_stage2: bool = True
+    # The authors' flow (their Grounded-SAM-2 script) by default; the alternatives are
+    # named so a run can say which it used.
+    # stage2_reprompt: "correct" = a stage-2 box on a frame already tracked corrects it
+    #   (SAM2's video predictor: decoded with memory and the frame's previous mask, kept as
+    #   a tracked frame); "condition" = a new conditioning frame decoded without memory
+    #   (trusts the detector over the memory: every later frame attends to that box).
+    stage2_reprompt: str = "correct"
+    # stage2_backward: also propagate a stage-2 prompt backward to the start of its run of
+    #   empty frames (the authors go forward only, so a run's frames before the first
+    #   detection stay empty; backward fills them when the object was only half visible).
+    stage2_backward: bool = False
+    # empty_rule: a frame is empty when the "first_object"'s mask is (the authors: the first
+    #   kept detection in Grounding DINO's query order), or when the "union" of every
+    #   object's mask is (one object lost among several then does not count as empty).
+    empty_rule: str = "first_object"
+    # detection_order: object ids follow Grounding DINO's "query" order (upstream
+    #   predict()), or "confidence" (best first); stage-2 boxes pair with the objects in it.
+    detection_order: str = "query"
+
+    def __post_init__(self) -> None:
+        for name, allowed in (("stage2_reprompt", ("correct", "condition")),
+                              ("empty_rule", ("first_object", "union")),
+                              ("detection_order", ("query", "confidence"))):
+            if getattr(self, name) not in allowed:
+                raise InputError(f"TwoStageConfig.{name} must be one of {list(allowed)}, got {getattr(self, name)!r}")
 
 
 @dataclass(frozen=True)

@@ -154,7 +154,7 @@ def key_document(task: Task, workflow: Workflow, hashes: Mapping[str, Any]) -> d
     doc = {
         "stage": stage.name,
         "version": stage.version,
-        "params": task.params.json,
+        "params": task.params.key_json,
         "item": task.item.to_json(),
         "attrs": workflow.key_attrs(task.item),
         "inputs": hashes,
@@ -283,7 +283,7 @@ def diff_reasons(task: Task, wf: Workflow, ref: Mapping[str, Any],
     reasons = []
     if ref.get("version") != task.stage.version:
         reasons.append(f"version changed ({ref.get('version')} -> {task.stage.version})")
-    old, new = ref.get("params") or {}, task.params.json
+    old, new = ref.get("params") or {}, task.params.key_json
     if old != new:
         changed = _dict_diff(old, new)
         reasons.append("params changed (" + ", ".join(changed[:4])

@@ -263,7 +263,7 @@ class _Scheduler:
 
     def _write_ref(self, task: Task, key: str, status: str, hashes: Any) -> None:
         self.cache.write_ref(self.wf.id, task.stage.name, task.item.id, ref_record(
-            key, status, task.stage.version, task.params.json, hashes,
+            key, status, task.stage.version, task.params.key_json, hashes,
             self.wf.settings.device, task.item.id,
             self.wf.data_fingerprints(task.item, task.params.value)))
 

@@ -90,6 +90,11 @@ class Stage:
             before any of them runs, so a bad value stops the run before hours of upstream
             work, with the file and key that set it. It may import heavy modules: a fully
             cached run never calls it.
+        key_params: optional ``key_params(params, params_json) -> dict``: the part of the
+            params JSON that enters the cache key, for a stage whose params hold sections
+            that only some of its modes read (e.g. the thresholds of one mask route): a
+            change to a section the task does not read then recomputes nothing. It must
+            keep everything the task's outputs depend on; the manifest still records all.
     """
 
     name: str
@@ -103,6 +108,7 @@ class Stage:
     resources: ResourcesSpec = field(default_factory=Resources)
     description: str = ""
     check: Optional[Callable[[Any], None]] = None
+    key_params: Optional[Callable[[Any, Mapping[str, Any]], Mapping[str, Any]]] = None
 
     def __post_init__(self) -> None:
         where = f"stage {self.name!r}"
@@ -117,6 +123,8 @@ class Stage:
                                  f"got {self.version!r}")
         if not callable(self.run):
             raise StageSpecError(f"{where}: run must be callable, got {type(self.run).__name__}")
+        if self.key_params is not None and not callable(self.key_params):
+            raise StageSpecError(f"{where}: key_params must be callable or None")
         for attr in ("inputs", "outputs", "level"):
             value = getattr(self, attr)
             if isinstance(value, str) or not isinstance(value, (tuple, list)):

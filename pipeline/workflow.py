@@ -62,10 +62,16 @@ _ENV_RE = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)(?::-([^}]*))?\}")
 
 @dataclass(frozen=True)
 class ResolvedParams:
-    """A stage's params for one item, with their canonical JSON (part of the cache key)."""
+    """A stage's params for one item, with their canonical JSON; ``key_json`` is the part
+    that enters the cache key (all of it unless the stage declares ``key_params``)."""
 
     value: Any
     json: Mapping[str, Any]
+    key_json: Optional[Mapping[str, Any]] = None
+
+    def __post_init__(self) -> None:
+        if self.key_json is None:
+            object.__setattr__(self, "key_json", self.json)
 
 
 class Workflow:
@@ -103,7 +109,9 @@ class Workflow:
         if hit is None:
             cls = self.stages[stage].params
             value = P.build(cls, layers, owner=f"stage {stage!r}")
-            hit = ResolvedParams(value, P.to_json(value))
+            full = P.to_json(value)
+            key_fn = self.stages[stage].key_params
+            hit = ResolvedParams(value, full, key_fn(value, full) if key_fn is not None else full)
             self._params_cache[(stage, memo)] = hit
         return hit
 

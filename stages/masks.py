@@ -293,8 +293,30 @@ def _generate(ctx, p: MasksParams, spec: dict, obj: str, views, info: dict) -> N
             write_png(ctx.out_dir / f"{v.name}.png", read_mask_png(f, v.width, v.height).numpy())
 
 
+# What each source reads of the params: the cache key keeps only that, so tuning one
+# route (the text route's thresholds, say) never recomputes another's masks.
+_ROUTE_KEYS = {
+    "files": ("files_threshold", "files_root"),
+    "noisy": ("files_threshold", "files_root", "noise"),
+    "onnx": ("models_dir", "two_stage", "intra_op_threads"),
+    "nvos": ("models_dir", "scribbles", "intra_op_threads"),
+}
+# Bumped when a route's behaviour changes (the stage version would recompute every route).
+# onnx 2: the authors' two-stage flow (stage-2 corrections, first-object emptiness, query order).
+_ROUTE_VERSIONS = {"onnx": 2}
+
+
+def _key_params(params: "MasksParams", full: dict) -> dict:
+    keys = _ROUTE_KEYS[params.source]
+    out = {"source": params.source, **{k: full[k] for k in keys}}
+    if params.source in _ROUTE_VERSIONS:
+        out["route_version"] = _ROUTE_VERSIONS[params.source]
+    return out
+
+
 STAGE = Stage(
     name="masks", version=3, run=_run, inputs=("dataset", "poses"), outputs=("masks",), params=MasksParams,
+    key_params=_key_params,
     level=("scene", "object"), uses_device=True, resources=Resources(cpus=2),
     description="an object's training-view masks: dataset files, noisy copies, ONNX text or NVOS scribbles",
 )

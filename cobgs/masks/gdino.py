@@ -140,8 +140,14 @@ class GroundingDino:
         caption: str,
         box_threshold: float,
         text_threshold: float,
+        order: str = "confidence",
     ) -> List[Detection]:
-        """Detect ``caption`` in one RGB uint8 [H, W, 3] frame; best first."""
+        """Detect ``caption`` in one RGB uint8 [H, W, 3] frame.
+
+        ``order``: "confidence" (best first) or "query" (the order of the model's queries,
+        as upstream's ``predict()`` returns them)."""
+        if order not in ("confidence", "query"):
+            raise ValueError(f"order must be 'confidence' or 'query', got {order!r}")
         text = self.text_inputs(caption)
         img = to_model_input(rgb, self.manifest.preprocess)
         out = self.session.run({
@@ -159,7 +165,7 @@ class GroundingDino:
         keep = np.flatnonzero(conf > box_threshold)
         h, w = rgb.shape[:2]
         dets = []
-        for q in keep[np.argsort(-conf[keep], kind="stable")]:
+        for q in (keep[np.argsort(-conf[keep], kind="stable")] if order == "confidence" else keep):
             cx, cy, bw, bh = (float(v) for v in out["boxes"][0, q])
             box = ((cx - bw / 2) * w, (cy - bh / 2) * h, (cx + bw / 2) * w, (cy + bh / 2) * h)
             dets.append(Detection(box, float(conf[q]), self._phrase(text, prob[q],

@@ -84,6 +84,12 @@ class MemoryBank:
     tpos_proj: Optional[Tuple[np.ndarray, np.ndarray]] = None
     cond: Dict[int, FrameMemory] = field(default_factory=dict)
     non_cond: Dict[int, FrameMemory] = field(default_factory=dict)
+    # direction each frame was last visited in (True = reverse): a correction selects its
+    # memory in that direction, as SAM2 does
+    directions: Dict[int, bool] = field(default_factory=dict)
+    # tracked frames that propagation keeps instead of tracking again (corrections, and the
+    # other objects' outputs on a corrected frame)
+    kept: set = field(default_factory=set)
     maskmem_pos: Optional[np.ndarray] = None  # [4096, mem_dim], same for every frame
     steps: List[StepRecord] = field(default_factory=list)
     _buffers: Dict[int, np.ndarray] = field(default_factory=dict, repr=False)

@@ -1,19 +1,25 @@
-"""Two-stage mask generation from a text prompt (paper Alg. 1, released thresholds).
+"""Two-stage mask generation from a text prompt (paper Alg. 1), as the authors ran it.
+
+The defaults follow the authors' script (Grounded-SAM-2's video predictor, their stage-2
+loop); every place where this module can differ is a named :class:`TwoStageConfig` option.
 
 Stage 1: Grounding DINO on the prompt frame at box threshold 0.3 / text threshold 0.45;
 boxes with confidence >= 0.7 x the best become box prompts, one tracked object each
-(SAM2's video predictor takes one box per object); propagate forward, and backward when
-the prompt frame is not the first. A frame is empty when the union of its object masks has
-no foreground pixel.
+(SAM2's video predictor takes one box per object), object ids in the detector's query
+order (``detection_order``); propagate forward, and backward when the prompt frame is not
+the first. A frame is empty when the first object's mask has no foreground pixel
+(``empty_rule``; "union": when no object's has).
 
 Stage 2: scanning forward, each still-empty frame is detected again at box threshold
-max(0.6, 0.85 x best stage-1 confidence); when boxes are found they prompt that frame
-(paired with the objects in confidence order) and the objects are propagated over the
-maximal run of consecutive empty frames holding it (FindMaxSub): forward to its end, and
-backward to its start when ``stage2_backward`` (upstream only went forward).
+max(0.6, 0.85 x best stage-1 confidence) and text threshold max(0.65, 0.85 x best); when
+boxes are found they prompt that frame (paired with the objects in id order) and the
+objects are propagated forward to the end of the run of consecutive empty frames holding
+it (FindMaxSub), and backward to the run's start only when ``stage2_backward``.
 
-A stage-2 prompt becomes a new conditioning frame of the same memory bank, so tracking
-afterwards attends to both the stage-1 and the stage-2 prompts.
+Every frame was tracked in stage 1, so a stage-2 box is a *correction* of a tracked frame
+(``stage2_reprompt="correct"``, SAM2's own rule: decoded with memory and the frame's
+previous mask, kept as a tracked frame; see :mod:`cobgs.masks.video`); "condition" makes
+it a new conditioning frame instead.
 """
 
 from __future__ import annotations
@@ -65,13 +71,14 @@ def run_two_stage(
     if not 0 <= p < n:
         raise InputError(f"prompt_frame must be in [0, {n}), got {p}")
     cache = predictor.cache
-    dets = detector.detect(cache.rgb(p), prompt, config.box_threshold, config.text_threshold)
+    dets = detector.detect(cache.rgb(p), prompt, config.box_threshold, config.text_threshold,
+                           order=config.detection_order)
     if not dets:
         raise NoDetectionError(
             f"Grounding DINO found no '{prompt}' on the prompt frame {p} at box threshold "
             f"{config.box_threshold}; choose another prompt frame or prompt text"
         )
-    best = dets[0].confidence
+    best = max(d.confidence for d in dets)
     kept = [d for d in dets if d.confidence >= config.keep_ratio_of_best * best]
     obj_ids = list(range(1, len(kept) + 1))
     source = ["empty"] * n
@@ -86,8 +93,9 @@ def run_two_stage(
     masks: List[Optional[np.ndarray]] = [None] * n
 
     def record(frame: int, per_obj: Dict[int, np.ndarray], label: str) -> None:
-        masks[frame] = np.logical_or.reduce(list(per_obj.values()))
-        source[frame] = label if masks[frame].any() else "empty"
+        masks[frame] = np.logical_or.reduce(list(per_obj.values()))  # written: the union
+        judged = per_obj[obj_ids[0]] if config.empty_rule == "first_object" else masks[frame]
+        source[frame] = label if judged.any() else "empty"
 
     for frame, per_obj in predictor.propagate(p, n - 1):
         record(frame, per_obj, "prompt" if frame == p else "stage1")
@@ -105,7 +113,7 @@ def run_two_stage(
         if source[f] != "empty":
             f += 1
             continue
-        found = detector.detect(cache.rgb(f), prompt, high, text_high)
+        found = detector.detect(cache.rgb(f), prompt, high, text_high, order=config.detection_order)
         attempt = {"frame": f, "detections": [_det(d) for d in found]}
         attempts.append(attempt)
         if not found:
@@ -118,7 +126,7 @@ def run_two_stage(
             b += 1
         attempt["run"] = [a, b]
         for obj, d in zip(obj_ids, found):
-            predictor.add_prompt(f, obj, box=d.box_xyxy)
+            predictor.add_prompt(f, obj, box=d.box_xyxy, on_tracked=config.stage2_reprompt)
         for frame, per_obj in predictor.propagate(f, b):
             record(frame, per_obj, "stage2_prompt" if frame == f else "stage2")
         if config.stage2_backward and a < f:

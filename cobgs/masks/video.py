@@ -8,6 +8,17 @@ Prompted frames become conditioning frames: decoded on the raw features plus
 ``no_mem_embed`` without memory attention, their memory encoded from the binarised mask.
 Tracked frames go through memory attention, a prompt-free multimask decode, object-score
 gating and the memory encoder on the sigmoid of the high-resolution logits.
+
+A prompt on a frame the object was already tracked to is, by default, a *correction*, as
+in the SAM2 video predictor that Grounded-SAM-2 ships (and the COB-GS authors ran): the
+frame is decoded through memory attention (the memory selected in the direction it was
+last tracked) with the prompt and the frame's previous mask logits (clamped to ±32) as the
+dense mask input, single-mask unless ``multimask_output_for_tracking`` allows it; it stays
+an ordinary tracked frame (later frames use it as recent memory, not as a conditioning
+frame), its memory is encoded from the binarised mask, and propagation keeps it instead of
+tracking it again. Every other object's output on that frame is kept too, its memory
+re-encoded from its binarised mask (upstream consolidates the frame across objects).
+``on_tracked="condition"`` makes such a prompt a new conditioning frame instead.
 """
 
 from __future__ import annotations
@@ -90,8 +101,16 @@ class VideoPredictor:
         points: Optional[np.ndarray] = None,
         labels: Optional[np.ndarray] = None,
         box: Optional[Sequence[float]] = None,
+        on_tracked: str = "correct",
     ) -> np.ndarray:
-        """Make ``frame`` a conditioning frame of ``obj_id`` from points and/or a box.
+        """Prompt ``obj_id`` on ``frame`` with points and/or a box.
+
+        A frame the object has not been tracked to becomes a conditioning frame. On a
+        frame it has been tracked to, ``on_tracked`` decides: "correct" (SAM2's video
+        predictor: a correction decoded with memory and the previous mask, kept as a
+        tracked frame; see the module docstring) or "condition" (a new conditioning
+        frame decoded without memory: the prompt outranks the memory, and every later
+        frame attends to it as to the first prompt).
 
         Args:
             points: float [n, 2] (x, y) in the frame's own pixels; labels: [n] 1/0.
@@ -101,6 +120,8 @@ class VideoPredictor:
         Returns:
             bool [H, W] mask of the object on that frame.
         """
+        if on_tracked not in ("correct", "condition"):
+            raise InputError(f"on_tracked must be 'correct' or 'condition', got {on_tracked!r}")
         self._check_frame(frame)
         cfg = self.models.config
         h, w = self.cache.size_hw(frame)
@@ -127,6 +148,10 @@ class VideoPredictor:
                                                 np.float32)
         lab = np.concatenate(labs)
         enc = self.cache.get(frame)
+        bank = self.banks.get(obj_id)
+        if (on_tracked == "correct" and bank is not None and frame in bank.non_cond
+                and frame not in bank.cond):
+            return self._correct(frame, obj_id, enc, xy, lab, (h, w))
         multimask = cfg.multimask_output_in_sam and (
             cfg.multimask_min_pt_num <= len(lab) <= cfg.multimask_max_pt_num)
         dec = self.models.decode(self._prompt_embed(enc), enc, xy, lab)
@@ -138,6 +163,51 @@ class VideoPredictor:
         self._store_conditioning(frame, obj_id, enc, filled, dec.obj_ptr, ptr_plane,
                                  dec.object_score)
         return resize_logits(filled, (h, w)) > 0
+
+    def _correct(self, frame: int, obj_id: int, enc: EncodedFrame, xy: np.ndarray, lab: np.ndarray,
+                 size_hw: Tuple[int, int]) -> np.ndarray:
+        """A prompt on a tracked frame, as SAM2's video predictor treats it (module docstring)."""
+        cfg = self.models.config
+        bank = self.banks[obj_id]
+        reverse = bank.directions.get(frame, False)
+        prev = np.clip(bank.non_cond[frame].low_res, -32.0, 32.0)
+        rec = bank.select(frame, reverse)
+        mem = bank.build(rec, use_pointers=self.models.layout.ptr_mode != "none")
+        pix = self.models.attend(enc, mem)
+        dec = self.models.decode(pix, enc, xy, lab, mask_input=prev)
+        multimask = (cfg.multimask_output_in_sam and cfg.multimask_output_for_tracking
+                     and cfg.multimask_min_pt_num <= len(lab) <= cfg.multimask_max_pt_num)
+        plane, ptr_plane = choose_mask(dec.masks, dec.ious, multimask, cfg.stability_delta,
+                                       cfg.stability_thresh, cfg.use_multimask_token_for_obj_ptr)
+        low = dec.masks[plane] if dec.object_score > 0 else np.full_like(dec.masks[plane],
+                                                                         NO_OBJ_SCORE)
+        filled = fill_holes(low, cfg.fill_hole_area)
+        ptr = (dec.obj_ptr[ptr_plane].copy() if dec.obj_ptr is not None
+               else np.zeros(cfg.hidden_dim, np.float32))
+        feats = self._prompted_memory(enc, filled, dec.object_score)
+        bank.add_tracked(frame, FrameMemory(feats, ptr, dec.object_score, filled))
+        bank.kept.add(frame)
+        for other_id, other in self.banks.items():  # the frame is consolidated across objects
+            if other_id == obj_id or frame in other.cond or frame in other.kept:
+                continue
+            out = other.non_cond.get(frame)
+            if out is None:
+                continue
+            out.maskmem = self._prompted_memory(enc, out.low_res, out.object_score)
+            other.kept.add(frame)
+        return resize_logits(filled, size_hw) > 0
+
+    def _prompted_memory(self, enc: EncodedFrame, low_res: np.ndarray, score: float) -> np.ndarray:
+        """Memory features of a frame whose mask came from a prompt (binarised when the
+        export says SAM2 binarises masks from points, as its video predictor does)."""
+        cfg = self.models.config
+        high = resize_logits(low_res, (cfg.image_size, cfg.image_size))
+        if cfg.binarize_mask_from_pts:
+            mask_for_mem = (high > 0).astype(np.float32) * cfg.sigmoid_scale + cfg.sigmoid_bias
+        else:
+            mask_for_mem = _scaled_sigmoid(high, cfg.sigmoid_scale, cfg.sigmoid_bias)
+        feats, _ = self.models.encode_memory(enc, mask_for_mem, score)
+        return round_bfloat16(feats) if cfg.memory_bfloat16 else feats
 
     def add_mask(self, frame: int, obj_id: int, mask: np.ndarray) -> np.ndarray:
         """Make ``frame`` a conditioning frame from a binary mask [H, W] (used as output).
@@ -195,6 +265,7 @@ class VideoPredictor:
         if cfg.memory_bfloat16:
             feats = round_bfloat16(feats)
         bank.add_conditioning(frame, FrameMemory(feats, ptr.copy(), score, filled))
+        bank.kept.discard(frame)
 
     # ------------------------------------------------------------------ tracking
     def track(self, frame: int, obj_id: int, reverse: bool) -> FrameMemory:
@@ -234,6 +305,7 @@ class VideoPredictor:
                else np.zeros(cfg.hidden_dim, np.float32))
         out = FrameMemory(feats, ptr, dec.object_score, fill_holes(low, cfg.fill_hole_area))
         bank.add_tracked(frame, out)
+        bank.directions[frame] = reverse
         graphs = sum(s.stats.seconds for s in sessions.values()) - g1
         host = time.perf_counter() - t1 - graphs
         graph_cpu = sum(s.stats.thread_cpu_seconds for s in sessions.values()) - gc1
@@ -250,8 +322,9 @@ class VideoPredictor:
     ) -> Iterator[Tuple[int, Dict[int, np.ndarray]]]:
         """Track from ``start`` to ``end`` (inclusive) and yield ``(frame, {obj: mask})``.
 
-        Conditioning frames on the way yield their stored masks without running a graph.
-        ``end`` defaults to the last frame (first when ``reverse``).
+        Conditioning frames and corrected frames (a prompt on a tracked frame) on the way
+        yield their stored masks without running a graph. ``end`` defaults to the last
+        frame (first when ``reverse``).
         """
         self.models.require_video()
         self._check_frame(start)
@@ -264,8 +337,11 @@ class VideoPredictor:
             for obj in ids:
                 bank = self.banks[obj]
                 out = bank.cond.get(frame)
+                if out is None and frame in bank.kept:
+                    out = bank.non_cond[frame]
                 if out is None:
                     out = self.track(frame, obj, reverse)
+                bank.directions[frame] = reverse  # as upstream's frames-tracked record
                 masks[obj] = self._to_frame(frame, out.low_res)
             yield frame, masks
 

@@ -40,13 +40,14 @@ def test_red_gone_green(models_dir, red_green, tmp_path):
     assert [a["frame"] for a in att] == [5, 6, 7, 8, 9, 10]
     assert att[-1]["run"] == [5, 14] and all(not a["detections"] for a in att[:-1])
     assert [f["source"] for f in log["frames"]] == res.sources
-    # encoder at most once per frame; stage 2 reads frames 10..14 and 5..9 from the cache
+    # encoder at most once per frame; stage 2 (forward only, as the authors) reads 10..14
     assert log["encoder_runs_max_per_frame"] == 1 and log["graph_calls"]["image_encoder"] == 15
-    assert log["encoder_cache_hits"] == 10
-    # decoder / memory encoder: 15 in stage 1, then prompt 10 + 4 forward + 5 backward
-    assert log["graph_calls"]["mask_decoder"] == 25
-    assert log["graph_calls"]["memory_encoder"] == 25
-    assert log["graph_calls"]["memory_attention"] == 23
+    assert log["encoder_cache_hits"] == 5
+    # decoder / memory encoder: 15 in stage 1, then the correction of 10 + 4 forward; the
+    # correction goes through memory attention (14 + 1 + 4), unlike a conditioning prompt
+    assert log["graph_calls"]["mask_decoder"] == 20
+    assert log["graph_calls"]["memory_encoder"] == 20
+    assert log["graph_calls"]["memory_attention"] == 19
     assert log["detector_calls"] == 1 + 6
 
 
@@ -70,7 +71,8 @@ def test_stage2_threshold_and_backward_over_the_run(models_dir, tmp_path):
     seq = ([scenes.Frame("red", x=10), scenes.Frame(None), scenes.Frame(None)]
            + [scenes.Frame("green", visible_rows=6)] * 2 + [scenes.Frame("green")] * 2)
     paths, gts = scenes.write_sequence(tmp_path / "seq", seq)
-    res = generate_masks(paths, "square", models_dir, tmp_path / "a")
+    res = generate_masks(paths, "square", models_dir, tmp_path / "a",
+                         config=TwoStageConfig(stage2_backward=True))
     assert res.sources == ["prompt", "empty", "empty", "stage2", "stage2", "stage2_prompt",
                            "stage2"]
     log = json.loads(res.log_path.read_text())
@@ -78,9 +80,8 @@ def test_stage2_threshold_and_backward_over_the_run(models_dir, tmp_path):
     assert log["stage2"]["attempts"][-1]["run"] == [1, 6]
     masks = _read(tmp_path / "a", paths)
     assert scenes.iou(masks[3] > 0, gts[3]) > 0.9
-    # upstream's forward-only stage 2 leaves the half-hidden frames empty
-    res = generate_masks(paths, "square", models_dir, tmp_path / "b",
-                         config=TwoStageConfig(stage2_backward=False))
+    # the authors' forward-only stage 2 (the default) leaves the half-hidden frames empty
+    res = generate_masks(paths, "square", models_dir, tmp_path / "b")
     assert res.sources[1:5] == ["empty"] * 4 and res.sources[5:] == ["stage2_prompt", "stage2"]
 
 
@@ -121,7 +122,7 @@ def test_empty_prompt_mask_in_two_stage_is_logged(models_dir, tmp_path, caplog):
     from cobgs.masks.video import VideoPredictor
 
     class BoxBesideTheObject:  # a detector whose box misses the object
-        def detect(self, rgb, caption, box_threshold, text_threshold):
+        def detect(self, rgb, caption, box_threshold, text_threshold, order="confidence"):
             return [Detection((40.0, 2.0, 60.0, 10.0), 0.9, "square")]
 
     paths, _ = scenes.write_sequence(tmp_path / "s", [scenes.Frame("red")] * 2)

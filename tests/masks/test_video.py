@@ -176,3 +176,51 @@ def test_bad_prompts_rejected(models_dir, moving):
         pred.add_prompt(0, 1, points=[[1, 1]], labels=[2])
     with pytest.raises(InputError, match="no prompted frame"):
         pred.track(1, 5, reverse=False)
+
+
+def test_prompt_on_a_tracked_frame_is_a_correction(models_dir, moving):
+    """As SAM2's video predictor (Grounded-SAM-2's copy, the authors' flow): decoded through
+    memory attention with the frame's previous logits, clamped to ±32, as the mask input;
+    kept as a tracked frame that propagation does not track again; the other object's
+    output on that frame kept too, its memory re-encoded from the binarised mask."""
+    paths, gts = moving
+    pred = _predictor(models_dir, paths)
+    f0 = MOVING[0]
+    pred.add_prompt(0, 1, box=(f0.x, f0.y, f0.x + scenes.SIDE, f0.y + scenes.SIDE))
+    pred.add_prompt(0, 2, points=[[f0.x + 6, f0.y + 6]], labels=[1])
+    list(pred.propagate(0))
+    bank, other = pred.banks[1], pred.banks[2]
+    before = bank.non_cond[3]
+    before_other = other.non_cond[3].maskmem.copy()
+    seen = []
+    decode = pred.models.decode
+
+    def spy(embed, frame, coords, labels, mask_input=None):
+        seen.append(None if mask_input is None else mask_input.copy())
+        return decode(embed, frame, coords, labels, mask_input)
+
+    pred.models.decode = spy
+    calls = pred.models.call_counts()
+    f3 = MOVING[3]
+    mask = pred.add_prompt(3, 1, box=(f3.x, f3.y, f3.x + scenes.SIDE, f3.y + scenes.SIDE))
+    after = pred.models.call_counts()
+    assert after["memory_attention"] - calls["memory_attention"] == 1  # decoded with memory
+    np.testing.assert_array_equal(seen[0], np.clip(before.low_res, -32, 32))
+    assert 3 not in bank.cond and bank.non_cond[3] is not before and 3 in bank.kept
+    assert scenes.iou(mask, gts[3]) > 0.9
+    assert 3 in other.kept and not np.array_equal(other.non_cond[3].maskmem, before_other)
+    # propagating again keeps frame 3 (no step there) and tracks the others anew
+    steps = [s.frame for s in bank.steps]
+    out = {f: m for f, m in pred.propagate(0)}
+    tracked_now = [s.frame for s in bank.steps][len(steps):]
+    assert 3 not in tracked_now and tracked_now == [1, 2, 4]
+    np.testing.assert_array_equal(out[3][1], mask)
+    # "condition": the old rule, a new conditioning frame decoded without memory
+    pred2 = _predictor(models_dir, paths)
+    pred2.add_prompt(0, 1, box=(f0.x, f0.y, f0.x + scenes.SIDE, f0.y + scenes.SIDE))
+    list(pred2.propagate(0))
+    n = pred2.models.call_counts()["memory_attention"]
+    pred2.add_prompt(3, 1, box=(f3.x, f3.y, f3.x + scenes.SIDE, f3.y + scenes.SIDE), on_tracked="condition")
+    assert 3 in pred2.banks[1].cond and pred2.models.call_counts()["memory_attention"] == n
+    with pytest.raises(InputError, match="on_tracked"):
+        pred2.add_prompt(3, 1, box=(1, 1, 5, 5), on_tracked="maybe")

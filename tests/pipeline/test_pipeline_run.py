@@ -97,6 +97,35 @@ def test_params_change_reruns_that_stage_and_what_its_output_changes(toy, execut
                                   "evaluate alpha/full": 1, "evaluate beta/full": 1}
 
 
+def test_key_params_leave_unread_params_out_of_the_key(toy, executions):
+    """A stage declaring key_params: a change to a param its tasks do not read (here
+    ``sleep_s``, and ``strength`` when not splitting) recomputes nothing; one they read does;
+    --dry-run names the read param that changed."""
+    from dataclasses import replace
+
+    def key(params, full):
+        return {k: v for k, v in full.items() if k == "split" or (k == "strength" and params.split)}
+
+    reg = Registry([replace(s, key_params=key) if s.name == "refine" else s for s in toys.STAGES])
+    toy.run(registry=reg)
+    executions.reset()
+    toy.run(sets=["refine.sleep_s=0.001"], registry=reg)
+    assert executions.count() == {}
+    toy.run(sets=["axes.method.nosplit.refine.strength=7"], registry=reg)  # nosplit does not read it
+    assert executions.count() == {}
+    toy.run(sets=["refine.strength=2"], registry=reg)  # the 'full' rows read it
+    assert executions.count() == {"refine alpha/full": 1, "refine beta/full": 1,
+                                  "evaluate alpha/full": 1, "evaluate beta/full": 1}
+    out = io.StringIO()
+    run_workflow(toy.load(["refine.strength=3"], reg), RunOptions(cache_dir=toy.cache, dry_run=True), stream=out)
+    assert "params changed (strength" in out.getvalue() and "sleep_s" not in out.getvalue()
+    # the manifest still records every param
+    man = next(m for m in (json.loads(f.read_text()) for f in (toy.cache / "entries" / "refine").glob("*/manifest.json")))
+    assert "sleep_s" in man["params"]
+    with pytest.raises(Exception, match="key_params must be callable"):
+        replace(toys.STAGES[2], key_params=3)
+
+
 def test_upstream_content_change_propagates(toy, executions):
     toy.run()
     executions.reset()

@@ -120,3 +120,26 @@ def test_bad_values_stop_the_run_before_any_task(tmp_path, sets, where, message)
     text = str(info.value)
     assert where in text and message in text, text
     assert not (tmp_path / "cache" / "entries").exists() or not any((tmp_path / "cache" / "entries").iterdir())
+
+
+def test_masks_cache_key_holds_only_what_the_route_reads():
+    """Tuning the text route (two_stage) or the noise never recomputes dataset-file masks;
+    the noisy route's key follows its noise params; every route names its source."""
+    from dataclasses import replace
+
+    from pipeline.params import to_json
+    from stages.masks import STAGE, MasksParams
+    from cobgs.configs import MaskNoiseParams, TwoStageConfig
+
+    def key(p):
+        return STAGE.key_params(p, to_json(p))
+
+    files = MasksParams(source="files")
+    assert key(files) == key(replace(files, two_stage=TwoStageConfig(stage2_backward=True),
+                                     noise=MaskNoiseParams(seed=9), intra_op_threads=3))
+    assert key(files) != key(replace(files, files_threshold=10))
+    noisy = MasksParams(source="noisy")
+    assert key(noisy) != key(replace(noisy, noise=MaskNoiseParams(seed=9)))
+    assert key(noisy) == key(replace(noisy, two_stage=TwoStageConfig(empty_rule="union")))
+    assert key(files)["source"] == "files" and "two_stage" not in key(files)
+    assert set(key(noisy)) == {"source", "files_threshold", "files_root", "noise"}
