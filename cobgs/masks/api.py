@@ -143,6 +143,7 @@ def generate_masks(
     models.require_video()
     detector = GroundingDino(manifest.gdino, options)
     cache = EncoderCache(models, paths)
+    detector.check_frames(cache.size_hw(i) for i in range(len(cache)))  # before any encoding
     try:
         predictor = VideoPredictor(models, cache)
         result = run_two_stage(detector, predictor, prompt, config)

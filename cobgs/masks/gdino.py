@@ -18,7 +18,7 @@ import numpy as np
 from cobgs.errors import InputError, ModelError
 
 from .images import to_model_input
-from .manifest import GdinoManifest
+from .manifest import GdinoManifest, keep_aspect_size
 from .session import GraphSession, RunOptions
 
 
@@ -120,7 +120,8 @@ class GroundingDino:
         self.tokenizer = Tokenizer(manifest.vocab_path, cfg.max_text_len, cfg.special_ids)
         graph_hw = self.session.input_shape("img")[2:]
         pre = manifest.preprocess
-        if all(isinstance(d, int) for d in graph_hw) and tuple(graph_hw) != tuple(pre.size_hw):
+        self.static_hw = tuple(graph_hw) if all(isinstance(d, int) for d in graph_hw) else None
+        if self.static_hw is not None and self.static_hw != tuple(pre.size_hw):
             raise ModelError(
                 f"model: input 'img' was traced at {graph_hw[0]}x{graph_hw[1]} but the "
                 f"manifest's preprocess.size is {list(pre.size_hw)}; Grounding DINO graphs "
@@ -128,6 +129,33 @@ class GroundingDino:
                 manifest.graph.path,
             )
         self._text_cache: dict = {}
+
+    def input_size(self, height: int, width: int) -> Tuple[int, int]:
+        """The (height, width) a frame of this size enters the graph at.
+
+        "keep_aspect" (upstream's loader): the frame's own keep-aspect size, which a graph
+        traced at a fixed size must equal — otherwise :class:`ModelError` says which size to
+        re-export at (or to declare ``preprocess.resize = "stretch"`` to accept the
+        distortion). "stretch": the traced size, whatever the frame.
+        """
+        pre = self.manifest.preprocess
+        if pre.resize == "stretch":
+            return tuple(int(v) for v in (self.static_hw or pre.size_hw))
+        want = keep_aspect_size(height, width, pre.short_side, pre.max_size)
+        if self.static_hw is not None and want != self.static_hw:
+            raise ModelError(
+                f"model: traced at {self.static_hw[0]}x{self.static_hw[1]}, but Grounding DINO resizes a "
+                f"{height}x{width} frame (height x width) to {want[0]}x{want[1]} (short side "
+                f"{pre.short_side}, long side at most {pre.max_size}, aspect kept); re-export with "
+                f"`cobgs export-onnx gdino ... --size {want[0]} {want[1]}`, or set "
+                "groundingdino.preprocess.resize = \"stretch\" in manifest.json to accept stretched frames "
+                "(detections then differ from upstream's)", self.manifest.graph.path)
+        return want
+
+    def check_frames(self, sizes_hw) -> None:
+        """Refuse, before any work, frame sizes the graph cannot take as upstream would."""
+        for hw in dict.fromkeys(tuple(int(v) for v in hw) for hw in sizes_hw):
+            self.input_size(*hw)
 
     def text_inputs(self, caption: str) -> TextInputs:
         if caption not in self._text_cache:
@@ -149,7 +177,7 @@ class GroundingDino:
         if order not in ("confidence", "query"):
             raise ValueError(f"order must be 'confidence' or 'query', got {order!r}")
         text = self.text_inputs(caption)
-        img = to_model_input(rgb, self.manifest.preprocess)
+        img = to_model_input(rgb, self.manifest.preprocess, self.input_size(*rgb.shape[:2]))
         out = self.session.run({
             "img": img,
             "input_ids": text.input_ids,

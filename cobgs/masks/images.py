@@ -1,10 +1,11 @@
-"""Frame loading and the two models' preprocessing (stretch resize + ImageNet normalisation)."""
+"""Frame loading and the two models' preprocessing (SAM2: stretch to 1024x1024; Grounding DINO: its
+own keep-aspect size; ImageNet normalisation)."""
 
 from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Tuple, Union
+from typing import Optional, Tuple, Union
 
 import numpy as np
 
@@ -24,21 +25,23 @@ def load_rgb(path: Union[str, os.PathLike]) -> np.ndarray:
         raise DataError(f"cannot read image: {exc}", path) from exc
 
 
-def to_model_input(rgb: np.ndarray, pre: Preprocess) -> np.ndarray:
-    """Stretch-resize and normalise one frame.
+def to_model_input(rgb: np.ndarray, pre: Preprocess, size_hw: Optional[Tuple[int, int]] = None) -> np.ndarray:
+    """Resize and normalise one frame.
 
     Args:
         rgb: uint8 [H, W, 3] RGB.
         pre: size, interpolation, mean/std, channel order.
+        size_hw: the size to resize to (default ``pre.size_hw``: SAM2's stretch; the
+            Grounding DINO host passes the frame's keep-aspect size).
 
     Returns:
-        float32 [1, 3, h, w] with (h, w) = ``pre.size_hw``.
+        float32 [1, 3, h, w] with (h, w) = ``size_hw``.
     """
     from PIL import Image
 
     if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
         raise DataError(f"frame must be uint8 [H, W, 3], got {rgb.dtype} {list(rgb.shape)}")
-    h, w = (int(v) for v in pre.size_hw)
+    h, w = (int(v) for v in (size_hw or pre.size_hw))
     if rgb.shape[:2] != (h, w):
         # PIL's bicubic matches SAM2's own frame loader (PIL .resize default filter)
         resample = Image.BICUBIC if pre.interpolation == "bicubic" else Image.BILINEAR

@@ -134,8 +134,12 @@ class Preprocess:
     """How frames become the graph's image input.
 
     Attributes:
-        size_hw: (height, width) the graph takes, pixels.
-        resize: "stretch" (aspect not kept), as both models were run upstream.
+        size_hw: (height, width) the graph takes, pixels (traced size).
+        resize: "stretch" (aspect not kept: SAM2, whose frames all become 1024x1024) or
+            "keep_aspect" (Grounding DINO upstream: the short side becomes ``short_side``
+            unless the long side would then pass ``max_size``; a frame whose size that way
+            is not the traced one is refused, see :func:`keep_aspect_size`).
+        short_side, max_size: the keep-aspect rule's sizes (upstream: 800 and 1333).
         interpolation: "bicubic" (PIL, as SAM2's frame loader) or "bilinear".
         mean, std: per-channel normalisation of RGB values in [0, 1].
         rgb: channel order of the graph input (False means BGR).
@@ -147,6 +151,23 @@ class Preprocess:
     mean: Tuple[float, float, float] = (0.485, 0.456, 0.406)
     std: Tuple[float, float, float] = (0.229, 0.224, 0.225)
     rgb: bool = True
+    short_side: int = 800
+    max_size: int = 1333
+
+
+def keep_aspect_size(height: int, width: int, short_side: int = 800, max_size: int = 1333) -> Tuple[int, int]:
+    """(height, width) a frame is resized to by Grounding DINO's own loader (its
+    ``RandomResize([800], max_size=1333)``): the short side becomes ``short_side``, or less
+    when the long side would pass ``max_size``; the long side is truncated, not rounded."""
+    short, long = float(min(height, width)), float(max(height, width))
+    size = short_side
+    if max_size and long / short * size > max_size:
+        size = int(round(max_size * short / long))
+    if min(height, width) == size:
+        return int(height), int(width)
+    if width < height:
+        return int(size * height / width), size
+    return size, int(size * width / height)
 
 
 @dataclass(frozen=True)
@@ -330,8 +351,10 @@ def _preprocess(obj: Optional[dict], default: Preprocess, where: str, path: Path
     merged = {**asdict(default), **obj}
     merged = {k: (list(v) if isinstance(v, tuple) else v) for k, v in merged.items()}
     pre = _dataclass_from(Preprocess, merged, where, path)
-    if pre.resize != "stretch":
-        raise ModelError(f"{where}.resize: only 'stretch' is supported, found {pre.resize!r}", path)
+    if pre.resize not in ("stretch", "keep_aspect"):
+        raise ModelError(f"{where}.resize: expected 'stretch' or 'keep_aspect', found {pre.resize!r}", path)
+    if pre.short_side < 1 or pre.max_size < 0:
+        raise ModelError(f"{where}: short_side must be >= 1 and max_size >= 0", path)
     if pre.interpolation not in ("bicubic", "bilinear"):
         raise ModelError(
             f"{where}.interpolation: expected 'bicubic' or 'bilinear', found "
@@ -465,6 +488,9 @@ def _read_sam2(model: dict, root: Path, mpath: Path) -> Sam2Manifest:
         )
     config = _dataclass_from(Sam2Config, model.get("sam2_config"), f"{where}.sam2_config", mpath)
     pre = _preprocess(model.get("preprocess"), Preprocess(), f"{where}.preprocess", mpath)
+    if pre.resize != "stretch":
+        raise ModelError(f"{where}.preprocess.resize: SAM2 takes every frame stretched to "
+                         f"{config.image_size}x{config.image_size} (its own loader does), found {pre.resize!r}", mpath)
     if tuple(pre.size_hw) != (config.image_size, config.image_size):
         raise ModelError(
             f"{where}.preprocess.size: expected [{config.image_size}, {config.image_size}], "
@@ -508,9 +534,11 @@ def _read_gdino(model: dict, root: Path, mpath: Path) -> GdinoManifest:
         raise ModelError(
             f"{where}.gdino.text_mask_on_host: only graphs that take the host-built "
             "position_ids and text_token_mask are supported (found false)", mpath)
+    # Without a resize entry (exports written before it existed) the upstream rule holds:
+    # frames keep their aspect; a graph traced for another aspect is refused, not stretched.
     pre = _preprocess(
         model.get("preprocess"),
-        Preprocess(size_hw=(800, 1200), interpolation="bilinear"),
+        Preprocess(size_hw=(800, 1200), interpolation="bilinear", resize="keep_aspect"),
         f"{where}.preprocess",
         mpath,
     )
@@ -554,8 +582,12 @@ def gdino_manifest_dict(
     config: GdinoConfig = GdinoConfig(),
     io: Optional[Dict[str, str]] = None,
     files: Optional[Dict[str, str]] = None,
+    resize: str = "keep_aspect",
+    short_side: int = 800,
+    max_size: int = 1333,
 ) -> dict:
-    """The ``groundingdino`` entry of a manifest for a graph traced at ``size_hw``."""
+    """The ``groundingdino`` entry of a manifest for a graph traced at ``size_hw``
+    (``resize="stretch"`` only when the user asked to stretch frames of another aspect)."""
     ins, outs = gdino_contract()
     ins["img"] = ("float32", [1, 3, int(size_hw[0]), int(size_hw[1])])
     outs["logits"] = ("float32", [1, config.num_queries, config.max_text_len])
@@ -567,8 +599,8 @@ def gdino_manifest_dict(
         "io": {"model": dict(io or {})},
         "dtype": {"model": {n: d for n, (d, _) in table.items()}},
         "shape": {"model": {n: list(s) for n, (_, s) in table.items()}},
-        "preprocess": _preprocess_dict(Preprocess(size_hw=tuple(size_hw),
-                                                  interpolation="bilinear")),
+        "preprocess": _preprocess_dict(Preprocess(size_hw=tuple(size_hw), interpolation="bilinear",
+                                                  resize=resize, short_side=short_side, max_size=max_size)),
         "gdino": cfg,
     }
 
@@ -610,7 +642,7 @@ def field_names(cls) -> List[str]:
 
 
 __all__ = [
-    "Dim", "GdinoConfig", "GdinoManifest", "GraphSpec", "Manifest", "ModelsNotConfiguredError",
+    "keep_aspect_size", "Dim", "GdinoConfig", "GdinoManifest", "GraphSpec", "Manifest", "ModelsNotConfiguredError",
     "Preprocess", "Sam2Config", "Sam2Layout", "Sam2Manifest", "TensorSpec", "load_manifest",
     "sam2_contract", "gdino_contract", "sam2_manifest_dict", "gdino_manifest_dict",
     "write_manifest",

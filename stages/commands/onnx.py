@@ -24,11 +24,19 @@ def _gdino(args) -> int:
     import logging
 
     from cobgs.masks.export.gdino_export import export_gdino, parse_size
+    from cobgs.masks.manifest import keep_aspect_size
 
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    report = export_gdino(args.out, parse_size(args.size), config=args.config,
+    if args.for_frame is not None:
+        size = keep_aspect_size(*parse_size(args.for_frame))
+        print(f"frames of {args.for_frame[0]}x{args.for_frame[1]} enter Grounding DINO at {size[0]}x{size[1]} "
+              "(short side 800, long side at most 1333, aspect kept): tracing at that size")
+    else:
+        size = parse_size(args.size)
+    report = export_gdino(args.out, size, config=args.config,
                           checkpoint=args.checkpoint, caption=args.caption, image=args.image,
-                          verify=not args.no_verify, vocab_path=args.vocab)
+                          verify=not args.no_verify, vocab_path=args.vocab,
+                          resize="stretch" if args.stretch else "keep_aspect")
     _print_report("Grounding DINO", args.out, {"groundingdino": report})
     return 0
 
@@ -62,8 +70,16 @@ def register(sub) -> None:
     g.add_argument("--config", required=True, help="the GroundingDINO_*_cfg.py file")
     g.add_argument("--checkpoint", required=True, help="the Grounding DINO .pth checkpoint")
     g.add_argument("--out", required=True, help="model folder (manifest.json is merged)")
-    g.add_argument("--size", type=int, nargs=2, default=[800, 1200],
-                   metavar=("HEIGHT", "WIDTH"), help="fixed input size to trace at")
+    size = g.add_mutually_exclusive_group()
+    size.add_argument("--size", type=int, nargs=2, default=[800, 1200],
+                      metavar=("HEIGHT", "WIDTH"), help="fixed input size to trace at (default 800 1200: "
+                      "frames of 2:3 aspect, e.g. 1200x800 landscape... see --for-frame)")
+    size.add_argument("--for-frame", type=int, nargs=2, metavar=("HEIGHT", "WIDTH"),
+                      help="trace at the size Grounding DINO gives frames of this size (aspect kept, "
+                           "short side 800, long side at most 1333), e.g. 756 1008 -> 800x1066")
+    g.add_argument("--stretch", action="store_true",
+                   help="let the host stretch frames of any aspect to the traced size (upstream keeps "
+                        "the aspect: detections then differ from its)")
     g.add_argument("--vocab", help="BERT vocab.txt (default: from the model's tokenizer)")
     g.add_argument("--caption", default="a cat . a remote control .",
                    help="caption used for tracing and verification")

@@ -421,7 +421,8 @@ def build_gdino(root: Path, hw=(48, 64), full_area_px: float = 144.0, rename=Non
     export(det, args, g / "groundingdino.onnx", r(names_in), r(["logits", "boxes"]), dyn)
     write_vocab(g / "vocab.txt")
     if write:
-        entry = gdino_manifest_dict(manifest_hw or hw, io={k: v for k, v in rename.items()})
+        mhw = manifest_hw or hw  # frames of the traced size keep it under the keep-aspect rule
+        entry = gdino_manifest_dict(mhw, io={k: v for k, v in rename.items()}, short_side=min(mhw))
         write_manifest(root, {"groundingdino": entry})
     return root
 

@@ -73,7 +73,7 @@ def test_gdino_export_writes_contract_files_and_manifest(tmp_path, models_dir):
     fakes.write_vocab(vocab)
     stand_in = fakes.FakeDetector((48, 64), 144.0, fakes.WORDS["square"])
     rep = export_gdino(out, (48, 64), graph_module=stand_in, vocab_path=vocab,
-                       caption="red square .")
+                       caption="red square .", short_side=48)
     assert rep and all(p.ok for p in rep)
     assert (out / "groundingdino" / "groundingdino.onnx").is_file()
     assert (out / "groundingdino" / "vocab.txt").read_text() == vocab.read_text()

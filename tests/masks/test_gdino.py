@@ -86,3 +86,43 @@ def test_partially_visible_object_has_lower_confidence(detector):
     img, _ = scenes.render(scenes.Frame("green", visible_rows=6))
     dets = detector.detect(img, "square", 0.3, 0.45)
     assert dets[0].confidence == pytest.approx(0.45, abs=1e-4)
+
+
+def test_keep_aspect_size_is_upstreams_resize():
+    from cobgs.masks.manifest import keep_aspect_size
+
+    assert keep_aspect_size(756, 1008) == (800, 1066)  # LLFF at 1/4: the long side truncated
+    assert keep_aspect_size(800, 1200) == (800, 1200)
+    assert keep_aspect_size(1008, 756) == (1066, 800)  # portrait
+    assert keep_aspect_size(1000, 3000) == (444, 1332)  # short side round(1333 / 3) = 444, long 3 x 444
+    assert keep_aspect_size(48, 64, short_side=48) == (48, 64)
+
+
+def test_a_graph_traced_for_another_aspect_is_refused_unless_stretch_is_asked(scratch_models, red_green, tmp_path):
+    from cobgs.errors import ModelError
+    from cobgs.masks.api import generate_masks
+
+    # the stand-in graph is traced at 48x64; upstream's rule (short side 800) wants 800x1066
+    fakes.edit_manifest(scratch_models, lambda d: d["groundingdino"]["preprocess"].update(short_side=800))
+    det = GroundingDino(load_manifest(scratch_models).gdino)
+    img, _ = scenes.render(scenes.Frame("red"))
+    with pytest.raises(ModelError, match=r"traced at 48x64, but Grounding DINO resizes a 48x64 frame.*"
+                                         r"--size 800 1066.*resize = \"stretch\""):
+        det.detect(img, "red square", 0.3, 0.45)
+    with pytest.raises(ModelError, match="--size 800 1066"):  # at load, before any frame is encoded
+        generate_masks(red_green[0], "red square", scratch_models, tmp_path / "o")
+    assert not (tmp_path / "o").exists()
+    fakes.edit_manifest(scratch_models, lambda d: d["groundingdino"]["preprocess"].update(resize="stretch"))
+    det = GroundingDino(load_manifest(scratch_models).gdino)
+    assert det.detect(img, "red square", 0.3, 0.45)[0].confidence == pytest.approx(0.9)
+
+
+def test_query_order_is_upstreams_and_confidence_order_is_best_first(detector):
+    # a barely visible square scores below the 0.35 distractor (query 1)
+    img, _ = scenes.render(scenes.Frame("red", visible_rows=2))
+    by_query = detector.detect(img, "red square", 0.05, 0.45, order="query")
+    by_conf = detector.detect(img, "red square", 0.05, 0.45)
+    assert len(by_query) == 2 and by_query[0].confidence < by_query[1].confidence
+    assert [d.confidence for d in by_conf] == sorted((d.confidence for d in by_query), reverse=True)
+    with pytest.raises(ValueError, match="order"):
+        detector.detect(img, "red square", 0.05, 0.45, order="random")

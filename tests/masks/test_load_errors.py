@@ -125,7 +125,9 @@ def test_constants_checked(scratch_models, key, bad):
     (lambda d: d["groundingdino"]["gdino"].update(text_mask_on_host=False),
      r"text_mask_on_host: only graphs that take the host-built"),
     (lambda d: d["groundingdino"]["preprocess"].update(resize="letterbox"),
-     r"resize: only 'stretch'"),
+     r"resize: expected 'stretch' or 'keep_aspect'"),
+    (lambda d: d["sam2"]["preprocess"].update(resize="keep_aspect"),
+     r"sam2.preprocess.resize: SAM2 takes every frame stretched to 1024x1024"),
 ])
 def test_manifest_fields_validated(scratch_models, edit, match):
     fakes.edit_manifest(scratch_models, edit)

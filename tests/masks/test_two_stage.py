@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from cobgs.errors import InputError
 from cobgs.masks.api import generate_masks
 from cobgs.masks.two_stage import NoDetectionError, TwoStageConfig
 
@@ -132,3 +133,36 @@ def test_empty_prompt_mask_in_two_stage_is_logged(models_dir, tmp_path, caplog):
                         "square", TwoStageConfig(run_stage2=False))
     assert res.log["stage1"]["prompt_mask_empty"] is True
     assert "empty mask for the detected box" in caplog.text
+
+
+def test_empty_rule_judges_the_first_object_as_the_authors(models_dir, tmp_path):
+    """Two kept boxes, the first (in query order) beside the object: the authors' rule calls
+    every frame empty (their script looks at the first object's mask); "union" does not.
+    The mask written is the union either way."""
+    from cobgs.masks.encoder_cache import EncoderCache
+    from cobgs.masks.gdino import Detection
+    from cobgs.masks.manifest import load_manifest
+    from cobgs.masks.sam2_models import Sam2Models
+    from cobgs.masks.two_stage import run_two_stage
+    from cobgs.masks.video import VideoPredictor
+
+    f = scenes.Frame("red")
+
+    class TwoBoxes:
+        def detect(self, rgb, caption, box_threshold, text_threshold, order="confidence"):
+            beside = Detection((40.0, 2.0, 60.0, 10.0), 0.8, "square")
+            real = Detection((f.x, f.y, f.x + scenes.SIDE, f.y + scenes.SIDE), 0.9, "square")
+            return [beside, real] if order == "query" else [real, beside]
+
+    paths, gts = scenes.write_sequence(tmp_path / "s", [f] * 3)
+    sam = Sam2Models(load_manifest(models_dir).sam2)
+    out = {}
+    for rule in ("first_object", "union"):
+        res = run_two_stage(TwoBoxes(), VideoPredictor(sam, EncoderCache(sam, paths)), "square",
+                            TwoStageConfig(run_stage2=False, empty_rule=rule))
+        out[rule] = res
+        assert all(scenes.iou(m, gt) > 0.9 for m, gt in zip(res.masks, gts))  # the union
+    assert out["first_object"].source == ["empty"] * 3
+    assert out["union"].source == ["prompt", "stage1", "stage1"]
+    with pytest.raises(InputError, match="empty_rule"):
+        TwoStageConfig(empty_rule="any")

@@ -4,7 +4,7 @@ Run where ``torch``, the ``groundingdino`` package (IDEA-Research/GroundingDINO)
 BERT tokenizer files are available::
 
     cobgs export-onnx gdino --config GroundingDINO_SwinB_cfg.py \\
-        --checkpoint groundingdino_swinb_cogcoor.pth --out models/ --size 800 1200
+        --checkpoint groundingdino_swinb_cogcoor.pth --out models/ --for-frame 756 1008
 
 The graph takes the caption already tokenised (the host does it with the ``tokenizers``
 package on the written ``vocab.txt``) and is traced at one fixed image size. Export on
@@ -130,11 +130,19 @@ def export_gdino(
     vocab_path: Optional[os.PathLike] = None,
     num_queries: int = 900,
     max_text_len: int = 256,
+    resize: str = "keep_aspect",
+    short_side: int = 800,
+    max_size: int = 1333,
 ) -> List[Parity]:
     """Export, verify and register Grounding DINO in ``out_dir`` (manifest merged).
 
     Args:
-        size_hw: the fixed (height, width) the graph is traced at.
+        size_hw: the fixed (height, width) the graph is traced at. Upstream keeps each
+            frame's aspect (short side ``short_side``, long side at most ``max_size``), so
+            trace at the size the frames get that way (``--for-frame H W`` computes it:
+            1008x756 LLFF frames -> 800x1066); the host refuses frames of another aspect.
+        resize: "keep_aspect" (upstream) or "stretch" (any frame is stretched to
+            ``size_hw``: detections differ from upstream's; only when asked for).
         caption: the caption used for tracing and verification (the caption length
             stays a dynamic axis).
         model: an already-loaded ``GroundingDINO`` (skips loading).
@@ -209,7 +217,7 @@ def export_gdino(
     except BaseException:
         remove_partial([graph_path])
         raise
-    entry = gdino_manifest_dict(tuple(size_hw), cfg)
+    entry = gdino_manifest_dict(tuple(size_hw), cfg, resize=resize, short_side=short_side, max_size=max_size)
     entry["note"] = (f"exported by cobgs from {checkpoint or 'a stand-in module'} "
                      f"at {size_hw[0]}x{size_hw[1]}")
     write_manifest(out, {"groundingdino": entry})
