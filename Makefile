@@ -11,7 +11,7 @@ STAMP  := $(VENV)/.cobgs-installed
 TORCH_SPEC ?= torch==2.13.0
 PYTEST_ARGS ?=
 
-.PHONY: install build test demo bench report clean help chromium
+.PHONY: install build test demo bench report clean help chromium parity
 
 help:
 	@echo "make demo    run the embedded demo workflow (installs and builds first)"
@@ -50,6 +50,15 @@ bench: build
 	$(VENV)/bin/cobgs export workflows/synthetic_bench.toml --to runs/synthetic_bench
 	$(VENV)/bin/cobgs report workflows/synthetic_bench.toml
 	@echo "micro-benchmarks (run one by one): $$(ls tests/benchmarks/bm_*.py | tr '\n' ' ')"
+
+# Parity with the upstream model code (not in CI: it needs a venv with a torch build, Meta's
+# or Grounded-SAM-2's sam2, groundingdino-py and transformers<5, ~5 GB). Set PARITY_PY to that
+# venv's python (it also needs onnx, onnxruntime, opencv-python-headless, tokenizers, pytest)
+# and SAM2_CODE to a Grounded-SAM-2 checkout to compare with the predictor the authors ran.
+parity:
+	@test -n "$(PARITY_PY)" || { echo "set PARITY_PY=/path/to/venv/bin/python (README: parity with upstream)"; exit 2; }
+	PYTHONPATH=$(if $(SAM2_CODE),$(SAM2_CODE):)$(CURDIR) $(PARITY_PY) -m pytest -m slow -s -p no:cacheprovider \
+	  tests/masks/test_sam2_parity.py tests/masks/test_gdino_parity.py
 
 report: build
 	$(VENV)/bin/cobgs report workflows/demo.toml

@@ -36,7 +36,7 @@ def _gdino(args) -> int:
     report = export_gdino(args.out, size, config=args.config,
                           checkpoint=args.checkpoint, caption=args.caption, image=args.image,
                           verify=not args.no_verify, vocab_path=args.vocab,
-                          resize="stretch" if args.stretch else "keep_aspect")
+                          resize="stretch" if args.stretch else "keep_aspect", bert=args.bert)
     _print_report("Grounding DINO", args.out, {"groundingdino": report})
     return 0
 
@@ -81,6 +81,8 @@ def register(sub) -> None:
                    help="let the host stretch frames of any aspect to the traced size (upstream keeps "
                         "the aspect: detections then differ from its)")
     g.add_argument("--vocab", help="BERT vocab.txt (default: from the model's tokenizer)")
+    g.add_argument("--bert", help="a local bert-base-uncased folder (config.json, vocab.txt, weights) for "
+                                  "the text encoder, instead of fetching it from a model hub")
     g.add_argument("--caption", default="a cat . a remote control .",
                    help="caption used for tracing and verification")
     g.add_argument("--image", help="image used to verify the export (default: random)")

@@ -97,7 +97,8 @@ def test_missing_sam2_package_is_a_clear_error(tmp_path):
     from cobgs.masks.export.sam2_export import export_sam2
 
     with pytest.raises(ExportError, match=r"needs the Python package 'sam2.build_sam'.*"
-                                          r"pip install sam2"):
+                                          r"git\+https://github.com/facebookresearch/sam2.git@2b90b9f.*"
+                                          r"not Meta's upload"):
         export_sam2("configs/sam2.1/sam2.1_hiera_t.yaml", None, tmp_path)
     assert not (tmp_path / "manifest.json").exists()
 
@@ -128,3 +129,16 @@ def test_cli_missing_checkpoint_reports_one_line(tmp_path, capsys):
     assert rc == 1
     err = capsys.readouterr().err
     assert "cobgs export-onnx: error:" in err and ("groundingdino" in err or "not found" in err)
+
+
+def test_gdino_export_refuses_transformers_5_saying_which_works(monkeypatch):
+    import sys
+    import types
+
+    from cobgs.masks.export.gdino_export import check_transformers
+
+    monkeypatch.setitem(sys.modules, "transformers", types.SimpleNamespace(__version__="5.0.1"))
+    with pytest.raises(ExportError, match=r"transformers 5.0.1 .*get_extended_attention_mask.*<5.*4.57.6"):
+        check_transformers()
+    monkeypatch.setitem(sys.modules, "transformers", types.SimpleNamespace(__version__="4.57.6"))
+    check_transformers()

@@ -95,3 +95,80 @@ def test_video_masks_match_sam2_video_predictor(tmp_path):
     print("per-frame IoU vs sam2:", [round(float(i), 4) for i in ious])
     print("per-frame max |logit difference|:", [f"{d:.2g}" for d in diffs])
     assert min(ious) >= 0.99
+
+
+def _is_authors_predictor(ref) -> bool:
+    """Grounded-SAM-2's copy of the video predictor (the one the COB-GS authors ran) keeps
+    a corrected frame through later propagation (``consolidated_frame_inds``); sam2 1.1.0
+    (Meta's December 2024 predictor) tracks it again."""
+    import inspect
+
+    return "consolidated_frame_inds" in inspect.getsource(type(ref).propagate_in_video)
+
+
+def _iou(a, b):
+    u = np.logical_or(a, b).sum()
+    return 1.0 if u == 0 else float(np.logical_and(a, b).sum() / u)
+
+
+def test_stage2_correction_matches_the_authors_flow(tmp_path):
+    """The authors' stage 2: a box on a frame already tracked, then forward propagation
+    over the rest. With Grounded-SAM-2's predictor on the path (PYTHONPATH=<its checkout>)
+    every frame is compared; with sam2 1.1.0 the correction itself (the same decode in both)."""
+    from sam2.build_sam import build_sam2_video_predictor
+
+    from cobgs.masks.encoder_cache import EncoderCache
+    from cobgs.masks.export.sam2_export import export_sam2
+    from cobgs.masks.manifest import load_manifest
+    from cobgs.masks.postprocess import resize_logits
+    from cobgs.masks.sam2_models import Sam2Models
+    from cobgs.masks.video import VideoPredictor
+
+    torch.manual_seed(0)
+    ref = build_sam2_video_predictor(CONFIG, None, device="cpu")
+    with torch.no_grad():
+        ref.sam_mask_decoder.pred_obj_score_head.layers[-1].bias.fill_(4.0)
+    authors = _is_authors_predictor(ref)
+    models = tmp_path / "models"
+    export_sam2(CONFIG, None, models, model=ref)
+    data = json.loads((models / "manifest.json").read_text())
+    data["sam2"]["sam2_config"]["fill_hole_area"] = 0  # CPU sam2 builds skip hole filling
+    (models / "manifest.json").write_text(json.dumps(data))
+    n, k = 8, 4
+    paths = _frames(tmp_path / "frames", n=n)
+    box0, box_k = (30.0, 30.0, 80.0, 95.0), (60.0, 35.0, 120.0, 90.0)
+    with torch.inference_mode():
+        state = ref.init_state(str(tmp_path / "frames"))
+        ref.add_new_points_or_box(state, frame_idx=0, obj_id=1, box=box0)
+        stage1 = {f: lg[0, 0].numpy() for f, _, lg in ref.propagate_in_video(state, start_frame_idx=0)}
+        _, _, corr = ref.add_new_points_or_box(state, frame_idx=k, obj_id=1, box=box_k)
+        want_corr = corr[0, 0].numpy()
+        stage2 = {f: lg[0, 0].numpy() for f, _, lg in ref.propagate_in_video(
+            state, start_frame_idx=k, max_frame_num_to_track=n - 1 - k)}
+
+    def ours(on_tracked):
+        sam = Sam2Models(load_manifest(models).sam2)
+        pred = VideoPredictor(sam, EncoderCache(sam, paths))
+        pred.add_prompt(0, 1, box=box0)
+        s1 = {f: pred.banks[1].output(f).low_res for f, _ in pred.propagate(0)}
+        pred.add_prompt(k, 1, box=box_k, on_tracked=on_tracked)
+        c = pred.banks[1].output(k).low_res
+        s2 = {f: pred.banks[1].output(f).low_res for f, _ in pred.propagate(k, n - 1)}
+        return s1, c, s2
+
+    lines = [f"reference: {'Grounded-SAM-2 (the authors)' if authors else 'sam2 1.1.0'} predictor"]
+    results = {}
+    for mode in ("correct", "condition"):
+        s1, c, s2 = ours(mode)
+        rows = [("stage 1", f, s1[f], stage1[f]) for f in range(n)] + [("correction", k, c, want_corr)]
+        if authors:
+            rows += [("stage 2", f, s2[f], stage2[f]) for f in range(k, n)]
+        out = []
+        for what, f, mine, theirs in rows:
+            mine = resize_logits(mine, theirs.shape)
+            out.append((what, f, float(np.abs(mine - theirs).max()), _iou(mine > 0, theirs > 0)))
+        results[mode] = out
+        lines.append(f"on_tracked={mode}: " + "; ".join(f"{w} {f}: IoU {i:.4f}, max|dlogit| {d:.2g}"
+                                                        for w, f, d, i in out))
+    print("\n".join(lines))
+    assert all(i >= 0.99 for _, _, _, i in results["correct"])

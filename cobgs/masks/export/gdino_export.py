@@ -27,9 +27,13 @@ from .common import ExportError, Parity, export_graph, remove_partial, require, 
 
 log = logging.getLogger("cobgs.masks.export")
 
-GDINO_HINT = ("Install PyTorch and the Grounding DINO code (IDEA-Research/GroundingDINO, "
-              "`pip install groundingdino-py` or from source) with its BERT tokenizer files "
-              "on the machine that holds the checkpoint.")
+GDINO_HINT = ("Install PyTorch and the Grounding DINO code on the machine that holds the checkpoint: "
+              "`pip install groundingdino-py==0.4.0 'transformers>=4.40,<5' pycocotools defusedxml "
+              "pyDeprecate addict yapf timm supervision` (upstream's imports pull in the last ones; "
+              "transformers 5 removed BertModel.get_extended_attention_mask, which it calls; 4.57.6 is "
+              "known good), or IDEA-Research/GroundingDINO from source. Its text encoder is "
+              "bert-base-uncased: with no model hub reachable, pass a local copy with --bert DIR.")
+TRANSFORMERS_MAX_MAJOR = 4  # transformers 5 dropped an API upstream's BERT wrapper calls
 INPUTS = ["img", "input_ids", "attention_mask", "position_ids", "token_type_ids",
           "text_token_mask"]
 OUTPUTS = ["logits", "boxes"]
@@ -104,17 +108,43 @@ def _disable_checkpointing(model) -> None:
                 setattr(m, attr, False)
 
 
-def load_gdino(config: str, checkpoint: str):
+def check_transformers() -> None:
+    """Refuse a transformers release upstream's code cannot run on, saying which works."""
+    tf = require("transformers", "Grounding DINO", GDINO_HINT)
+    major = int(str(tf.__version__).split(".")[0])
+    if major > TRANSFORMERS_MAX_MAJOR:
+        raise ExportError(f"transformers {tf.__version__} is installed, but Grounding DINO's BERT wrapper "
+                          "calls BertModel.get_extended_attention_mask, which transformers 5 removed: "
+                          "`pip install 'transformers>=4.40,<5'` (4.57.6 known good)")
+
+
+def load_gdino(config: str, checkpoint: str, bert: Optional[str] = None):
+    """Build Grounding DINO from its config and checkpoint on the CPU; ``bert``: a local
+    folder holding bert-base-uncased (config.json, vocab.txt, weights) to use instead of
+    the config's hub name."""
+    import torch
+
     require("torch", "Grounding DINO", GDINO_HINT)
-    inference = require("groundingdino.util.inference", "Grounding DINO", GDINO_HINT)
-    for p in (config, checkpoint):
-        if not Path(p).is_file():
-            raise ExportError(f"file not found: {p}")
+    check_transformers()
+    models = require("groundingdino.models", "Grounding DINO", GDINO_HINT)
+    slconfig = require("groundingdino.util.slconfig", "Grounding DINO", GDINO_HINT)
+    for p in (config, checkpoint) + ((bert,) if bert else ()):
+        if not Path(p).exists():
+            raise ExportError(f"not found: {p}")
     try:
-        return inference.load_model(config, checkpoint, device="cpu").eval()
+        args = slconfig.SLConfig.fromfile(config)
+        args.device = "cpu"
+        if bert:
+            args.text_encoder_type = os.fspath(Path(bert).resolve())
+        model = models.build_model(args)
+        state = torch.load(checkpoint, map_location="cpu", weights_only=False)
+        state = state.get("model", state)
+        model.load_state_dict({k.removeprefix("module."): v for k, v in state.items()}, strict=False)
+        return model.eval()
     except Exception as exc:  # the loader raises many types
-        raise ExportError(f"cannot load Grounding DINO from {config} / {checkpoint}: {exc}") \
-            from exc
+        raise ExportError(f"cannot load Grounding DINO from {config} / {checkpoint}"
+                          + (f" with the BERT folder {bert}" if bert else "") + f": {exc}"
+                          + ("" if bert else " (no model hub reachable? pass --bert DIR)")) from exc
 
 
 def export_gdino(
@@ -133,6 +163,7 @@ def export_gdino(
     resize: str = "keep_aspect",
     short_side: int = 800,
     max_size: int = 1333,
+    bert: Optional[str] = None,
 ) -> List[Parity]:
     """Export, verify and register Grounding DINO in ``out_dir`` (manifest merged).
 
@@ -149,6 +180,7 @@ def export_gdino(
         graph_module: a module with the contract's signature to export instead of the
             wrapper around ``model`` (used to test this machinery without the weights).
         vocab_path: the BERT ``vocab.txt`` (default: saved from the model's tokenizer).
+        bert: a local bert-base-uncased folder for the text encoder (no model hub needed).
 
     Returns:
         the max differences found between onnxruntime and PyTorch.
@@ -169,7 +201,7 @@ def export_gdino(
         if model is None:
             if config is None or checkpoint is None:
                 raise ExportError("exporting Grounding DINO needs --config and --checkpoint")
-            model = load_gdino(config, checkpoint)
+            model = load_gdino(config, checkpoint, bert)
         _disable_checkpointing(model)
         graph_module = _wrapper_class()(model).eval()
         if vocab_path is None:

@@ -25,8 +25,11 @@ from .common import ExportError, Parity, export_graph, remove_partial, require, 
 
 log = logging.getLogger("cobgs.masks.export")
 
-SAM2_HINT = ("Install PyTorch and Meta's SAM 2 code (`pip install sam2`, or the "
-             "facebookresearch/sam2 repository) on the machine that holds the checkpoint.")
+SAM2_HINT = ("Install PyTorch and Meta's SAM 2 code from its repository on the machine that holds the "
+             "checkpoint: `pip install 'git+https://github.com/facebookresearch/sam2.git@2b90b9f'` "
+             "(sam2 1.1.0; the PyPI project named 'sam2' is not Meta's upload). For the predictor the "
+             "COB-GS authors ran, put IDEA-Research/Grounded-SAM-2's checkout first on PYTHONPATH "
+             "instead (its own sam2 copy). Known good: torch 2.5-2.14, hydra-core 1.3, iopath 0.1.10.")
 
 
 def build_sam2_model(config: str, checkpoint: Optional[str], device: str = "cpu"):

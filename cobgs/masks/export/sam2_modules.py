@@ -102,14 +102,15 @@ def _rotate(x, cos, sin):
 class _RopeAttention(nn.Module):
     """A ``RoPEAttention``'s projections with real-valued rotary encoding."""
 
-    def __init__(self, attn):
+    def __init__(self, attn, side: int):
         super().__init__()
         self.attn = attn
         head_dim = attn.internal_dim // attn.num_heads
-        # upstream keeps theta in its partial(compute_axial_cis, ...) and the token grid
-        # in the size of its precomputed table (64 x 64 at 1024 input)
+        # upstream keeps theta in its partial(compute_axial_cis, ...); the token grid is the
+        # one memory attention runs on (64 x 64 at 1024 input). Its precomputed table may be
+        # for another grid (Grounded-SAM-2's configs say 32 x 32 and upstream recomputes it
+        # at the first call), so the grid comes from the model, not from the table.
         theta = getattr(attn.compute_cis, "keywords", {}).get("theta", 10000.0)
-        side = int(round(attn.freqs_cis.shape[0] ** 0.5))
         tokens_hw = (side, side)
         ang = _axial_angles(head_dim, tokens_hw[0], tokens_hw[1], theta)
         self.register_buffer("cos", ang.cos())
@@ -144,9 +145,10 @@ class MemoryAttention(nn.Module):
     def __init__(self, model):
         super().__init__()
         self.ma = model.memory_attention
-        self.self_attn = nn.ModuleList(_RopeAttention(layer.self_attn)
+        side = int(model.image_size) // int(getattr(model, "backbone_stride", 16))
+        self.self_attn = nn.ModuleList(_RopeAttention(layer.self_attn, side)
                                        for layer in self.ma.layers)
-        self.cross_attn = nn.ModuleList(_RopeAttention(layer.cross_attn_image)
+        self.cross_attn = nn.ModuleList(_RopeAttention(layer.cross_attn_image, side)
                                         for layer in self.ma.layers)
 
     def forward(self, curr, curr_pos, memory, memory_pos, obj_ptr_tokens, obj_ptr_pos):
