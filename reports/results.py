@@ -338,8 +338,9 @@ def method_records(data: RunData, infos: dict, log_href: LogHref) -> tuple[list[
                    # a mean over fewer scenes or objects is not comparable: never "best"
                    _nobest=not all(r.ok for r in rs) or {(r.scene, r.object) for r in rs} != covered,
                    _row_class=[f"role-{info.role}"])
-        rec["_text"] = {"scenes": f"{len(done_scenes)} of {len(scenes)}" if len(done_scenes) < len(scenes)
-                        else str(len(scenes)),
+        in_scenes = len({r.scene for r in rs})  # a method limited by `only` runs in fewer
+        rec["_text"] = {"scenes": f"{len(done_scenes)} of {in_scenes}" if len(done_scenes) < in_scenes
+                        else str(in_scenes),
                         "objects": f"{rec['objects']} of {len(rs)}" if rec["objects"] < len(rs) else str(len(rs))}
         protocols = {data.scenes[s].protocol for s in done_scenes}
         q = paper.nvos_quote(info.paper) if protocols == {"nvos"} else None

@@ -145,3 +145,4 @@ def test_a_method_run_on_part_of_the_workflow_is_never_best_by_method():
     data, infos = _table_data(), _infos()
     recs = {r["method"]: r for r in R.method_records(data, infos, lambda t: None)[0]}
     assert recs["delta_0.3"]["_nobest"] and not recs["cobgs"]["_nobest"]
+    assert recs["delta_0.3"]["_text"]["scenes"] == "1" and recs["cobgs"]["_text"]["scenes"] == "2"
