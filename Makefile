@@ -47,7 +47,7 @@ demo: build
 
 bench: build
 	$(VENV)/bin/cobgs run workflows/synthetic_bench.toml
-	$(VENV)/bin/cobgs export workflows/synthetic_bench.toml --to runs/synthetic_bench
+	$(VENV)/bin/cobgs export workflows/synthetic_bench.toml --to runs/synthetic_bench --no-ply
 	$(VENV)/bin/cobgs report workflows/synthetic_bench.toml
 	@echo "micro-benchmarks (run one by one): $$(ls tests/benchmarks/bm_*.py | tr '\n' ' ')"
 

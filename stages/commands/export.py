@@ -42,9 +42,19 @@ def _copy(src, dst) -> None:
         shutil.copyfile(src, dst)
 
 
-def export(workflow, cache_dir, to, stream=None) -> dict:
+def _size(path) -> int:
+    from pipeline.cache import dir_size
+
+    return dir_size(path) if path.is_dir() else (path.stat().st_size if path.exists() else 0)
+
+
+def export(workflow, cache_dir, to, stream=None, ply: bool = True) -> dict:
     """Copy the exports of ``workflow`` (a loaded :class:`pipeline.Workflow`) from
     ``cache_dir`` into ``to``; returns the record written to ``export.json``.
+
+    ``ply=False`` leaves the PLYs in the cache (metrics, masks and summary only: a
+    benchmark's hundreds of scenes are tens of GB). A copy the destination's disk cannot
+    hold (with 1 GiB to spare) is refused before anything is written.
 
     ``to`` is replaced as a whole (:func:`pipeline.publish.publish_folder`): a kill leaves
     the previous export or the new one, never a mix. It may be absent, empty or an earlier
@@ -72,7 +82,20 @@ def export(workflow, cache_dir, to, stream=None) -> dict:
             continue
         folder = Path(rec.output(artifact))
         for name in files:
-            plan.append((folder / name, Path(*parts, name), rec))
+            if ply or not name.endswith(".ply"):
+                plan.append((folder / name, Path(*parts, name), rec))
+    import shutil
+
+    need = sum(_size(src) for src, _, _ in plan)
+    probe = to.parent if not to.exists() else to
+    while not probe.exists():
+        probe = probe.parent
+    free = shutil.disk_usage(probe).free
+    if need + (1 << 30) > free:
+        from pipeline.errors import PipelineError
+
+        raise PipelineError(f"the export needs {need / 2**30:.1f} GiB but {probe} has {free / 2**30:.1f} GiB free "
+                            "(1 GiB kept spare); use --no-ply to leave the PLYs in the cache, or another --to")
     copied = []
 
     def write(tmp: Path) -> None:
@@ -108,7 +131,7 @@ def _run(args) -> int:
     cache = default_cache_dir(args.cache_dir)
     print(f"cache: {cache}")
     try:
-        rec = export(wf, cache, args.to)
+        rec = export(wf, cache, args.to, ply=not args.no_ply)
     except PipelineError as exc:
         print(f"cobgs export: {exc}", file=sys.stderr)
         return 2
@@ -169,4 +192,6 @@ def register(sub) -> None:
     p.add_argument("--to", required=True, metavar="DIR", help="destination folder (created)")
     p.add_argument("--set", action="append", metavar="K=V", help="same overrides as `cobgs run`")
     p.add_argument("--cache-dir", default=None, help="cache folder (default: $COBGS_CACHE_DIR or ./runs/cache)")
+    p.add_argument("--no-ply", action="store_true",
+                   help="metrics, masks and summary only: leave the PLYs in the cache (large workflows)")
     p.set_defaults(func=_run)

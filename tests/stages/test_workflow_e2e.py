@@ -223,6 +223,26 @@ def test_export_copies_the_ply_layout(tiny, tmp_path):
     assert rec["missing"] == [] and len(rec["copied"]) >= 15
 
 
+def test_export_without_plys_and_a_disk_too_small(tiny, tmp_path, monkeypatch, capsys):
+    """--no-ply: metrics, masks and summary, no PLY; an export the disk cannot hold is
+    refused before a byte is written, saying how much it needs and what to do."""
+    import shutil
+    from collections import namedtuple
+
+    from stages.commands.cli import main
+
+    path, cache, _, _ = tiny
+    out = tmp_path / "out"
+    assert main(["export", str(path), "--to", str(out), "--cache-dir", str(cache), "--no-ply"]) == 0
+    assert not list(out.rglob("*.ply")) and (out / "tiny" / "cobgs" / "ball" / "metrics.json").is_file()
+    assert list((out / "tiny" / "cobgs" / "ball" / "pred_masks").glob("*.png"))
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(10 << 30, 9 << 30, 512 << 20))
+    assert main(["export", str(path), "--to", str(tmp_path / "big"), "--cache-dir", str(cache)]) == 2
+    assert "free (1 GiB kept spare); use --no-ply" in capsys.readouterr().err
+    assert not (tmp_path / "big").exists()
+
+
 def test_export_replaces_the_folder_as_a_whole(tiny, tmp_path, monkeypatch):
     """An export interrupted mid-copy leaves the previous export untouched (no mix of new
     and old files, no temporary file), leftovers of killed exports are cleaned (and an old
