@@ -14,8 +14,8 @@ import os
 import numpy as np
 import pytest
 
-gd = pytest.importorskip("groundingdino", reason="the groundingdino package is not "
-                                                 "importable here (pip install groundingdino-py)")
+gd = pytest.importorskip("groundingdino", reason="the groundingdino package is not importable here: "
+                                                 "the parity tests run with `make parity` (README)")
 transformers = pytest.importorskip("transformers", reason="transformers is not importable")
 torch = pytest.importorskip("torch")
 

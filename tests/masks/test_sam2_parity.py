@@ -13,8 +13,8 @@ import json
 import numpy as np
 import pytest
 
-sam2 = pytest.importorskip("sam2", reason="Meta's sam2 package is not importable here; "
-                                          "the SAM2 parity test needs it (pip install sam2)")
+sam2 = pytest.importorskip("sam2", reason="no sam2 code is importable here (Meta's, or Grounded-SAM-2's "
+                                          "copy): the parity tests run with `make parity` (README)")
 torch = pytest.importorskip("torch")
 
 pytestmark = pytest.mark.slow
