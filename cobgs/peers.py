@@ -38,6 +38,7 @@ import torch
 from torch import Tensor
 
 from .data.scene import View
+from .progress import Progress
 from .configs import FlashSplatConfig, SA3DConfig  # noqa: F401 (defined there)
 from .errors import InputError
 from .gaussians import GaussianModel
@@ -91,7 +92,7 @@ def run_sa3d(
     config: SA3DConfig = SA3DConfig(),
     *,
     object_name: str = "",
-    progress: bool = True,
+    progress: "Progress" = True,
 ) -> RefineResult:
     """SA3D-GS on the scene ``model`` (not modified; see the module docstring)."""
     _check(views, masks)
@@ -111,11 +112,9 @@ def run_sa3d(
         work.add_extra("source_index", torch.arange(n, device=dev), fill=-1)
         opt = work.make_adam({"sa3d_label": config.lr}, eps=config.adam_eps)
         rng = torch.Generator().manual_seed(config.seed)
-        bar = None
-        if progress:
-            from tqdm import tqdm
+        from .progress import make_bar
 
-            bar = tqdm(total=config.passes * len(views), desc=f"sa3d {object_name}".strip(), dynamic_ncols=True)
+        bar = make_bar(progress, config.passes * len(views), f"sa3d {object_name}".strip())
         trained_any = False
         try:
             for p in range(config.passes):
@@ -139,7 +138,7 @@ def run_sa3d(
                     losses.append(float(loss.detach()))
                     if bar is not None:
                         bar.update(1)
-                        bar.set_postfix(pass_=p, loss=f"{losses[-1]:.4g}", n=len(work), skipped=skipped)
+                        bar.set_postfix(pass_=p, loss=f"{losses[-1]:.4g}", gaussians=len(work), skipped=skipped)
                 dropped = 0
                 if p == 0 and config.passes > 1:
                     keep = work.data["sa3d_label"].detach() > 0
@@ -213,7 +212,7 @@ def run_flashsplat(
     config: FlashSplatConfig = FlashSplatConfig(),
     *,
     object_name: str = "",
-    progress: bool = False,
+    progress: "Progress" = False,
 ) -> RefineResult:
     """FlashSplat, one object (see the module docstring)."""
     _check(views, masks)
@@ -325,7 +324,7 @@ def run_method(
     config=None,
     background: Sequence[float] = (0.0, 0.0, 0.0),
     object_name: str = "",
-    progress: bool = True,
+    progress: "Progress" = True,
     texture_moments=None,
 ) -> RefineResult:
     """Run one segmentation method on one object.
@@ -338,7 +337,7 @@ def run_method(
         views, masks, extent, background: as in :func:`cobgs.refine.refine`.
         config: the method's config (None = its defaults).
         object_name: recorded in the result.
-        progress: tqdm bar.
+        progress: False, True (a tqdm bar) or a factory (:mod:`cobgs.progress`).
         texture_moments: the baseline's Adam moments, where COB-GS's texture stages start
             (:func:`cobgs.refine.refine`); the peers have no texture stages and ignore them.
     """

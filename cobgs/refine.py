@@ -60,6 +60,7 @@ from typing import Mapping, Optional, Sequence
 import torch
 from torch import Tensor
 
+from .progress import Progress
 from .adam_moments import Moments, export_moments, load_moments
 from .data.scene import Scene, View
 from .errors import InputError
@@ -245,7 +246,7 @@ class Refiner:
         return info
 
     # -- the whole run -----------------------------------------------------------------------
-    def run(self, progress: bool = True, desc: str = "refine") -> tuple[list[StageStats], list[Tensor], int]:
+    def run(self, progress=True, desc: str = "refine") -> tuple[list[StageStats], list[Tensor], int]:
         """Run every stage of ``config.plan()``.
 
         Returns:
@@ -255,11 +256,9 @@ class Refiner:
         c = self.config
         plan = c.plan()
         length = c.stage_length(len(self.views))
-        bar = None
-        if progress:
-            from tqdm import tqdm
+        from .progress import make_bar
 
-            bar = tqdm(total=len(plan) * length, desc=desc, dynamic_ncols=True)
+        bar = make_bar(progress, len(plan) * length, desc)
         stats: list[StageStats] = []
         scores: list[Tensor] = []
         ambiguous_final = -1
@@ -278,7 +277,7 @@ class Refiner:
                         bar.update(1)
                         if len(losses) % 10 == 0 or len(losses) == length:
                             bar.set_postfix(stage=f"{kind}{si}", it=self.iteration, loss=f"{loss:.4g}",
-                                            n=len(self.model), amb=last_amb)
+                                            gaussians=len(self.model), ambiguous=last_amb)
                 st = StageStats(kind=kind, index=si, iterations=length, gaussians_start=n0, gaussians_end=n0,
                                 mean_loss=sum(losses) / len(losses))
                 if kind == "mask":
@@ -296,7 +295,7 @@ class Refiner:
                 st.wall_s = time.perf_counter() - t0
                 stats.append(st)
                 if bar is not None:
-                    bar.set_postfix(stage=f"{kind}{si}", it=self.iteration, n=len(self.model), amb=last_amb)
+                    bar.set_postfix(stage=f"{kind}{si}", it=self.iteration, gaussians=len(self.model), ambiguous=last_amb)
         finally:
             if bar is not None:
                 bar.close()
@@ -324,7 +323,7 @@ def refine(
     background: Sequence[float] = (0.0, 0.0, 0.0),
     object_name: str = "",
     method: str = "cobgs",
-    progress: bool = True,
+    progress: "Progress" = True,
     copy: bool = True,
     texture_moments: Optional[Moments] = None,
     return_moments: bool = False,
@@ -340,7 +339,8 @@ def refine(
         background: the baseline's background colour (TEXTURE stages render on it).
         object_name: recorded in the result.
         method: recorded in the result ("cobgs", or an ablation row's name).
-        progress: tqdm bar (stage, iteration, loss, Gaussians, ambiguous count).
+        progress: False, True (a tqdm bar) or a factory (:mod:`cobgs.progress`); shows the
+            stage, iteration, loss, Gaussians and ambiguous count.
         copy: refine a clone of ``model`` (True) or ``model`` itself.
         texture_moments: the baseline's Adam moments (:mod:`cobgs.adam_moments`) for the
             TEXTURE stages; without them those stages start from zero moments (logged).
@@ -505,7 +505,7 @@ def refine_objects(
     config: RefineConfig = RefineConfig(),
     *,
     background: Sequence[float] = (0.0, 0.0, 0.0),
-    progress: bool = True,
+    progress: "Progress" = True,
     texture_moments: Optional[Moments] = None,
 ) -> MultiObjectResult:
     """Refine and segment K objects in one run (see the module docstring).

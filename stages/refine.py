@@ -23,7 +23,6 @@ elsewhere) refines with fresh moments, and ``refine.json`` says which (``texture
 from __future__ import annotations
 
 import dataclasses
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -104,7 +103,8 @@ def _run(ctx, inputs):
     ctx.log.info("%s on %r: %d Gaussians, %d views (%d with a mask)", p.method, obj, len(model),
                  len(scene.train), sum(m is not None for m in masks))
     result = run_method(p.method, model, scene.train, masks, scene.extent, config=config,
-                        background=trained["background"], object_name=obj, progress=sys.stderr.isatty(),
+                        background=trained["background"], object_name=obj,
+                        progress=lambda total, desc: ctx.progress(total=total, desc=desc),
                         texture_moments=moments)
     out_model = result.model.to(torch.device("cpu")) if dev.type != "cpu" else result.model
     save_ply(ctx.out_dir / "refined.ply", out_model)

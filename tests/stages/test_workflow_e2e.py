@@ -128,6 +128,17 @@ def test_artifacts_and_metrics(tiny):
     assert (summ / "summary.csv").read_text().startswith("protocol,")
 
 
+def test_refine_shows_progress_in_its_log(tiny):
+    """Long work shows progress: the refine task's log has progress lines with the stage,
+    iteration, loss and Gaussian count (log lines when no terminal is attached)."""
+    path, cache, wf, _ = tiny
+    rec = _entry(wf, cache, "refine", "tiny/cobgs/ball")
+    log = (rec.entry_dir / "log.txt").read_text()
+    lines = [ln for ln in log.splitlines() if "refine[tiny/cobgs/ball]" in ln and "%" in ln]
+    assert lines, log[-2000:]
+    assert any(", it " in ln and "loss " in ln and "gaussians " in ln for ln in lines), lines[-3:]
+
+
 def test_second_run_is_a_full_cache_hit(tiny):
     path, cache, _, first = tiny
     _, summary, log = _run(path, cache)
