@@ -299,7 +299,7 @@ def test_config_validation(kw):
 
 def test_refine_run_statistics_and_determinism():
     model, views, extent = tiny_scene(n_views=3)
-    cfg = RefineConfig(mask_stages=3, stage_length_views=2)
+    cfg = RefineConfig(mask_stages=3, stage_length_views=2, raem="released")  # prunes every ambiguous one
     n0 = len(model)
     a = refine(model, views, masks_for(views, "ball"), extent, cfg, object_name="ball", progress=False)
     assert len(model) == n0 and LABEL not in model.data  # input untouched
@@ -424,7 +424,7 @@ def test_scene_before_raem_is_the_run_without_raem():
 
     model, views, extent = tiny_scene(n_views=4)
     masks = masks_for(views, "ball")
-    cfg = RefineConfig(mask_stages=2, stage_length_views=1.0, delta=0.6)
+    cfg = RefineConfig(mask_stages=2, stage_length_views=1.0, delta=0.6, raem="released")
     on = refine(model, views, masks, extent, cfg, progress=False)
     off = refine(model, views, masks, extent, dataclasses.replace(cfg, raem="off"), progress=False)
     pruned = on.stages[-1].pruned

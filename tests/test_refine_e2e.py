@@ -54,7 +54,8 @@ def test_cobgs_beats_nosplit_on_boundaries(demo, obj):
     ref_stages = [s.ambiguous for s in ref.stages]
     # (the no-split row trains labels for the whole 22·V: 11 mask stages)
     assert len(ref_stages) == 11 and ref_stages == [ref_stages[0]] * 11 and ref_stages[0] == mask_stages[0].ambiguous
-    assert sum(s.split for s in cob.stages) > 0 and cob.stages[-1].pruned == cob.ambiguous_final > 0
+    # RAEM (the default, paper variant) prunes only ambiguous Gaussians below a pixel's footprint
+    assert sum(s.split for s in cob.stages) > 0 and 0 <= cob.stages[-1].pruned <= cob.ambiguous_final
     # ... and the segmentation boundary on held-out views improves over the no-split peer.
     e_cob = evaluate_masks(cob, scene.test, test_masks)
     e_ref = evaluate_masks(ref, scene.test, test_masks)

@@ -106,12 +106,18 @@ def test_a_psnr_drop_beyond_the_margin_is_a_warning_everywhere(own, tmp_path):
     from reports import build_report
 
     root, path, wf, recs = own
-    row = json.loads((recs[("evaluate", "photos/cobgs/ball")].output("metrics") / "metrics.json").read_text())["row"]
+    # The authors' released RAEM prunes every ambiguous Gaussian: the PSNR drop this test needs
+    # (measured 0.7 dB here; the default, paper RAEM, leaves the PSNR where it was)
+    sets0 = SHORT + ["refine.cobgs.raem=released"]
+    wf0 = load_workflow(path, load_registry(), sets0)
+    assert run_workflow(wf0, RunOptions(cache_dir=root / "cache", package_version="test"),
+                        stream=io.StringIO()).exit_code == 0
+    rec0 = {(r.stage, r.item.id): r for r in entries(wf0, root / "cache")}[("evaluate", "photos/cobgs/ball")]
+    row = json.loads((rec0.output("metrics") / "metrics.json").read_text())["row"]
     drop = row["psnr_vanilla"] - row["psnr"]
-    assert "warnings" not in row  # the default margin (2 dB) is not crossed here (measured 0.7 dB)
-    if drop <= 0:
-        pytest.skip(f"no PSNR drop on this run ({drop:.2f} dB)")
-    sets = SHORT + [f"evaluate.warn_psnr_drop_db={drop / 2}"]
+    assert "warnings" not in row  # the default margin (2 dB) is not crossed here
+    assert drop > 0, f"the released RAEM left the held-out PSNR unchanged ({drop:.2f} dB)"
+    sets = sets0 + [f"evaluate.warn_psnr_drop_db={drop / 2}"]
     wf2 = load_workflow(path, load_registry(), sets)
     out = io.StringIO()
     summary = run_workflow(wf2, RunOptions(cache_dir=root / "cache", package_version="test"), stream=out)
