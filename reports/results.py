@@ -82,12 +82,17 @@ def refine_defaults(workflow) -> dict:
     return to_json(workflow.stages[stage].params())
 
 
+# The no-split row forces COB-GS's switches off whatever the params say (cobgs.peers.run_method)
+_FORCED = {"nosplit": ("cobgs.bags", "cobgs.bgtr", "cobgs.raem")}
+
+
 def options_of(kind: str, params: Optional[dict], defaults: dict) -> list[str]:
     if not params:
         return []
     section = _SECTIONS.get(kind)
     got, base = _flat(params), _flat(defaults)
-    keep = [k for k in got if k not in ("method",) and (k.split(".")[0] == section or "." not in k)]
+    keep = [k for k in got if k not in ("method",) + _FORCED.get(kind, ())
+            and (k.split(".")[0] == section or "." not in k)]
     return [f"{k.split('.', 1)[-1]}={_value_text(got[k])}" for k in keep if got[k] != base.get(k)]
 
 

@@ -85,6 +85,37 @@ def target_lines(report_dir: Path) -> list[str]:
     return lines
 
 
+def raem_lines(report_dir: Path) -> list[str]:
+    """Issue 21 item 6: headline mBIoU and ΔPSNR of COB-GS with each RAEM variant (BAGS +
+    BGTR on), per scene and mask route, and the mean over them."""
+    rows = [r for r in _csv(report_dir / "data" / "ablation.csv") if r.get("bags") and r.get("bgtr")]
+    groups: dict = {}
+    for r in rows:
+        key = r["scene"] + (f" ({r['masks']})" if r.get("masks") else "")
+        b = _num(r.get("biou"))
+        if b is not None:
+            groups.setdefault(key, {})[r["raem"]] = (100 * b, _num(r.get("psnr_delta")))
+    variants = ("off", "paper", "released")
+    if not groups:
+        return []
+    out = ["| scene | " + " | ".join(f"RAEM {v}: mBIoU / ΔPSNR" for v in variants) + " |",
+           "|---|" + "---:|" * len(variants)]
+    sums = {v: [] for v in variants}
+    for key, by in groups.items():
+        cells = []
+        for v in variants:
+            if v in by:
+                cells.append(f"{by[v][0]:.2f} / {by[v][1]:+.2f}")
+                sums[v].append(by[v][0])
+            else:
+                cells.append("")
+        out.append(f"| {key} | " + " | ".join(cells) + " |")
+    n = len(groups)
+    out.append("| **mean over the rows** | " + " | ".join(
+        f"**{sum(sums[v]) / len(sums[v]):.2f}**" if len(sums[v]) == n else "" for v in variants) + " |")
+    return out
+
+
 def _git(*args: str) -> str:
     try:
         return subprocess.run(["git", *args], cwd=REPO, capture_output=True, text=True, check=True).stdout.strip()
@@ -108,6 +139,8 @@ def docs_page(report_dir: Path, command: str, run_wall_s: float | None) -> str:
         f"first start to last finish {span / 3600:.2f} h (hosts: {win.get('hosts') or '?'})"
         + (f"; this invocation {run_wall_s / 60:.1f} min" if run_wall_s is not None else ""), "",
         "## Targets (issue 21)", "", *target_lines(report_dir), "",
+        "## RAEM variants (headline protocol; the default is the variant with the higher mean)", "",
+        *raem_lines(report_dir), "",
     ]
     tables = (report_dir / "tables.md").read_text(encoding="utf-8").split("\n", 1)[1]
     return "\n".join(head) + "\n## Tables\n" + tables
