@@ -176,8 +176,9 @@ def _print_summary(path: str, dest: str) -> None:
     for s in data.get("scenes", []):
         print(f"scene {s['scene']}: {s['num_gaussians']} Gaussians, held-out PSNR "
               f"{fmt(s.get('psnr'), '.2f')} dB ({s['test_views']} views)")
-    print("mIoU: the object's visible mask (exact GT) or the protocol's render (NVOS, LERF-mask); "
-          "obj-only: the released object-only render")
+    print("mIoU / mBIoU / mAcc: the headline protocol (the object's Gaussians rendered alone vs its whole "
+          "silhouette where the data has it, else the visible GT; NVOS / LERF-mask: their own); BIoU rel: the "
+          "same render vs the visible GT (released protocol); BIoU occ: the occlusion-aware render")
     print(f"summary: {os.path.join(dest, 'summary.csv')} (rows), by_method.csv, timings.csv")
     print(f"PLYs:    {dest}/<scene>/scene.ply, {dest}/<scene>/<method>/<object>/"
           "{refined,object,background}.ply")
