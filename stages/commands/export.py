@@ -48,12 +48,37 @@ def _size(path) -> int:
     return dir_size(path) if path.is_dir() else (path.stat().st_size if path.exists() else 0)
 
 
-def export(workflow, cache_dir, to, stream=None, ply: bool = True) -> dict:
+def _turntables(seg_dir, dataset_dir, poses_dir, dst, frames: int) -> list[str]:
+    """Orbit GIFs of the object alone and of the scene without it (cobgs.turntable), around
+    the object's centre, from the scene's training cameras; returns the files written."""
+    from pathlib import Path
+
+    from cobgs.ply import load_ply
+    from cobgs.turntable import object_center, orbit_cameras, render_turntable, write_animation
+    from stages._common import load_scene
+
+    seg_dir, dst = Path(seg_dir), Path(dst)
+    scene = load_scene(Path(dataset_dir), Path(poses_dir) if poses_dir else None)
+    obj = load_ply(seg_dir / "object.ply")
+    if len(obj) == 0:
+        return []
+    cams = orbit_cameras([v.camera for v in scene.train], object_center(obj), n_frames=frames)
+    dst.mkdir(parents=True, exist_ok=True)
+    out = []
+    for name, model in (("turntable_object.gif", obj), ("turntable_removed.gif", load_ply(seg_dir / "background.ply"))):
+        write_animation(render_turntable(model, cams, scene.background), dst / name)
+        out.append(name)
+    return out
+
+
+def export(workflow, cache_dir, to, stream=None, ply: bool = True, turntables: int = 0) -> dict:
     """Copy the exports of ``workflow`` (a loaded :class:`pipeline.Workflow`) from
     ``cache_dir`` into ``to``; returns the record written to ``export.json``.
 
     ``ply=False`` leaves the PLYs in the cache (metrics, masks and summary only: a
-    benchmark's hundreds of scenes are tens of GB). A copy the destination's disk cannot
+    benchmark's hundreds of scenes are tens of GB). ``turntables=N`` adds, per object, an
+    N-frame orbit GIF of the object alone and of the scene without it
+    (``turntable_object.gif``, ``turntable_removed.gif``; :mod:`cobgs.turntable`). A copy the destination's disk cannot
     hold (with 1 GiB to spare) is refused before anything is written.
 
     ``to`` is replaced as a whole (:func:`pipeline.publish.publish_folder`): a kill leaves
@@ -69,7 +94,13 @@ def export(workflow, cache_dir, to, stream=None, ply: bool = True) -> dict:
     check_destination(to, "export.json", "export")
     wanted = {stage: (artifact, files, where) for stage, artifact, files, where in EXPORTS}
     plan, missing = [], []
+    scenes: dict = {}
+    segments = []
     for rec in entries(workflow, cache_dir):
+        if rec.state == "done" and rec.stage in ("dataset", "sfm"):
+            scenes.setdefault(rec.item.values.get("scene"), {})[rec.stage] = rec
+        if rec.state == "done" and rec.stage == "segment":
+            segments.append(rec)
         if rec.stage not in wanted:
             continue
         artifact, files, where = wanted[rec.stage]
@@ -107,6 +138,17 @@ def export(workflow, cache_dir, to, stream=None, ply: bool = True) -> dict:
             _copy(src, dst)
             copied.append({"file": rel.as_posix(), "stage": rec.stage, "item": rec.item.id,
                            "entry": str(src.parent)})
+        for rec in segments if turntables else ():
+            v = rec.item.values
+            sc = scenes.get(v.get("scene"), {})
+            if "dataset" not in sc:
+                continue
+            rel = Path(v.get("scene"), v.get("method"), v.get("object"))
+            poses = sc["sfm"].output("poses") if "sfm" in sc else None
+            for name in _turntables(rec.output("segmentation"), sc["dataset"].output("dataset"), poses,
+                                    tmp / rel, turntables):
+                copied.append({"file": (rel / name).as_posix(), "stage": "segment", "item": rec.item.id,
+                               "entry": "rendered by cobgs.turntable"})
         record.update(copied=copied)
         (tmp / "export.json").write_text(json.dumps(record, indent=1))
 
@@ -131,7 +173,7 @@ def _run(args) -> int:
     cache = default_cache_dir(args.cache_dir)
     print(f"cache: {cache}")
     try:
-        rec = export(wf, cache, args.to, ply=not args.no_ply)
+        rec = export(wf, cache, args.to, ply=not args.no_ply, turntables=args.turntables)
     except PipelineError as exc:
         print(f"cobgs export: {exc}", file=sys.stderr)
         return 2
@@ -195,4 +237,7 @@ def register(sub) -> None:
     p.add_argument("--cache-dir", default=None, help="cache folder (default: $COBGS_CACHE_DIR or ./runs/cache)")
     p.add_argument("--no-ply", action="store_true",
                    help="metrics, masks and summary only: leave the PLYs in the cache (large workflows)")
+    p.add_argument("--turntables", type=int, default=0, metavar="N",
+                   help="per object, N-frame orbit GIFs of the object alone and of the scene without it "
+                        "(rendered on the CPU; 0 = none)")
     p.set_defaults(func=_run)
