@@ -42,8 +42,8 @@ test: build chromium
 
 demo: build
 	$(VENV)/bin/cobgs run workflows/demo.toml
-	$(VENV)/bin/cobgs export workflows/demo.toml --to runs/demo
-	$(VENV)/bin/cobgs report workflows/demo.toml
+	$(VENV)/bin/cobgs export workflows/demo.toml --to runs/demo --turntables 24
+	$(VENV)/bin/cobgs report workflows/demo.toml --turntables 24
 
 bench: build
 	$(VENV)/bin/cobgs run workflows/synthetic_bench.toml
@@ -61,7 +61,7 @@ parity:
 	  tests/masks/test_sam2_parity.py tests/masks/test_gdino_parity.py
 
 report: build
-	$(VENV)/bin/cobgs report workflows/demo.toml
+	$(VENV)/bin/cobgs report workflows/demo.toml --turntables 24
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache

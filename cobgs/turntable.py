@@ -76,8 +76,10 @@ def orbit_cameras(reference: Sequence[Camera], center: Tensor, n_frames: int = 3
     base = ref.resized(w, h)
     cams = []
     for i in range(n_frames):
-        if sweep:  # a loop lo -> hi -> lo at constant speed (no two consecutive frames alike)
-            a = 0.5 * (lo + hi) - 0.5 * (hi - lo) * (1.0 - 4.0 * abs(i / n_frames - 0.5))
+        if sweep:  # a loop lo -> hi in n//2 steps, back in the rest: no two consecutive frames alike
+            m = n_frames // 2
+            frac = 0.5 if m == 0 else (i / m if i <= m else (n_frames - i) / (n_frames - m))
+            a = lo + (hi - lo) * frac
         else:
             a = 2.0 * math.pi * i / n_frames
         eye = c + height * up + radius * (math.cos(a) * e1 + math.sin(a) * e2)

@@ -39,7 +39,7 @@ def default_out_dir(workflow) -> Path:
 
 def build_report(workflow_path: os.PathLike | str, out_dir: Optional[os.PathLike | str] = None,
                  cache_dir: Optional[os.PathLike | str] = None, sets: Iterable[str] = (),
-                 registry=None, stream=None) -> Path:
+                 registry=None, stream=None, turntables: int = 0) -> Path:
     """Build the report of a workflow from its cache; returns the path of ``index.html``.
 
     Args:
@@ -49,6 +49,8 @@ def build_report(workflow_path: os.PathLike | str, out_dir: Optional[os.PathLike
         sets: ``--set`` overrides, as for ``cobgs run`` (they select the cache entries).
         registry: stage registry (default: the program's, :func:`stages.registry.load_registry`).
         stream: where to print progress lines (None: quiet).
+        turntables: frames of an orbit GIF per method and object (object alone, scene
+            without it; rendered on the CPU while building): 0 = none.
     """
     from pipeline import load_workflow
     from pipeline.commands import default_cache_dir
@@ -68,7 +70,7 @@ def build_report(workflow_path: os.PathLike | str, out_dir: Optional[os.PathLike
     t0 = time.perf_counter()
     data = collect(wf, cache)
     try:
-        publish_folder(out, lambda tmp: _write(data, tmp, sets), MARKER, "report")
+        publish_folder(out, lambda tmp: _write(data, tmp, sets, turntables), MARKER, "report")
     except DestinationError as exc:
         raise ReportError(str(exc)) from None
     if stream is not None:
@@ -163,14 +165,14 @@ def _env():
     return env
 
 
-def _write(data: RunData, root: Path, sets: list[str]) -> None:
+def _write(data: RunData, root: Path, sets: list[str], turntables: int = 0) -> None:
     from . import meta
 
     logs = _Logs(root)
     infos = R.method_infos(data)
     ref = R.reference_method(infos)
     tables = result_tables(data, infos, logs)
-    pictures = picture_sets(data, infos, root)
+    pictures = picture_sets(data, infos, root, turntables)
     plots = _plots(data, infos, tables["raw"]["by_method"], tables["raw"]["by_scene_method"], root)
     stage_table, task_table = detail_tables(data, ref, logs)
     failures = []

@@ -135,6 +135,8 @@ class Scene:
     train_dir: Optional[Path] = None
     train_task: Optional[Task] = None
     heldout: dict = field(default_factory=dict)  # object -> Heldout
+    dataset_dir: Optional[Path] = None  # the dataset artifact (cameras, for turntables)
+    poses_dir: Optional[Path] = None  # the SfM artifact, where the scene has one
 
     @property
     def protocol(self) -> str:
@@ -208,7 +210,10 @@ def collect(workflow, cache_dir: os.PathLike | str) -> RunData:
         sc = Scene(name)
         for t in by_stage.get(producer.get("dataset", ""), {}).values():
             if t.values.get("scene") == name:
-                sc.dataset, _ = load(t, "dataset")
+                sc.dataset, sc.dataset_dir = load(t, "dataset")
+        for t in by_stage.get(producer.get("poses", ""), {}).values():
+            if t.values.get("scene") == name and t.state == "done":
+                sc.poses_dir = t.out("poses")
         for t in by_stage.get(producer.get("scene", ""), {}).values():
             if t.values.get("scene") == name:
                 sc.train_task = t

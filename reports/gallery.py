@@ -24,8 +24,40 @@ def scored_mask_folder(row: Optional[dict]) -> str:
     return MASK_FOLDERS.get(str((row or {}).get("mask_render", "object_only")), "pred_masks")
 
 
-def picture_sets(data: RunData, infos: dict, root: Path) -> list[PictureSet]:
+def _turntables(ps: PictureSet, rs: dict, scene, root: Path, base: str, frames: int, cameras: dict) -> None:
+    """Orbit GIFs of each method's object alone and scene without it (cobgs.turntable)."""
+    from cobgs.ply import load_ply
+    from cobgs.turntable import object_center, orbit_cameras, render_turntable, write_animation
+
+    if scene is None or scene.dataset_dir is None:
+        return
+    if scene.name not in cameras:
+        from stages._common import load_scene
+
+        sc = load_scene(scene.dataset_dir, scene.poses_dir)
+        cameras[scene.name] = ([v.camera for v in sc.train], sc.background)
+    refs, bg = cameras[scene.name]
+    for mp in ps.methods:
+        r = rs.get(mp.method)
+        seg = Path(r.segment_dir) if r is not None and r.segment_dir is not None else None
+        if seg is None or not (seg / "object.ply").is_file():
+            continue
+        obj = load_ply(seg / "object.ply")
+        if len(obj) == 0:
+            continue
+        cams = orbit_cameras(refs, object_center(obj), n_frames=frames)
+        for kind, model in (("turn_object", obj), ("turn_removed", load_ply(seg / "background.ply"))):
+            name = f"{slug(mp.method)}_{kind}.gif"
+            (root / base).mkdir(parents=True, exist_ok=True)
+            write_animation(render_turntable(model, cams, bg), root / base / name)
+            mp.files[kind] = f"{base}/{name}"
+
+
+def picture_sets(data: RunData, infos: dict, root: Path, turntables: int = 0) -> list[PictureSet]:
+    """The picture grid of every scene x object; ``turntables`` > 0 adds orbit GIFs with
+    that many frames per method (rendered here, on the CPU: opt-in for large reports)."""
     ref = R.reference_method(infos)
+    cameras: dict = {}
     order = ([ref] if ref else []) + [m for m in data.methods if m != ref]
     sets = []
     pairs = []
@@ -89,5 +121,8 @@ def picture_sets(data: RunData, infos: dict, root: Path) -> list[PictureSet]:
             ps.methods.append(mp)
         base = f"img/{slug(scene)}/{slug(obj)}/{slug(view)}"
         compose(ps, image, gt, preds, renders, root / base, base)
+        if turntables > 0:
+            _turntables(ps, rs, data.scenes.get(scene), root, f"img/{slug(scene)}/{slug(obj)}", turntables,
+                        cameras)
         sets.append(ps)
     return sets

@@ -235,9 +235,10 @@ class PictureSet:
         return [k for k in KINDS if k in have]
 
 
-KINDS = ("pred", "overlay", "crop", "object", "removed")
+KINDS = ("pred", "overlay", "crop", "object", "removed", "turn_object", "turn_removed")
 KIND_LABELS = {"pred": "predicted mask", "overlay": "errors (FP / FN)", "crop": "boundary crop",
-               "object": "object alone", "removed": "object removed"}
+               "object": "object alone", "removed": "object removed", "turn_object": "object alone, turning",
+               "turn_removed": "object removed, turning"}
 
 
 def compose(ps: PictureSet, image: Optional[np.ndarray], gt: Optional[np.ndarray],

@@ -19,6 +19,9 @@ def register(sub) -> None:
     p.add_argument("--cache-dir", help="cache folder (default: $COBGS_CACHE_DIR, else ./runs/cache)")
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
                    help="the same overrides the run used (they select its cache entries)")
+    p.add_argument("--turntables", type=int, default=0, metavar="N",
+                   help="per method and object, N-frame orbit GIFs of the object alone and of the scene "
+                        "without it (rendered on the CPU while building; 0 = none)")
     p.set_defaults(func=_report)
 
 
@@ -30,7 +33,7 @@ def _report(args) -> int:
 
     try:
         index = build_report(args.workflow, out_dir=args.out, cache_dir=args.cache_dir, sets=args.sets,
-                             stream=sys.stdout)
+                             stream=sys.stdout, turntables=args.turntables)
     except PipelineError as exc:  # bad workflow or --set: the engine's message names the key
         print(f"cobgs report: error: {exc}", file=sys.stderr)
         return 2

@@ -280,6 +280,30 @@ def test_export_turntables(tiny, tmp_path):
         assert first[h // 4:3 * h // 4, w // 4:3 * w // 4].mean() > first.mean() * 0.9 > 0  # the object, centred
 
 
+def test_report_turntables(tiny, tmp_path):
+    """cobgs report --turntables N: each method's picture row gets the two orbit GIFs
+    (object alone, scene without it), N frames each; without the flag there are none."""
+    from PIL import Image
+
+    from stages.commands.cli import main
+
+    path, cache, _, _ = tiny
+    assert main(["report", str(path), "--cache-dir", str(cache), "--out", str(tmp_path / "r"),
+                 "--turntables", "3"]) == 0
+    html = (tmp_path / "r" / "index.html").read_text()
+    gifs = sorted((tmp_path / "r" / "img").rglob("*.gif"))
+    names = {g.name for g in gifs}
+    for method in ("cobgs", "nosplit"):
+        assert {f"{method}_turn_object.gif", f"{method}_turn_removed.gif"} <= names
+    for g in gifs:
+        assert g.relative_to(tmp_path / "r").as_posix() in html
+        with Image.open(g) as im:
+            assert im.n_frames == 3
+    assert "object alone, turning" in html
+    assert main(["report", str(path), "--cache-dir", str(cache), "--out", str(tmp_path / "r2")]) == 0
+    assert not list((tmp_path / "r2" / "img").rglob("*.gif"))
+
+
 def test_export_replaces_the_folder_as_a_whole(tiny, tmp_path, monkeypatch):
     """An export interrupted mid-copy leaves the previous export untouched (no mix of new
     and old files, no temporary file), leftovers of killed exports are cleaned (and an old
