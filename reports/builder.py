@@ -132,7 +132,7 @@ def _plots(data: RunData, infos: dict, by_method: list[dict], by_scene: list[dic
     if P.iou_biou(root / "plots/iou_biou.svg", methods, [fmt.finite(r.get("iou")) for r in by_method],
                   [fmt.finite(r.get("biou")) for r in by_method], pts, colors, labels):
         out["iou_biou"] = "plots/iou_biou.svg"
-    vanilla = fmt.finite(_mean([r.get("psnr_vanilla") for r in by_method]))
+    vanilla = [fmt.finite(r.get("psnr_vanilla")) for r in by_method]  # each method's own scenes
     if P.psnr(root / "plots/psnr.svg", methods, [fmt.finite(r.get("psnr")) for r in by_method], vanilla, colors,
               labels):
         out["psnr"] = "plots/psnr.svg"
@@ -146,11 +146,6 @@ def _plots(data: RunData, infos: dict, by_method: list[dict], by_scene: list[dic
         out["scores"] = "plots/scores.svg"
         out["scores_skipped"] = skipped
     return out
-
-
-def _mean(values) -> Optional[float]:
-    vals = [v for v in (fmt.finite(x) for x in values) if v is not None]
-    return sum(vals) / len(vals) if vals else None
 
 
 # -- the page ----------------------------------------------------------------------------

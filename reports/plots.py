@@ -109,10 +109,15 @@ def iou_biou(path: Path, methods: Sequence[str], iou: Sequence[Optional[float]],
     return True
 
 
-def psnr(path: Path, methods: Sequence[str], values: Sequence[Optional[float]], vanilla: Optional[float],
+def psnr(path: Path, methods: Sequence[str], values: Sequence[Optional[float]], vanilla,
          colors: dict, labels: Optional[Sequence[str]] = None) -> bool:
-    """Each method's held-out PSNR as a dot on a stem from the vanilla scene's PSNR (dashed):
-    the stem is the change, and no bar pretends the axis starts at zero."""
+    """Each method's held-out PSNR as a dot on a stem from the vanilla scene's PSNR: the stem
+    is the change, and no bar pretends the axis starts at zero.
+
+    ``vanilla``: one value for every method (a dashed line), or one per method (methods run
+    on different scenes, e.g. a δ sweep limited to one scene): each stem then starts at its
+    own method's vanilla mean, marked with a short tick, and the line is only drawn when all
+    of them agree."""
     if not any(v is not None for v in values):
         return False
     plt = _plt()
@@ -120,25 +125,34 @@ def psnr(path: Path, methods: Sequence[str], values: Sequence[Optional[float]], 
     fig, ax = plt.subplots(figsize=(5.0, 0.32 * n + 1.2), layout="constrained")
     y = np.arange(n)[::-1]
     vals = [v if v is not None else np.nan for v in values]
-    for yi, v, m in zip(y, vals, methods):
+    per = list(vanilla) if isinstance(vanilla, (list, tuple)) else [vanilla] * n
+    per = [v if v is not None and np.isfinite(v) else None for v in per]
+    shared = {round(v, 6) for v in per if v is not None}
+    common = per[0] if len(shared) == 1 and all(v is not None for v in per) else None
+    for yi, v, m, van in zip(y, vals, methods, per):
         if not np.isfinite(v):
             continue
-        if vanilla is not None:
-            ax.plot([vanilla, v], [yi, yi], color=colors[m], lw=2.2, solid_capstyle="butt")
+        if van is not None:
+            ax.plot([van, v], [yi, yi], color=colors[m], lw=2.2, solid_capstyle="butt")
+            if common is None:
+                ax.plot([van], [yi], "|", color="black", ms=9, mew=1.2)
         ax.plot([v], [yi], "o", color=colors[m], ms=6)
-        txt = f"{v:.2f}" + (f" ({v - vanilla:+.2f})" if vanilla is not None else "")
-        right = vanilla is None or v >= vanilla
+        txt = f"{v:.2f}" + (f" ({v - van:+.2f})" if van is not None else "")
+        right = van is None or v >= van
         ax.annotate(txt, (v, yi), xytext=(6 if right else -6, 0), textcoords="offset points", va="center",
                     ha="left" if right else "right", fontsize=7)
-    finite = [v for v in vals if np.isfinite(v)] + ([vanilla] if vanilla is not None else [])
+    finite = [v for v in vals if np.isfinite(v)] + [v for v in per if v is not None]
     lo, hi = min(finite), max(finite)
     pad = max(0.3, 0.35 * (hi - lo))
     ax.set_xlim(lo - pad, hi + pad)
     ax.set_ylim(-0.7, n - 0.3)
-    if vanilla is not None:
-        ax.axvline(vanilla, color="black", ls="--", lw=0.9)
-        ax.annotate(f"vanilla {vanilla:.2f}", (vanilla, n - 0.45), xytext=(3, 0), textcoords="offset points",
+    if common is not None:
+        ax.axvline(common, color="black", ls="--", lw=0.9)
+        ax.annotate(f"vanilla {common:.2f}", (common, n - 0.45), xytext=(3, 0), textcoords="offset points",
                     fontsize=7, va="bottom")
+    elif shared:
+        ax.annotate("| = the vanilla scenes' mean PSNR for that method's scenes", (0.0, 1.0),
+                    xycoords="axes fraction", xytext=(0, 3), textcoords="offset points", fontsize=7, va="bottom")
     ax.set_yticks(y, labels or methods)
     ax.set_xlabel("PSNR on held-out views (dB)")
     ax.grid(axis="y", visible=False)

@@ -218,3 +218,19 @@ def test_log_axis_ticks_are_plain_numbers(tmp_path):
     assert plots.score_curves(tmp_path / "s.svg", [("scene / obj", [("mask stage 1", scores)], 0.5)])
     svg = (tmp_path / "s.svg").read_text()
     assert "mathdefault" not in svg and "$" not in svg
+
+
+def test_psnr_plot_stems_start_at_each_methods_own_vanilla(tmp_path):
+    """Methods run on different scenes (a δ sweep limited to one scene) have different
+    vanilla means: each stem starts at its own (the change printed is psnr - its vanilla),
+    no shared dashed line; with one vanilla for all, the line and its label are drawn."""
+    from reports import plots
+
+    colors = {"a": "#111111", "b": "#222222"}
+    assert plots.psnr(tmp_path / "p.svg", ["a", "b"], [33.01, 23.17], [33.01, 23.00], colors)
+    svg = (tmp_path / "p.svg").read_text()
+    assert "33.01 (+0.00)" in svg and "23.17 (+0.17)" in svg and "vanilla 2" not in svg
+    assert "mean PSNR for that method" in svg
+    assert plots.psnr(tmp_path / "q.svg", ["a", "b"], [31.0, 30.5], [30.0, 30.0], colors)
+    svg = (tmp_path / "q.svg").read_text()
+    assert "vanilla 30.00" in svg and "31.00 (+1.00)" in svg
