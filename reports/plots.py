@@ -150,11 +150,9 @@ def psnr(path: Path, methods: Sequence[str], values: Sequence[Optional[float]], 
         ax.axvline(common, color="black", ls="--", lw=0.9)
         ax.annotate(f"vanilla {common:.2f}", (common, n - 0.45), xytext=(3, 0), textcoords="offset points",
                     fontsize=7, va="bottom")
-    elif shared:
-        ax.annotate("| = the vanilla scenes' mean PSNR for that method's scenes", (0.0, 1.0),
-                    xycoords="axes fraction", xytext=(0, 3), textcoords="offset points", fontsize=7, va="bottom")
     ax.set_yticks(y, labels or methods)
-    ax.set_xlabel("PSNR on held-out views (dB)")
+    ax.set_xlabel("PSNR on held-out views (dB)" + ("" if common is not None or not shared else
+                  "\n| = the vanilla scenes' mean PSNR for that method's scenes"))
     ax.grid(axis="y", visible=False)
     ax.set_title("Texture quality per method (vs the vanilla scene)", loc="left")
     _save(fig, path)
