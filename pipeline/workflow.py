@@ -131,17 +131,12 @@ class Workflow:
         if stage in self._stage_layers:
             layers.append(self._stage_layers[stage])
         for pair in item.pairs:
-            layer = self._item_layers.get(self._slot(item, pair), {}).get(stage)
+            layer = self._item_layers.get(self.axes.slot(pair[0], item.pairs), {}).get(stage)
             if layer is not None:
                 layers.append(layer)
         if stage in self._cli_layers:
             layers.append(self._cli_layers[stage])
         return layers
-
-    def _slot(self, item: Item, pair: tuple[str, str]) -> tuple[str, str]:
-        """Key of an axis value in ``item_layers``; nested values are ``parent/value``."""
-        parent = self.axes[pair[0]].parent
-        return (pair[0], f"{item[parent]}/{pair[1]}") if parent else pair
 
     def data_fingerprints(self, item: Item, params: Any) -> dict[str, str]:
         """Fingerprints (:func:`~pipeline.hashing.stat_fingerprint`) of the files and folders

@@ -26,31 +26,21 @@ def scored_mask_folder(row: Optional[dict]) -> str:
 
 def _turntables(ps: PictureSet, rs: dict, scene, root: Path, base: str, frames: int, cameras: dict) -> None:
     """Orbit GIFs of each method's object alone and scene without it (cobgs.turntable)."""
-    from cobgs.ply import load_ply
-    from cobgs.turntable import object_center, orbit_cameras, render_turntable, write_animation
+    from stages._common import scene_cameras, segment_turntables
 
     if scene is None or scene.dataset_dir is None:
         return
     if scene.name not in cameras:
-        from stages._common import load_scene
-
-        sc = load_scene(scene.dataset_dir, scene.poses_dir)
-        cameras[scene.name] = ([v.camera for v in sc.train], sc.background)
+        cameras[scene.name] = scene_cameras(scene.dataset_dir, scene.poses_dir)
     refs, bg = cameras[scene.name]
     for mp in ps.methods:
         r = rs.get(mp.method)
-        seg = Path(r.segment_dir) if r is not None and r.segment_dir is not None else None
-        if seg is None or not (seg / "object.ply").is_file():
+        if r is None or r.segment_dir is None:
             continue
-        obj = load_ply(seg / "object.ply")
-        if len(obj) == 0:
-            continue
-        cams = orbit_cameras(refs, object_center(obj), n_frames=frames)
-        for kind, model in (("turn_object", obj), ("turn_removed", load_ply(seg / "background.ply"))):
-            name = f"{slug(mp.method)}_{kind}.gif"
-            (root / base).mkdir(parents=True, exist_ok=True)
-            write_animation(render_turntable(model, cams, bg), root / base / name)
-            mp.files[kind] = f"{base}/{name}"
+        urls = {k: f"{base}/{slug(mp.method)}_turn_{k}.gif" for k in ("object", "removed")}
+        for kind in segment_turntables(Path(r.segment_dir), refs, bg, frames,
+                                       {k: root / u for k, u in urls.items()}):
+            mp.files[f"turn_{kind}"] = urls[kind]
 
 
 def picture_sets(data: RunData, infos: dict, root: Path, turntables: int = 0) -> list[PictureSet]:

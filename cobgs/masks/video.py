@@ -184,7 +184,7 @@ class VideoPredictor:
         filled = fill_holes(low, cfg.fill_hole_area)
         ptr = (dec.obj_ptr[ptr_plane].copy() if dec.obj_ptr is not None
                else np.zeros(cfg.hidden_dim, np.float32))
-        feats = self._prompted_memory(enc, filled, dec.object_score)
+        feats, _ = self._prompted_memory(enc, filled, dec.object_score)
         bank.add_tracked(frame, FrameMemory(feats, ptr, dec.object_score, filled))
         bank.kept.add(frame)
         for other_id, other in self.banks.items():  # the frame is consolidated across objects
@@ -193,21 +193,23 @@ class VideoPredictor:
             out = other.non_cond.get(frame)
             if out is None:
                 continue
-            out.maskmem = self._prompted_memory(enc, out.low_res, out.object_score)
+            out.maskmem, _ = self._prompted_memory(enc, out.low_res, out.object_score)
             other.kept.add(frame)
         return resize_logits(filled, size_hw) > 0
 
-    def _prompted_memory(self, enc: EncodedFrame, low_res: np.ndarray, score: float) -> np.ndarray:
-        """Memory features of a frame whose mask came from a prompt (binarised when the
-        export says SAM2 binarises masks from points, as its video predictor does)."""
+    def _prompted_memory(self, enc: EncodedFrame, low_res: np.ndarray,
+                         score: float) -> Tuple[np.ndarray, np.ndarray]:
+        """(memory features, memory positions) of a frame whose mask came from a prompt
+        (binarised when the export says SAM2 binarises masks from points, as its video
+        predictor does)."""
         cfg = self.models.config
         high = resize_logits(low_res, (cfg.image_size, cfg.image_size))
         if cfg.binarize_mask_from_pts:
             mask_for_mem = (high > 0).astype(np.float32) * cfg.sigmoid_scale + cfg.sigmoid_bias
         else:
             mask_for_mem = _scaled_sigmoid(high, cfg.sigmoid_scale, cfg.sigmoid_bias)
-        feats, _ = self.models.encode_memory(enc, mask_for_mem, score)
-        return round_bfloat16(feats) if cfg.memory_bfloat16 else feats
+        feats, pos = self.models.encode_memory(enc, mask_for_mem, score)
+        return (round_bfloat16(feats) if cfg.memory_bfloat16 else feats), pos
 
     def add_mask(self, frame: int, obj_id: int, mask: np.ndarray) -> np.ndarray:
         """Make ``frame`` a conditioning frame from a binary mask [H, W] (used as output).
@@ -252,18 +254,11 @@ class VideoPredictor:
         if not self.models.has_video:
             self._image_only[(frame, obj_id)] = filled
             return
-        high = resize_logits(filled, (cfg.image_size, cfg.image_size))
-        if cfg.binarize_mask_from_pts:
-            mask_for_mem = (high > 0).astype(np.float32) * cfg.sigmoid_scale + cfg.sigmoid_bias
-        else:
-            mask_for_mem = _scaled_sigmoid(high, cfg.sigmoid_scale, cfg.sigmoid_bias)
-        feats, pos = self.models.encode_memory(enc, mask_for_mem, score)
+        feats, pos = self._prompted_memory(enc, filled, score)
         bank = self._bank(obj_id)
         if bank.maskmem_pos is None:
             bank.maskmem_pos = pos
         ptr = obj_ptr[ptr_plane] if obj_ptr is not None else np.zeros(cfg.hidden_dim, np.float32)
-        if cfg.memory_bfloat16:
-            feats = round_bfloat16(feats)
         bank.add_conditioning(frame, FrameMemory(feats, ptr.copy(), score, filled))
         bank.kept.discard(frame)
 

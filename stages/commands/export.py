@@ -48,29 +48,6 @@ def _size(path) -> int:
     return dir_size(path) if path.is_dir() else (path.stat().st_size if path.exists() else 0)
 
 
-def _turntables(seg_dir, dataset_dir, poses_dir, dst, frames: int) -> list[str]:
-    """Orbit GIFs of the object alone and of the scene without it (cobgs.turntable), around
-    the object's centre, from the scene's training cameras; returns the files written."""
-    from pathlib import Path
-
-    from cobgs.ply import load_ply
-    from cobgs.turntable import object_center, orbit_cameras, render_turntable, write_animation
-    from stages._common import load_scene
-
-    seg_dir, dst = Path(seg_dir), Path(dst)
-    scene = load_scene(Path(dataset_dir), Path(poses_dir) if poses_dir else None)
-    obj = load_ply(seg_dir / "object.ply")
-    if len(obj) == 0:
-        return []
-    cams = orbit_cameras([v.camera for v in scene.train], object_center(obj), n_frames=frames)
-    dst.mkdir(parents=True, exist_ok=True)
-    out = []
-    for name, model in (("turntable_object.gif", obj), ("turntable_removed.gif", load_ply(seg_dir / "background.ply"))):
-        write_animation(render_turntable(model, cams, scene.background), dst / name)
-        out.append(name)
-    return out
-
-
 def export(workflow, cache_dir, to, stream=None, ply: bool = True, turntables: int = 0) -> dict:
     """Copy the exports of ``workflow`` (a loaded :class:`pipeline.Workflow`) from
     ``cache_dir`` into ``to``; returns the record written to ``export.json``.
@@ -138,16 +115,23 @@ def export(workflow, cache_dir, to, stream=None, ply: bool = True, turntables: i
             _copy(src, dst)
             copied.append({"file": rel.as_posix(), "stage": rec.stage, "item": rec.item.id,
                            "entry": str(src.parent)})
-        for rec in segments if turntables else ():
+        from stages._common import scene_cameras, segment_turntables
+
+        cameras: dict = {}  # scene -> (cameras, background): each scene loaded once
+        for rec in segments if turntables > 0 else ():
             v = rec.item.values
             sc = scenes.get(v.get("scene"), {})
             if "dataset" not in sc:
                 continue
+            if v.get("scene") not in cameras:
+                poses = sc["sfm"].output("poses") if "sfm" in sc else None
+                cameras[v.get("scene")] = scene_cameras(sc["dataset"].output("dataset"), poses)
+            refs, bg = cameras[v.get("scene")]
             rel = Path(v.get("scene"), v.get("method"), v.get("object"))
-            poses = sc["sfm"].output("poses") if "sfm" in sc else None
-            for name in _turntables(rec.output("segmentation"), sc["dataset"].output("dataset"), poses,
-                                    tmp / rel, turntables):
-                copied.append({"file": (rel / name).as_posix(), "stage": "segment", "item": rec.item.id,
+            names = {k: f"turntable_{k}.gif" for k in ("object", "removed")}
+            for kind in segment_turntables(rec.output("segmentation"), refs, bg, turntables,
+                                           {k: tmp / rel / n for k, n in names.items()}):
+                copied.append({"file": (rel / names[kind]).as_posix(), "stage": "segment", "item": rec.item.id,
                                "entry": "rendered by cobgs.turntable"})
         record.update(copied=copied)
         (tmp / "export.json").write_text(json.dumps(record, indent=1))
@@ -227,6 +211,8 @@ def _print_summary(path: str, dest: str) -> None:
 
 
 def register(sub) -> None:
+    from . import frame_count
+
     p = sub.add_parser("export", help="copy a workflow's PLYs, metrics and summary out of the cache",
                        description="Copy the trained scene, refined scene, object and background PLYs, "
                        "metrics and summary of every finished task of WORKFLOW into DIR "
@@ -237,7 +223,7 @@ def register(sub) -> None:
     p.add_argument("--cache-dir", default=None, help="cache folder (default: $COBGS_CACHE_DIR or ./runs/cache)")
     p.add_argument("--no-ply", action="store_true",
                    help="metrics, masks and summary only: leave the PLYs in the cache (large workflows)")
-    p.add_argument("--turntables", type=int, default=0, metavar="N",
+    p.add_argument("--turntables", type=frame_count, default=0, metavar="N",
                    help="per object, N-frame orbit GIFs of the object alone and of the scene without it "
                         "(rendered on the CPU; 0 = none)")
     p.set_defaults(func=_run)

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 
 def register(sub) -> None:
+    from . import frame_count
+
     p = sub.add_parser("report", help="build the HTML report of a workflow from its cache",
                        description="Build the HTML result report of a workflow from the cache "
                        "manifests and artifacts (nothing is recomputed). Default folder: "
@@ -19,7 +21,7 @@ def register(sub) -> None:
     p.add_argument("--cache-dir", help="cache folder (default: $COBGS_CACHE_DIR, else ./runs/cache)")
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
                    help="the same overrides the run used (they select its cache entries)")
-    p.add_argument("--turntables", type=int, default=0, metavar="N",
+    p.add_argument("--turntables", type=frame_count, default=0, metavar="N",
                    help="per method and object, N-frame orbit GIFs of the object alone and of the scene "
                         "without it (rendered on the CPU while building; 0 = none)")
     p.set_defaults(func=_report)

@@ -80,21 +80,28 @@ def ours(leaves, width, height):
                            background=bg).image
 
 
-def gsplat_torch(leaves, width, height):
+def _gsplat_project_and_bin(tensors, width, height):
+    """gsplat's PyTorch projection (eps2d 0.3) and sorted 16 px tile intersection:
+    (means2d, conics, tile offsets, flat ids)."""
     from gsplat.cuda import _torch_impl as g
 
-    means, quats, scales, opacities, features, viewmat, K = leaves
+    means, quats, scales, opacities, features, viewmat, K = tensors
     covars, _ = g._quat_scale_to_covar_preci(quats, scales, compute_covar=True, compute_preci=False,
                                              triu=False)
     radii, means2d, depths, conics, _ = g._fully_fused_projection(
         means, covars, viewmat[None], K[None], width, height, eps2d=0.3)
     tw, th = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
     _, isect_ids, flatten_ids = g._isect_tiles(means2d, radii, depths, TILE, tw, th)
-    offsets = g._isect_offset_encode(isect_ids, 1, tw, th)
-    colors = features[None]
-    op = opacities[None]
-    image, alpha = g._rasterize_to_pixels(means2d, conics, colors, op, width, height, TILE, offsets,
-                                          flatten_ids, backgrounds=torch.full((1, 3), 0.5))
+    return means2d, conics, g._isect_offset_encode(isect_ids, 1, tw, th), flatten_ids
+
+
+def gsplat_torch(leaves, width, height):
+    from gsplat.cuda import _torch_impl as g
+
+    features, opacities = leaves[4], leaves[3]
+    means2d, conics, offsets, flatten_ids = _gsplat_project_and_bin(leaves, width, height)
+    image, alpha = g._rasterize_to_pixels(means2d, conics, features[None], opacities[None], width, height, TILE,
+                                          offsets, flatten_ids, backgrounds=torch.full((1, 3), 0.5))
     return image[0]
 
 
@@ -107,16 +114,8 @@ def ours_binning(tensors, width, height):
 
 
 def gsplat_binning(tensors, width, height):
-    from gsplat.cuda import _torch_impl as g
-
-    means, quats, scales, opacities, features, viewmat, K = tensors
-    covars, _ = g._quat_scale_to_covar_preci(quats, scales, compute_covar=True, compute_preci=False,
-                                             triu=False)
-    radii, means2d, depths, conics, _ = g._fully_fused_projection(
-        means, covars, viewmat[None], K[None], width, height, eps2d=0.3)
-    tw, th = (width + TILE - 1) // TILE, (height + TILE - 1) // TILE
-    _, isect_ids, flatten_ids = g._isect_tiles(means2d, radii, depths, TILE, tw, th)
-    return g._isect_offset_encode(isect_ids, 1, tw, th), flatten_ids
+    _, _, offsets, flatten_ids = _gsplat_project_and_bin(tensors, width, height)
+    return offsets, flatten_ids
 
 
 def timed_fwd(fn, tensors, width, height, reps: int):

@@ -278,6 +278,9 @@ def test_export_turntables(tiny, tmp_path):
             first = np.asarray(im.convert("RGB"))
         h, w = first.shape[:2]
         assert first[h // 4:3 * h // 4, w // 4:3 * w // 4].mean() > first.mean() * 0.9 > 0  # the object, centred
+    with pytest.raises(SystemExit) as exit_:  # a negative count is refused by the parser, nothing written
+        main(["export", str(path), "--to", str(tmp_path / "neg"), "--cache-dir", str(cache), "--turntables", "-1"])
+    assert exit_.value.code == 2 and not (tmp_path / "neg").exists()
 
 
 def test_report_turntables(tiny, tmp_path):
