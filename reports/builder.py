@@ -39,7 +39,8 @@ def default_out_dir(workflow) -> Path:
 
 def build_report(workflow_path: os.PathLike | str, out_dir: Optional[os.PathLike | str] = None,
                  cache_dir: Optional[os.PathLike | str] = None, sets: Iterable[str] = (),
-                 registry=None, stream=None, turntables: int = 0) -> Path:
+                 registry=None, stream=None, turntables: int = 0, viewer: bool = True,
+                 viewer_mb: Optional[float] = None) -> Path:
     """Build the report of a workflow from its cache; returns the path of ``index.html``.
 
     Args:
@@ -51,6 +52,10 @@ def build_report(workflow_path: os.PathLike | str, out_dir: Optional[os.PathLike
         stream: where to print progress lines (None: quiet).
         turntables: frames of an orbit GIF per method and object (object alone, scene
             without it; rendered on the CPU while building): 0 = none.
+        viewer: embed the 3D splat viewers (quantised Gaussians of every segmentation,
+            ``static/viewer.js``); False for a small report.
+        viewer_mb: cap of the viewer payload per scene in MB (default
+            :data:`reports.viewer.DEFAULT_MAX_MB`); a scene over it is subsampled.
     """
     from pipeline import load_workflow
     from pipeline.commands import default_cache_dir
@@ -70,7 +75,7 @@ def build_report(workflow_path: os.PathLike | str, out_dir: Optional[os.PathLike
     t0 = time.perf_counter()
     data = collect(wf, cache)
     try:
-        publish_folder(out, lambda tmp: _write(data, tmp, sets, turntables), MARKER, "report")
+        publish_folder(out, lambda tmp: _write(data, tmp, sets, turntables, viewer, viewer_mb), MARKER, "report")
     except DestinationError as exc:
         raise ReportError(str(exc)) from None
     if stream is not None:
@@ -160,14 +165,17 @@ def _env():
     return env
 
 
-def _write(data: RunData, root: Path, sets: list[str], turntables: int = 0) -> None:
+def _write(data: RunData, root: Path, sets: list[str], turntables: int = 0, viewer: bool = True,
+           viewer_mb: Optional[float] = None) -> None:
     from . import meta
+    from .viewer import DEFAULT_MAX_MB, viewer_sets
 
     logs = _Logs(root)
     infos = R.method_infos(data)
     ref = R.reference_method(infos)
     tables = result_tables(data, infos, logs)
     pictures = picture_sets(data, infos, root, turntables)
+    viewers = viewer_sets(data, pictures, root, DEFAULT_MAX_MB if viewer_mb is None else viewer_mb) if viewer else {}
     plots = _plots(data, infos, tables["raw"]["by_method"], tables["raw"]["by_scene_method"], root)
     stage_table, task_table = detail_tables(data, ref, logs)
     failures = []
@@ -193,7 +201,7 @@ def _write(data: RunData, root: Path, sets: list[str], turntables: int = 0) -> N
     (root / "workflow.toml").write_text(run["workflow"]["text"], encoding="utf-8")
     ctx = {
         "run": run, "env": env_info, "infos": infos, "reference": ref, "tables": tables, "pictures": pictures,
-        "picture_scenes": _by_scene(pictures),
+        "picture_scenes": _by_scene(pictures), "viewers": viewers,
         "plots": plots, "stage_table": stage_table, "task_table": task_table, "failures": failures,
         "waiting": waiting, "eval_gaps": eval_gaps, "stages": meta.stage_records(data), "kind_labels": KIND_LABELS,
         "methods": data.methods, "n_results": len(data.results), "n_ok": sum(r.ok for r in data.results),

@@ -24,7 +24,25 @@ def register(sub) -> None:
     p.add_argument("--turntables", type=frame_count, default=0, metavar="N",
                    help="per method and object, N-frame orbit GIFs of the object alone and of the scene "
                         "without it (rendered on the CPU while building; 0 = none)")
+    p.add_argument("--no-viewer", action="store_true",
+                   help="leave out the interactive 3D viewers (and their embedded Gaussians): a small report")
+    p.add_argument("--viewer-mb", type=_megabytes, default=None, metavar="MB",
+                   help="cap of the embedded Gaussians per scene, in MB (default 8); a scene over it is "
+                        "subsampled, most opaque x largest Gaussians first, and the page says so")
     p.set_defaults(func=_report)
+
+
+def _megabytes(text: str) -> float:
+    import argparse
+    import math
+
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not (v > 0 and math.isfinite(v)):
+        raise argparse.ArgumentTypeError(f"expected a size in MB > 0, got {text!r}")
+    return v
 
 
 def _report(args) -> int:
@@ -35,7 +53,8 @@ def _report(args) -> int:
 
     try:
         index = build_report(args.workflow, out_dir=args.out, cache_dir=args.cache_dir, sets=args.sets,
-                             stream=sys.stdout, turntables=args.turntables)
+                             stream=sys.stdout, turntables=args.turntables,
+                             viewer=not args.no_viewer, viewer_mb=args.viewer_mb)
     except PipelineError as exc:  # bad workflow or --set: the engine's message names the key
         print(f"cobgs report: error: {exc}", file=sys.stderr)
         return 2

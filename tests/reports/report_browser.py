@@ -21,10 +21,15 @@ from pathlib import Path
 from typing import Any, Optional
 
 CHROMIUM = os.environ.get("COBGS_CHROMIUM", "/usr/bin/chromium")
-FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+FLAGS = ("--headless", "--no-sandbox", "--disable-quic", "--no-first-run",
          "--disable-background-networking", "--disable-component-update", "--disable-sync",
          "--disable-extensions", "--hide-scrollbars", "--mute-audio",
          "--allow-file-access-from-files", "--remote-debugging-pipe")
+
+
+#: WebGL without a GPU: ANGLE on SwiftShader, Chromium's CPU implementation of Vulkan / GLES
+WEBGL_FLAGS = ("--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist")
+NO_GPU_FLAGS = ("--disable-gpu",)
 
 
 class BrowserError(RuntimeError):
@@ -37,11 +42,13 @@ class Browser:
     Args:
         width_px, height_px: viewport size.
         timeout_s: limit for any single protocol call or page load.
+        webgl: start with WebGL on SwiftShader (else with the GPU process disabled).
     """
 
     def __init__(self, width_px: int = 1280, height_px: int = 900, timeout_s: float = 45.0,
-                 binary: str = CHROMIUM):
+                 binary: str = CHROMIUM, webgl: bool = False):
         self.width_px, self.height_px, self.timeout_s, self.binary = width_px, height_px, timeout_s, binary
+        self.flags = FLAGS + (WEBGL_FLAGS if webgl else NO_GPU_FLAGS)
         self.events: list[dict] = []
         self._next_id = 0
         self._buf = b""
@@ -73,7 +80,7 @@ class Browser:
 
         self._log = open(Path(self._profile) / "chromium.log", "wb")
         self._proc = subprocess.Popen(
-            [self.binary, *FLAGS, f"--user-data-dir={self._profile}",
+            [self.binary, *self.flags, f"--user-data-dir={self._profile}",
              f"--window-size={self.width_px},{self.height_px}", "about:blank"],
             preexec_fn=wire_fds, close_fds=False, stdin=subprocess.DEVNULL, stdout=self._log,
             stderr=subprocess.STDOUT)
