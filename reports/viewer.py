@@ -170,3 +170,22 @@ def _subset(model, index):
     d = model.data
     return GaussianModel(d["means"][index], d["log_scales"][index], d["quats"][index], d["opacity_logits"][index],
                          d["sh0"][index], d["shN"][index])
+
+
+def embedded(report_dir: Path, record: dict) -> tuple[dict, bytes]:
+    """(header, payload) of one embedded model, read back from a built report: what the
+    page's viewer decodes (for tests and benchmarks)."""
+    text = (Path(report_dir) / record["src"]).read_text(encoding="ascii")
+    head = "(window.COBGS_SPLATS = window.COBGS_SPLATS || {})[" + json.dumps(record["key"]) + '] = "'
+    if not text.startswith(head) or not text.rstrip().endswith('";'):
+        raise ValueError(f"{record['src']}: not a viewer data file of {record['key']!r}")
+    return record["header"], base64.b64decode(text[len(head):text.rstrip().rindex('"')])
+
+
+def configs(report_dir: Path) -> list[dict]:
+    """The viewer configurations embedded in a built report's index.html."""
+    import re
+
+    page = (Path(report_dir) / "index.html").read_text(encoding="utf-8")
+    return [json.loads(m) for m in
+            re.findall(r'<script type="application/json" class="viewer-data">(.*?)</script>', page, re.S)]

@@ -19,7 +19,6 @@
 
   var SPLATS = (window.COBGS_SPLATS = window.COBGS_SPLATS || {});
   var NEAR = 0.01, LOWPASS = 0.3, SLACK = 0.3, ROW = 1024;
-  var QMAX = window.COBGS_VIEWER_QMAX || 9.0;
   var MODES = ["object", "removed", "labels", "scene"];
 
   // -- data -------------------------------------------------------------------------------
@@ -188,7 +187,6 @@
     "uniform vec4 lims;", // lim_xp, lim_xn, lim_yp, lim_yn
     "uniform vec2 size;",
     "uniform int mode;",
-    "uniform float qmax;",
     "flat out vec4 vColor;",
     "flat out vec3 vConic;",
     "flat out vec2 vCenter;",
@@ -218,8 +216,10 @@
     "  vec2 m = vec2(intr.x * rx + intr.z, intr.y * ry + intr.w);",
     "  if (m.x + r <= 0.0 || m.x - r >= size.x || m.y + r <= 0.0 || m.y - r >= size.y) return;",
     // The quad: the rectangle along the ellipse's axes that holds every pixel centre with
-    // alpha >= 1/255 (q = d^T conic d <= 2 ln(255 opacity)), capped at qmax (3 sigma: 9).
-    "  float q = min(2.0 * log(255.0 * t0.w), qmax);",
+    // alpha >= 1/255 (q = d^T conic d <= 2 ln(255 opacity)). No 3-sigma cap: the
+    // rasterizer draws those pixels too wherever the tiles of its 3-sigma square reach
+    // (measured on the demo scene: a 3-sigma cap doubled the mean error, for 7% more fps).
+    "  float q = 2.0 * log(255.0 * t0.w);",
     "  if (!(q > 0.0)) return;",
     "  float disc = sqrt(max(0.0, mid * mid - det));",
     "  float l1 = mid + disc, l2 = max(mid - disc, 0.0);",
@@ -257,6 +257,21 @@
     "}",
   ].join("\n");
 
+  // Copies the float accumulation target to the canvas (one full-screen triangle).
+  var COPY_VS = "#version 300 es\nvoid main() { vec2 p = vec2(gl_VertexID == 1 ? 3.0 : -1.0, gl_VertexID == 2 ? 3.0 : -1.0);" +
+    " gl_Position = vec4(p, 0.0, 1.0); }";
+  var COPY_FS = "#version 300 es\nprecision highp float; uniform sampler2D acc; out vec4 frag;" +
+    " void main() { frag = vec4(texelFetch(acc, ivec2(gl_FragCoord.xy), 0).rgb, 1.0); }";
+
+  function program(gl, vs, fs) {
+    var prog = gl.createProgram();
+    gl.attachShader(prog, compile(gl, gl.VERTEX_SHADER, vs));
+    gl.attachShader(prog, compile(gl, gl.FRAGMENT_SHADER, fs));
+    gl.linkProgram(prog);
+    if (!gl.getProgramParameter(prog, gl.LINK_STATUS)) throw new Error("program: " + gl.getProgramInfoLog(prog));
+    return prog;
+  }
+
   function compile(gl, type, src) {
     var s = gl.createShader(type);
     gl.shaderSource(s, src);
@@ -273,15 +288,22 @@
     this.gl = gl;
     this.canvas = canvas;
     this.background = background;
-    var prog = gl.createProgram();
-    gl.attachShader(prog, compile(gl, gl.VERTEX_SHADER, VS));
-    gl.attachShader(prog, compile(gl, gl.FRAGMENT_SHADER, FS));
-    gl.linkProgram(prog);
-    if (!gl.getProgramParameter(prog, gl.LINK_STATUS)) throw new Error("program: " + gl.getProgramInfoLog(prog));
+    var prog = program(gl, VS, FS);
     this.prog = prog;
+    // Blending into a half-float target, then one copy to the 8-bit canvas: blending in the
+    // canvas itself rounds every layer to 1/255 (measured on the demo scene: mean error
+    // 0.76 levels against the rasterizer, 0.06 with the float target).
+    this.floatTarget = !!gl.getExtension("EXT_color_buffer_float");
+    if (this.floatTarget) {
+      this.copyProg = program(gl, COPY_VS, COPY_FS);
+      this.copyLoc = gl.getUniformLocation(this.copyProg, "acc");
+      this.accTex = gl.createTexture();
+      this.fbo = gl.createFramebuffer();
+      this.accSize = [0, 0];
+    }
     this.loc = {};
     var self = this;
-    ["splats", "order", "view", "intr", "lims", "size", "mode", "qmax"].forEach(function (u) { self.loc[u] = gl.getUniformLocation(prog, u); });
+    ["splats", "order", "view", "intr", "lims", "size", "mode"].forEach(function (u) { self.loc[u] = gl.getUniformLocation(prog, u); });
     this.vao = gl.createVertexArray();  // no attributes: the vertex shader reads textures
     this.order = gl.createTexture();
     this.orderRows = 0;
@@ -316,12 +338,46 @@
     this.count = order.length;
   };
   // cam: {w2c: 16 numbers row-major (OpenCV axes), K: [fx, fy, cx, cy]} at the canvas size
+  Canvas.prototype.target = function (w, h) {
+    var gl = this.gl;
+    if (!this.floatTarget) return;
+    if (this.accSize[0] !== w || this.accSize[1] !== h) {
+      gl.bindTexture(gl.TEXTURE_2D, this.accTex);
+      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
+      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+      gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA16F, w, h, 0, gl.RGBA, gl.HALF_FLOAT, null);
+      gl.bindFramebuffer(gl.FRAMEBUFFER, this.fbo);
+      gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, this.accTex, 0);
+      if (gl.checkFramebufferStatus(gl.FRAMEBUFFER) !== gl.FRAMEBUFFER_COMPLETE) {
+        this.floatTarget = false;  // not renderable here: blend in the canvas
+        gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+        return;
+      }
+      this.accSize = [w, h];
+    }
+    gl.bindFramebuffer(gl.FRAMEBUFFER, this.fbo);
+  };
   Canvas.prototype.draw = function (key, cam, mode) {
     var gl = this.gl, w = this.canvas.width, h = this.canvas.height, bg = this.background;
+    this.target(w, h);
     gl.viewport(0, 0, w, h);
     gl.clearColor(bg[0], bg[1], bg[2], 1);
     gl.clear(gl.COLOR_BUFFER_BIT);
-    if (!this.textures[key] || !this.count) return;
+    if (this.textures[key] && this.count) this.splat(key, cam, mode, w, h);
+    if (this.floatTarget) {
+      gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+      gl.disable(gl.BLEND);
+      gl.useProgram(this.copyProg);
+      gl.activeTexture(gl.TEXTURE0);
+      gl.bindTexture(gl.TEXTURE_2D, this.accTex);
+      gl.uniform1i(this.copyLoc, 0);
+      gl.bindVertexArray(this.vao);
+      gl.drawArrays(gl.TRIANGLES, 0, 3);
+      gl.bindVertexArray(null);
+    }
+  };
+  Canvas.prototype.splat = function (key, cam, mode, w, h) {
+    var gl = this.gl;
     gl.useProgram(this.prog);
     gl.enable(gl.BLEND);
     gl.blendFunc(gl.ONE, gl.ONE_MINUS_SRC_ALPHA);
@@ -340,7 +396,6 @@
                  (h - K[3]) / K[1] + SLACK * 0.5 * h / K[1], K[3] / K[1] + SLACK * 0.5 * h / K[1]);
     gl.uniform2f(this.loc.size, w, h);
     gl.uniform1i(this.loc.mode, MODES.indexOf(mode));
-    gl.uniform1f(this.loc.qmax, QMAX);
     gl.bindVertexArray(this.vao);
     gl.drawArrays(gl.TRIANGLES, 0, 6 * this.count);
     gl.bindVertexArray(null);

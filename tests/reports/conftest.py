@@ -40,3 +40,16 @@ def recorded(tmp_path_factory) -> Recorded:
 def report(recorded, tmp_path_factory) -> Path:
     """index.html of the recorded run's report (built once, read by many tests)."""
     return recorded.build(tmp_path_factory.mktemp("report") / "report")
+
+
+@pytest.fixture(scope="session")
+def demo_report(tmp_path_factory) -> Path:
+    """The embedded demo workflow (workflows/demo.toml) run for real (~1 min on 2 cores) and
+    reported with the default options, as `make demo` does (without its turntables)."""
+    from reports import build_report
+    from stages.commands.cli import main
+
+    root = tmp_path_factory.mktemp("demo")
+    workflow = Path(__file__).resolve().parents[2] / "workflows" / "demo.toml"
+    assert main(["run", str(workflow), "--cache-dir", str(root / "cache")]) == 0
+    return build_report(workflow, out_dir=root / "report", cache_dir=root / "cache")
