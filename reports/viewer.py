@@ -139,7 +139,7 @@ def viewer_sets(data, pictures: list, root: Path, max_mb: Optional[float] = DEFA
                 dst.parent.mkdir(parents=True, exist_ok=True)
                 dst.write_text("(window.COBGS_SPLATS = window.COBGS_SPLATS || {})[" + json.dumps(key) + "] = \""
                                + base64.b64encode(payload).decode("ascii") + "\";\n", encoding="ascii")
-                n_obj_kept = int(header["count"] if keep is None else (keep < n_obj).sum())
+                n_obj_kept = n_obj if keep is None else int((keep < n_obj).sum())
                 models[mp.method] = {"src": rel, "key": key, "header": header, "total": len(model),
                                      "object_total": n_obj, "object_kept": n_obj_kept, "bytes": len(payload)}
                 methods.append((mp.method, mp.label))

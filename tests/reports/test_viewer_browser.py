@@ -187,3 +187,42 @@ def test_report_size(demo_report):
     total = sum(p.stat().st_size for p in demo_report.parent.rglob("*") if p.is_file())
     viewer = sum(p.stat().st_size for p in (demo_report.parent / "viewer").rglob("*") if p.is_file())
     assert viewer > 0 and total < 20e6, (total, viewer)
+
+
+def test_touch_orbits_and_pinch_zooms(viewer_page):
+    """Touch input (pointer events from touches): one finger orbits, two fingers pinching
+    apart zoom in."""
+    _start(viewer_page)
+    v = "window.cobgsViewers[0]"
+    viewer_page.eval(f"{v}.setCamera(0)")
+    viewer_page.call("Emulation.setTouchEmulationEnabled", {"enabled": True, "maxTouchPoints": 2})
+    try:
+        x, y = viewer_page.eval("(function(){var r=document.querySelector('details.viewer .viewer-side.left canvas')"
+                                ".getBoundingClientRect(); return [r.left + r.width / 2, r.top + r.height / 2];})()")
+        start = viewer_page.eval(f"{v}.w2c")
+
+        def touch(kind, points):
+            viewer_page.call("Input.dispatchTouchEvent", {"type": kind, "touchPoints": [
+                {"x": px, "y": py, "id": i} for i, (px, py) in enumerate(points)]})
+
+        touch("touchStart", [(x, y)])
+        for k in range(1, 5):
+            touch("touchMove", [(x + 10 * k, y)])
+        touch("touchEnd", [])
+        assert np.abs(np.subtract(viewer_page.eval(f"{v}.w2c"), start)).max() > 1e-3
+
+        def dist():
+            return viewer_page.eval(f"(function(){{var m={v}.w2c, t={v}.target;"
+                                    "var c=[-(m[0]*m[3]+m[4]*m[7]+m[8]*m[11]),-(m[1]*m[3]+m[5]*m[7]+m[9]*m[11]),"
+                                    "-(m[2]*m[3]+m[6]*m[7]+m[10]*m[11])];"
+                                    "return Math.hypot(c[0]-t[0],c[1]-t[1],c[2]-t[2]);})()")
+
+        d0 = dist()
+        touch("touchStart", [(x - 20, y), (x + 20, y)])
+        for k in range(1, 5):
+            touch("touchMove", [(x - 20 - 10 * k, y), (x + 20 + 10 * k, y)])
+        touch("touchEnd", [])
+        assert dist() < d0 * 0.8
+    finally:
+        viewer_page.call("Emulation.setTouchEmulationEnabled", {"enabled": False})
+    assert viewer_page.errors() == []

@@ -307,6 +307,61 @@ def test_report_turntables(tiny, tmp_path):
     assert not list((tmp_path / "r2" / "img").rglob("*.gif"))
 
 
+def test_report_viewer_data_cap_and_opt_out(tiny, tmp_path):
+    """The report embeds, per object and method, the segmentation as quantised Gaussians
+    (object.ply then background.ply, labelled 1 / 0); --viewer-mb subsamples a scene over
+    the cap, most opaque x largest first, and says so; --no-viewer embeds nothing."""
+    import numpy as np
+
+    from cobgs import splat_pack
+    from cobgs.ply import load_ply
+    from reports.viewer import configs, embedded
+    from stages.commands.cli import main
+
+    path, cache, wf, _ = tiny
+    out = tmp_path / "r"
+    assert main(["report", str(path), "--cache-dir", str(cache), "--out", str(out)]) == 0
+    html = (out / "index.html").read_text()
+    assert '<script src="static/viewer.js"></script>' in html and (out / "static" / "viewer.js").is_file()
+    cfgs = configs(out)
+    assert len(cfgs) == 1  # one per scene x object
+    total = 0
+    for obj, cfg in zip(["ball"], cfgs):
+        assert sorted(cfg["models"]) == ["cobgs", "nosplit"] and (cfg["left"], cfg["right"]) == ("cobgs", "nosplit")
+        assert len(cfg["cameras"]) == 14 and abs(np.linalg.norm(cfg["up"]) - 1) < 1e-9  # the training cameras
+        for method, rec in cfg["models"].items():
+            seg = _entry(wf, cache, "segment", f"tiny/{method}/{obj}").output("segmentation")
+            n_obj, n_bg = len(load_ply(seg / "object.ply")), len(load_ply(seg / "background.ply"))
+            header, payload = embedded(out, rec)
+            d = splat_pack.unpack(header, payload)
+            assert header["count"] == n_obj + n_bg and rec["object_kept"] == n_obj
+            assert d["labels"][:n_obj].all() and not d["labels"][n_obj:].any()
+            assert np.allclose(d["means"][:n_obj], load_ply(seg / "object.ply").data["means"].detach().numpy(),
+                               atol=1e-3)
+            total += len(payload)
+    assert "Subsampled" not in html
+    # a cap at a third of the payload: every model keeps the same share, the page says so
+    cap_mb = total / 3 / 1e6
+    small = tmp_path / "small"
+    assert main(["report", str(path), "--cache-dir", str(cache), "--out", str(small), "--viewer-mb",
+                 f"{cap_mb:.6f}"]) == 0
+    kept = 0
+    for cfg in configs(small):
+        for method, rec in cfg["models"].items():
+            header, payload = embedded(small, rec)
+            assert header["count"] < rec["total"] and abs(header["count"] / rec["total"] - 1 / 3) < 0.02
+            kept += len(payload)
+    assert kept <= cap_mb * 1e6 + 21 * 6
+    assert "Subsampled" in (small / "index.html").read_text()
+    bare = tmp_path / "bare"
+    assert main(["report", str(path), "--cache-dir", str(cache), "--out", str(bare), "--no-viewer"]) == 0
+    assert not (bare / "viewer").exists() and "viewer.js" not in (bare / "index.html").read_text()
+    assert configs(bare) == []
+    with pytest.raises(SystemExit) as exit_:
+        main(["report", str(path), "--cache-dir", str(cache), "--out", str(tmp_path / "x"), "--viewer-mb", "0"])
+    assert exit_.value.code == 2 and not (tmp_path / "x").exists()
+
+
 def test_export_replaces_the_folder_as_a_whole(tiny, tmp_path, monkeypatch):
     """An export interrupted mid-copy leaves the previous export untouched (no mix of new
     and old files, no temporary file), leftovers of killed exports are cleaned (and an old
