@@ -30,6 +30,7 @@ HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
 sys.path.insert(0, str(ROOT / "tests" / "reports"))
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
 
 from report_browser import Browser  # noqa: E402
 
@@ -54,6 +55,48 @@ def _reference(report_dir: Path, cfg: dict, method: str, mode: str, cam_index: i
     from test_viewer_browser import _reference as ref
 
     return ref(report_dir, cfg, method, mode, cam_index)
+
+
+def _packing_cost(report: Path, cfgs: list, cache_dir: str) -> list:
+    """What the embedding itself costs, by cobgs.rasterize alone at training camera 0 (whole
+    refined scene): the original PLYs with their SH bands vs degree 0 (the viewer's SH
+    truncation), and vs the decoded 21-byte Gaussians (truncation + quantisation)."""
+    import torch
+
+    from cobgs import splat_pack
+    from cobgs.gaussians import CORE, GaussianModel
+    from cobgs.metrics import psnr
+    from cobgs.ply import load_ply
+    from cobgs.render import render_image
+    from pipeline import load_workflow
+    from reports.collect import collect
+    from reports.viewer import embedded
+    from stages.registry import load_registry
+    from test_viewer_browser import _camera
+
+    if not Path(cache_dir).is_dir():
+        return ["", f"(packing cost not measured: no cache at {cache_dir})"]
+    data = collect(load_workflow(ROOT / "workflows" / "demo.toml", load_registry()), Path(cache_dir))
+    out = ["", "What the embedding costs (cobgs.rasterize alone, training camera 0, whole refined scene; "
+           "PSNR in dB against the original Gaussians with all their SH bands):", "",
+           "| viewer | method | Gaussians | degree 0 (SH truncation) | decoded 21-byte (truncation + quantisation) |",
+           "|---|---|---|---|---|"]
+    for cfg in cfgs:
+        for method, rec in cfg["models"].items():
+            scene, obj_name = rec["key"].split("/")[:2]
+            r = next((r for r in data.results if (r.scene, r.object, r.method) == (scene, obj_name, method)), None)
+            if r is None or r.segment_dir is None:
+                continue
+            parts = [load_ply(Path(r.segment_dir) / f) for f in ("object.ply", "background.ply")]
+            merged = GaussianModel(*[torch.cat([p.data[k].detach() for p in parts]) for k in CORE])
+            cam, bg = _camera(cfg, 0), cfg["background"]
+            ref = render_image(merged, cam, bg).clamp(0, 1)
+            deg0 = render_image(merged, cam, bg, sh_degree=0).clamp(0, 1)
+            header, payload = embedded(report, rec)
+            dec = render_image(splat_pack.unpacked_model(header, payload), cam, bg).clamp(0, 1)
+            out.append(f"| {cfg['id']} | {method} | {header['count']:,} | {float(psnr(deg0, ref)):.2f} | "
+                       f"{float(psnr(dec, ref)):.2f} |")
+    return out
 
 
 def main(argv=None) -> int:
@@ -129,6 +172,7 @@ def main(argv=None) -> int:
               "| viewer | mode | method | mean abs diff | p99.9 | max |", "|---|---|---|---|---|---|"]
     lines += ["| " + " | ".join(r) + " |" for r in acc]
     lines += ["", f"Console errors: {errors or 'none'}"]
+    lines += _packing_cost(report, cfgs, args.cache_dir)
     text = "\n".join(lines)
     print(text)
     if args.write:

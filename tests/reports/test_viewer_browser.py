@@ -55,7 +55,6 @@ def _reference(report_dir: Path, config: dict, method: str, mode: str, cam_index
     import torch
 
     from cobgs import splat_pack
-    from cobgs.camera import Camera
     from cobgs.render import render_image
     from reports.viewer import _subset, embedded
 
@@ -63,12 +62,21 @@ def _reference(report_dir: Path, config: dict, method: str, mode: str, cam_index
     model = splat_pack.unpacked_model(header, payload)
     labels = splat_pack.unpack(header, payload)["labels"]
     keep = {"object": labels == 1, "removed": labels != 1}.get(mode, np.ones(len(labels), bool))
-    c = config["cameras"][cam_index]
-    K = torch.tensor([[c["K"][0], 0, c["K"][2]], [0, c["K"][1], c["K"][3]], [0, 0, 1]], dtype=torch.float32)
-    cam = Camera(K=K, viewmat=torch.tensor(c["w2c"], dtype=torch.float32).reshape(4, 4), width=c["w"],
-                 height=c["h"], name=c["name"])
-    img = render_image(_subset(model, torch.from_numpy(np.nonzero(keep)[0])), cam, config["background"])
+    img = render_image(_subset(model, torch.from_numpy(np.nonzero(keep)[0])), _camera(config, cam_index),
+                       config["background"])
     return (img.clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
+
+
+def _camera(config: dict, index: int):
+    """The viewer configuration's training camera ``index`` as a cobgs Camera."""
+    import torch
+
+    from cobgs.camera import Camera
+
+    c = config["cameras"][index]
+    K = torch.tensor([[c["K"][0], 0, c["K"][2]], [0, c["K"][1], c["K"][3]], [0, 0, 1]], dtype=torch.float32)
+    return Camera(K=K, viewmat=torch.tensor(c["w2c"], dtype=torch.float32).reshape(4, 4), width=c["w"],
+                  height=c["h"], name=c["name"])
 
 
 def _start(page, index: int = 0) -> dict:
