@@ -1,0 +1,306 @@
+"""What a whole NVOS-protocol scene costs on a CPU (issue 26): fern at 1008x756, and paper
+Table 6 (prep / opt / seg time and peak memory) for COB-GS and the peers on it.
+
+Run (not collected by pytest), on this repository's venv::
+
+    # 1. SfM + 3DGS training, 30k iterations, checkpointed every 1000: resumable, so the
+    #    hours it takes on 2 cores can be spread over several runs (--budget-s stops one
+    #    cleanly at a checkpoint; the next run continues from the newest).
+    .venv/bin/python tests/benchmarks/bm_cost.py scene --images ../shared/data/llff_fern/images_4 \\
+        --out runs/bm_cost [--iterations 30000] [--budget-s 3600]
+    # 2. Table 6 on a checkpoint of that run (masks written as PNG files, then read back:
+    #    "masks from files"), each method in its own process so that its peak memory is its own.
+    .venv/bin/python tests/benchmarks/bm_cost.py table6 --out runs/bm_cost [--checkpoint ckpt_30000.pt]
+    # 3. The Markdown summary of both.
+    .venv/bin/python tests/benchmarks/bm_cost.py summary --out runs/bm_cost [--write docs/benchmarks/cost_cpu.md]
+
+Logged per 1000 iterations (``train_log.jsonl``): wall and CPU seconds, Gaussian count, the
+load average, which run it belongs to. The object is the Gaussians within a sphere around
+the scene's median point (its masks rendered from the trained scene), as in bm_cuda.py's fern
+run: the NVOS annotations are not available offline, and a refinement's cost does not depend
+on which object it is. Timings use 2 threads with passive OpenMP waiting.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "2")
+os.environ.setdefault("OMP_WAIT_POLICY", "passive")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import resource  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+HERE = Path(__file__).resolve().parent
+ROOT = HERE.parents[1]
+METHODS = ("cobgs", "flashsplat", "sa3d", "nosplit")
+
+
+class _Budget(Exception):
+    pass
+
+
+def _peak_rss() -> int:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def _scene(out: Path, images: Path | None):
+    from cobgs.data.colmap import read_colmap
+    from cobgs.sfm import SfmOptions, run_sfm
+
+    sfm_dir = out / "fern_sfm"
+    rec_path = out / "sfm.json"
+    if not (sfm_dir / "sparse" / "0").is_dir():
+        if images is None:
+            raise SystemExit(f"{sfm_dir}: no SfM yet; pass --images")
+        t, c = time.perf_counter(), time.process_time()
+        res = run_sfm(images, sfm_dir, SfmOptions(matcher="exhaustive", seed=0))
+        rec = {"wall_s": time.perf_counter() - t, "cpu_s": time.process_time() - c,
+               "registered": len(res.registered), "points": res.num_points3d, "peak_rss": _peak_rss()}
+        rec_path.write_text(json.dumps(rec, indent=1))
+        print(f"SfM: {rec['registered']} registered, {rec['points']} points, {rec['wall_s']:.1f} s", flush=True)
+    return read_colmap(sfm_dir, test_every=0)
+
+
+def _config(iterations: int):
+    from cobgs.train import TrainConfig
+
+    return TrainConfig(iterations=iterations, log_interval_its=1000, checkpoint_interval_its=1000)
+
+
+def cmd_scene(args) -> int:
+    import torch
+
+    from cobgs.train import train
+
+    torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
+    out = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    scene = _scene(out, args.images)
+    ckpt_dir = out / "ckpt"
+    ckpt_dir.mkdir(exist_ok=True)
+    done = sorted((int(p.stem.split("_")[1]) for p in ckpt_dir.glob("ckpt_*.pt") if p.stem.split("_")[1].isdigit()))
+    resume = ckpt_dir / f"ckpt_{done[-1]}.pt" if done else None
+    w, h = scene.train[0].camera.width, scene.train[0].camera.height
+    run_id = time.strftime("%Y-%m-%dT%H:%M:%S")
+    print(f"fern: {len(scene.train)} views at {w}x{h}; resuming from {resume.name if resume else 'the start'}",
+          flush=True)
+    cfg = _config(args.iterations)
+    log = (out / "train_log.jsonl").open("a")
+    t_start = time.perf_counter()
+    mark = [time.perf_counter(), time.process_time()]
+
+    def callback(trainer, info):
+        it = trainer.iteration
+        if it % 1000:
+            return
+        now, cpu = time.perf_counter(), time.process_time()
+        rec = {"it": it, "wall_s": now - mark[0], "cpu_s": cpu - mark[1], "gaussians": len(trainer.model),
+               "loss": info["loss"], "psnr": info["psnr"], "load": os.getloadavg()[0], "run": run_id,
+               "width": w, "height": h}
+        mark[0], mark[1] = now, cpu
+        log.write(json.dumps(rec) + "\n")
+        log.flush()
+        left = (args.iterations - it) * rec["wall_s"] / 1000
+        print(f"train it {it}/{args.iterations}: {rec['wall_s']:.1f} s / 1000 its, {rec['gaussians']:,} Gaussians, "
+              f"loss {info['loss']:.4f}, psnr {info['psnr']:.2f}, load {rec['load']:.2f}, "
+              f"ETA {left / 3600:.1f} h at this rate", flush=True)
+        if args.budget_s and now - t_start > args.budget_s and it < args.iterations:
+            trainer.save_checkpoint(ckpt_dir / f"ckpt_{it}.pt")  # train() writes it after us; same content
+            raise _Budget(it)
+
+    try:
+        train(scene, cfg, checkpoint_dir=ckpt_dir, resume=resume, progress=False, evaluate_test=False,
+              callback=callback)
+    except _Budget as b:
+        print(f"stopped at the time budget after iteration {b.args[0]}; run again to continue", flush=True)
+        return 0
+    finally:
+        log.close()
+    print("training complete", flush=True)
+    return 0
+
+
+def _object_masks(model, views):
+    sys.path.insert(0, str(HERE))
+    from bm_cuda import object_masks
+
+    return object_masks(model, views)
+
+
+def _load_checkpoint(scene, path: Path, iterations: int):
+    from cobgs.adam_moments import export_moments
+    from cobgs.train import Trainer
+
+    tr = Trainer(scene, _config(iterations))
+    tr.load_checkpoint(path)
+    return tr.model, export_moments(tr.optimizer)
+
+
+def cmd_table6(args) -> int:
+    """Masks once (PNG files), then every method in a process of its own."""
+    import numpy as np
+    import torch
+    from PIL import Image
+
+    out = args.out
+    scene = _scene(out, None)
+    ckpt = out / "ckpt" / args.checkpoint
+    model, _ = _load_checkpoint(scene, ckpt, args.iterations)
+    mask_dir = out / f"masks_{ckpt.stem}"
+    if not mask_dir.is_dir():
+        masks, n_obj = _object_masks(model, scene.train)
+        tmp = mask_dir.with_name(mask_dir.name + ".part")
+        tmp.mkdir(parents=True, exist_ok=True)
+        for v, m in zip(scene.train, masks):
+            Image.fromarray(m.numpy().astype(np.uint8) * 255).save(tmp / f"{v.name}.png")
+        (tmp / "object.json").write_text(json.dumps({"object_gaussians": n_obj,
+                                                     "coverage": float(torch.stack(masks).float().mean())}))
+        tmp.rename(mask_dir)
+    del model
+    rows = []
+    for method in args.methods.split(","):
+        cmd = [sys.executable, __file__, "_one", "--out", str(out), "--checkpoint", args.checkpoint,
+               "--iterations", str(args.iterations), "--method", method]
+        print(f"{method}: running", flush=True)
+        res = subprocess.run(cmd, capture_output=True, text=True)
+        if res.returncode != 0:
+            print(res.stdout[-2000:], res.stderr[-4000:], file=sys.stderr)
+            return res.returncode
+        rec = json.loads(res.stdout.strip().splitlines()[-1])
+        rows.append(rec)
+        print(f"{method}: prep {rec['prep_s']:.2f} s, opt {rec['opt_s']:.1f} s, seg {rec['seg_ms']:.1f} ms, "
+              f"eval {rec['eval_s']:.1f} s, peak RSS {rec['peak_rss'] / 2**30:.2f} GiB, "
+              f"Gaussians {rec['gaussians_start']:,} -> {rec['gaussians_end']:,}, IoU vs masks {rec['iou']:.3f}",
+              flush=True)
+    with (out / f"table6_{ckpt.stem}.jsonl").open("w") as f:
+        for r in rows:
+            f.write(json.dumps(r) + "\n")
+    return 0
+
+
+def cmd_one(args) -> int:
+    """One method on one checkpoint (run by table6 in a process of its own)."""
+    import numpy as np
+    import torch
+    from PIL import Image
+
+    from cobgs.metrics import iou
+    from cobgs.peers import run_method
+    from cobgs.rasterize import rasterize
+    from cobgs.segment import extract
+
+    torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
+    out = args.out
+    scene = _scene(out, None)
+    ckpt = out / "ckpt" / args.checkpoint
+    model, moments = _load_checkpoint(scene, ckpt, args.iterations)
+    mask_dir = out / f"masks_{ckpt.stem}"
+    # prep: the masks from files, as the masks stage hands them to refine (bool at render size)
+    t = time.perf_counter()
+    masks = []
+    for v in scene.train:
+        with Image.open(mask_dir / f"{v.name}.png") as im:
+            m = np.asarray(im.convert("L")) > 128
+        if m.shape != (v.camera.height, v.camera.width):
+            raise SystemExit(f"{mask_dir}/{v.name}.png: {m.shape} != {(v.camera.height, v.camera.width)}")
+        masks.append(torch.from_numpy(m))
+    prep = time.perf_counter() - t
+    t, c = time.perf_counter(), time.process_time()
+    res = run_method(args.method, model, scene.train, masks, scene.extent, progress=False,
+                     texture_moments=moments, object_name="centre")
+    opt, opt_cpu = time.perf_counter() - t, time.process_time() - c
+    t = time.perf_counter()
+    obj = extract(res, "foreground")
+    seg = time.perf_counter() - t
+    t = time.perf_counter()
+    ious = []
+    with torch.no_grad():
+        for v, m in zip(scene.train, masks):
+            cam = v.camera
+            r = rasterize(obj.means, obj.quats, obj.scales, obj.opacities, torch.ones(len(obj), 1),
+                          cam.viewmat, cam.K, cam.width, cam.height)
+            ious.append(float(iou(r.image[..., 0] > 0.5, m)))
+    ev = time.perf_counter() - t
+    print(json.dumps({"method": args.method, "checkpoint": args.checkpoint, "prep_s": prep, "opt_s": opt,
+                      "opt_cpu_s": opt_cpu, "seg_ms": 1000 * seg, "eval_s": ev, "peak_rss": _peak_rss(),
+                      "gaussians_start": len(model), "gaussians_end": len(res.model), "object": len(obj),
+                      "iou": float(np.mean(ious)), "load": os.getloadavg()[0],
+                      "views": len(scene.train)}))
+    return 0
+
+
+def cmd_summary(args) -> int:
+    out = args.out
+    lines = ["# A whole NVOS-protocol scene on a CPU: fern at 1008x756 (issue 26)", "",
+             "Written by `tests/benchmarks/bm_cost.py summary` from the logs of `bm_cost.py scene` and "
+             "`bm_cost.py table6` (2 threads, this 2-core machine, no GPU).", ""]
+    sfm = out / "sfm.json"
+    if sfm.is_file():
+        s = json.loads(sfm.read_text())
+        lines += [f"SfM (pycolmap, exhaustive matching): {s['wall_s']:.1f} s wall, {s['registered']} registered, "
+                  f"{s['points']:,} points.", ""]
+    log = out / "train_log.jsonl"
+    if log.is_file():
+        recs = [json.loads(x) for x in log.read_text().splitlines() if x.strip()]
+        last = {}
+        for r in recs:  # a chunk logged twice (a run stopped and resumed) counts once: the latest
+            last[r["it"]] = r
+        recs = [last[k] for k in sorted(last)]
+        total = sum(r["wall_s"] for r in recs)
+        lines += [f"3DGS training: {len(recs)} x 1000 iterations logged, {total / 3600:.2f} h of wall time "
+                  f"({sum(r['cpu_s'] for r in recs) / 3600:.2f} h CPU), over {len({r['run'] for r in recs})} run(s).",
+                  "", "| iterations | wall s / 1000 its | Gaussians | PSNR (train view) | load |", "|---|---|---|---|---|"]
+        lines += [f"| {r['it'] - 999}-{r['it']} | {r['wall_s']:.0f} | {r['gaussians']:,} | {r['psnr']:.2f} | "
+                  f"{r['load']:.2f} |" for r in recs]
+        lines.append("")
+    for t6 in sorted(out.glob("table6_*.jsonl")):
+        rows = [json.loads(x) for x in t6.read_text().splitlines() if x.strip()]
+        lines += [f"Paper Table 6 on a CPU, checkpoint `{rows[0]['checkpoint']}` ({rows[0]['gaussians_start']:,} "
+                  f"Gaussians, V = {rows[0]['views']}, masks from PNG files):", "",
+                  "| method | prep | opt | seg | eval (object masks, all views) | peak RSS | Gaussians after | "
+                  "IoU vs the masks |", "|---|---|---|---|---|---|---|---|"]
+        lines += [f"| {r['method']} | {r['prep_s']:.2f} s | {r['opt_s']:.1f} s | {r['seg_ms']:.1f} ms | "
+                  f"{r['eval_s']:.1f} s | {r['peak_rss'] / 2**30:.2f} GiB | {r['gaussians_end']:,} | {r['iou']:.3f} |"
+                  for r in rows]
+        lines.append("")
+    text = "\n".join(lines)
+    print(text)
+    if args.write:
+        args.write.write_text(text + "\n", encoding="utf-8")
+    return 0
+
+
+def main(argv=None) -> int:
+    sys.path.insert(0, str(ROOT))
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = ap.add_subparsers(dest="cmd", required=True)
+    s = sub.add_parser("scene")
+    s.add_argument("--images", type=Path)
+    s.add_argument("--out", type=Path, required=True)
+    s.add_argument("--iterations", type=int, default=30_000)
+    s.add_argument("--budget-s", type=float, default=0.0, help="stop at the first checkpoint after this long")
+    t = sub.add_parser("table6")
+    t.add_argument("--out", type=Path, required=True)
+    t.add_argument("--checkpoint", default="ckpt_final.pt")
+    t.add_argument("--iterations", type=int, default=30_000)
+    t.add_argument("--methods", default=",".join(METHODS))
+    o = sub.add_parser("_one")
+    o.add_argument("--out", type=Path, required=True)
+    o.add_argument("--checkpoint", required=True)
+    o.add_argument("--iterations", type=int, default=30_000)
+    o.add_argument("--method", required=True, choices=METHODS)
+    m = sub.add_parser("summary")
+    m.add_argument("--out", type=Path, required=True)
+    m.add_argument("--write", type=Path)
+    args = ap.parse_args(argv)
+    return {"scene": cmd_scene, "table6": cmd_table6, "_one": cmd_one, "summary": cmd_summary}[args.cmd](args)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
