@@ -549,25 +549,46 @@
   };
 
   // Sort for the current camera (in the workers), then draw; a newer request supersedes.
+  // Redraw for the current camera and mode. One frame at a time: requests that arrive
+  // while a frame is sorting are folded into one next frame with the newest state (a drag
+  // never queues up sorts, and every frame drawn is the camera as it was when it started).
+  // The promise resolves once a frame started after this call has been drawn.
   Viewer.prototype.refresh = function () {
-    var self = this, token = (this.refreshToken = (this.refreshToken || 0) + 1);
+    var self = this, gen = (this.wanted = (this.wanted || 0) + 1);
+    this.waiters = this.waiters || [];
+    var p = new Promise(function (resolve, reject) { self.waiters.push({ gen: gen, resolve: resolve, reject: reject }); });
+    if (!this.looping) this.frame();
+    return p;
+  };
+
+  Viewer.prototype.frame = function () {
+    var self = this, gen = this.wanted;
     var w2c = this.w2c.slice(), mode = this.mode, modeIndex = MODES.indexOf(mode);
     var t0 = performance.now();
-    return Promise.all(this.sides.map(function (s) {
+    this.looping = true;
+    Promise.all(this.sides.map(function (s) {
       var sorter = s.sorters[s.method];
       if (!sorter) return null;
-      return sorter.sort(w2c, modeIndex).then(function (order) { return { side: s, order: order }; });
+      return sorter.sort(w2c, modeIndex).then(function (order) { return { side: s, order: order, method: s.method }; });
     })).then(function (done) {
-      if (token !== self.refreshToken) return false;  // the camera moved on meanwhile
       done.forEach(function (d) {
-        if (!d) return;
+        if (!d || d.method !== d.side.method) return;  // the side switched method meanwhile: next frame
         d.side.gpu.setOrder(d.order);
         d.side.gpu.draw(d.side.method, self.canvasCamera(d.side.canvas), mode);
       });
       self.frameMs.push(performance.now() - t0);
       if (self.frameMs.length > 60) self.frameMs.shift();
+      self.frames = (self.frames || 0) + 1;
+      self.drawnW2c = w2c;
       self.say(self.describe());
-      return true;
+      self.waiters = self.waiters.filter(function (w) { if (w.gen <= gen) { w.resolve(true); return false; } return true; });
+      if (self.wanted > gen) self.frame(); else self.looping = false;
+    }).catch(function (err) {
+      self.looping = false;
+      self.say("drawing failed: " + err.message);
+      var ws = self.waiters;
+      self.waiters = [];
+      ws.forEach(function (w) { w.reject(err); });
     });
   };
 

@@ -234,3 +234,17 @@ def test_touch_orbits_and_pinch_zooms(viewer_page):
     finally:
         viewer_page.call("Emulation.setTouchEmulationEnabled", {"enabled": False})
     assert viewer_page.errors() == []
+
+
+def test_a_burst_of_moves_is_folded_into_few_frames(viewer_page):
+    """Twenty orbit steps fired at once (a fast drag) draw a couple of frames, the last one
+    with the newest camera, instead of queueing twenty sorts."""
+    _start(viewer_page)
+    v = "window.cobgsViewers[0]"
+    viewer_page.eval(f"{v}.setCamera(0)")
+    got = viewer_page.eval(f"""(function(){{var v={v}, before=v.frames, last;
+        for (var i = 0; i < 20; i++) last = v.orbit(3, 1);
+        return last.then(() => ({{frames: v.frames - before, same: JSON.stringify(v.drawnW2c) === JSON.stringify(v.w2c)}}));
+    }})()""")
+    assert got["same"] and 1 <= got["frames"] <= 3, got
+    assert viewer_page.errors() == []
