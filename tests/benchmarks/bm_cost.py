@@ -110,7 +110,8 @@ def cmd_scene(args) -> int:
         print(f"train it {it}/{args.iterations}: {rec['wall_s']:.1f} s / 1000 its, {rec['gaussians']:,} Gaussians, "
               f"loss {info['loss']:.4f}, psnr {info['psnr']:.2f}, load {rec['load']:.2f}, "
               f"ETA {left / 3600:.1f} h at this rate", flush=True)
-        if args.budget_s and now - t_start > args.budget_s and it < args.iterations:
+        if ((args.budget_s and now - t_start > args.budget_s) or (args.stop_at and it >= args.stop_at)) \
+                and it < args.iterations:
             trainer.save_checkpoint(ckpt_dir / f"ckpt_{it}.pt")  # train() writes it after us; same content
             raise _Budget(it)
 
@@ -118,7 +119,7 @@ def cmd_scene(args) -> int:
         train(scene, cfg, checkpoint_dir=ckpt_dir, resume=resume, progress=False, evaluate_test=False,
               callback=callback)
     except _Budget as b:
-        print(f"stopped at the time budget after iteration {b.args[0]}; run again to continue", flush=True)
+        print(f"stopped after iteration {b.args[0]} (time budget / --stop-at); run again to continue", flush=True)
         return 0
     finally:
         log.close()
@@ -285,6 +286,7 @@ def main(argv=None) -> int:
     s.add_argument("--out", type=Path, required=True)
     s.add_argument("--iterations", type=int, default=30_000)
     s.add_argument("--budget-s", type=float, default=0.0, help="stop at the first checkpoint after this long")
+    s.add_argument("--stop-at", type=int, default=0, help="stop (resumably) at this iteration")
     t = sub.add_parser("table6")
     t.add_argument("--out", type=Path, required=True)
     t.add_argument("--checkpoint", default="ckpt_final.pt")
