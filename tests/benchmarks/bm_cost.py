@@ -13,6 +13,8 @@ Run (not collected by pytest), on this repository's venv::
     .venv/bin/python tests/benchmarks/bm_cost.py table6 --out runs/bm_cost [--checkpoint ckpt_30000.pt]
     # 3. The Markdown summary of both.
     .venv/bin/python tests/benchmarks/bm_cost.py summary --out runs/bm_cost [--write docs/benchmarks/cost_cpu.md]
+    # (a profile_<checkpoint>.txt in --out, bm_profile.py's output on that checkpoint, is
+    #  appended to the summary)
 
 Logged per 1000 iterations (``train_log.jsonl``): wall and CPU seconds, Gaussian count, the
 load average, which run it belongs to. The object is the Gaussians within a sphere around
@@ -260,6 +262,15 @@ def cmd_summary(args) -> int:
         lines += [f"| {r['it'] - 999}-{r['it']} | {r['wall_s']:.0f} | {r['gaussians']:,} | {r['psnr']:.2f} | "
                   f"{r['load']:.2f} |" for r in recs]
         lines.append("")
+        full = 30_000
+        if recs and recs[-1]["it"] < full:
+            tail = recs[-3:]
+            rate = sum(r["wall_s"] for r in tail) / len(tail)
+            left = (full - recs[-1]["it"]) / 1000 * rate
+            lines += [f"**Not measured: iterations {recs[-1]['it'] + 1}-{full}.** At the mean rate of the last "
+                      f"{len(tail)} chunks ({rate:.0f} s / 1000 iterations, {recs[-1]['gaussians']:,} Gaussians) "
+                      f"they would take about {left / 3600:.2f} h, for an estimated {(total + left) / 3600:.2f} h of "
+                      "training in all (an estimate: densification, which sets the count, runs to 15k).", ""]
     for t6 in sorted(out.glob("table6_*.jsonl")):
         rows = [json.loads(x) for x in t6.read_text().splitlines() if x.strip()]
         lines += [f"Paper Table 6 on a CPU, checkpoint `{rows[0]['checkpoint']}` ({rows[0]['gaussians_start']:,} "
@@ -270,6 +281,10 @@ def cmd_summary(args) -> int:
                   f"{r['eval_s']:.1f} s | {r['peak_rss'] / 2**30:.2f} GiB | {r['gaussians_end']:,} | {r['iou']:.3f} |"
                   for r in rows]
         lines.append("")
+    for prof in sorted(out.glob("profile_*.txt")):  # bm_profile.py's output on a checkpoint, kept by hand
+        body = [x for x in prof.read_text().splitlines() if not x.startswith("USDT:")]
+        lines += [f"Where a training step's time goes on that checkpoint (`{prof.name}`: `bm_profile.py --scene fern "
+                  "--ply CKPT --sfm-dir OUT/fern_sfm --threads 2 --train-steps 5 --reps 5`):", "", "```"] + body + ["```", ""]
     text = "\n".join(lines)
     print(text)
     if args.write:
