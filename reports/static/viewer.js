@@ -313,6 +313,9 @@
   Canvas.prototype.upload = function (key, model) {
     if (this.textures[key]) return;
     var gl = this.gl, rows = Math.max(1, Math.ceil(model.count / ROW));
+    var most = gl.getParameter(gl.MAX_TEXTURE_SIZE);
+    if (rows > most) throw new Error(model.count.toLocaleString() + " Gaussians need a " + (4 * ROW) + "x" + rows +
+                                     " texture; this browser allows " + most + " rows (report with a smaller --viewer-mb)");
     var data = new Float32Array(ROW * 4 * rows * 4);
     data.set(model.tex);
     var tex = gl.createTexture();
