@@ -52,9 +52,10 @@ def _arrays(model) -> dict:
 def keep_order(model) -> np.ndarray:
     """Indices of the Gaussians, most visible first: opacity x the product of the two
     largest standard deviations (a Gaussian's screen area up to the view), ties by index."""
-    a = _arrays(model)
-    s = np.sort(a["log_scales"], axis=1)
-    score = np.log(np.clip(a["opacity"], 1e-12, None)) + s[:, 1] + s[:, 2]
+    d = model.data
+    s = np.sort(d["log_scales"].detach().double().cpu().numpy(), axis=1)
+    opacity = 1.0 / (1.0 + np.exp(-d["opacity_logits"].detach().double().cpu().numpy()))
+    score = np.log(np.clip(opacity, 1e-12, None)) + s[:, 1] + s[:, 2]
     score = np.nan_to_num(score, nan=-np.inf)
     return np.lexsort((np.arange(len(score)), -score))
 

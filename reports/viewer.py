@@ -55,29 +55,29 @@ def _up(cameras) -> list:
 
 
 def _load(seg_dir: Path):
-    """(model, labels) of a segment artifact: object then background; None without PLYs."""
+    """(model, labels, object count) of a segment artifact: its object's Gaussians, then
+    the background's (labels 1, then 0); None without the two PLYs."""
     import numpy as np
+    import torch
 
-    from cobgs.gaussians import GaussianModel
+    from cobgs.gaussians import CORE, GaussianModel
     from cobgs.ply import load_ply
 
     obj_p, bg_p = seg_dir / "object.ply", seg_dir / "background.ply"
     if not (obj_p.is_file() and bg_p.is_file()):
         return None
-    obj, bg = load_ply(obj_p), load_ply(bg_p)
-    deg0 = lambda m: {k: m.data[k] for k in ("means", "log_scales", "quats", "opacity_logits", "sh0")}  # noqa: E731
-    a, b = deg0(obj), deg0(bg)
-    import torch
-
-    merged = {k: torch.cat([a[k], b[k]]) for k in a}
-    model = GaussianModel(merged["means"], merged["log_scales"], merged["quats"], merged["opacity_logits"],
-                          merged["sh0"], torch.zeros(len(merged["means"]), 0, 3))
-    labels = np.concatenate([np.ones(len(obj), np.uint8), np.zeros(len(bg), np.uint8)])
-    return model, labels, len(obj)
+    parts = [load_ply(obj_p), load_ply(bg_p)]
+    model = GaussianModel(*(torch.cat([m.data[k].detach() for m in parts]) for k in CORE))
+    labels = np.concatenate([np.ones(len(parts[0]), np.uint8), np.zeros(len(parts[1]), np.uint8)])
+    return model, labels, len(parts[0])
 
 
-def viewer_sets(data, pictures: list, root: Path, max_mb: Optional[float] = DEFAULT_MAX_MB,
-                stream=None) -> dict:
+def _script_head(key: str) -> str:
+    """How a viewer data file starts (written by viewer_sets, read back by embedded)."""
+    return "(window.COBGS_SPLATS = window.COBGS_SPLATS || {})[" + json.dumps(key) + '] = "'
+
+
+def viewer_sets(data, pictures: list, root: Path, max_mb: Optional[float] = DEFAULT_MAX_MB) -> dict:
     """Write every picture set's viewer data under ``root/viewer`` and return
     {picture set id: :class:`ViewerSet`} (sets without any segmented model have none).
 
@@ -86,9 +86,14 @@ def viewer_sets(data, pictures: list, root: Path, max_mb: Optional[float] = DEFA
         pictures: the :class:`reports.pictures.PictureSet` list of the page.
         max_mb: payload cap per scene in MB (10^6 bytes); None = no cap.
     """
+    import torch
+
     from cobgs import splat_pack
+    from cobgs.segment import subset
     from cobgs.turntable import object_center
     from stages._common import scene_cameras
+
+    results = {(r.scene, r.object, r.method): r for r in data.results}
 
     by_scene: dict = {}
     for ps in pictures:
@@ -101,8 +106,7 @@ def viewer_sets(data, pictures: list, root: Path, max_mb: Optional[float] = DEFA
         loaded = {}  # (ps.id, method) -> (model, labels, n_object)
         for ps in sets:
             for mp in ps.methods:
-                r = next((r for r in data.results if r.scene == ps.scene and r.object == ps.object
-                          and r.method == mp.method), None)
+                r = results.get((ps.scene, ps.object, mp.method))
                 if r is None or r.segment_dir is None:
                     continue
                 got = _load(Path(r.segment_dir))
@@ -126,7 +130,7 @@ def viewer_sets(data, pictures: list, root: Path, max_mb: Optional[float] = DEFA
                     continue
                 model, labels, n_obj = got
                 if center is None and n_obj:  # the orbit's pivot: the first method's object
-                    center = [float(v) for v in object_center(_subset(model, slice(0, n_obj)))]
+                    center = [float(v) for v in object_center(subset(model, torch.arange(n_obj), extras=[]))]
                 keep = None
                 if fraction < 1.0:
                     order = splat_pack.keep_order(model)
@@ -137,8 +141,8 @@ def viewer_sets(data, pictures: list, root: Path, max_mb: Optional[float] = DEFA
                 rel = f"viewer/{slug(ps.scene)}/{slug(ps.object)}/{slug(mp.method)}.js"
                 dst = root / rel
                 dst.parent.mkdir(parents=True, exist_ok=True)
-                dst.write_text("(window.COBGS_SPLATS = window.COBGS_SPLATS || {})[" + json.dumps(key) + "] = \""
-                               + base64.b64encode(payload).decode("ascii") + "\";\n", encoding="ascii")
+                dst.write_text(_script_head(key) + base64.b64encode(payload).decode("ascii") + "\";\n",
+                               encoding="ascii")
                 n_obj_kept = n_obj if keep is None else int((keep < n_obj).sum())
                 models[mp.method] = {"src": rel, "key": key, "header": header, "total": len(model),
                                      "object_total": n_obj, "object_kept": n_obj_kept, "bytes": len(payload)}
@@ -158,25 +162,14 @@ def viewer_sets(data, pictures: list, root: Path, max_mb: Optional[float] = DEFA
                       "right": names[1] if len(names) > 1 else None, "mode": "object",
                       "bytes_per_gaussian": splat_pack.BYTES_PER_GAUSSIAN}
             out[ps.id] = ViewerSet(config=config, methods=methods, notes=notes)
-        if stream is not None:
-            print(f"viewer data of {scene}: {sum(len(m) for m, _, _ in loaded.values()):,} Gaussians, "
-                  f"{int(total * fraction) * splat_pack.BYTES_PER_GAUSSIAN / 1e6:.1f} MB", file=stream)
     return out
-
-
-def _subset(model, index):
-    from cobgs.gaussians import GaussianModel
-
-    d = model.data
-    return GaussianModel(d["means"][index], d["log_scales"][index], d["quats"][index], d["opacity_logits"][index],
-                         d["sh0"][index], d["shN"][index])
 
 
 def embedded(report_dir: Path, record: dict) -> tuple[dict, bytes]:
     """(header, payload) of one embedded model, read back from a built report: what the
     page's viewer decodes (for tests and benchmarks)."""
     text = (Path(report_dir) / record["src"]).read_text(encoding="ascii")
-    head = "(window.COBGS_SPLATS = window.COBGS_SPLATS || {})[" + json.dumps(record["key"]) + '] = "'
+    head = _script_head(record["key"])
     if not text.startswith(head) or not text.rstrip().endswith('";'):
         raise ValueError(f"{record['src']}: not a viewer data file of {record['key']!r}")
     return record["header"], base64.b64decode(text[len(head):text.rstrip().rindex('"')])

@@ -447,8 +447,6 @@
     this.camIndex = 0;
     this.models = {};   // method -> decoded model (or a Promise of it)
     this.sides = [];
-    this.sortsInFlight = 0;
-    this.frameMs = [];
     var self = this;
     var cfg = this.cfg;
     this.target = cfg.center.slice();
@@ -534,12 +532,13 @@
     });
   };
 
-  Viewer.prototype.setCamera = function (index, quiet) {
+  // Jump to dataset camera `index`; `exact`: the canvas at that camera's own size.
+  Viewer.prototype.setCamera = function (index, quiet, exact) {
     this.camIndex = index;
     this.w2c = this.cfg.cameras[index].w2c.slice();
     var sel = this.box.querySelector("select.viewer-camera");
     if (sel) sel.value = String(index);
-    this.fit(false);
+    this.fit(!!exact);
     if (!quiet) return this.refresh();
   };
 
@@ -567,7 +566,6 @@
   Viewer.prototype.frame = function () {
     var self = this, gen = this.wanted;
     var w2c = this.w2c.slice(), mode = this.mode, modeIndex = MODES.indexOf(mode);
-    var t0 = performance.now();
     this.looping = true;
     Promise.all(this.sides.map(function (s) {
       var sorter = s.sorters[s.method];
@@ -579,8 +577,6 @@
         d.side.gpu.setOrder(d.order);
         d.side.gpu.draw(d.side.method, self.canvasCamera(d.side.canvas), mode);
       });
-      self.frameMs.push(performance.now() - t0);
-      if (self.frameMs.length > 60) self.frameMs.shift();
       self.frames = (self.frames || 0) + 1;
       self.drawnW2c = w2c;
       self.say(self.describe());
@@ -674,10 +670,7 @@
   // cobgs.rasterize renders for it) and return the canvas as a PNG data URL.
   Viewer.prototype.snapshot = function (index, sideIndex) {
     var self = this;
-    this.camIndex = index;
-    this.w2c = this.cfg.cameras[index].w2c.slice();
-    this.fit(true);
-    return this.refresh().then(function () {
+    return this.setCamera(index, false, true).then(function () {
       return self.sides[sideIndex || 0].canvas.toDataURL("image/png");
     });
   };

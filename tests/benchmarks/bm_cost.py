@@ -154,9 +154,9 @@ def cmd_table6(args) -> int:
     out = args.out
     scene = _scene(out, None)
     ckpt = out / "ckpt" / args.checkpoint
-    model, _ = _load_checkpoint(scene, ckpt, args.iterations)
     mask_dir = out / f"masks_{ckpt.stem}"
     if not mask_dir.is_dir():
+        model, _ = _load_checkpoint(scene, ckpt, args.iterations)
         masks, n_obj = _object_masks(model, scene.train)
         tmp = mask_dir.with_name(mask_dir.name + ".part")
         tmp.mkdir(parents=True, exist_ok=True)
@@ -165,7 +165,7 @@ def cmd_table6(args) -> int:
         (tmp / "object.json").write_text(json.dumps({"object_gaussians": n_obj,
                                                      "coverage": float(torch.stack(masks).float().mean())}))
         tmp.rename(mask_dir)
-    del model
+        del model
     rows = []
     for method in args.methods.split(","):
         cmd = [sys.executable, __file__, "_one", "--out", str(out), "--checkpoint", args.checkpoint,

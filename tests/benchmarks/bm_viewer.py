@@ -33,46 +33,24 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
 from report_browser import Browser  # noqa: E402
+from test_viewer_browser import _camera, _png, _reference  # noqa: E402  (the tests' helpers)
 
 
 def _folder_bytes(p: Path) -> int:
     return sum(f.stat().st_size for f in p.rglob("*") if f.is_file())
 
 
-def _png(data_url: str):
-    import base64
-    import io
-
-    import numpy as np
-    from PIL import Image
-
-    with Image.open(io.BytesIO(base64.b64decode(data_url.split(",", 1)[1]))) as im:
-        return np.asarray(im.convert("RGB"))
-
-
-def _reference(report_dir: Path, cfg: dict, method: str, mode: str, cam_index: int):
-    sys.path.insert(0, str(ROOT / "tests" / "reports"))
-    from test_viewer_browser import _reference as ref
-
-    return ref(report_dir, cfg, method, mode, cam_index)
-
-
 def _packing_cost(report: Path, cfgs: list, cache_dir: str) -> list:
     """What the embedding itself costs, by cobgs.rasterize alone at training camera 0 (whole
     refined scene): the original PLYs with their SH bands vs degree 0 (the viewer's SH
     truncation), and vs the decoded 21-byte Gaussians (truncation + quantisation)."""
-    import torch
-
     from cobgs import splat_pack
-    from cobgs.gaussians import CORE, GaussianModel
     from cobgs.metrics import psnr
-    from cobgs.ply import load_ply
     from cobgs.render import render_image
     from pipeline import load_workflow
     from reports.collect import collect
-    from reports.viewer import embedded
+    from reports.viewer import _load, embedded
     from stages.registry import load_registry
-    from test_viewer_browser import _camera
 
     if not Path(cache_dir).is_dir():
         return ["", f"(packing cost not measured: no cache at {cache_dir})"]
@@ -87,8 +65,7 @@ def _packing_cost(report: Path, cfgs: list, cache_dir: str) -> list:
             r = next((r for r in data.results if (r.scene, r.object, r.method) == (scene, obj_name, method)), None)
             if r is None or r.segment_dir is None:
                 continue
-            parts = [load_ply(Path(r.segment_dir) / f) for f in ("object.ply", "background.ply")]
-            merged = GaussianModel(*[torch.cat([p.data[k].detach() for p in parts]) for k in CORE])
+            merged = _load(Path(r.segment_dir))[0]  # what the report packs, with all its SH bands
             cam, bg = _camera(cfg, 0), cfg["background"]
             ref = render_image(merged, cam, bg).clamp(0, 1)
             deg0 = render_image(merged, cam, bg, sh_degree=0).clamp(0, 1)
@@ -158,7 +135,7 @@ def main(argv=None) -> int:
                 b.eval(f"(function(){{var c={v}.box.querySelector('input.viewer-hires'); if (c.checked) c.click();}})()")
                 for side, method in enumerate((cfg["left"], cfg["right"])):
                     shot = _png(b.eval(f"{v}.snapshot(0, {side})"))
-                    ref = _reference(report, cfg, method, mode if mode != "scene" else "scene", 0)
+                    ref = _reference(report, cfg, method, mode, 0)
                     d = np.abs(shot.astype(np.int16) - ref.astype(np.int16))
                     acc.append((obj, mode, method, f"{d.mean():.3f}", f"{np.percentile(d, 99.9):.1f}", str(d.max())))
                     print(" | ".join(acc[-1]), flush=True)

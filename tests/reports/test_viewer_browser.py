@@ -56,13 +56,14 @@ def _reference(report_dir: Path, config: dict, method: str, mode: str, cam_index
 
     from cobgs import splat_pack
     from cobgs.render import render_image
-    from reports.viewer import _subset, embedded
+    from cobgs.segment import subset
+    from reports.viewer import embedded
 
     header, payload = embedded(report_dir, config["models"][method])
     model = splat_pack.unpacked_model(header, payload)
     labels = splat_pack.unpack(header, payload)["labels"]
     keep = {"object": labels == 1, "removed": labels != 1}.get(mode, np.ones(len(labels), bool))
-    img = render_image(_subset(model, torch.from_numpy(np.nonzero(keep)[0])), _camera(config, cam_index),
+    img = render_image(subset(model, torch.from_numpy(keep)), _camera(config, cam_index),
                        config["background"])
     return (img.clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
 
@@ -123,10 +124,22 @@ def test_matches_the_rasterizer(viewer_page, demo_report, mode):
     assert viewer_page.errors() == []
 
 
+def _centre(page, selector: str) -> list:
+    """Page coordinates of the middle of the element ``selector``."""
+    return page.eval(f"(function(){{var r=document.querySelector({selector!r}).getBoundingClientRect();"
+                     "return [r.left + r.width / 2, r.top + r.height / 2];})()")
+
+
+def _distance(page, v: str) -> float:
+    """How far viewer ``v``'s camera centre is from its orbit target."""
+    return page.eval(f"(function(){{var m={v}.w2c, t={v}.target;"
+                     "var c=[-(m[0]*m[3]+m[4]*m[7]+m[8]*m[11]),-(m[1]*m[3]+m[5]*m[7]+m[9]*m[11]),"
+                     "-(m[2]*m[3]+m[6]*m[7]+m[10]*m[11])];"
+                     "return Math.hypot(c[0]-t[0],c[1]-t[1],c[2]-t[2]);})()")
+
+
 def _drag(page, selector: str, dx: float, dy: float, button: str = "left", modifiers: int = 0) -> None:
-    box = page.eval(f"(function(){{var r=document.querySelector({selector!r}).getBoundingClientRect();"
-                    "return [r.left + r.width / 2, r.top + r.height / 2];})()")
-    x, y = box
+    x, y = _centre(page, selector)
     buttons = {"left": 1, "right": 2}[button]
     page.call("Input.dispatchMouseEvent", {"type": "mousePressed", "x": x, "y": y, "button": button,
                                            "buttons": buttons, "clickCount": 1, "modifiers": modifiers})
@@ -147,29 +160,22 @@ def test_controls_move_the_camera(viewer_page):
     pixels = lambda: viewer_page.eval(f"{v}.refresh().then(() => {v}.sides[1].canvas.toDataURL('image/png'))")  # noqa: E731
     before = _png(pixels())
 
-    def dist():
-        return viewer_page.eval(f"(function(){{var m={v}.w2c, t={v}.target;"
-                                "var c=[-(m[0]*m[3]+m[4]*m[7]+m[8]*m[11]),-(m[1]*m[3]+m[5]*m[7]+m[9]*m[11]),"
-                                "-(m[2]*m[3]+m[6]*m[7]+m[10]*m[11])];"
-                                "return Math.hypot(c[0]-t[0],c[1]-t[1],c[2]-t[2]);})()")
-
-    d0 = dist()
+    d0 = _distance(viewer_page, v)
     _drag(viewer_page, canvas, 60, 0)  # orbit: the camera turns about the object, same distance
     orbited = viewer_page.eval(f"{v}.w2c")
     assert np.abs(np.subtract(orbited, start)).max() > 1e-3
-    assert dist() == pytest.approx(d0, rel=1e-6)
+    assert _distance(viewer_page, v) == pytest.approx(d0, rel=1e-6)
     after = _png(pixels())  # the right-hand side follows: one camera for both
     assert np.abs(after.astype(int) - before.astype(int)).mean() > 0.5
     target = viewer_page.eval(f"{v}.target")
     _drag(viewer_page, canvas, 30, 20, modifiers=8)  # shift-drag pans: camera and target move together
     assert np.abs(np.subtract(viewer_page.eval(f"{v}.target"), target)).max() > 1e-6
-    assert dist() == pytest.approx(d0, rel=1e-6)
-    box = viewer_page.eval(f"(function(){{var r=document.querySelector({canvas!r}).getBoundingClientRect();"
-                           "return [r.left + r.width / 2, r.top + r.height / 2];})()")
+    assert _distance(viewer_page, v) == pytest.approx(d0, rel=1e-6)
+    box = _centre(viewer_page, canvas)
     viewer_page.call("Input.dispatchMouseEvent", {"type": "mouseWheel", "x": box[0], "y": box[1],
                                                   "deltaX": 0, "deltaY": 200})
     viewer_page.eval(f"{v}.refresh()")
-    assert dist() > d0 * 1.2  # wheel down zooms out
+    assert _distance(viewer_page, v) > d0 * 1.2  # wheel down zooms out
     viewer_page.click("details.viewer button.viewer-reset")
     assert np.abs(np.subtract(viewer_page.eval(f"{v}.w2c"), start)).max() < 1e-9
     viewer_page.eval("(function(){var s=document.querySelector('details.viewer select.viewer-camera');"
@@ -205,8 +211,7 @@ def test_touch_orbits_and_pinch_zooms(viewer_page):
     viewer_page.eval(f"{v}.setCamera(0)")
     viewer_page.call("Emulation.setTouchEmulationEnabled", {"enabled": True, "maxTouchPoints": 2})
     try:
-        x, y = viewer_page.eval("(function(){var r=document.querySelector('details.viewer .viewer-side.left canvas')"
-                                ".getBoundingClientRect(); return [r.left + r.width / 2, r.top + r.height / 2];})()")
+        x, y = _centre(viewer_page, "details.viewer .viewer-side.left canvas")
         start = viewer_page.eval(f"{v}.w2c")
 
         def touch(kind, points):
@@ -219,18 +224,12 @@ def test_touch_orbits_and_pinch_zooms(viewer_page):
         touch("touchEnd", [])
         assert np.abs(np.subtract(viewer_page.eval(f"{v}.w2c"), start)).max() > 1e-3
 
-        def dist():
-            return viewer_page.eval(f"(function(){{var m={v}.w2c, t={v}.target;"
-                                    "var c=[-(m[0]*m[3]+m[4]*m[7]+m[8]*m[11]),-(m[1]*m[3]+m[5]*m[7]+m[9]*m[11]),"
-                                    "-(m[2]*m[3]+m[6]*m[7]+m[10]*m[11])];"
-                                    "return Math.hypot(c[0]-t[0],c[1]-t[1],c[2]-t[2]);})()")
-
-        d0 = dist()
+        d0 = _distance(viewer_page, v)
         touch("touchStart", [(x - 20, y), (x + 20, y)])
         for k in range(1, 5):
             touch("touchMove", [(x - 20 - 10 * k, y), (x + 20 + 10 * k, y)])
         touch("touchEnd", [])
-        assert dist() < d0 * 0.8
+        assert _distance(viewer_page, v) < d0 * 0.8
     finally:
         viewer_page.call("Emulation.setTouchEmulationEnabled", {"enabled": False})
     assert viewer_page.errors() == []
