@@ -238,6 +238,70 @@ def cmd_one(args) -> int:
     return 0
 
 
+def _paused_per_chunk(recs, pauses: Path) -> dict:
+    """Seconds each logged chunk spent stopped, from ``pauses.txt`` (lines ``START END``,
+    epoch seconds, written by whoever stopped the run with SIGSTOP). A chunk's interval is
+    rebuilt from its run's start (the run id, local time) and the chunk walls before it, to
+    within the few seconds a run takes to load its checkpoint."""
+    if not pauses.is_file():
+        return {}
+    spans = []
+    for line in pauses.read_text().split("\n"):
+        f = line.split()
+        if len(f) >= 2:
+            spans.append((float(f[0]), float(f[1])))
+    out, end_of = {}, {}
+    for r in recs:
+        t0 = end_of.get(r["run"], time.mktime(time.strptime(r["run"], "%Y-%m-%dT%H:%M:%S")))
+        t1 = t0 + r["wall_s"]
+        end_of[r["run"]] = t1
+        out[r["it"]] = sum(max(0.0, min(t1, b) - max(t0, a)) for a, b in spans)
+    return out
+
+
+def _scene_cost(out: Path) -> list:
+    """The whole scene per stage: SfM, training (measured wall without stopped time; and
+    the CPU time scaled by the quietest chunks' wall / CPU ratio), COB-GS refinement and
+    evaluation from the Table 6 run on the last checkpoint."""
+    sfm, log = out / "sfm.json", out / "train_log.jsonl"
+    t6 = sorted(out.glob("table6_ckpt_*.jsonl"), key=lambda q: int(q.stem.split("_")[-1]))
+    if not (sfm.is_file() and log.is_file() and t6):
+        return []
+    last = {}
+    for x in log.read_text().splitlines():
+        if x.strip():
+            r = json.loads(x)
+            last[r["it"]] = r
+    recs = [last[k] for k in sorted(last)]
+    paused = _paused_per_chunk(recs, out / "pauses.txt")
+    wall = sum(r["wall_s"] - paused.get(r["it"], 0.0) for r in recs)
+    cpu = sum(r["cpu_s"] for r in recs)
+    quiet = [r for r in recs if r["load"] < 2.1 and paused.get(r["it"], 0.0) < 0.5]
+    k = sum(r["wall_s"] for r in quiet) / sum(r["cpu_s"] for r in quiet) if quiet else float("nan")
+    rows = {json.loads(x)["method"]: json.loads(x) for x in t6[-1].read_text().splitlines() if x.strip()}
+    if "cobgs" not in rows:
+        return []
+    c = rows["cobgs"]
+    s_sfm = json.loads(sfm.read_text())["wall_s"]
+    refine, ev = c["prep_s"] + c["opt_s"] + c["seg_ms"] / 1000, c["eval_s"]
+    its = recs[-1]["it"] if recs else 0
+    total_m = s_sfm + wall + refine + ev
+    total_q = s_sfm + cpu * k + refine + ev
+
+    def row(name, a, b):
+        return f"| {name} | {a:,.0f} s ({a / total_m:.1%}) | {b:,.0f} s ({b / total_q:.1%}) |"
+
+    return [f"The whole scene, per stage (training: {its:,} iterations; refinement and evaluation: COB-GS "
+            f"on `{c['checkpoint']}`, V = {c['views']}). Two columns for training: the wall time as measured "
+            "(without stopped time), and its CPU time times the wall / CPU ratio of the chunks that ran on a "
+            f"quiet machine (load < 2.1, {len(quiet)} chunks: {k:.3f}), i.e. what the same work takes with "
+            "the machine to itself.", "",
+            "| stage | as measured | quiet-machine estimate |", "|---|---|---|",
+            row("SfM (pycolmap)", s_sfm, s_sfm), row("3DGS training", wall, cpu * k),
+            row("COB-GS refinement (prep + opt + seg)", refine, refine), row("evaluation", ev, ev),
+            f"| **total** | **{total_m / 3600:.2f} h** | **{total_q / 3600:.2f} h** |", ""]
+
+
 def cmd_summary(args) -> int:
     out = args.out
     lines = ["# A whole NVOS-protocol scene on a CPU: fern at 1008x756 (issue 26)", "",
@@ -255,21 +319,31 @@ def cmd_summary(args) -> int:
         for r in recs:  # a chunk logged twice (a run stopped and resumed) counts once: the latest
             last[r["it"]] = r
         recs = [last[k] for k in sorted(last)]
+        paused = _paused_per_chunk(recs, out / "pauses.txt")
         total = sum(r["wall_s"] for r in recs)
-        lines += [f"3DGS training: {len(recs)} x 1000 iterations logged, {total / 3600:.2f} h of wall time "
-                  f"({sum(r['cpu_s'] for r in recs) / 3600:.2f} h CPU), over {len({r['run'] for r in recs})} run(s).",
-                  "", "| iterations | wall s / 1000 its | Gaussians | PSNR (train view) | load |", "|---|---|---|---|---|"]
-        lines += [f"| {r['it'] - 999}-{r['it']} | {r['wall_s']:.0f} | {r['gaussians']:,} | {r['psnr']:.2f} | "
-                  f"{r['load']:.2f} |" for r in recs]
-        lines.append("")
+        held = sum(paused.values())
+        lines += [f"3DGS training: {len(recs)} x 1000 iterations logged, {(total - held) / 3600:.2f} h of wall time "
+                  f"({sum(r['cpu_s'] for r in recs) / 3600:.2f} h CPU), over {len({r['run'] for r in recs})} run(s)"
+                  + (f"; {held:.0f} s during which the run was stopped (SIGSTOP, so that benchmarks of part 3 had "
+                     "the machine to themselves: `pauses.txt`) are left out of the wall time" if held else "") + ".",
+                  "", "| iterations | wall s / 1000 its | CPU s (all threads) | Gaussians | PSNR (train view) | load |",
+                  "|---|---|---|---|---|---|"]
+        for r in recs:
+            p = paused.get(r["it"], 0.0)
+            wall = f"{r['wall_s'] - p:.0f}" + (f" ({r['wall_s']:.0f} with {p:.0f} s stopped)" if p >= 0.5 else "")
+            lines.append(f"| {r['it'] - 999}-{r['it']} | {wall} | {r['cpu_s']:.0f} | {r['gaussians']:,} | "
+                         f"{r['psnr']:.2f} | {r['load']:.2f} |")
+        lines += ["", "The load column is the 1-minute load average when the chunk ended; above about 2 the "
+                  "machine was also doing other work (builds, tests, benchmarks of this issue), which "
+                  "slows the chunk's wall time but hardly its CPU time.", ""]
         full = 30_000
         if recs and recs[-1]["it"] < full:
             tail = recs[-3:]
-            rate = sum(r["wall_s"] for r in tail) / len(tail)
+            rate = sum(r["wall_s"] - paused.get(r["it"], 0.0) for r in tail) / len(tail)
             left = (full - recs[-1]["it"]) / 1000 * rate
             lines += [f"**Not measured: iterations {recs[-1]['it'] + 1}-{full}.** At the mean rate of the last "
                       f"{len(tail)} chunks ({rate:.0f} s / 1000 iterations, {recs[-1]['gaussians']:,} Gaussians) "
-                      f"they would take about {left / 3600:.2f} h, for an estimated {(total + left) / 3600:.2f} h of "
+                      f"they would take about {left / 3600:.2f} h, for an estimated {(total - held + left) / 3600:.2f} h of "
                       "training in all (an estimate: densification, which sets the count, runs to 15k).", ""]
     for t6 in sorted(out.glob("table6_*.jsonl")):
         rows = [json.loads(x) for x in t6.read_text().splitlines() if x.strip()]
@@ -281,6 +355,10 @@ def cmd_summary(args) -> int:
                   f"{r['eval_s']:.1f} s | {r['peak_rss'] / 2**30:.2f} GiB | {r['gaussians_end']:,} | {r['iou']:.3f} |"
                   for r in rows]
         lines.append("")
+    lines += _scene_cost(out)
+    for ab in sorted(out.glob("ab_*.md")):  # bm_ab.py --write tables (part 3), with a title line first
+        body = ab.read_text().splitlines()
+        lines += body + [""]
     for prof in sorted(out.glob("profile_*.txt")):  # bm_profile.py's output on a checkpoint, kept by hand
         body = [x for x in prof.read_text().splitlines() if not x.startswith("USDT:")]
         lines += [f"Where a training step's time goes on that checkpoint (`{prof.name}`: `bm_profile.py --scene fern "
