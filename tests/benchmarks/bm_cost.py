@@ -289,7 +289,9 @@ def _scene_cost(out: Path) -> list:
     total_q = s_sfm + cpu * k + refine + ev
 
     def row(name, a, b):
-        return f"| {name} | {a:,.0f} s ({a / total_m:.1%}) | {b:,.0f} s ({b / total_q:.1%}) |"
+        def sec(x):
+            return f"{x:,.0f} s" if x >= 10 else f"{x:.1f} s"
+        return f"| {name} | {sec(a)} ({a / total_m:.1%}) | {sec(b)} ({b / total_q:.1%}) |"
 
     return [f"The whole scene, per stage (training: {its:,} iterations; refinement and evaluation: COB-GS "
             f"on `{c['checkpoint']}`, V = {c['views']}). Two columns for training: the wall time as measured "
@@ -356,9 +358,9 @@ def cmd_summary(args) -> int:
                   for r in rows]
         lines.append("")
     lines += _scene_cost(out)
-    for ab in sorted(out.glob("ab_*.md")):  # bm_ab.py --write tables (part 3), with a title line first
-        body = ab.read_text().splitlines()
-        lines += body + [""]
+    for ab in sorted(out.glob("ab_*.md")):  # bm_ab.py --write tables (part 3)
+        lines += [f"Table `{ab.stem[3:]}` (`{ab.name}`, written by `bm_ab.py --write`):", ""]
+        lines += ab.read_text().splitlines() + [""]
     for prof in sorted(out.glob("profile_*.txt")):  # bm_profile.py's output on a checkpoint, kept by hand
         body = [x for x in prof.read_text().splitlines() if not x.startswith("USDT:")]
         lines += [f"Where a training step's time goes on that checkpoint (`{prof.name}`: `bm_profile.py --scene fern "
