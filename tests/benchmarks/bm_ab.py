@@ -39,7 +39,6 @@ import time
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-ROOT = HERE.parents[1]
 PARTS = ("bin", "fwd", "bwd", "step")
 
 
@@ -71,6 +70,8 @@ def child(args) -> int:
     trainer = Trainer(scene, TrainConfig(iterations=30_000), model)
     trainer.model.active_sh_degree = trainer.model.sh_degree
     trainer.iteration = max(trainer.sched.densify_until, 15_000) + 1  # plain steps
+    if not 0 <= args.view < len(scene.train):
+        raise SystemExit(f"--view {args.view}: the scene has training views 0..{len(scene.train) - 1}")
     cam = scene.train[args.view].camera
     m = trainer.model
     w, h = cam.width, cam.height
@@ -88,7 +89,7 @@ def child(args) -> int:
 
     def fwd():
         off, ids, prep = ops_out["bin"]
-        ops_out["fwd"] = torch.ops.cobgs.blend(m2, con, op, feats, bg, off, ids, w, h, None, 2, prep, True)
+        ops_out["fwd"] = _ops.blend(m2, con, op, feats, bg, off, ids, w, h, prep=prep)
 
     g = torch.Generator().manual_seed(0)
     v_img = torch.randn(h, w, feats.shape[1], generator=g) * 1e-3
@@ -100,8 +101,10 @@ def child(args) -> int:
         ops_out["bwd"] = torch.ops.cobgs.blend_bwd(m2, con, op, feats, bg, off, ids, trans, nc, v_img,
                                                    v_tr, prep, True)
 
-    with torch.no_grad():
-        binning(), fwd(), bwd()  # warm-up: extension load, buffers
+    with torch.no_grad():  # warm-up: extension load, buffers
+        binning()
+        fwd()
+        bwd()
     trainer.step()
     probe = MachineProbe()
     times = {k: [] for k in PARTS}
@@ -163,6 +166,9 @@ def main(argv=None) -> int:
     if not args.checkpoint.is_file():
         raise SystemExit(f"{args.checkpoint}: no such checkpoint (bm_cost.py scene writes them)")
     variants = [parse_variant(v) for v in args.variant]
+    names = [name for name, _, _ in variants]
+    if len(set(names)) != len(names):
+        raise SystemExit(f"--variant names must differ (their rounds are pooled by name), got {names}")
     results = {name: [] for name, _, _ in variants}
     for r in range(args.rounds):
         order = variants[r % len(variants):] + variants[:r % len(variants)]

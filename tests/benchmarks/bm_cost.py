@@ -238,6 +238,17 @@ def cmd_one(args) -> int:
     return 0
 
 
+def _jsonl(path: Path) -> list:
+    return [json.loads(x) for x in path.read_text().splitlines() if x.strip()]
+
+
+def _train_chunks(log: Path) -> list:
+    """The logged 1000-iteration chunks in order; a chunk logged twice (a run stopped and
+    resumed) counts once: the latest."""
+    last = {r["it"]: r for r in _jsonl(log)}
+    return [last[k] for k in sorted(last)]
+
+
 def _paused_per_chunk(recs, pauses: Path) -> dict:
     """Seconds each logged chunk spent stopped, from ``pauses.txt`` (lines ``START END``,
     epoch seconds, written by whoever stopped the run with SIGSTOP). A chunk's interval is
@@ -246,10 +257,17 @@ def _paused_per_chunk(recs, pauses: Path) -> dict:
     if not pauses.is_file():
         return {}
     spans = []
-    for line in pauses.read_text().split("\n"):
+    for n, line in enumerate(pauses.read_text().splitlines(), 1):
         f = line.split()
-        if len(f) >= 2:
-            spans.append((float(f[0]), float(f[1])))
+        if not f:
+            continue
+        try:
+            a, b = float(f[0]), float(f[1])
+        except (IndexError, ValueError):
+            raise SystemExit(f"{pauses}:{n}: expected 'START END' (epoch seconds), got {line!r}") from None
+        if b < a:
+            raise SystemExit(f"{pauses}:{n}: the pause ends ({b}) before it starts ({a})")
+        spans.append((a, b))
     out, end_of = {}, {}
     for r in recs:
         t0 = end_of.get(r["run"], time.mktime(time.strptime(r["run"], "%Y-%m-%dT%H:%M:%S")))
@@ -259,32 +277,26 @@ def _paused_per_chunk(recs, pauses: Path) -> dict:
     return out
 
 
-def _scene_cost(out: Path) -> list:
+def _scene_cost(out: Path, recs: list, paused: dict) -> list:
     """The whole scene per stage: SfM, training (measured wall without stopped time; and
     the CPU time scaled by the quietest chunks' wall / CPU ratio), COB-GS refinement and
-    evaluation from the Table 6 run on the last checkpoint."""
-    sfm, log = out / "sfm.json", out / "train_log.jsonl"
+    evaluation from the Table 6 run on the last checkpoint. ``recs`` / ``paused``: the
+    training chunks and their stopped seconds (cmd_summary's)."""
+    sfm = out / "sfm.json"
     t6 = sorted(out.glob("table6_ckpt_*.jsonl"), key=lambda q: int(q.stem.split("_")[-1]))
-    if not (sfm.is_file() and log.is_file() and t6):
+    if not (sfm.is_file() and recs and t6):
         return []
-    last = {}
-    for x in log.read_text().splitlines():
-        if x.strip():
-            r = json.loads(x)
-            last[r["it"]] = r
-    recs = [last[k] for k in sorted(last)]
-    paused = _paused_per_chunk(recs, out / "pauses.txt")
     wall = sum(r["wall_s"] - paused.get(r["it"], 0.0) for r in recs)
     cpu = sum(r["cpu_s"] for r in recs)
     quiet = [r for r in recs if r["load"] < 2.1 and paused.get(r["it"], 0.0) < 0.5]
     k = sum(r["wall_s"] for r in quiet) / sum(r["cpu_s"] for r in quiet) if quiet else float("nan")
-    rows = {json.loads(x)["method"]: json.loads(x) for x in t6[-1].read_text().splitlines() if x.strip()}
+    rows = {r["method"]: r for r in _jsonl(t6[-1])}
     if "cobgs" not in rows:
         return []
     c = rows["cobgs"]
     s_sfm = json.loads(sfm.read_text())["wall_s"]
     refine, ev = c["prep_s"] + c["opt_s"] + c["seg_ms"] / 1000, c["eval_s"]
-    its = recs[-1]["it"] if recs else 0
+    its = recs[-1]["it"]
     total_m = s_sfm + wall + refine + ev
     total_q = s_sfm + cpu * k + refine + ev
 
@@ -315,13 +327,9 @@ def cmd_summary(args) -> int:
         lines += [f"SfM (pycolmap, exhaustive matching): {s['wall_s']:.1f} s wall, {s['registered']} registered, "
                   f"{s['points']:,} points.", ""]
     log = out / "train_log.jsonl"
-    if log.is_file():
-        recs = [json.loads(x) for x in log.read_text().splitlines() if x.strip()]
-        last = {}
-        for r in recs:  # a chunk logged twice (a run stopped and resumed) counts once: the latest
-            last[r["it"]] = r
-        recs = [last[k] for k in sorted(last)]
-        paused = _paused_per_chunk(recs, out / "pauses.txt")
+    recs = _train_chunks(log) if log.is_file() else []
+    paused = _paused_per_chunk(recs, out / "pauses.txt")
+    if recs:
         total = sum(r["wall_s"] for r in recs)
         held = sum(paused.values())
         lines += [f"3DGS training: {len(recs)} x 1000 iterations logged, {(total - held) / 3600:.2f} h of wall time "
@@ -348,7 +356,7 @@ def cmd_summary(args) -> int:
                       f"they would take about {left / 3600:.2f} h, for an estimated {(total - held + left) / 3600:.2f} h of "
                       "training in all (an estimate: densification, which sets the count, runs to 15k).", ""]
     for t6 in sorted(out.glob("table6_*.jsonl")):
-        rows = [json.loads(x) for x in t6.read_text().splitlines() if x.strip()]
+        rows = _jsonl(t6)
         lines += [f"Paper Table 6 on a CPU, checkpoint `{rows[0]['checkpoint']}` ({rows[0]['gaussians_start']:,} "
                   f"Gaussians, V = {rows[0]['views']}, masks from PNG files):", "",
                   "| method | prep | opt | seg | eval (object masks, all views) | peak RSS | Gaussians after | "
@@ -357,7 +365,7 @@ def cmd_summary(args) -> int:
                   f"{r['eval_s']:.1f} s | {r['peak_rss'] / 2**30:.2f} GiB | {r['gaussians_end']:,} | {r['iou']:.3f} |"
                   for r in rows]
         lines.append("")
-    lines += _scene_cost(out)
+    lines += _scene_cost(out, recs, paused)
     for ab in sorted(out.glob("ab_*.md")):  # bm_ab.py --write tables (part 3)
         lines += [f"Table `{ab.stem[3:]}` (`{ab.name}`, written by `bm_ab.py --write`):", ""]
         lines += ab.read_text().splitlines() + [""]
