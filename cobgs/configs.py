@@ -8,6 +8,8 @@ torch (or numpy) to read a workflow, and every value is checked where it is set.
 
 from __future__ import annotations
 
+import math
+
 import dataclasses
 import os
 from dataclasses import dataclass, field
@@ -241,9 +243,12 @@ class RefineConfig:
 # -- peers (cobgs.peers) ------------------------------------------------------------------
 @dataclass(frozen=True)
 class SA3DConfig:
-    """SA3D-GS parameters (SPEC §3). The defaults are the official ``sa3d-gs`` rules;
+    """SA3D-GS parameters (SPEC §3; docs/method.md, "SA3D-GS"). The defaults are the
+    official ``sa3d-gs`` rules (``train_seg.py``, ``gaussian_model.py``, ``render.py``);
     :meth:`strict` is the stricter variant this project ran before (a stronger peer, kept
-    as an option and a benchmark row).
+    as an option and a benchmark row) and :meth:`binary` the official training rendered
+    with mask value 1 and thresholded at 0.5 (a named row that separates the training from
+    the evaluation's 0.1 bar on raw labels).
 
     Attributes:
         lr: Adam lr of the raw labels.
@@ -251,10 +256,19 @@ class SA3DConfig:
         passes: passes over the training views.
         order: "fixed" (the views in their given order each pass, official) or "random"
             (shuffled per pass with ``seed``).
-        skip_iou: a view whose mask rendered from the current labels (> ``render_threshold``)
-            has IoU below this with the view's mask is skipped (official: 0.5; the first
-            view trained is never skipped: nothing is labelled before it); 0 = never skip.
-        label_threshold: foreground = raw label > this at the end (official: 0).
+        skip_iou: in the **first** pass a view whose mask rendered from the current labels
+            (> ``gate_threshold``) has IoU below this with the view's mask is skipped and
+            remembered (official: 0.5; the first view of the pass is never tested);
+            later passes test nothing and skip exactly the remembered views
+            (``train_seg.py:229-250``); 0 = never skip.
+        gate_threshold: the rendered mask is binarised above this for the gate (official
+            0.5, ``train_seg.py:229-231``; not the evaluation's ``render_threshold``).
+        label_threshold: foreground = raw label > this at the end (official: 0); the same
+            test removes the Gaussians with label <= 0 between passes 1 and 2.
+        keep_all_if_none: when no Gaussian passes ``label_threshold`` (after pass 1, and
+            at the end), keep every Gaussian instead of none (official
+            ``GaussianModel.segment``: "the mask is empty, segmenting the whole point
+            cloud").
         render_values: what the object render composites per foreground Gaussian:
             "label" (its raw label, official) or "one".
         render_threshold: the object render is foreground above this (official: 0.1).
@@ -268,7 +282,9 @@ class SA3DConfig:
     passes: int = 2
     order: str = "fixed"
     skip_iou: float = 0.5
+    gate_threshold: float = 0.5
     label_threshold: float = 0.0
+    keep_all_if_none: bool = True
     render_values: str = "label"
     render_threshold: float = 0.1
     seed: int = 0
@@ -276,7 +292,7 @@ class SA3DConfig:
     backend: str = "native"
 
     def __post_init__(self):
-        if self.passes < 1 or self.lr <= 0:
+        if self.passes < 1 or not self.lr > 0:
             raise InputError("SA3DConfig.passes must be >= 1 and lr > 0")
         if self.order not in ("fixed", "random"):
             raise InputError(f"SA3DConfig.order must be 'fixed' or 'random', got {self.order!r}")
@@ -284,13 +300,23 @@ class SA3DConfig:
             raise InputError(f"SA3DConfig.render_values must be 'label' or 'one', got {self.render_values!r}")
         if not 0.0 <= self.skip_iou <= 1.0:
             raise InputError(f"SA3DConfig.skip_iou must be in [0, 1], got {self.skip_iou}")
+        for k in ("gate_threshold", "label_threshold", "render_threshold", "neg_weight"):
+            if not math.isfinite(getattr(self, k)):
+                raise InputError(f"SA3DConfig.{k} must be a finite number, got {getattr(self, k)}")
 
     @classmethod
     def strict(cls, **kw) -> "SA3DConfig":
-        """The stricter variant: random order, no skipped views, label > 0.5 and the
-        object's render (mask value 1 per foreground Gaussian) thresholded at 0.5."""
-        return cls(**{"order": "random", "skip_iou": 0.0, "label_threshold": 0.5, "render_values": "one",
-                      "render_threshold": 0.5, **kw})
+        """The stricter variant: random order, no skipped views, label > 0.5 (no keep-all
+        fallback) and the object's render (mask value 1 per foreground Gaussian)
+        thresholded at 0.5."""
+        return cls(**{"order": "random", "skip_iou": 0.0, "label_threshold": 0.5, "keep_all_if_none": False,
+                      "render_values": "one", "render_threshold": 0.5, **kw})
+
+    @classmethod
+    def binary(cls, **kw) -> "SA3DConfig":
+        """The official training, its segmentation (label > 0) rendered with mask value 1
+        and thresholded at 0.5 instead of compositing the raw labels at 0.1."""
+        return cls(**{"render_values": "one", "render_threshold": 0.5, **kw})
 
 
 @dataclass(frozen=True)

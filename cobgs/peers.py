@@ -8,21 +8,26 @@ and returns the same :class:`~cobgs.refine_result.RefineResult`, so
   the same MASK stages, BAGS / BGTR / RAEM off.
 * **sa3d** — SA3D-GS as its official ``sa3d-gs`` branch runs it: raw unbounded labels
   (init 0) blended as the mask channel, Adam lr 1.0, loss ``−Σ G·M + 0.3·Σ (1−G)·M`` (not
-  normalised), two passes over the views in their fixed order, a view skipped when the
-  mask rendered from the current labels (> 0.1) has IoU < 0.5 with its mask (the first
-  view trained never is); after the first pass the Gaussians with label ≤ 0 leave the
-  optimised set (background, no longer rendered; counted as ``dropped``, not pruned:
-  they stay in the scene); foreground = raw label > 0, and the object's render composites
-  the raw labels, thresholded at 0.1 (``mask_threshold`` of the result).
-  :meth:`SA3DConfig.strict` is the stricter variant (random order, no skipping, label > 0.5,
-  mask value 1 thresholded at 0.5).
+  normalised), two passes over the views in their fixed order. Pass 1 gates: from its
+  second view on, a view whose mask rendered from the current labels (> 0.5) has IoU
+  < 0.5 with its mask is skipped and remembered. Between the passes the Gaussians with
+  label ≤ 0 leave the optimised set (background, no longer rendered; counted as
+  ``dropped``, not pruned: they stay in the scene) — unless none is > 0, then all stay.
+  Pass 2 tests nothing and skips exactly the views pass 1 skipped. Foreground = raw
+  label > 0 (all of the set when none is); the object's render composites the raw
+  labels, thresholded at 0.1 (``mask_threshold`` of the result, the evaluation's bar).
+  :meth:`SA3DConfig.binary` renders the same segmentation with value 1 at 0.5;
+  :meth:`SA3DConfig.strict` is the stricter variant (random order, no skipping, label
+  > 0.5, mask value 1 thresholded at 0.5).
 * **flashsplat** — FlashSplat: no optimisation. One forward pass per view accumulates,
   per Gaussian and GT label, ``Σ α·T`` over the pixels of that label; each Gaussian's
   vector is L2-normalised, the background bias ("slackness") is added to the background
   entry and the argmax decides (ties → background). A Gaussian never seen has a zero
   vector, so it goes to the background when the bias is ≥ 0 and to the object when it
   is < 0, as upstream. Multi-object: L1-normalise over the K + 1 labels and compare each
-  object's share against the sum of the others (plus the bias).
+  object's share against the sum of the others (plus the bias); with a non-zero bias the
+  [others, object] pair is L2-normalised first (upstream ``render.py``,
+  ``multi_instance_opt``).
 
 :func:`run_method` dispatches on a method name; it is the entry point of the pipeline's
 refine stage (one call per scene, method and object).
@@ -115,33 +120,48 @@ def run_sa3d(
         from .progress import make_bar
 
         bar = make_bar(progress, config.passes * len(views), f"sa3d {object_name}".strip())
-        trained_any = False
+        skip_set: set[int] = set()  # views the first pass skipped (by index)
         try:
             for p in range(config.passes):
                 ts, losses, skipped = time.perf_counter(), [], 0
                 order = (list(range(len(views))) if config.order == "fixed"
                          else torch.randperm(len(views), generator=rng).tolist())
-                for i in order:
-                    out = render_label_mask(work, views[i].camera, work.data["sa3d_label"], None, config.backend)
-                    if trained_any and config.skip_iou > 0:
-                        iou = _mask_iou(out.image[..., 0].detach() > config.render_threshold, labels_px[i])
-                        if not iou >= config.skip_iou:  # (nan: no mask in this view)
-                            skipped += 1
-                            if bar is not None:
-                                bar.update(1)
-                            continue
+                for step, i in enumerate(order):
+                    out = None
+                    if masks[i] is None:  # no annotation: nothing to train on (upstream has none)
+                        skip = True
+                    elif p == 0:
+                        # Pass 1: the IoU gate, from the second view of the pass on.
+                        skip = False
+                        if step > 0 and config.skip_iou > 0:
+                            out = render_label_mask(work, views[i].camera, work.data["sa3d_label"], None,
+                                                    config.backend)
+                            iou = _mask_iou(out.image[..., 0].detach() > config.gate_threshold, labels_px[i])
+                            skip = iou < config.skip_iou  # nan (both empty) trains, as upstream's `IoU < t`
+                    else:
+                        # Later passes: no test, exactly the views pass 1 skipped.
+                        skip = i in skip_set
+                    if skip:
+                        skipped += 1
+                        if p == 0:
+                            skip_set.add(i)
+                        if bar is not None:
+                            bar.update(1)
+                        continue
+                    if out is None:
+                        out = render_label_mask(work, views[i].camera, work.data["sa3d_label"], None,
+                                                config.backend)
                     loss = mask_loss(out.image[..., 0], labels_px[i], config.neg_weight, normalise=False)
                     loss.backward()
                     opt.step()
                     opt.zero_grad(set_to_none=True)
-                    trained_any = True
                     losses.append(float(loss.detach()))
                     if bar is not None:
                         bar.update(1)
                         bar.set_postfix(pass_=p, loss=f"{losses[-1]:.4g}", gaussians=len(work), skipped=skipped)
                 dropped = 0
                 if p == 0 and config.passes > 1:
-                    keep = work.data["sa3d_label"].detach() > 0
+                    keep = _segment(work.data["sa3d_label"].detach(), config)
                     dropped = int((~keep).sum())
                     work.keep(keep, [opt])
                 stats.append(StageStats(kind="sa3d_pass", index=p, iterations=len(views) - skipped,
@@ -156,7 +176,7 @@ def run_sa3d(
         src = work.data["source_index"]
         final = work.data["sa3d_label"].detach()
         label[src] = final
-        fg[src[final > config.label_threshold]] = True
+        fg[src[_segment(final, config)]] = True
         out_model = model.clone()
         if "sa3d_label" in out_model.data:
             out_model.remove_extra("sa3d_label")
@@ -170,6 +190,16 @@ def run_sa3d(
                         mask_values=values, stages=stats, num_gaussians_start=n, num_gaussians_end=n,
                         wall_s=time.perf_counter() - t0, peak_mem_bytes=mem.peak_bytes,
                         config=dataclasses.asdict(config), mask_threshold=config.render_threshold)
+
+
+def _segment(label: Tensor, config: SA3DConfig) -> Tensor:
+    """SA3D-GS's segmentation of the working set: raw label > ``label_threshold``, or
+    every Gaussian when none passes and ``keep_all_if_none`` (upstream
+    ``GaussianModel.segment``, used between the passes and by ``render.py --segment``)."""
+    keep = label > config.label_threshold
+    if config.keep_all_if_none and not bool(keep.any()):
+        keep = torch.ones_like(keep)
+    return keep
 
 
 def _mask_iou(pred: Tensor, labels: Tensor) -> float:
@@ -279,9 +309,18 @@ def run_flashsplat_multi(
         out_model.add_extra("flashsplat_share", wn[:, 1:].float(), fill=0.0)
     wall = time.perf_counter() - t0
     res = {}
+    total = wn.sum(dim=1)
     for k, name in enumerate(names):
         share = wn[:, k + 1]
-        fg = share > (wn.sum(dim=1) - share) + config.background_bias
+        others = total - share
+        if config.background_bias != 0:
+            # upstream render.py multi_instance_opt: with a slackness the [others, object]
+            # pair is L2-normalised per Gaussian before the bias is added to "others".
+            norm = torch.sqrt(others * others + share * share).clamp_min(1e-12)
+            others, share = others / norm, share / norm
+        fg = share > others + config.background_bias
+        if not bool(wn[:, k + 1].any()):  # an object no view voted for gets nothing (upstream: skipped)
+            fg = torch.zeros_like(fg)
         st = StageStats(kind="flashsplat_vote", index=0, iterations=len(use_views), gaussians_start=n,
                         gaussians_end=n, wall_s=wall)
         res[name] = RefineResult(method="flashsplat", object_name=name, model=out_model, foreground=fg,

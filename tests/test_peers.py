@@ -69,6 +69,33 @@ def test_flashsplat_multi_object_l1_rule():
     assert biased["right"].foreground.tolist() == [False, True, True]
 
 
+def test_flashsplat_multi_object_bias_normalises_the_pair_first(monkeypatch):
+    """upstream render.py multi_instance_opt: with a non-zero slackness the [others,
+    object] pair is L2-normalised per Gaussian before the bias is added to "others"."""
+    import cobgs.peers as peers
+
+    model, view = three_gaussians()
+    left = view.masks["obj"]
+    # L1 shares per Gaussian [background, left, right]: G0 0/0.6/0.4, G1 0.5/0.5/0, G2 unseen.
+    votes = torch.tensor([[0.0, 6.0, 4.0], [1.0, 1.0, 0.0], [0.0, 0.0, 0.0]], dtype=torch.float64)
+    monkeypatch.setattr(peers, "flashsplat_votes", lambda *a, **k: votes.clone())
+    masks = {"left": [left], "right": [~left]}
+    # bias 0: plain shares. G0: 0.6 > 0.4 -> left.
+    r0 = run_flashsplat_multi(model, [view], masks)
+    assert r0["left"].foreground.tolist() == [True, False, False]
+    # bias 0.25: unnormalised 0.6 > 0.4 + 0.25 fails; L2-normalised 0.832 > 0.555 + 0.25 holds.
+    r = run_flashsplat_multi(model, [view], masks, FlashSplatConfig(background_bias=0.25))
+    assert r["left"].foreground.tolist() == [True, False, False]
+    # bias -0.3: right's pair for G0 (others 0.6, right 0.4) -> (0.832, 0.555): 0.555 > 0.532;
+    # G1 (1, 0) -> 0 > 0.7 fails; G2 (0, 0): 0 > -0.3 holds.
+    r = run_flashsplat_multi(model, [view], masks, FlashSplatConfig(background_bias=-0.3))
+    assert r["right"].foreground.tolist() == [True, False, True]
+    # An object nobody voted for gets no Gaussian, whatever the bias (upstream skips it).
+    votes[:, 2] = 0
+    r = run_flashsplat_multi(model, [view], masks, FlashSplatConfig(background_bias=-0.5))
+    assert r["right"].foreground.tolist() == [False, False, False]
+
+
 def test_sa3d_two_passes_prune_and_threshold():
     model, view = three_gaussians()
     r = run_sa3d(model, [view], [view.masks["obj"]], SA3DConfig(passes=2), object_name="obj", progress=False)
@@ -106,16 +133,29 @@ def test_sa3d_official_keeps_label_above_zero_strict_above_half():
     assert torch.equal(render_object_mask(off, view.camera, threshold=0.5), m > 0.5)
 
 
-def test_sa3d_skips_views_whose_render_disagrees_with_the_mask():
-    """Official rule: after the first trained view, a view whose mask rendered from the
-    current labels (> 0.1) has IoU < 0.5 with its mask is skipped; the order is fixed."""
+def _opaque_three():
+    """three_gaussians with opacity 0.95: the label render of A and B passes 0.5 near
+    their centres (at opacity 0.5 it never does)."""
+    model, view = three_gaussians()
+    with torch.no_grad():
+        model.data["opacity_logits"][:] = 3.0
+    return model, view
+
+
+def _render_of(model, view, labels):
     from cobgs.refine_scores import render_label_mask
 
-    model, view = three_gaussians()
+    return render_label_mask(model, view.camera, labels, None).image[..., 0].detach()
+
+
+def test_sa3d_skips_views_whose_render_disagrees_with_the_mask():
+    """Official pass-1 rule: from the second view on, a view whose mask rendered from the
+    current labels (> 0.5) has IoU < 0.5 with its mask is skipped; the order is fixed."""
+    model, view = _opaque_three()
     half = view.masks["obj"]  # the left half: A inside, B on its edge
-    # After the first step (Adam, lr 1) A's and B's labels are 1: the render (> 0.1) of
+    # After the first step (Adam, lr 1) A's and B's labels are 1: the render (> 0.5) of
     # those labels is a mask the current labels agree with (IoU 1) ...
-    agree = render_label_mask(model, view.camera, torch.tensor([1.0, 1.0, 0.0]), None).image[..., 0] > 0.1
+    agree = _render_of(model, view, torch.tensor([1.0, 1.0, 0.0])) > 0.5
     wrong = ~agree  # ... and its complement one they do not (IoU 0)
     r = run_sa3d(model, [view, view, view], [half, wrong, agree], SA3DConfig(passes=1), progress=False)
     assert r.stages[0].skipped_views == 1 and r.stages[0].iterations == 2
@@ -132,6 +172,79 @@ def test_sa3d_skips_views_whose_render_disagrees_with_the_mask():
     assert r1.stages[0].skipped_views == 0 and r1.stages[0].iterations == 1
     with pytest.raises(InputError, match="order"):
         SA3DConfig(order="shuffled")
+
+
+def test_sa3d_gate_binarises_the_render_at_half_not_at_the_evaluation_bar():
+    """train_seg.py:229-231 thresholds the rendered mask at 0.5 for the IoU gate; 0.1 is
+    only render.py's evaluation bar. A mask equal to the render above 0.1 (32 px here)
+    covers the render above 0.5 (6 px) with IoU 6/32: skipped by the official gate,
+    accepted by a gate at 0.1."""
+    model, view = _opaque_three()
+    m = _render_of(model, view, torch.tensor([1.0, 1.0, 0.0]))
+    loose, tight = m > 0.1, m > 0.5
+    assert int(tight.sum()) / int(loose.sum()) < 0.5
+    half = view.masks["obj"]
+    r = run_sa3d(model, [view, view], [half, loose], SA3DConfig(passes=1), progress=False)
+    assert r.stages[0].skipped_views == 1
+    r = run_sa3d(model, [view, view], [half, tight], SA3DConfig(passes=1), progress=False)
+    assert r.stages[0].skipped_views == 0
+    r = run_sa3d(model, [view, view], [half, loose], SA3DConfig(passes=1, gate_threshold=0.1), progress=False)
+    assert r.stages[0].skipped_views == 0
+
+
+def test_sa3d_second_pass_has_no_gate_and_skips_exactly_the_first_pass_skips(monkeypatch):
+    """train_seg.py:246-250: the second pass tests nothing; it skips the views the first
+    skipped. The gate is scripted: view 1 passes and view 2 fails in pass 1; any test in
+    pass 2 would fail every view."""
+    import cobgs.peers as peers
+
+    model, view = _opaque_three()
+    half = view.masks["obj"]
+    calls = []
+
+    def scripted_iou(pred, labels):
+        calls.append(len(calls))
+        return [0.9, 0.1][len(calls) - 1] if len(calls) <= 2 else 0.0
+
+    monkeypatch.setattr(peers, "_mask_iou", scripted_iou)
+    r = run_sa3d(model, [view, view, view], [half, half, half], SA3DConfig(passes=2), progress=False)
+    assert len(calls) == 2  # the first pass's two gated views only
+    assert [s.skipped_views for s in r.stages] == [1, 1]
+    assert [s.iterations for s in r.stages] == [2, 2]
+    # The same as training views 0 and 1 twice without any gate.
+    monkeypatch.undo()
+    ref = run_sa3d(model, [view, view], [half, half], SA3DConfig(passes=2, skip_iou=0.0), progress=False)
+    assert torch.equal(r.model.data["sa3d_label"], ref.model.data["sa3d_label"])
+    assert torch.equal(r.foreground, ref.foreground)
+
+
+def test_sa3d_keeps_every_gaussian_when_no_label_is_positive():
+    """GaussianModel.segment: when no label is > 0 it keeps the whole cloud, after pass 1
+    and in the final segmentation; the strict variant keeps none."""
+    model, view = three_gaussians()
+    empty = torch.zeros_like(view.masks["obj"])  # every pixel background: labels only fall
+    r = run_sa3d(model, [view], [empty], SA3DConfig(passes=2), progress=False)
+    assert r.stages[0].dropped == 0  # none removed between the passes
+    assert r.foreground.tolist() == [True, True, True]
+    lab = r.model.data["sa3d_label"]
+    assert lab[0] < 0 and lab[1] < 0 and lab[2] == 0
+    # The official render composites those raw labels: nothing passes 0.1.
+    from cobgs.segment import render_object_mask
+
+    assert not bool(render_object_mask(r, view.camera).any())
+    s = run_sa3d(model, [view], [empty], SA3DConfig.strict(passes=2), progress=False)
+    assert s.foreground.tolist() == [False, False, False] and s.stages[0].dropped == 3
+
+
+def test_sa3d_binary_variant_is_the_official_training_rendered_at_half():
+    model, view = _opaque_three()
+    half = view.masks["obj"]
+    off = run_sa3d(model, [view, view], [half, half], SA3DConfig(), progress=False)
+    b = run_sa3d(model, [view, view], [half, half], SA3DConfig.binary(), progress=False)
+    assert torch.equal(off.foreground, b.foreground)
+    assert torch.equal(off.model.data["sa3d_label"], b.model.data["sa3d_label"])
+    assert b.mask_threshold == 0.5 and torch.all(b.mask_values == 1)
+    assert off.mask_threshold == 0.1
 
 
 def test_sa3d_unnormalised_weighted_loss():
