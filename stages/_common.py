@@ -145,6 +145,8 @@ def load_scene(dataset_dir: Path, poses_dir: Optional[Path]):
         if rd["format"] != "blender":
             kw["test_names"] = test or None
             kw["test_every"] = 0
+        if rd.get("distortion"):
+            kw["distortion"] = rd["distortion"]
         scene = read_scene(root, format=rd["format"], downscale=float(rd.get("downscale", 1.0)), **kw)
         pts = Path(poses_dir) / "points.npz" if poses_dir is not None else None
         if (scene.points is None or len(scene.points) == 0) and pts is not None and pts.is_file():

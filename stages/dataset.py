@@ -41,8 +41,12 @@ class SceneAttrs:
     Attributes:
         kind: one of :data:`KINDS`.
         path: the data folder (every kind but ``synthetic``); relative paths resolve
-            against the workflow file; checked when the workflow loads (fail fast).
-        labels: the NVOS labels folder (``kind = "nvos"``).
+            against the workflow file; checked when the workflow loads (fail fast). For
+            ``kind = "nvos"`` a missing ``<path>`` is also looked for as
+            ``<path>_undistort`` (NeX's copies, as fvdb's ``scenes/fern_undistort``).
+        labels: the NVOS labels folder (``kind = "nvos"``): the folder holding ``masks/``,
+            ``reference_image/`` and ``scribbles/``, or the ``labels/`` the download
+            unpacks (its ``llff/`` sub-folder is read).
         task: the NVOS task (default: the scene value's name).
         scene_type: "forward" or "360" (default: from the kind / preset).
         trained: a scene trained elsewhere, used instead of training one: an output folder
@@ -75,6 +79,11 @@ class SceneAttrs:
             return
         if self.path is None:
             raise ValueError(f"kind {self.kind!r} needs path = the data folder")
+        if self.kind == "nvos" and not Path(self.path).is_dir():
+            # NeX's copies (the ones the NVOS README and fvdb point to) are <scene>_undistort
+            alt = Path(f"{os.fspath(self.path).rstrip('/')}_undistort")
+            if alt.is_dir():
+                object.__setattr__(self, "path", alt)
         if not Path(self.path).is_dir():
             raise ValueError(f"data folder {self.path} (kind {self.kind!r}) does not exist")
         if self.kind == "images" and not (Path(self.path) / "images").is_dir():
@@ -89,6 +98,12 @@ class SceneAttrs:
                                  "(masks/, reference_image/, scribbles/)")
             if not Path(self.labels).is_dir():
                 raise ValueError(f"NVOS labels folder {self.labels} does not exist")
+            from cobgs.data.nvos import labels_root
+
+            try:
+                labels_root(self.labels)  # labels/ or labels/llff: either is read
+            except Exception as exc:
+                raise ValueError(str(exc)) from exc
 
 
 @dataclass(frozen=True)
@@ -236,8 +251,12 @@ def _run(ctx, inputs):
 
             task = read_nvos_task(attrs.labels, attrs.task or name)
             fmt = _detect(root)
-            reader["format"] = fmt
-            scene = read_scene(root, format=fmt, downscale=p.downscale, test_every=0)
+            # The NVOS GT is in the captured (distorted) frame at every size, and the
+            # reference methods read nerf_llff_data's SIMPLE_RADIAL camera as a pinhole: the
+            # images are read the same way at every downscale (undistorting the full-size
+            # images would move them off the GT: 512x384 -> 510x382).
+            reader.update(format=fmt, distortion="ignore")
+            scene = read_scene(root, format=fmt, downscale=p.downscale, test_every=0, distortion="ignore")
             stems = sorted(v.name for v in scene.views)
             for need in (task.target, task.reference):
                 if need not in stems:
@@ -246,6 +265,10 @@ def _run(ctx, inputs):
             sfm_dir, post = _sfm_images(root, p)
             sfm_dir = _sfm_images_as_views(ctx.out_dir, scene, sfm_dir)
             spec["notes"] = list(scene.notes)
+            if any("read as a pinhole" in n for n in scene.notes):
+                spec["notes"].append(
+                    f"NVOS at downscale {p.downscale:g}: images kept in the captured frame (camera read as "
+                    "a pinhole, not undistorted), the frame the NVOS ground truth is in")
             spec.update(protocol="nvos", nvos=task.to_json(), objects=[task.task],
                         views=stems, test_views=[task.target], has_poses=True,
                         images={"dir": os.fspath(sfm_dir),

@@ -12,8 +12,13 @@ Sources (``masks.source``):
   onnx   two-stage text prompting, Grounding DINO + SAM2 (:func:`cobgs.masks.generate_masks`),
          prompt = the object's ``prompt`` attribute (default: its name, ``_`` as spaces);
   nvos   NVOS scribbles on the reference view -> SAM2 -> propagation
-         (:func:`cobgs.masks.generate_masks_from_scribbles`).
-``onnx`` and ``nvos`` need ``masks.models_dir`` (the folder ``cobgs export-onnx`` writes).
+         (:func:`cobgs.masks.generate_masks_from_scribbles`);
+  points clicks from ``masks.points_file`` -> SAM2 on each prompted frame -> propagation
+         (:func:`cobgs.masks.generate_masks_from_clicks`): SAGA-v2's NVOS click file
+         (positive clicks on the NVOS reference view, the route of COB-GS's released
+         NVOS masks) or the per-object layout of :mod:`cobgs.masks.clicks`.
+``onnx``, ``nvos`` and ``points`` need ``masks.models_dir`` (the folder ``cobgs export-onnx``
+writes).
 
 Output ``masks``: ``<view>.png`` (0/255 at the training size) for every training view
 with a mask, and ``masks.json`` (source, per-view foreground area, empty views, the noise
@@ -32,7 +37,7 @@ from pipeline import Resources, Stage
 
 from ._common import StageInputError, load_scene, object_name, read_json, read_spec, write_json, write_png
 
-SOURCES = ("files", "noisy", "onnx", "nvos")
+SOURCES = ("files", "noisy", "onnx", "nvos", "points")
 
 
 @dataclass(frozen=True)
@@ -75,7 +80,11 @@ class MasksParams:
         files_root: ``files``: a folder holding one folder of per-view masks per object,
             named after the object value (e.g. COB-GS's released NVOS masks as
             ``fern/IMG_4026.JPG``, ``horns_center/...``); read like an object's ``mask_dir``,
-            which wins where both are given.
+            which wins where both are given. COB-GS's own output layout
+            (``<scene>/masks/<task>/`` under ``output/``) is read as it is: a folder whose
+            object folders sit one level down, in ``<anything>/masks/``, is found.
+        points_file: ``points``: the click file (:mod:`cobgs.masks.clicks`): SAGA-v2's
+            NVOS input points or the per-object layout. Checked when the workflow loads.
     """
 
     source: str = "files"
@@ -86,6 +95,7 @@ class MasksParams:
     intra_op_threads: int = 0
     files_threshold: int = 0
     files_root: Optional[Path] = None
+    points_file: Optional[Path] = None
 
     def __post_init__(self) -> None:
         if self.files_root is not None and not Path(self.files_root).is_dir():
@@ -98,7 +108,15 @@ class MasksParams:
             raise ValueError(f"source must be one of {list(SOURCES)}, got {self.source!r}")
         # Checked when the workflow is planned, before any task runs (fail fast: the
         # masks stage comes after hours of training on a real scene).
-        if self.source in ("onnx", "nvos"):
+        if self.source == "points":
+            if self.points_file is None:
+                raise ValueError("masks.source 'points' needs masks.points_file = a JSON click file "
+                                 "(SAGA-v2's NVOS input points, or {\"objects\": {OBJECT: {\"frames\": "
+                                 "{VIEW: {\"positive\": [[x, y]], \"negative\": [[x, y]]}}}}}: docs/data_formats.md)")
+            from cobgs.masks.clicks import read_clicks
+
+            read_clicks(self.points_file)  # every value checked now, naming file, object and frame
+        if self.source in ("onnx", "nvos", "points"):
             if self.models_dir is None:
                 raise ValueError(_MODELS_HELP.format(source=self.source))
             if not Path(self.models_dir).is_dir():
@@ -108,7 +126,11 @@ class MasksParams:
 
 _MODELS_HELP = ("masks.source {source!r} needs masks.models_dir, which is not set: export the models "
                 "with `cobgs export-onnx sam2 ...` (and `gdino` for text prompts) and pass the folder "
-                "with `--set masks.models_dir=DIR` or `models_dir = ...` under [params.masks]")
+                "with `--set masks.models_dir=DIR` or `models_dir = ...` under [params.masks]. "
+                "To run without models, read masks from files: `--set masks.source=files` (with "
+                "`--set masks.files_root=DIR` for a folder of per-object mask folders, such as COB-GS's "
+                "released NVOS masks); or, once the models exist, click prompts with "
+                "`--set masks.source=points --set masks.points_file=FILE`")
 
 
 def _run(ctx, inputs):
@@ -122,12 +144,7 @@ def _run(ctx, inputs):
     attrs = ctx.item.attrs.get("object")
     mask_dir = getattr(attrs, "mask_dir", None) if attrs is not None else None
     if mask_dir is None and p.files_root is not None and p.source in ("files", "noisy"):
-        mask_dir = Path(p.files_root) / ctx.item["object"]
-        if not mask_dir.is_dir():
-            have = sorted(d.name for d in Path(p.files_root).iterdir() if d.is_dir())[:8]
-            raise StageInputError(f"masks.files_root {p.files_root}: no folder {mask_dir.name}/ for "
-                                  f"object {ctx.item.values['object']!r} (folders there: {have}); "
-                                  f"name it after the object, or give the object a mask_dir")
+        mask_dir = object_mask_folder(Path(p.files_root), ctx.item["object"])
     info["route"] = mask_route(p.source, mask_dir is not None)
     if p.source in ("files", "noisy"):
         if mask_dir is not None:
@@ -174,6 +191,27 @@ def _run(ctx, inputs):
     return {"masks": ctx.out_dir}
 
 
+def object_mask_folder(root: Path, name: str) -> Path:
+    """The folder of per-view masks of object ``name`` under ``masks.files_root``:
+    ``<root>/<name>/``, or COB-GS's own output layout (``output/<scene>/masks/<task>/``
+    given as ``output/``, or ``<scene>/masks/<task>/`` given as ``<scene>/``): the
+    ``masks/<name>/`` folders one level down, when exactly one exists."""
+    if (root / name / "masks" / name).is_dir():  # output/fern/masks/fern: scene and task share the name
+        return root / name / "masks" / name
+    if (root / name).is_dir():
+        return root / name
+    found = [d for d in (root / "masks" / name, *sorted(root.glob(f"*/masks/{name}"))) if d.is_dir()]
+    if len(found) == 1:
+        return found[0]
+    if len(found) > 1:
+        raise StageInputError(f"masks.files_root {root}: object {name!r} has more than one mask folder "
+                              f"({[str(d.relative_to(root)) for d in found]}); give the object a mask_dir")
+    have = sorted(d.name for d in root.iterdir() if d.is_dir())[:8]
+    raise StageInputError(f"masks.files_root {root}: no folder {name}/ for object {name!r}, nor "
+                          f"<scene>/masks/{name}/ as COB-GS writes its output (folders there: {have}); "
+                          f"name it after the object, or give the object a mask_dir")
+
+
 def mask_route(source: str, from_folder: bool) -> str:
     """How the masks were made, in the words reports use."""
     if source == "files":
@@ -182,6 +220,8 @@ def mask_route(source: str, from_folder: bool) -> str:
         return ("released masks" if from_folder else "dataset masks") + " + noise"
     if source == "onnx":
         return "text -> two-stage (Grounding DINO + SAM2)"
+    if source == "points":
+        return "clicks -> SAM2"
     return "scribbles -> SAM2"
 
 
@@ -265,32 +305,101 @@ def _generate(ctx, p: MasksParams, spec: dict, obj: str, views, info: dict) -> N
     if any(pth is None for pth in paths):
         raise StageInputError("the training views have no image files to prompt SAM2 with")
     out = ctx.scratch_dir / "generated"
+    names = [v.name for v in views]
     if p.source == "onnx":
         attrs = ctx.item.attrs.get("object")
         prompt = (getattr(attrs, "prompt", "") if attrs is not None else "") or obj.replace("_", " ")
-        res = generate_masks(paths, prompt, models, out, config=p.two_stage,
+        res = generate_masks(paths, prompt, models, out, config=p.two_stage, names=names,
                              log_path=ctx.scratch_dir / "generated.json", options=options)
         info["prompt"] = prompt
+    elif p.source == "points":
+        from cobgs.masks import generate_masks_from_clicks
+
+        prompts, info["clicks"] = _click_prompts(ctx, p, spec, obj, views)
+        res = generate_masks_from_clicks(paths, prompts, models, out, names=names,
+                                         log_path=ctx.scratch_dir / "generated.json", options=options,
+                                         extra_log={"clicks": info["clicks"]})
     else:
         if spec.get("protocol") != "nvos":
             raise StageInputError(f"masks.source 'nvos' needs an NVOS scene (kind 'nvos'), got kind "
                                   f"{spec.get('kind')!r}")
         task = spec["nvos"]
-        names = [v.name for v in views]
         if task["reference"] not in names:
             raise StageInputError(f"NVOS reference view {task['reference']!r} is not a training view")
         res = generate_masks_from_scribbles(
             paths, names.index(task["reference"]), task["positive_scribbles"], task["negative_scribbles"],
-            models, out, config=p.scribbles,
+            models, out, config=p.scribbles, names=names,
             log_path=ctx.scratch_dir / "generated.json", options=options)
     info["generator"] = read_json(res.log_path)
     # The generator writes each image's own size; the training size may be smaller.
     from ._common import read_mask_png
 
     for v in views:
-        f = res.out_dir / f"{Path(v.path).stem}.png"
+        f = res.out_dir / f"{v.name}.png"
         if f.is_file():
             write_png(ctx.out_dir / f"{v.name}.png", read_mask_png(f, v.width, v.height).numpy())
+
+
+def _click_prompts(ctx, p: MasksParams, spec: dict, obj: str, views) -> tuple[list, dict]:
+    """The SAM2 prompts of this object from ``masks.points_file``, in each view image's own
+    pixels, and what was used (for masks.json)."""
+    import numpy as np
+
+    from cobgs.masks import FramePrompt
+    from cobgs.masks.clicks import SAGA, read_clicks, to_image_pixels
+    from cobgs.masks.images import image_size
+
+    clicks = read_clicks(p.points_file)
+    nvos = spec.get("nvos") if spec.get("protocol") == "nvos" else None
+    names = [ctx.item["object"], obj] + ([nvos["task"]] if nvos else []) + [spec["scene"]]
+    try:
+        entry = clicks.lookup(names)
+    except ValueError as exc:
+        raise StageInputError(str(exc)) from exc
+    by_name = {v.name: i for i, v in enumerate(views)}
+    by_stem = {Path(v.path).stem: i for i, v in enumerate(views)}
+    held_out = set(spec.get("test_views") or [])
+    where = f"click file {p.points_file}, object {entry.key!r}"
+    prompts, used = [], []
+    for fc in entry.frames:
+        if entry.layout == SAGA:
+            if nvos is None:
+                raise StageInputError(f"{where}: SAGA-v2 clicks belong on an NVOS task's reference view, "
+                                      f"but scene {spec['scene']!r} is not an NVOS scene (kind 'nvos'); "
+                                      "use the per-object layout (docs/data_formats.md)")
+            frame = nvos["reference"]
+            # The clicks are in the reference image's full resolution: its size from the
+            # labels' copy, else the GT mask's (the same camera at full size).
+            full_src = nvos.get("reference_image") or nvos["gt_mask"]
+            fh, fw = image_size(full_src)
+            frame_size = (fw, fh)
+        else:
+            frame = fc.frame
+            frame_size = entry.image_size
+        if frame in by_name:
+            i = by_name[frame]
+        elif frame in by_stem:
+            i = by_stem[frame]
+        elif frame in held_out:
+            raise StageInputError(f"{where}, frame {frame!r}: a held-out view; clicks must be on training views")
+        else:
+            raise StageInputError(f"{where}, frame {frame!r}: no training view of that name "
+                                  f"(views like {list(by_name)[:4]})")
+        ih, iw = image_size(views[i].path)
+        pts = to_image_pixels(fc.points, frame_size, (iw, ih))
+        outside = [pt for pt in pts.tolist() if not (0 <= pt[0] <= iw and 0 <= pt[1] <= ih)]
+        if outside:
+            raise StageInputError(f"{where}, frame {frame!r}: click {[round(c, 1) for c in outside[0]]} lies outside "
+                                  f"the image ({iw}x{ih} px, {views[i].path}); clicks are in "
+                                  + ("the reference image's full resolution" if entry.layout == SAGA else
+                                     f"the pixels of {'image_size ' + str(list(frame_size)) if frame_size else 'the view image'}"))
+        prompts.append(FramePrompt(i, pts.astype(np.float32), fc.labels.astype(np.float32)))
+        used.append({"frame": views[i].name, "image": Path(views[i].path).name,
+                     "positive": int((fc.labels == 1).sum()), "negative": int((fc.labels == 0).sum()),
+                     "from_size": list(frame_size) if frame_size else None, "image_size": [iw, ih],
+                     "points_px": pts.round(2).tolist()})
+    return prompts, {"file": str(p.points_file), "layout": entry.layout, "entry": entry.key,
+                     "scale": clicks.scale, "frames": used}
 
 
 # What each source reads of the params: the cache key keeps only that, so tuning one
@@ -300,6 +409,7 @@ _ROUTE_KEYS = {
     "noisy": ("files_threshold", "files_root", "noise"),
     "onnx": ("models_dir", "two_stage", "intra_op_threads"),
     "nvos": ("models_dir", "scribbles", "intra_op_threads"),
+    "points": ("models_dir", "points_file", "intra_op_threads"),
 }
 # Bumped when a route's behaviour changes (the stage version would recompute every route).
 # onnx 2: the authors' two-stage flow (stage-2 corrections, first-object emptiness, query order).
@@ -318,7 +428,7 @@ STAGE = Stage(
     name="masks", version=3, run=_run, inputs=("dataset", "poses"), outputs=("masks",), params=MasksParams,
     key_params=_key_params,
     level=("scene", "object"), uses_device=True, resources=Resources(cpus=2),
-    description="an object's training-view masks: dataset files, noisy copies, ONNX text or NVOS scribbles",
+    description="an object's training-view masks: dataset files, noisy copies, ONNX text, NVOS scribbles or clicks",
 )
 
 AXIS_SCHEMAS = {"object": ObjectAttrs}

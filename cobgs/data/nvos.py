@@ -119,20 +119,37 @@ def scribble_files(folder: Path) -> tuple[tuple[Path, ...], tuple[Path, ...]]:
     return tuple(pos), tuple(neg)
 
 
+def labels_root(labels_dir: os.PathLike | str) -> Path:
+    """The folder holding ``masks/``, ``reference_image/`` and ``scribbles/``: ``labels_dir``
+    itself, or its ``llff/`` sub-folder (the download unpacks to ``labels/llff/``).
+
+    Raises:
+        DataError: neither holds ``masks/`` (both places are named).
+    """
+    root = Path(labels_dir)
+    if not root.is_dir():
+        raise DataError("NVOS labels folder not found (expected masks/, reference_image/, "
+                        "scribbles/ inside, or an llff/ folder holding them)", root)
+    if not (root / "masks").is_dir() and (root / "llff" / "masks").is_dir():
+        return root / "llff"
+    if not (root / "masks").is_dir():
+        raise DataError("not an NVOS labels folder: no masks/ in it nor in llff/ (give the folder "
+                        "holding masks/, reference_image/ and scribbles/, e.g. labels/llff)", root)
+    return root
+
+
 def read_nvos_task(labels_dir: os.PathLike | str, task: str) -> NvosTask:
     """Locate and check one task's files in an NVOS labels folder.
 
-    The target is the image in ``masks/<task>/`` (its GT is ``<target>_mask.png``); the
+    ``labels_dir`` may be the folder the download unpacks (``labels/``) or its ``llff/``
+    sub-folder (:func:`labels_root`). The target is the image in ``masks/<task>/`` (its GT is ``<target>_mask.png``); the
     reference is the image in ``reference_image/<task>/``. For the published tasks both
     are cross-checked against :data:`NVOS_TASKS`.
 
     Raises:
         DataError: a folder or file is missing or ambiguous (the path is named).
     """
-    root = Path(labels_dir)
-    if not root.is_dir():
-        raise DataError("NVOS labels folder not found (expected masks/, reference_image/, "
-                        "scribbles/ inside)", root)
+    root = labels_root(labels_dir)
     if not task or "/" in task:
         raise InputError(f"NVOS task must be a folder name such as 'fern', got {task!r}")
     mdir = root / "masks" / task

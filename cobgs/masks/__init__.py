@@ -5,6 +5,8 @@ Public entry points (imported lazily so ``import cobgs.masks`` stays light):
 * :func:`generate_masks` — text prompt, two-stage (paper Alg. 1);
 * :func:`generate_masks_from_scribbles` — NVOS scribbles -> points -> SAM2;
 * :func:`generate_masks_from_points` — points / box on one frame -> SAM2;
+* :func:`generate_masks_from_clicks` — clicks on several frames -> SAM2 (:func:`read_clicks`
+  reads click files: SAGA-v2's NVOS points or the per-object layout);
 * :class:`ModelsNotConfiguredError`, :class:`NoDetectionError`, :class:`TwoStageConfig`,
   :class:`ScribbleConfig`, :class:`RunOptions`, :func:`load_manifest`.
 """
@@ -14,6 +16,9 @@ from __future__ import annotations
 _LAZY = {
     "generate_masks": "api",
     "generate_masks_from_points": "api",
+    "generate_masks_from_clicks": "api",
+    "FramePrompt": "api",
+    "read_clicks": "clicks",
     "generate_masks_from_scribbles": "api",
     "MaskGenerationResult": "api",
     "ModelsNotConfiguredError": "manifest",

@@ -2,9 +2,11 @@
 
 * :func:`generate_masks` — text prompt, two-stage (Grounding DINO + SAM2 video);
 * :func:`generate_masks_from_scribbles` — NVOS scribbles -> points -> SAM2 video;
-* :func:`generate_masks_from_points` — points and/or a box on one frame -> SAM2 video.
+* :func:`generate_masks_from_points` — points and/or a box on one frame -> SAM2 video;
+* :func:`generate_masks_from_clicks` — clicks on one or more frames -> SAM2 video (the
+  ``points`` mask source; :mod:`cobgs.masks.clicks` reads the click files).
 
-Each writes ``<out_dir>/<image stem>.png`` (8-bit 0/255, each image's own size) for every
+Each writes ``<out_dir>/<image stem>.png`` (or ``<name>.png`` with ``names``) (8-bit 0/255, each image's own size) for every
 frame, then a JSON log (default ``<out_dir>.json`` beside the folder), atomically.
 """
 
@@ -75,15 +77,33 @@ def _sam2(models_dir: PathLike, options: Optional[RunOptions]):
     return manifest, Sam2Models(manifest.sam2, options)
 
 
-def _finish(paths, masks, sources, out_dir, log_path, log_data, models, cache, t0):
+def _names(paths: List[Path], names: Optional[Sequence[str]]) -> List[str]:
+    """The masks' file stems: ``names`` (one per image, unique, plain file names) or the
+    images' stems."""
+    if names is None:
+        return [p.stem for p in paths]
+    names = [str(n) for n in names]
+    if len(names) != len(paths):
+        raise InputError(f"names must give one name per image: {len(names)} names for {len(paths)} images")
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise InputError(f"mask names must be unique; repeated: {dup}")
+    bad = [n for n in names if not n or n in (".", "..") or "/" in n or "\\" in n or "\0" in n]
+    if bad:
+        raise InputError(f"mask names must be plain file names, got {bad[:3]}")
+    return names
+
+
+def _finish(paths, masks, sources, out_dir, log_path, log_data, models, cache, t0, stems=None):
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    for p, m in zip(paths, masks):
-        write_mask_png(out_dir / f"{p.stem}.png", m)
+    stems = [p.stem for p in paths] if stems is None else list(stems)
+    for stem, m in zip(stems, masks):
+        write_mask_png(out_dir / f"{stem}.png", m)
     frames = [
-        {"index": i, "stem": p.stem, "source": s, "empty": s == "empty",
+        {"index": i, "stem": stem, "image": p.name, "source": s, "empty": s == "empty",
          "area_px": int(np.count_nonzero(m)), "size_hw": list(m.shape)}
-        for i, (p, m, s) in enumerate(zip(paths, masks, sources))
+        for i, (p, stem, m, s) in enumerate(zip(paths, stems, masks, sources))
     ]
     counts: Dict[str, int] = {}
     for s in sources:
@@ -113,6 +133,7 @@ def generate_masks(
     out_dir: PathLike,
     *,
     config: TwoStageConfig = TwoStageConfig(),
+    names: Optional[Sequence[str]] = None,
     log_path: Optional[PathLike] = None,
     options: Optional[RunOptions] = None,
 ) -> MaskGenerationResult:
@@ -125,6 +146,7 @@ def generate_masks(
         models_dir: folder with ``manifest.json`` and both exports.
         out_dir: the object's mask folder, e.g. ``<scene>/masks/<object>``.
         config: thresholds and the prompt frame index.
+        names: the masks' file stems, one per image (default: the images' stems).
 
     Raises:
         ModelsNotConfiguredError: no model folder / manifest, or a model is missing.
@@ -135,6 +157,7 @@ def generate_masks(
 
     t0 = time.perf_counter()
     paths = _paths(image_paths)
+    stems = _names(paths, names)
     manifest, models = _sam2(models_dir, options)
     if manifest.gdino is None:
         raise ModelsNotConfiguredError(
@@ -151,7 +174,7 @@ def generate_masks(
         data["detector_calls"] = detector.session.stats.calls
         data["images"] = [str(p) for p in paths]
         return _finish(paths, result.masks, result.source, out_dir, log_path, data, models,
-                       cache, t0)
+                       cache, t0, stems)
     finally:
         cache.close()
 
@@ -165,6 +188,7 @@ def generate_masks_from_points(
     points: Optional[np.ndarray] = None,
     labels: Optional[np.ndarray] = None,
     box: Optional[Sequence[float]] = None,
+    names: Optional[Sequence[str]] = None,
     log_path: Optional[PathLike] = None,
     options: Optional[RunOptions] = None,
     extra_log: Optional[dict] = None,
@@ -173,12 +197,63 @@ def generate_masks_from_points(
     box, propagate forward and backward to every frame, and write the masks.
 
     With a single image an image-only SAM2 export is enough; longer sequences need the
-    video export (a clear :class:`~cobgs.errors.ModelError` otherwise).
+    video export (a clear :class:`~cobgs.errors.ModelError` otherwise). ``names``: the
+    masks' file stems, one per image (default: the images' stems; e.g. the view names
+    ``IMG_4026`` of LLFF's ``images_4/image000.png``).
     """
-    t0 = time.perf_counter()
     paths = _paths(image_paths)
     if not 0 <= frame < len(paths):
         raise InputError(f"frame must be in [0, {len(paths)}), got {frame}")
+    return generate_masks_from_clicks(paths, [FramePrompt(frame, points, labels, box)], models_dir, out_dir,
+                                      names=names, log_path=log_path, options=options, extra_log=extra_log)
+
+
+@dataclass(frozen=True)
+class FramePrompt:
+    """A prompt on one frame: points (x, y in that image's pixels) with labels 1 / 0,
+    and/or a box (x0, y0, x1, y1)."""
+
+    frame: int
+    points: Optional[np.ndarray] = None
+    labels: Optional[np.ndarray] = None
+    box: Optional[Sequence[float]] = None
+
+
+def generate_masks_from_clicks(
+    image_paths: Sequence[PathLike],
+    prompts: Sequence[FramePrompt],
+    models_dir: PathLike,
+    out_dir: PathLike,
+    *,
+    names: Optional[Sequence[str]] = None,
+    log_path: Optional[PathLike] = None,
+    options: Optional[RunOptions] = None,
+    extra_log: Optional[dict] = None,
+) -> MaskGenerationResult:
+    """Prompt one object on one or more frames, propagate with the SAM2 video predictor,
+    and write the masks.
+
+    Every prompted frame becomes a conditioning frame (every tracked frame attends to all
+    of them); tracking runs forward from the first prompted frame to the last image, then
+    backward from the first prompted frame to the first image, as SAM2's
+    ``propagate_in_video`` starts both directions at the earliest conditioning frame.
+
+    Args:
+        image_paths: the images in sequence order.
+        prompts: at most one per frame.
+        names: the masks' file stems, one per image (default: the images' stems).
+    """
+    t0 = time.perf_counter()
+    paths = _paths(image_paths)
+    stems = _names(paths, names)
+    if not prompts:
+        raise InputError("no prompt: give at least one frame with points or a box")
+    frames = [p.frame for p in prompts]
+    for f in frames:
+        if not 0 <= f < len(paths):
+            raise InputError(f"prompt frame must be in [0, {len(paths)}), got {f}")
+    if len(set(frames)) != len(frames):
+        raise InputError(f"more than one prompt for frame(s) {sorted({f for f in frames if frames.count(f) > 1})}")
     _, models = _sam2(models_dir, options)
     if len(paths) > 1:
         models.require_video()
@@ -186,27 +261,33 @@ def generate_masks_from_points(
     try:
         predictor = VideoPredictor(models, cache)
         masks: List[Optional[np.ndarray]] = [None] * len(paths)
-        masks[frame] = predictor.add_prompt(frame, 1, points=points, labels=labels, box=box)
-        if not masks[frame].any():
-            log.warning("SAM2 returned an empty mask for the prompt on frame %d (%s): "
-                        "propagation will find nothing", frame, paths[frame].name)
+        for pr in sorted(prompts, key=lambda q: q.frame):
+            masks[pr.frame] = predictor.add_prompt(pr.frame, 1, points=pr.points, labels=pr.labels, box=pr.box)
+            if not masks[pr.frame].any():
+                log.warning("SAM2 returned an empty mask for the prompt on frame %d (%s): "
+                            "propagation from it will find nothing", pr.frame, paths[pr.frame].name)
+        first = min(frames)
         if len(paths) > 1:
-            for f, per_obj in predictor.propagate(frame, len(paths) - 1):
+            for f, per_obj in predictor.propagate(first, len(paths) - 1):
                 masks[f] = per_obj[1]
-            if frame > 0:
-                for f, per_obj in predictor.propagate(frame, 0, reverse=True):
+            if first > 0:
+                for f, per_obj in predictor.propagate(first, 0, reverse=True):
                     masks[f] = per_obj[1]
-        sources = ["prompt" if i == frame else "propagated" for i in range(len(paths))]
+        prompted = set(frames)
+        sources = ["prompt" if i in prompted else "propagated" for i in range(len(paths))]
         sources = [s if m.any() else "empty" for s, m in zip(sources, masks)]
-        data = {
-            "prompt_frame": frame,
-            "points": None if points is None else np.asarray(points).round(3).tolist(),
-            "labels": None if labels is None else np.asarray(labels).astype(int).tolist(),
-            "box_xyxy": None if box is None else [float(v) for v in box],
-            "images": [str(p) for p in paths],
-            **(extra_log or {}),
-        }
-        return _finish(paths, masks, sources, out_dir, log_path, data, models, cache, t0)
+
+        def _json(pr: FramePrompt) -> dict:
+            return {"frame": pr.frame, "stem": stems[pr.frame],
+                    "points": None if pr.points is None else np.asarray(pr.points).round(3).tolist(),
+                    "labels": None if pr.labels is None else np.asarray(pr.labels).astype(int).tolist(),
+                    "box_xyxy": None if pr.box is None else [float(v) for v in pr.box]}
+
+        data = {"prompt_frame": first, "prompts": [_json(pr) for pr in sorted(prompts, key=lambda q: q.frame)],
+                "images": [str(p) for p in paths], **(extra_log or {})}
+        if len(prompts) == 1:  # the single-frame log's keys, as before
+            data.update({k: v for k, v in data["prompts"][0].items() if k in ("points", "labels", "box_xyxy")})
+        return _finish(paths, masks, sources, out_dir, log_path, data, models, cache, t0, stems)
     finally:
         cache.close()
 
@@ -221,6 +302,7 @@ def generate_masks_from_scribbles(
     *,
     config: ScribbleConfig = ScribbleConfig(),
     log_path: Optional[PathLike] = None,
+    names: Optional[Sequence[str]] = None,
     options: Optional[RunOptions] = None,
 ) -> MaskGenerationResult:
     """NVOS protocol: scribbles on the reference view -> sampled points -> SAM2 on that
@@ -238,11 +320,11 @@ def generate_masks_from_scribbles(
                            "num_positive": int((labs == 1).sum()),
                            "num_negative": int((labs == 0).sum())}}
     return generate_masks_from_points(paths, reference_frame, models_dir, out_dir, points=pts,
-                                      labels=labs, log_path=log_path, options=options,
+                                      labels=labs, names=names, log_path=log_path, options=options,
                                       extra_log=extra)
 
 
 __all__ = [
-    "MaskGenerationResult", "ModelError", "ModelsNotConfiguredError", "generate_masks",
-    "generate_masks_from_points", "generate_masks_from_scribbles",
+    "FramePrompt", "MaskGenerationResult", "ModelError", "ModelsNotConfiguredError", "generate_masks",
+    "generate_masks_from_clicks", "generate_masks_from_points", "generate_masks_from_scribbles",
 ]

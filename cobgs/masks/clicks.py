@@ -1,0 +1,243 @@
+"""Click prompts (positive / negative points per object and frame) read from a JSON file.
+
+Two layouts are read; :func:`read_clicks` tells them apart and checks every number.
+
+**SAGA-v2 input points** (the community's NVOS click file, e.g. openvdb/fvdb-examples
+``instance_segmentation/garfvdb/evaluation/saga_v2_input_points.json``)::
+
+    {"_comment": "...", "_scale": 4,
+     "fern": [[533, 367]],
+     "horns_center": [[450, 300], [480, 500]], ...}
+
+Keys starting with ``_`` are metadata; every other key is a scene or NVOS task holding
+positive clicks ``[x, y]`` on that task's **reference view**. A click's pixel is
+``value x _scale`` (default 1) in the reference image's full resolution (the labels'
+``reference_image/<task>/<ref>.JPG``, 4032x3024 on LLFF): the published file stores
+quarter-resolution values with ``_scale = 4``. A key is looked up as the community's
+evaluation does: exactly, then without an ``_undistort`` suffix, then by the name before
+the first ``_`` (``horns_center`` -> ``horns``).
+
+**Per-object clicks** (this project's layout, for any scene)::
+
+    {"objects": {
+        "mug": {
+          "image_size": [4032, 3024],            # optional: the pixel frame of the clicks
+          "frames": {
+            "IMG_0001": {"positive": [[1510, 980], [1600, 1100]], "negative": [[200, 300]]},
+            "IMG_0040": {"positive": [[1400, 1000]]}}}},
+     "image_size": [4032, 3024]}                 # optional: the default for every object
+
+A frame is a view name (or its image file's stem); clicks are pixel coordinates ``x`` right,
+``y`` down, in the frame ``image_size`` names (default: the view's image file as the
+dataset reads it). Every prompted frame becomes a SAM2 conditioning frame.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+
+from cobgs.errors import InputError
+
+SAGA = "saga_v2"
+OWN = "objects"
+
+
+@dataclass(frozen=True)
+class FrameClicks:
+    """Clicks on one frame.
+
+    Attributes:
+        frame: the frame as the file names it ("" for a SAGA-v2 entry: the NVOS reference
+            view).
+        points: float64 [n, 2] (x, y) in the object's pixel frame.
+        labels: int [n], 1 = positive, 0 = negative.
+    """
+
+    frame: str
+    points: np.ndarray
+    labels: np.ndarray
+
+    @property
+    def num_positive(self) -> int:
+        return int((self.labels == 1).sum())
+
+
+@dataclass(frozen=True)
+class ObjectClicks:
+    """One object's clicks.
+
+    Attributes:
+        key: the file's key for it.
+        frames: its prompted frames, in file order.
+        image_size: (width, height) of the pixel frame the clicks are in; None = each
+            frame's own image (per-object layout) or the reference image's full
+            resolution (SAGA-v2).
+        layout: :data:`SAGA` or :data:`OWN`.
+    """
+
+    key: str
+    frames: tuple[FrameClicks, ...]
+    image_size: Optional[tuple[int, int]] = None
+    layout: str = OWN
+
+
+@dataclass(frozen=True)
+class ClickFile:
+    """A checked click file: its layout, objects and (SAGA-v2) scale."""
+
+    path: Path
+    layout: str
+    objects: dict[str, ObjectClicks] = field(default_factory=dict)
+    scale: float = 1.0
+
+    def lookup(self, names: Sequence[str]) -> ObjectClicks:
+        """The entry of the first of ``names`` the file has. The per-object layout matches
+        names exactly; SAGA-v2 keys also match without ``_undistort`` and by the name before
+        the first ``_``, as the community's NVOS evaluation looks them up.
+
+        Raises:
+            InputError: none matches (the file and its keys are named).
+        """
+        names = [n for n in dict.fromkeys(names) if n]
+        for n in names:
+            if n in self.objects:
+                return self.objects[n]
+        if self.layout == SAGA:
+            for n in names:
+                for cand in (n.replace("_undistort", ""), n.split("_")[0]):
+                    if cand in self.objects:
+                        return self.objects[cand]
+        raise InputError(f"click file {self.path}: no entry for {' / '.join(repr(n) for n in names)} "
+                         f"(entries: {sorted(self.objects)[:12]})")
+
+
+def _bad(path: Path, where: str, what: str) -> InputError:
+    return InputError(f"click file {path}: {where}: {what}")
+
+
+def _points(path: Path, where: str, value, kind: str) -> np.ndarray:
+    if not isinstance(value, list):
+        raise _bad(path, where, f"{kind} must be a list of [x, y] pairs, got {type(value).__name__}")
+    out = []
+    for i, p in enumerate(value):
+        if (not isinstance(p, list) or len(p) != 2
+                or not all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in p)):
+            raise _bad(path, where, f"{kind} point {i} must be [x, y] (two numbers), got {p!r}")
+        if not all(math.isfinite(c) and c >= 0 for c in p):
+            raise _bad(path, where, f"{kind} point {i} must be finite and >= 0 (pixels), got {p!r}")
+        out.append([float(p[0]), float(p[1])])
+    return np.asarray(out, np.float64).reshape(-1, 2)
+
+
+def _size(path: Path, where: str, value) -> Optional[tuple[int, int]]:
+    if value is None:
+        return None
+    if (not isinstance(value, list) or len(value) != 2
+            or not all(isinstance(c, int) and not isinstance(c, bool) and c > 0 for c in value)):
+        raise _bad(path, where, f"image_size must be [width, height] (two positive integers), got {value!r}")
+    return int(value[0]), int(value[1])
+
+
+def _read_saga(path: Path, data: dict) -> ClickFile:
+    scale = data.get("_scale", 1)
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not (math.isfinite(scale) and scale > 0):
+        raise _bad(path, "_scale", f"must be a positive number, got {scale!r}")
+    objects = {}
+    for key, value in data.items():
+        if key.startswith("_"):
+            continue
+        pts = _points(path, f"entry {key!r}", value, "clicks")
+        if not len(pts):
+            raise _bad(path, f"entry {key!r}", "no click")
+        pts = pts * float(scale)
+        objects[key] = ObjectClicks(key, (FrameClicks("", pts, np.ones(len(pts), np.int64)),), None, SAGA)
+    if not objects:
+        raise _bad(path, "top level", "no entry (expected scene or task names with [[x, y], ...] clicks)")
+    return ClickFile(path, SAGA, objects, float(scale))
+
+
+def _read_own(path: Path, data: dict) -> ClickFile:
+    unknown = sorted(set(data) - {"objects", "image_size", "format", "_comment"})
+    if unknown:
+        raise _bad(path, "top level", f"unknown key(s) {unknown} (expected objects, image_size)")
+    default_size = _size(path, "top level", data.get("image_size"))
+    objs = data["objects"]
+    if not isinstance(objs, dict) or not objs:
+        raise _bad(path, "objects", "must map object names to {\"frames\": {...}}")
+    objects = {}
+    for name, entry in objs.items():
+        where = f"object {name!r}"
+        if not isinstance(entry, dict) or "frames" not in entry:
+            raise _bad(path, where, "must be {\"frames\": {FRAME: {\"positive\": [[x, y], ...], "
+                                    "\"negative\": [...]}}}")
+        extra = sorted(set(entry) - {"frames", "image_size"})
+        if extra:
+            raise _bad(path, where, f"unknown key(s) {extra} (expected frames, image_size)")
+        size = _size(path, where, entry.get("image_size")) or default_size
+        frames_in = entry["frames"]
+        if not isinstance(frames_in, dict) or not frames_in:
+            raise _bad(path, where, "frames must map frame names to clicks and name at least one")
+        frames = []
+        for frame, clicks in frames_in.items():
+            fwhere = f"object {name!r}, frame {frame!r}"
+            if not isinstance(clicks, dict):
+                raise _bad(path, fwhere, "must be {\"positive\": [[x, y], ...], \"negative\": [[x, y], ...]}")
+            bad_keys = sorted(set(clicks) - {"positive", "negative"})
+            if bad_keys:
+                raise _bad(path, fwhere, f"unknown key(s) {bad_keys} (expected positive, negative)")
+            pos = _points(path, fwhere, clicks.get("positive", []), "positive")
+            neg = _points(path, fwhere, clicks.get("negative", []), "negative")
+            if not len(pos):
+                raise _bad(path, fwhere, "needs at least one positive click (SAM2 would find nothing)")
+            if size is not None:
+                for kind, pts in (("positive", pos), ("negative", neg)):
+                    out = [p for p in pts.tolist() if p[0] > size[0] or p[1] > size[1]]
+                    if out:
+                        raise _bad(path, fwhere, f"{kind} click {out[0]} lies outside image_size "
+                                                 f"{list(size)}")
+            frames.append(FrameClicks(str(frame), np.concatenate([pos, neg]),
+                                      np.concatenate([np.ones(len(pos), np.int64), np.zeros(len(neg), np.int64)])))
+        objects[str(name)] = ObjectClicks(str(name), tuple(frames), size, OWN)
+    return ClickFile(path, OWN, objects)
+
+
+def read_clicks(path: os.PathLike | str) -> ClickFile:
+    """Read and check a click file (module docstring: both layouts).
+
+    Raises:
+        InputError: the file is missing, is not JSON, or a value is malformed: the
+            message names the file, the object (or entry) and the frame.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"click file {p} does not exist")
+    try:
+        data = json.loads(p.read_text(encoding="utf-8-sig"))
+    except (UnicodeDecodeError, ValueError) as exc:
+        raise InputError(f"click file {p}: not valid JSON ({exc})") from exc
+    if not isinstance(data, dict):
+        raise InputError(f"click file {p}: expected a JSON object at the top, got {type(data).__name__}")
+    if "objects" in data:
+        return _read_own(p, data)
+    return _read_saga(p, data)
+
+
+def to_image_pixels(points: np.ndarray, frame_size: Optional[tuple[int, int]],
+                    image_size: tuple[int, int]) -> np.ndarray:
+    """Clicks from their pixel frame ``frame_size`` (w, h; None = already the image's) to
+    an image of ``image_size`` (w, h): each axis scaled by the ratio of the sizes."""
+    if frame_size is None:
+        return np.asarray(points, np.float64)
+    sx = image_size[0] / frame_size[0]
+    sy = image_size[1] / frame_size[1]
+    return np.asarray(points, np.float64) * np.array([sx, sy])
+
+
+__all__ = ["ClickFile", "FrameClicks", "ObjectClicks", "OWN", "SAGA", "read_clicks", "to_image_pixels"]

@@ -1,0 +1,198 @@
+"""``masks.source = "points"`` through the real workflow: the masks stage on a scene in a
+published layout, the stand-in SAM2 exports (tests/masks/fakes.py) and click files in
+both layouts (SAGA-v2's NVOS input points, the per-object one)."""
+
+from __future__ import annotations
+
+import io
+import json
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from pipeline import RunOptions, WorkflowError, entries, load_workflow, run_workflow
+from stages.registry import load_registry
+
+from . import scenes
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "stages"))
+from protocol_fixtures import published_names, write_llff, write_nvos_labels  # noqa: E402
+
+N = 8
+
+
+def _square_scene(root: Path) -> tuple[Path, list[np.ndarray]]:
+    """A drifting red square in the layout of a synthetic scene (transforms.json with
+    per-frame intrinsics, images/, masks/square/), 64x48, cameras stepping sideways."""
+    paths, gts = scenes.write_sequence(root / "images", [scenes.Frame("red", x=6 + 5 * i, y=8 + 2 * i)
+                                                         for i in range(N)])
+    frames = []
+    for i, p in enumerate(paths):
+        frames.append({"file_path": f"images/{p.name}", "w": scenes.W, "h": scenes.H, "fl_x": 60.0,
+                       "fl_y": 60.0, "cx": scenes.W / 2, "cy": scenes.H / 2,
+                       "transform_matrix": [[1, 0, 0, 0.05 * i], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]]})
+        (root / "masks" / "square").mkdir(parents=True, exist_ok=True)
+        cv2.imwrite(str(root / "masks" / "square" / p.name), gts[i].astype(np.uint8) * 255)
+    (root / "transforms.json").write_text(json.dumps({"frames": frames}))
+    return root, gts
+
+
+def _centre(gt: np.ndarray) -> list[float]:
+    y, x = np.argwhere(gt).mean(0)
+    return [float(x), float(y)]
+
+
+def _run(tmp_path, toml: str):
+    path = tmp_path / "clicks.toml"
+    path.write_text(toml)
+    wf = load_workflow(path, load_registry())
+    out = io.StringIO()
+    summary = run_workflow(wf, RunOptions(cache_dir=tmp_path / "cache", only=("dataset", "sfm", "masks")), stream=out)
+    assert summary.exit_code == 0, out.getvalue()
+    return {(r.stage, r.item.id): r for r in entries(wf, tmp_path / "cache")}
+
+
+OWN = """
+[workflow]
+name = "clicks"
+nested = {{ object = "scene" }}
+[params.sfm]
+mode = "never"
+[params.dataset]
+test_every = 4
+[params.masks]
+source = "points"
+models_dir = "{models}"
+points_file = "{clicks}"
+[axes.scene.sq]
+kind = "transforms"
+path = "{scene}"
+[axes.method.cobgs]
+[axes.object.sq.square]
+"""
+
+
+def test_points_route_per_object_layout(models_dir, tmp_path):
+    scene, gts = _square_scene(tmp_path / "scene")
+    # Clicks given at 2x the image size (image_size says so): the route scales them.
+    clicks = {"objects": {"square": {"image_size": [2 * scenes.W, 2 * scenes.H], "frames": {
+        "0002": {"positive": [[2 * c for c in _centre(gts[2])]], "negative": [[2.0, 2.0]]},
+        "0006": {"positive": [[2 * c for c in _centre(gts[6])]]}}}}}
+    cf = tmp_path / "clicks.json"
+    cf.write_text(json.dumps(clicks))
+    recs = _run(tmp_path, OWN.format(models=models_dir, clicks=cf, scene=scene))
+    out = recs[("masks", "sq/square")].output("masks")
+    info = json.loads((out / "masks.json").read_text())
+    assert info["source"] == "points" and info["route"] == "clicks -> SAM2"
+    c = info["clicks"]
+    assert c["file"] == str(cf) and c["layout"] == "objects" and c["entry"] == "square"
+    assert [f["frame"] for f in c["frames"]] == ["0002", "0006"]
+    assert c["frames"][0]["from_size"] == [2 * scenes.W, 2 * scenes.H]
+    assert c["frames"][0]["image_size"] == [scenes.W, scenes.H]
+    assert c["frames"][0]["positive"] == 1 and c["frames"][0]["negative"] == 1
+    np.testing.assert_allclose(c["frames"][0]["points_px"][0], _centre(gts[2]), atol=0.01)
+    assert [p["stem"] for p in info["generator"]["prompts"]] == ["0002", "0006"]
+    # masks named after the training views (0000 and 0004 are held out), each on its square
+    assert sorted(p.stem for p in out.glob("*.png")) == ["0001", "0002", "0003", "0005", "0006", "0007"]
+    for p in out.glob("*.png"):
+        m = cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) > 127
+        assert scenes.iou(m, gts[int(p.stem)]) > 0.8, p.name
+
+
+def test_points_route_saga_v2_file_on_an_nvos_scene_in_the_published_layout(models_dir, tmp_path):
+    """NeX layout (images_2/image000.png ..., views IMG_* from images/), NVOS labels, and a
+    click file with the SAGA-v2 structure: quarter... here half-resolution values with
+    ``_scale`` 2, keyed by the scene's base name (``sqr`` for task ``sqr_center``)."""
+    scene, gts = _square_scene(tmp_path / "scene")
+    stems = [f"{i:04d}" for i in range(N)]
+    pub = published_names("IMG_4027", "IMG_4031", N)
+    names = dict(zip(stems, pub))
+    target, reference = stems[pub.index("IMG_4027")], stems[pub.index("IMG_4031")]
+    llff = write_llff(scene, tmp_path / "nvos" / "llff", "nex", {}, names=names, factor=2)
+    labels = write_nvos_labels(scene, tmp_path / "nvos" / "labels", "sqr_center", "square", target, reference,
+                               names=names, factor=2)
+    assert (llff / "images_2" / "image000.png").is_file()
+    ref_gt = gts[stems.index(reference)]
+    # full resolution = 2x the images; values x _scale are full-resolution pixels
+    saga = {"_comment": "SAGA v2 style", "_scale": 2, "sqr": [_centre(ref_gt)], "other": [[1, 1]]}
+    cf = tmp_path / "saga_v2_input_points.json"
+    cf.write_text(json.dumps(saga))
+    toml = f"""
+[workflow]
+name = "nvos_clicks"
+nested = {{ object = "scene" }}
+[params.sfm]
+mode = "never"
+[params.masks]
+source = "points"
+models_dir = "{models_dir}"
+points_file = "{cf}"
+[axes.scene.sqr]
+kind = "nvos"
+path = "{llff}"
+labels = "{labels}"
+task = "sqr_center"
+dataset = {{ downscale = 2.0 }}
+[axes.method.cobgs]
+[axes.object.sqr.sqr_center]
+"""
+    recs = _run(tmp_path, toml)
+    out = recs[("masks", "sqr/sqr_center")].output("masks")
+    info = json.loads((out / "masks.json").read_text())
+    c = info["clicks"]
+    assert c["layout"] == "saga_v2" and c["entry"] == "sqr" and c["scale"] == 2
+    assert [f["frame"] for f in c["frames"]] == ["IMG_4031"]  # the reference view
+    assert c["frames"][0]["image"] == f"image{pub.index('IMG_4031'):03d}.png"
+    assert c["frames"][0]["from_size"] == [2 * scenes.W, 2 * scenes.H]
+    np.testing.assert_allclose(c["frames"][0]["points_px"][0], _centre(ref_gt), atol=0.01)
+    # masks named after the views (IMG_*), not the images_2 files; the target held out
+    got = sorted(p.stem for p in out.glob("*.png"))
+    assert got == sorted(n for n in pub if n != "IMG_4027")
+    for stem, name in names.items():
+        if name == "IMG_4027":
+            continue
+        m = cv2.imread(str(out / f"{name}.png"), cv2.IMREAD_GRAYSCALE) > 127
+        assert scenes.iou(m, gts[stems.index(stem)]) > 0.8, name
+
+
+@pytest.mark.parametrize("edit, match", [
+    ({"objects": {"square": {"frames": {"0002": {"positive": [[1, "x"]]}}}}},
+     r"clicks\.json: object 'square', frame '0002': positive point 0"),
+    ({"objects": {"square": {"frames": {"0002": {"negative": [[1, 1]]}}}}},
+     r"object 'square', frame '0002': needs at least one positive click"),
+])
+def test_bad_click_file_refused_when_the_workflow_loads(models_dir, tmp_path, edit, match):
+    """Refused when the workflow is planned (`cobgs run` / `status` / `--dry-run`), before
+    any task runs."""
+    from pipeline import Plan
+
+    cf = tmp_path / "clicks.json"
+    cf.write_text(json.dumps(edit))
+    path = tmp_path / "clicks.toml"
+    path.write_text(OWN.format(models=models_dir, clicks=cf, scene=tmp_path))
+    with pytest.raises(WorkflowError, match=match):
+        Plan(load_workflow(path, load_registry()))
+
+
+@pytest.mark.parametrize("frames, match", [
+    ({"0004": {"positive": [[10, 10]]}}, r"object 'square', frame '0004': a held-out view"),
+    ({"IMG_9": {"positive": [[10, 10]]}}, r"frame 'IMG_9': no training view of that name"),
+    ({"0002": {"positive": [[100, 10]]}}, r"frame '0002': click \[100.0, 10.0\] lies outside the image \(64x48"),
+])
+def test_click_file_checked_against_the_scene_before_sam2_runs(models_dir, tmp_path, frames, match):
+    scene, _ = _square_scene(tmp_path / "scene")
+    cf = tmp_path / "clicks.json"
+    cf.write_text(json.dumps({"objects": {"square": {"frames": frames}}}))
+    path = tmp_path / "clicks.toml"
+    path.write_text(OWN.format(models=models_dir, clicks=cf, scene=scene))
+    wf = load_workflow(path, load_registry())
+    out = io.StringIO()
+    summary = run_workflow(wf, RunOptions(cache_dir=tmp_path / "cache", only=("dataset", "sfm", "masks")), stream=out)
+    assert summary.exit_code != 0
+    assert str(cf) in out.getvalue()
+    import re
+
+    assert re.search(match, out.getvalue()), out.getvalue()[-2000:]
