@@ -373,7 +373,10 @@ def read_rgb_u8(path: os.PathLike | str) -> np.ndarray:
 def aggregate(rows: Sequence[Mapping], metrics: Sequence[str], by: Sequence[str] = ("method",),
               within: str = "scene", over: str = "object") -> list[dict]:
     """Two-level means: first over ``over`` (objects) within each (``by`` + ``within``)
-    group, then over ``within`` (scenes) for each ``by`` group.
+    group, then over ``within`` (scenes) for each ``by`` group. NVOS rows (``protocol``
+    "nvos" with a ``task``) form one group per task, so that the mean is over tasks as the
+    protocol defines it, also where one scene holds two tasks (horns); ``scenes`` then
+    counts tasks.
 
     Args:
         rows: one dict per (scene, method, object) with the grouping keys and metrics.
@@ -388,7 +391,10 @@ def aggregate(rows: Sequence[Mapping], metrics: Sequence[str], by: Sequence[str]
     """
     inner: dict[tuple, list[Mapping]] = {}
     for r in rows:
-        inner.setdefault(tuple(r[k] for k in by) + (r[within],), []).append(r)
+        unit = r[within]
+        if within == "scene" and r.get("protocol") == "nvos" and r.get("task"):
+            unit = (unit, r["task"])  # NVOS: the mean is over tasks, even two on one scene (horns)
+        inner.setdefault(tuple(r[k] for k in by) + (unit,), []).append(r)
     mid: dict[tuple, list[dict]] = {}
     for key, group in inner.items():
         m = {k: nanmean(g.get(k) for g in group) for k in metrics}

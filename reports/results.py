@@ -239,8 +239,18 @@ def _skipped_title(r: Result) -> str:
     return f"skipped {len(items)} view(s): {text}" + (" ..." if len(items) > 8 else "")
 
 
+def _scene_tasks(data: RunData, scene: str) -> list[str]:
+    """Every NVOS task a workflow scene holds (two for a shared horns scene)."""
+    ds = data.scenes.get(scene)
+    spec = (ds.dataset or {}) if ds else {}
+    if spec.get("nvos_tasks"):
+        return sorted(spec["nvos_tasks"])
+    return [_scene_task(data, scene)]
+
+
 def _scene_task(data: RunData, scene: str) -> str:
-    """The NVOS task / LERF-mask scene a workflow scene stands for (paper lookups)."""
+    """The NVOS task / LERF-mask scene a workflow scene stands for (paper lookups; a scene
+    holding several NVOS tasks stands for its first: they share the scene's PSNR)."""
     ds = data.scenes.get(scene)
     spec = (ds.dataset or {}) if ds else {}
     if spec.get("protocol") == "nvos":
@@ -351,7 +361,7 @@ def method_records(data: RunData, infos: dict, log_href: LogHref) -> tuple[list[
         q = paper.nvos_quote(info.paper) if protocols == {"nvos"} else None
         if q is not None:
             rec["paper_iou"], rec["paper_acc"] = q.values["iou"] / 100.0, q.values["acc"] / 100.0
-            tasks = sorted({_scene_task(data, s) for s in done_scenes})
+            tasks = sorted({t for s in done_scenes for t in _scene_tasks(data, s)})
             src = f"quoted, {q.source}: {q.label}"
             if len(tasks) < len(paper.NVOS_TASKS):
                 src += f"; this run covers {len(tasks)} of the {len(paper.NVOS_TASKS)} tasks, not comparable as a mean"

@@ -171,6 +171,20 @@ def object_name(ctx) -> str:
     return name or ctx.item["object"]
 
 
+def nvos_task(spec: dict, *names: str) -> dict:
+    """The NVOS task an object of an NVOS scene stands for: when the scene holds several
+    tasks (``nvos_tasks``), the entry of the first of ``names`` (the object value's name,
+    then its ``mask``) that is one of them; else the scene's one task."""
+    tasks = spec.get("nvos_tasks")
+    if not tasks:
+        return spec["nvos"]
+    for n in names:
+        if n in tasks:
+            return tasks[n]
+    raise StageInputError(f"NVOS scene {spec.get('scene')!r} holds the tasks {sorted(tasks)}; object "
+                          f"{' / '.join(repr(n) for n in names)} is none of them (name the object after its task)")
+
+
 # -- images ----------------------------------------------------------------------------------
 def write_png(path: Path, array) -> Path:
     """Write an 8-bit PNG: [H, W] (grey) or [H, W, 3] RGB; bool -> 0/255, float [0, 1] -> 8 bit."""

@@ -48,6 +48,10 @@ class SceneAttrs:
             ``reference_image/`` and ``scribbles/``, or the ``labels/`` the download
             unpacks (its ``llff/`` sub-folder is read).
         task: the NVOS task (default: the scene value's name).
+        tasks: several NVOS tasks on this scene (the two horns tasks share the scene, its
+            target and its reference view): the scene is trained once and each task is an
+            object of it (the object's name or ``mask`` is the task). Every target is held
+            out. Instead of ``task``.
         scene_type: "forward" or "360" (default: from the kind / preset).
         trained: a scene trained elsewhere, used instead of training one: an output folder
             of the original 3DGS code (``point_cloud/iteration_<N>/point_cloud.ply``,
@@ -61,6 +65,7 @@ class SceneAttrs:
     path: Optional[Path] = None
     labels: Optional[Path] = None
     task: str = ""
+    tasks: tuple[str, ...] = ()
     scene_type: str = ""
     trained: Optional[Path] = None
     trained_iteration: int = 0
@@ -73,6 +78,10 @@ class SceneAttrs:
             raise ValueError(f"trained_iteration must be >= 0, got {self.trained_iteration}")
         if self.kind not in KINDS:
             raise ValueError(f"kind must be one of {list(KINDS)}, got {self.kind!r}")
+        if self.tasks and (self.task or self.kind != "nvos"):
+            raise ValueError("tasks (several NVOS tasks on one scene) needs kind 'nvos' and no task")
+        if len(set(self.tasks)) != len(self.tasks):
+            raise ValueError(f"tasks repeats a task: {list(self.tasks)}")
         if self.scene_type not in ("", "forward", "360"):
             raise ValueError(f"scene_type must be 'forward' or '360', got {self.scene_type!r}")
         if self.kind == "synthetic":
@@ -249,7 +258,13 @@ def _run(ctx, inputs):
         elif attrs.kind == "nvos":
             from cobgs.data.nvos import read_nvos_task
 
-            task = read_nvos_task(attrs.labels, attrs.task or name)
+            tasks = [read_nvos_task(attrs.labels, t) for t in (attrs.tasks or (attrs.task or name,))]
+            task = tasks[0]
+            targets = sorted({t.target for t in tasks})
+            for t in tasks:
+                if t.reference in targets:
+                    raise StageInputError(f"NVOS task {t.task!r}: its reference view {t.reference!r} is "
+                                          f"another task's held-out target; give those tasks their own scenes")
             fmt = _detect(root)
             # The NVOS GT is in the captured (distorted) frame at every size, and the
             # reference methods read nerf_llff_data's SIMPLE_RADIAL camera as a pinhole: the
@@ -258,19 +273,22 @@ def _run(ctx, inputs):
             reader.update(format=fmt, distortion="ignore")
             scene = read_scene(root, format=fmt, downscale=p.downscale, test_every=0, distortion="ignore")
             stems = sorted(v.name for v in scene.views)
-            for need in (task.target, task.reference):
-                if need not in stems:
-                    raise StageInputError(f"NVOS task {task.task!r}: view {need!r} is not an image of "
-                                          f"{root} (images: {stems[:3]} ...)")
+            for t in tasks:
+                for need in (t.target, t.reference):
+                    if need not in stems:
+                        raise StageInputError(f"NVOS task {t.task!r}: view {need!r} is not an image of "
+                                              f"{root} (images: {stems[:3]} ...)")
             sfm_dir, post = _sfm_images(root, p)
             sfm_dir = _sfm_images_as_views(ctx.out_dir, scene, sfm_dir)
             spec["notes"] = list(scene.notes)
+            if len(tasks) > 1:  # one training, shared by the scene's tasks
+                spec["nvos_tasks"] = {t.task: t.to_json() for t in tasks}
             if any("read as a pinhole" in n for n in scene.notes):
                 spec["notes"].append(
                     f"NVOS at downscale {p.downscale:g}: images kept in the captured frame (camera read as "
                     "a pinhole, not undistorted), the frame the NVOS ground truth is in")
-            spec.update(protocol="nvos", nvos=task.to_json(), objects=[task.task],
-                        views=stems, test_views=[task.target], has_poses=True,
+            spec.update(protocol="nvos", nvos=task.to_json(), objects=[t.task for t in tasks],
+                        views=stems, test_views=targets, has_poses=True,
                         images={"dir": os.fspath(sfm_dir),
                                 "names": _names(sfm_dir if sfm_dir.is_absolute()
                                                 else ctx.out_dir / sfm_dir)},

@@ -40,7 +40,7 @@ from pathlib import Path
 
 from pipeline import Resources, Stage
 
-from ._common import StageInputError, load_scene, object_name, read_json, read_spec, write_json
+from ._common import StageInputError, load_scene, nvos_task, object_name, read_json, read_spec, write_json
 
 
 @dataclass(frozen=True)
@@ -145,7 +145,7 @@ def _run(ctx, inputs):
                                   "released": PROTOCOL_NAMES["released"],
                                   "occlusion": PROTOCOL_NAMES["occlusion"]})
     elif protocol == "nvos":
-        task = spec["nvos"]
+        task = nvos_task(spec, ctx.item["object"], obj)
         s = E.compare_masks(preds[task["target"]], E.read_mask_u8(task["gt_mask"]), p.boundary_ratio)
         row.update(iou=s.iou, acc=s.acc, biou=s.biou, views=1, task=task["task"], mask_render="object_only",
                    gt="visible", headline=PROTOCOL_NAMES["headline_visible"])

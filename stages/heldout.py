@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 from pipeline import Resources, Stage
 
-from ._common import load_scene, object_name, read_spec, write_json, write_png
+from ._common import load_scene, nvos_task, object_name, read_spec, write_json, write_png
 
 FORMAT = "cobgs-heldout"
 
@@ -39,13 +39,13 @@ class HeldoutParams:
             raise ValueError(f"max_views must be >= 0, got {self.max_views}")
 
 
-def _gt_of(spec: dict, obj: str):
+def _gt_of(spec: dict, obj: str, item_object: str = ""):
     """A function view -> (uint8 0/255 [H, W] GT mask or None, reason when None)."""
     from cobgs import evaluate as E
 
     protocol = spec["protocol"]
     if protocol == "nvos":
-        task = spec["nvos"]
+        task = nvos_task(spec, item_object, obj)
         return lambda v: ((E.read_mask_u8(task["gt_mask"]), "") if v.name == task["target"]
                           else (None, "not the NVOS target view"))
     if protocol == "lerf_mask":
@@ -75,7 +75,7 @@ def _run(ctx, inputs):
     spec = read_spec(inputs["dataset"])
     obj = object_name(ctx)
     scene = load_scene(inputs["dataset"], inputs["poses"])
-    gt_of = _gt_of(spec, obj)
+    gt_of = _gt_of(spec, obj, ctx.item["object"])
     views = sorted(scene.test, key=lambda v: v.name)
     gts, skipped = {}, {}
     for v in views:

@@ -35,7 +35,7 @@ from typing import Optional
 from cobgs.configs import MaskNoiseParams, ScribbleConfig, TwoStageConfig
 from pipeline import Resources, Stage
 
-from ._common import StageInputError, load_scene, object_name, read_json, read_spec, write_json, write_png
+from ._common import StageInputError, load_scene, nvos_task, object_name, read_json, read_spec, write_json, write_png
 
 SOURCES = ("files", "noisy", "onnx", "nvos", "points")
 
@@ -323,7 +323,7 @@ def _generate(ctx, p: MasksParams, spec: dict, obj: str, views, info: dict) -> N
         if spec.get("protocol") != "nvos":
             raise StageInputError(f"masks.source 'nvos' needs an NVOS scene (kind 'nvos'), got kind "
                                   f"{spec.get('kind')!r}")
-        task = spec["nvos"]
+        task = nvos_task(spec, ctx.item["object"], obj)
         if task["reference"] not in names:
             raise StageInputError(f"NVOS reference view {task['reference']!r} is not a training view")
         res = generate_masks_from_scribbles(
@@ -350,7 +350,7 @@ def _click_prompts(ctx, p: MasksParams, spec: dict, obj: str, views) -> tuple[li
     from cobgs.masks.images import image_size
 
     clicks = read_clicks(p.points_file)
-    nvos = spec.get("nvos") if spec.get("protocol") == "nvos" else None
+    nvos = nvos_task(spec, ctx.item["object"], obj) if spec.get("protocol") == "nvos" else None
     names = [ctx.item["object"], obj] + ([nvos["task"]] if nvos else []) + [spec["scene"]]
     try:
         entry = clicks.lookup(names)

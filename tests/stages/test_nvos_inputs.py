@@ -143,3 +143,57 @@ def test_shipped_nvos_workflow_says_how_to_run_without_models(tmp_path):
     path = Path(__file__).resolve().parents[2] / "workflows" / "nvos.toml"
     with pytest.raises(WorkflowError, match=r"--set masks\.source=files"):
         Plan(load_workflow(path, load_registry(), environ=env))
+
+
+def test_two_tasks_on_one_scene_train_once(synth, tmp_path):
+    """The two horns tasks share a scene: `tasks = [...]` trains it once, each task an object
+    with its own GT; the means are over tasks (each task one unit), not over scenes."""
+    from tiny_recipe import tiny_recipe  # tests/ is on sys.path
+
+    from protocol_fixtures import write_nvos_labels
+
+    llff, labels = to_nvos(synth, tmp_path / "nvos", "sh_center", "ball", target="0005", reference="0002")
+    write_nvos_labels(synth, labels, "sh_left", "can", target="0005", reference="0002")
+    text = f"""
+[workflow]
+name = "two_tasks"
+nested = {{ object = "scene" }}
+{tiny_recipe(iterations=150, densify_until_its=100, sfm="never", mask_stages=1)}
+[params.dataset]
+downscale = 2.0
+[params.masks]
+source = "files"
+[axes.scene.sh]
+kind = "nvos"
+path = "{llff}"
+labels = "{labels}"
+tasks = ["sh_center", "sh_left"]
+[axes.method.cobgs]
+[axes.object.sh.sh_center]
+mask = "ball"
+[axes.object.sh.sh_left]
+mask = "can"
+"""
+    path = tmp_path / "w.toml"
+    path.write_text(text)
+    wf = load_workflow(path, load_registry())
+    plan = Plan(wf)
+    assert [t.item.id for t in plan.tasks if t.stage.name == "train"] == ["sh"]
+    out = io.StringIO()
+    summary = run_workflow(wf, RunOptions(cache_dir=tmp_path / "cache"), stream=out)
+    assert summary.exit_code == 0, out.getvalue()
+    recs = {(r.stage, r.item.id): r for r in entries(wf, tmp_path / "cache")}
+    spec = json.loads((recs[("dataset", "sh")].output("dataset") / "dataset.json").read_text())
+    assert spec["objects"] == ["sh_center", "sh_left"] and spec["test_views"] == ["0005"]
+    rows = {}
+    for t in ("sh_center", "sh_left"):
+        m = json.loads((recs[("evaluate", f"sh/cobgs/{t}")].output("metrics") / "metrics.json").read_text())
+        rows[t] = m["row"]
+        assert m["row"]["task"] == t
+        pv = m["details"]["per_view"]["0005"]
+        gt = cv2.imread(str(labels / "masks" / t / "0005_mask.png"), cv2.IMREAD_GRAYSCALE) > 128
+        assert pv["tp"] + pv["fn"] == int(gt.sum())  # each task scored on its own GT
+    s = json.loads((recs[("summary", "")].output("summary") / "summary.json").read_text())
+    by = {r["method"]: r for r in s["by_method"]}
+    assert by["cobgs"]["scenes"] == 2  # two units: the two tasks
+    assert by["cobgs"]["iou"] == pytest.approx((rows["sh_center"]["iou"] + rows["sh_left"]["iou"]) / 2)

@@ -173,7 +173,7 @@ def test_benchmark_workflows_need_models_only_for_model_sources(tmp_path, name, 
 
     for s in scenes:
         (tmp_path / "data" / s).mkdir(parents=True)
-    (tmp_path / "labels").mkdir()
+    (tmp_path / "labels" / "masks").mkdir(parents=True)
     env = {"NVOS_LLFF_DIR": str(tmp_path / "data"), "NVOS_LABELS_DIR": str(tmp_path / "labels"),
            "LERF_MASK_DIR": str(tmp_path / "data")}
     path = Path(__file__).resolve().parents[2] / "workflows" / name
