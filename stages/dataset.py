@@ -22,7 +22,7 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Union
 
 from pipeline import Resources, Stage
 
@@ -47,11 +47,10 @@ class SceneAttrs:
         labels: the NVOS labels folder (``kind = "nvos"``): the folder holding ``masks/``,
             ``reference_image/`` and ``scribbles/``, or the ``labels/`` the download
             unpacks (its ``llff/`` sub-folder is read).
-        task: the NVOS task (default: the scene value's name).
-        tasks: several NVOS tasks on this scene (the two horns tasks share the scene, its
-            target and its reference view): the scene is trained once and each task is an
-            object of it (the object's name or ``mask`` is the task). Every target is held
-            out. Instead of ``task``.
+        task: the NVOS task (default: the scene value's name), or a list of tasks on this
+            scene (the two horns tasks share the scene, its target and its reference view):
+            the scene is trained once and each task is an object of it (the object's name
+            or ``mask`` is the task); every target is held out.
         scene_type: "forward" or "360" (default: from the kind / preset).
         trained: a scene trained elsewhere, used instead of training one: an output folder
             of the original 3DGS code (``point_cloud/iteration_<N>/point_cloud.ply``,
@@ -64,8 +63,7 @@ class SceneAttrs:
     kind: str = "synthetic"
     path: Optional[Path] = None
     labels: Optional[Path] = None
-    task: str = ""
-    tasks: tuple[str, ...] = ()
+    task: Union[str, tuple[str, ...]] = ""
     scene_type: str = ""
     trained: Optional[Path] = None
     trained_iteration: int = 0
@@ -78,10 +76,12 @@ class SceneAttrs:
             raise ValueError(f"trained_iteration must be >= 0, got {self.trained_iteration}")
         if self.kind not in KINDS:
             raise ValueError(f"kind must be one of {list(KINDS)}, got {self.kind!r}")
-        if self.tasks and (self.task or self.kind != "nvos"):
-            raise ValueError("tasks (several NVOS tasks on one scene) needs kind 'nvos' and no task")
-        if len(set(self.tasks)) != len(self.tasks):
-            raise ValueError(f"tasks repeats a task: {list(self.tasks)}")
+        if not isinstance(self.task, str):
+            if self.kind != "nvos" or not self.task:
+                raise ValueError("a list of tasks (several NVOS tasks on one scene) needs kind 'nvos' and "
+                                 "at least one task")
+            if len(set(self.task)) != len(self.task):
+                raise ValueError(f"task repeats a task: {list(self.task)}")
         if self.scene_type not in ("", "forward", "360"):
             raise ValueError(f"scene_type must be 'forward' or '360', got {self.scene_type!r}")
         if self.kind == "synthetic":
@@ -258,7 +258,8 @@ def _run(ctx, inputs):
         elif attrs.kind == "nvos":
             from cobgs.data.nvos import read_nvos_task
 
-            tasks = [read_nvos_task(attrs.labels, t) for t in (attrs.tasks or (attrs.task or name,))]
+            names = (attrs.task or name,) if isinstance(attrs.task, str) else attrs.task
+            tasks = [read_nvos_task(attrs.labels, t) for t in names]
             task = tasks[0]
             targets = sorted({t.target for t in tasks})
             for t in tasks:

@@ -146,7 +146,7 @@ def test_shipped_nvos_workflow_says_how_to_run_without_models(tmp_path):
 
 
 def test_two_tasks_on_one_scene_train_once(synth, tmp_path):
-    """The two horns tasks share a scene: `tasks = [...]` trains it once, each task an object
+    """The two horns tasks share a scene: `task = [...]` trains it once, each task an object
     with its own GT; the means are over tasks (each task one unit), not over scenes."""
     from tiny_recipe import tiny_recipe  # tests/ is on sys.path
 
@@ -167,7 +167,7 @@ source = "files"
 kind = "nvos"
 path = "{llff}"
 labels = "{labels}"
-tasks = ["sh_center", "sh_left"]
+task = ["sh_center", "sh_left"]
 [axes.method.cobgs]
 [axes.object.sh.sh_center]
 mask = "ball"
