@@ -167,8 +167,14 @@ def noise_mask_folder(src: os.PathLike | str, dst: os.PathLike | str, params: Ma
     objects = sorted(p.name for p in src.iterdir() if p.is_dir())
     if not objects:
         raise DataError("no object sub-folders (<masks>/<object>/<stem>.png) found", src)
-    if dst.exists() and not overwrite and (not dst.is_dir() or any(dst.iterdir())):
-        raise InputError(f"output mask folder {dst} exists and is not empty (use overwrite)")
+    if dst.exists() and (not dst.is_dir() or any(dst.iterdir())):
+        if not overwrite:
+            raise InputError(f"output mask folder {dst} exists and is not empty (use overwrite)")
+        if dst.is_symlink() or not dst.is_dir() or not (dst / "noise.json").is_file():
+            raise InputError(f"overwrite replaces only a mask folder `cobgs synth-noise` wrote (with its "
+                             f"noise.json); {dst} is not one: refusing to delete it (choose another output)")
+        if dst.resolve() == src.resolve() or src.resolve().is_relative_to(dst.resolve()):
+            raise InputError(f"output mask folder {dst} holds the input {src}: refusing to replace it")
     files = [(o, f) for o in objects for f in sorted((src / o).glob("*.png"))]
     dst.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{dst.name}.tmp-", dir=dst.parent))

@@ -153,6 +153,33 @@ def _write_png(path: Path, array: np.ndarray) -> None:
         raise DataError("could not write PNG", path)
 
 
+def is_synthetic_scene(folder: os.PathLike | str) -> bool:
+    """Whether ``folder`` is a scene :func:`generate_scene` wrote (its ``scene.json`` names
+    this generator)."""
+    f = Path(folder) / "scene.json"
+    try:
+        meta = json.loads(f.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    return isinstance(meta, dict) and meta.get("generator") == GENERATOR
+
+
+def check_replaceable_scene(out: Path) -> None:
+    """``overwrite`` replaces only a scene this generator wrote: never a plain file, a
+    symlink or a folder of anything else (a user's folder given by mistake).
+
+    Raises:
+        InputError: naming the destination and what it holds.
+    """
+    if out.is_symlink() or not out.is_dir():
+        raise InputError(f"--overwrite replaces only a scene folder `cobgs synth` wrote; {out} is "
+                         f"{'a symlink' if out.is_symlink() else 'a file'}: refusing to replace it")
+    if not is_synthetic_scene(out):
+        have = sorted(p.name for p in out.iterdir())[:6]
+        raise InputError(f"--overwrite replaces only a scene folder `cobgs synth` wrote (its scene.json "
+                         f"names {GENERATOR!r}); {out} holds {have}: refusing to delete it (choose another --out)")
+
+
 def generate_scene(out_dir: os.PathLike | str, preset: str | SynthPreset = "demo", seed: int = 0,
                    *, overwrite: bool = False, progress: bool = True,
                    width_px: Optional[int] = None, height_px: Optional[int] = None,
@@ -164,7 +191,9 @@ def generate_scene(out_dir: os.PathLike | str, preset: str | SynthPreset = "demo
         out_dir: destination folder; must not exist (or be empty) unless ``overwrite``.
         preset: "demo", "forward", "orbit" or a :class:`SynthPreset` with one of those names.
         seed: changes colours, texture lattices, box yaws and camera jitter.
-        overwrite: replace an existing ``out_dir``.
+        overwrite: replace an existing ``out_dir`` that is a scene this function wrote
+            (anything else is refused: :func:`check_replaceable_scene`); the new scene is
+            built beside it and swapped in whole.
         progress: show a tqdm bar.
         width_px, height_px, num_views, supersampling: override the preset's values.
         workers: processes rendering views in parallel (0: one per CPU core); the output
@@ -173,9 +202,11 @@ def generate_scene(out_dir: os.PathLike | str, preset: str | SynthPreset = "demo
         ``out_dir`` as a Path.
     """
     out = Path(out_dir)
-    if out.exists() and not overwrite and (not out.is_dir() or any(out.iterdir())):
-        raise InputError(f"output folder {out} exists and is not empty (pass overwrite=True "
-                         "or --overwrite to replace it)")
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        if not overwrite:
+            raise InputError(f"output folder {out} exists and is not empty (pass overwrite=True "
+                             "or --overwrite to replace it)")
+        check_replaceable_scene(out)
     if not isinstance(workers, int) or workers < 0:
         raise InputError(f"workers must be an int >= 0, got {workers!r}")
     workers = workers or (os.cpu_count() or 1)

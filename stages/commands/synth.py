@@ -86,7 +86,8 @@ def register(sub) -> None:
     p.add_argument("--workers", type=int, default=1,
                    help="processes rendering views in parallel, 0 = one per core (default: 1); "
                    "the output does not depend on it")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace an existing scene folder that synth wrote (anything else is refused)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=_synth)
 
@@ -100,6 +101,7 @@ def register(sub) -> None:
     q.add_argument("--seed", type=int, default=0, help="random seed (default: 0)")
     for name, typ, text in NOISE_OPTIONS:
         q.add_argument("--" + name.replace("_", "-"), dest=name, type=typ, default=None, help=text)
-    q.add_argument("--overwrite", action="store_true", help="replace an existing output folder")
+    q.add_argument("--overwrite", action="store_true",
+                   help="replace an existing mask folder that synth-noise wrote (anything else is refused)")
     q.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     q.set_defaults(func=_synth_noise)
