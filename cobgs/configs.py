@@ -8,17 +8,17 @@ torch (or numpy) to read a workflow, and every value is checked where it is set.
 
 from __future__ import annotations
 
-import math
-
 import dataclasses
+import math
 import os
+import re
 from dataclasses import dataclass, field
-from typing import Optional, Tuple
+from typing import ClassVar, Optional, Tuple
 
 from .errors import InputError
 
-__all__ = ["TrainConfig", "Schedule", "RefineConfig", "SA3DConfig", "FlashSplatConfig",
-           "TwoStageConfig", "ScribbleConfig", "MaskNoiseParams", "SfmOptions", "LABEL",
+__all__ = ["check_params", "parse_interval", "in_interval", "TrainConfig", "Schedule", "RefineConfig",
+           "SA3DConfig", "FlashSplatConfig", "TwoStageConfig", "ScribbleConfig", "MaskNoiseParams", "SfmOptions", "LABEL",
            "RAEM_VARIANTS", "TEXTURE_ADAM", "SCENE_DEFAULTS", "MATCHERS"]
 
 LABEL = "mask_logit"  # name of the per-Gaussian label-logit extra
@@ -26,6 +26,55 @@ RAEM_VARIANTS = ("off", "released", "paper")
 SCENE_DEFAULTS = {"forward": (0.5, 6), "360": (0.8, 4)}  # δ, mask stages (SPEC §2)
 TEXTURE_ADAM = ("baseline", "fresh")
 MATCHERS = ("auto", "exhaustive", "sequential")
+
+
+# -- valid ranges ------------------------------------------------------------------------
+# Every config (and the pipeline's stage params) states the valid range of its numeric
+# fields once, as a class attribute RANGES = {field: "[lo, hi]"} ("(" / ")" for an open
+# end, inf allowed), and the allowed values of its string fields as CHOICES; check_params
+# enforces both in __post_init__, and the docs' table of params is generated from them
+# (docs/pipeline.md, `cobgs stages --toml`). A float field without a range must be finite.
+_INTERVAL = re.compile(r"^\s*([\[(])\s*([^,\s]+)\s*,\s*([^\])\s]+)\s*([\])])\s*$")
+
+
+def parse_interval(text: str) -> tuple[float, float, bool, bool]:
+    """(lo, hi, lo_closed, hi_closed) of an interval written "[0, 1)", "(0, inf]" ..."""
+    m = _INTERVAL.match(text)
+    if m is None:
+        raise ValueError(f"bad interval {text!r} (expected e.g. '[0, 1]' or '(0, inf)')")
+    return float(m.group(2)), float(m.group(3)), m.group(1) == "[", m.group(4) == "]"
+
+
+def in_interval(x: float, text: str) -> bool:
+    lo, hi, lo_c, hi_c = parse_interval(text)
+    if x != x:  # nan
+        return False
+    return (x >= lo if lo_c else x > lo) and (x <= hi if hi_c else x < hi)
+
+
+def check_params(obj) -> None:
+    """Enforce ``type(obj).RANGES`` / ``CHOICES`` (see above) on a dataclass instance.
+
+    Raises:
+        InputError: naming the class, the field, the valid range or values, and the value.
+    """
+    cls = type(obj)
+    ranges = getattr(cls, "RANGES", {})
+    choices = getattr(cls, "CHOICES", {})
+    for f in dataclasses.fields(obj):
+        v = getattr(obj, f.name)
+        allowed = choices.get(f.name)
+        if allowed is not None and v is not None and v not in allowed:
+            raise InputError(f"{cls.__name__}.{f.name} must be one of {list(allowed)}, got {v!r}")
+        spec = ranges.get(f.name)
+        for x in (v if isinstance(v, (tuple, list)) else (v,)):
+            if isinstance(x, bool) or not isinstance(x, (int, float)):
+                continue
+            if spec is not None:
+                if not in_interval(float(x), spec):
+                    raise InputError(f"{cls.__name__}.{f.name} must be in {spec}, got {x!r}")
+            elif isinstance(x, float) and not math.isfinite(x):
+                raise InputError(f"{cls.__name__}.{f.name} must be a finite number, got {x!r}")
 
 
 # -- baseline training (cobgs.train) ---------------------------------------------------------
@@ -83,15 +132,24 @@ class TrainConfig:
     log_interval_its: int = 10
     checkpoint_interval_its: int = 0  # 0 = only at the end (when a folder is given)
 
+    RANGES: ClassVar[dict] = {
+        "iterations": "[1, 1e7]", "seed": "[0, 2147483647]", "reference_iterations": "[1, 1e7]",
+        "sh_degree": "[0, 3]", "sh_degree_interval_its": "[1, 1e7]",
+        "position_lr_init": "(0, 1]", "position_lr_final": "(0, 1]", "position_lr_decay_its": "[1, 1e7]",
+        "sh0_lr": "[0, 1]", "shN_lr": "[0, 1]", "opacity_lr": "[0, 1]", "scaling_lr": "[0, 1]",
+        "rotation_lr": "[0, 1]", "adam_eps": "(0, 0.001]", "ssim_weight": "[0, 1]",
+        "densify_from_its": "[0, 1e7]", "densify_until_its": "[0, 1e7]", "densify_interval_its": "[1, 1e7]",
+        "densify_grad_threshold_ndc": "(0, 1]", "dense_scale_fraction": "[0, 1]", "split_children": "[1, 16]",
+        "split_scale_divisor": "[1, 100]", "prune_min_opacity": "[0, 1)",
+        "prune_max_world_scale_fraction": "(0, inf]", "prune_max_screen_radius_px": "[0, inf]",
+        "max_gaussians": "[0, 1e9]", "opacity_reset_interval_its": "[1, 1e7]", "opacity_reset_value": "(0, 1)",
+        "random_init_points": "[1, 1e8]", "init_opacity": "(0, 1)", "background": "[0, 1]",
+        "log_interval_its": "[1, 1e7]", "checkpoint_interval_its": "[0, 1e7]",
+    }
+    CHOICES: ClassVar[dict] = {"backend": ("native", "reference")}
+
     def __post_init__(self):
-        if self.iterations < 1:
-            raise InputError(f"TrainConfig.iterations must be >= 1, got {self.iterations}")
-        if not 0 <= self.sh_degree <= 3:
-            raise InputError(f"TrainConfig.sh_degree must be in 0..3, got {self.sh_degree}")
-        if self.reference_iterations < 1:
-            raise InputError("TrainConfig.reference_iterations must be >= 1")
-        if self.split_children < 1:
-            raise InputError("TrainConfig.split_children must be >= 1")
+        check_params(self)
 
     def schedule(self) -> "Schedule":
         """Iteration-valued fields after scaling to ``iterations`` (see module docstring)."""
@@ -188,7 +246,18 @@ class RefineConfig:
     label_name: str = LABEL
     record_scores: bool = True
 
+    RANGES: ClassVar[dict] = {
+        "delta": "[0, 1]", "mask_stages": "[1, 100]", "stage_length_views": "(0, 100]",
+        "split_size_fraction": "[0, 1]", "split_children": "[1, 16]", "split_scale_divisor": "[1, 100]",
+        "raem_footprint_px": "[0, 1e4]", "mask_lambda": "[0, 1000]", "label_lr": "(0, 10]",
+        "adam_eps": "(0, 0.001]", "position_lr": "[0, 1]", "sh0_lr": "[0, 1]", "shN_lr": "[0, 1]",
+        "opacity_lr": "[0, 1]", "scaling_lr": "[0, 1]", "rotation_lr": "[0, 1]", "ssim_weight": "[0, 1]",
+        "seed": "[0, 2147483647]",
+    }
+    CHOICES: ClassVar[dict] = {"backend": ("native", "reference"), "label_name": (LABEL,)}
+
     def __post_init__(self):
+        check_params(self)
         if self.scene_type not in SCENE_DEFAULTS:
             raise InputError(f"RefineConfig.scene_type must be 'forward' or '360', got {self.scene_type!r}")
         if self.raem not in RAEM_VARIANTS:
@@ -291,7 +360,12 @@ class SA3DConfig:
     adam_eps: float = 1e-15
     backend: str = "native"
 
+    RANGES: ClassVar[dict] = {"lr": "(0, 100]", "neg_weight": "[0, 100]", "passes": "[1, 100]",
+                              "skip_iou": "[0, 1]", "adam_eps": "(0, 0.001]", "seed": "[0, 2147483647]"}
+    CHOICES: ClassVar[dict] = {"backend": ("native", "reference")}
+
     def __post_init__(self):
+        check_params(self)
         if self.passes < 1 or not self.lr > 0:
             raise InputError("SA3DConfig.passes must be >= 1 and lr > 0")
         if self.order not in ("fixed", "random"):
@@ -332,6 +406,12 @@ class FlashSplatConfig:
     background_bias: float = 0.0
     backend: str = "native"
 
+    RANGES: ClassVar[dict] = {"background_bias": "[-2, 2]"}
+    CHOICES: ClassVar[dict] = {"backend": ("native", "reference")}
+
+    def __post_init__(self):
+        check_params(self)
+
 
 # -- two-stage masks and scribbles (cobgs.masks) ------------------------------------------
 @dataclass(frozen=True)
@@ -365,7 +445,13 @@ class TwoStageConfig:
     #   predict()), or "confidence" (best first); stage-2 boxes pair with the objects in it.
     detection_order: str = "query"
 
+    RANGES: ClassVar[dict] = {
+        "prompt_frame": "[0, 1e7]", "box_threshold": "[0, 1]", "text_threshold": "[0, 1]",
+        "keep_ratio_of_best": "[0, 1]", "stage2_box_threshold_min": "[0, 1]", "stage2_ratio_of_best": "[0, 1]",
+        "stage2_text_threshold_min": "[0, 1]"}
+
     def __post_init__(self) -> None:
+        check_params(self)
         for name, allowed in (("stage2_reprompt", ("correct", "condition")),
                               ("empty_rule", ("first_object", "union")),
                               ("detection_order", ("query", "confidence"))):
@@ -385,6 +471,12 @@ class ScribbleConfig:
     binarize_above: int = 0
     # a scribble too short to leave any point still contributes its middle pixel
     at_least_one_per_scribble: bool = True
+
+    RANGES: ClassVar[dict] = {"keep_positive_above": "[0, 1]", "keep_negative_above": "[0, 1]",
+                              "seed": "[0, 2147483647]", "binarize_above": "[0, 254]"}
+
+    def __post_init__(self) -> None:
+        check_params(self)
 
 
 # -- mask noise (cobgs.data.mask_noise) ---------------------------------------------------
@@ -420,7 +512,14 @@ class MaskNoiseParams:
     blob_radius_max_px: int = 5
     seed: int = 0
 
+    RANGES: ClassVar[dict] = {
+        "drop_rate": "[0, 1]", "morph_rate": "[0, 1]", "morph_max_px": "[1, 1000]", "dilate_fraction": "[0, 1]",
+        "jitter_rate": "[0, 1]", "jitter_amplitude_px": "(0, 1000]", "jitter_scale_px": "(0, 1000]",
+        "blob_rate": "[0, 1]", "blob_count_max": "[1, 1000]", "blob_radius_min_px": "[1, 1000]",
+        "blob_radius_max_px": "[1, 1000]", "seed": "[0, 2147483647]"}
+
     def __post_init__(self) -> None:
+        check_params(self)
         for name in ("drop_rate", "morph_rate", "dilate_fraction", "jitter_rate", "blob_rate"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and 0.0 <= v <= 1.0):
@@ -481,7 +580,13 @@ class SfmOptions:
     seed: int = 0
     verbose: bool = False
 
+    RANGES: ClassVar[dict] = {
+        "exhaustive_max_images": "[1, 1e6]", "sequential_overlap": "[1, 1e4]", "max_image_size_px": "[1, 1e5]",
+        "max_num_features": "[1, 1e7]", "min_num_matches": "[1, 1e6]", "min_registered_fraction": "[0, 1]",
+        "num_threads": "[0, 1024]", "seed": "[0, 2147483647]", "camera_params": "[-1e7, 1e7]"}
+
     def __post_init__(self) -> None:
+        check_params(self)
         if self.matcher not in MATCHERS:
             raise InputError(f"SfmOptions.matcher must be one of {MATCHERS}, got {self.matcher!r}")
         if self.device not in ("cpu", "cuda"):

@@ -22,8 +22,9 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional, Union
+from typing import ClassVar, Optional, Union
 
+from cobgs.configs import check_params
 from pipeline import Resources, Stage
 
 from ._common import SPEC_FORMAT, SPEC_VERSION, StageInputError, write_json
@@ -147,7 +148,13 @@ class DatasetParams:
     test_every: int = 8
     background: Optional[tuple[float, float, float]] = None
 
+    RANGES: ClassVar[dict] = {
+        "seed": "[0, 2147483647]", "width_px": "[0, 16384]", "height_px": "[0, 16384]", "num_views": "[0, 10000]",
+        "supersampling": "[0, 16]", "workers": "[0, 256]", "downscale": "(0, 64]", "view_stride": "[1, 1e6]",
+        "max_views": "[0, 1e6]", "test_every": "[0, 1e6]", "background": "[0, 1]"}
+
     def __post_init__(self) -> None:
+        check_params(self)
         if self.view_stride < 1 or self.max_views < 0 or self.test_every < 0:
             raise ValueError("view_stride must be >= 1, max_views and test_every >= 0")
         if not self.downscale > 0:

@@ -37,7 +37,9 @@ from __future__ import annotations
 import csv
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
+from cobgs.configs import check_params
 from pipeline import Resources, Stage
 
 from ._common import StageInputError, load_scene, nvos_task, object_name, read_json, read_spec, write_json
@@ -56,9 +58,10 @@ class EvaluateParams:
     skip_empty_gt: bool = True
     warn_psnr_drop_db: float = 2.0
 
+    RANGES: ClassVar[dict] = {"boundary_ratio": "(0, 0.5]", "warn_psnr_drop_db": "(0, 100]"}
+
     def __post_init__(self) -> None:
-        if not self.warn_psnr_drop_db > 0:
-            raise ValueError(f"warn_psnr_drop_db must be > 0 (dB), got {self.warn_psnr_drop_db}")
+        check_params(self)
 
 
 #: The mask protocols of the exact-GT scenes, named plainly (metrics.json, summary, report).

@@ -16,7 +16,9 @@ Output ``heldout``:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import ClassVar
 
+from cobgs.configs import check_params
 from pipeline import Resources, Stage
 
 from ._common import load_scene, nvos_task, object_name, read_spec, write_json, write_png
@@ -34,7 +36,10 @@ class HeldoutParams:
 
     max_views: int = 3
 
+    RANGES: ClassVar[dict] = {"max_views": "[0, 1e6]"}
+
     def __post_init__(self) -> None:
+        check_params(self)
         if self.max_views < 0:
             raise ValueError(f"max_views must be >= 0, got {self.max_views}")
 

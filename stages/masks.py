@@ -30,9 +30,9 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Optional
+from typing import ClassVar, Optional
 
-from cobgs.configs import MaskNoiseParams, ScribbleConfig, TwoStageConfig
+from cobgs.configs import MaskNoiseParams, ScribbleConfig, TwoStageConfig, check_params
 from pipeline import Resources, Stage
 
 from ._common import StageInputError, load_scene, nvos_task, object_name, read_json, read_spec, write_json, write_png
@@ -97,7 +97,11 @@ class MasksParams:
     files_root: Optional[Path] = None
     points_file: Optional[Path] = None
 
+    RANGES: ClassVar[dict] = {"intra_op_threads": "[0, 1024]", "files_threshold": "[0, 254]"}
+    CHOICES: ClassVar[dict] = {"source": SOURCES}
+
     def __post_init__(self) -> None:
+        check_params(self)
         if self.files_root is not None and not Path(self.files_root).is_dir():
             raise ValueError(f"masks.files_root {self.files_root} does not exist (a folder with one "
                              f"folder of mask images per object, named after the object)")

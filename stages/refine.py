@@ -25,8 +25,9 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
-from cobgs.configs import FlashSplatConfig, RefineConfig, SA3DConfig
+from cobgs.configs import FlashSplatConfig, RefineConfig, SA3DConfig, check_params
 from pipeline import Resources, Stage
 
 from ._common import (StageInputError, load_scene, masks_for_views, object_name, read_json, read_spec,
@@ -53,7 +54,10 @@ class RefineParams:
     sa3d: SA3DConfig = field(default_factory=SA3DConfig)
     flashsplat: FlashSplatConfig = field(default_factory=FlashSplatConfig)
 
+    CHOICES: ClassVar[dict] = {"method": METHODS, "scene_type": ("auto", "forward", "360")}
+
     def __post_init__(self) -> None:
+        check_params(self)
         if self.method not in METHODS:
             raise ValueError(f"method must be one of {list(METHODS)}, got {self.method!r}")
         if self.scene_type not in ("auto", "forward", "360"):

@@ -21,8 +21,9 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
+from typing import ClassVar, Optional
 
+from cobgs.configs import check_params
 from pipeline import Resources, Stage
 
 from ._common import load_scene, read_json, read_spec, to_device, torch_device, write_json, write_png
@@ -42,7 +43,10 @@ class SegmentParams:
     views: str = "test"
     backend: str = "native"
 
+    CHOICES: ClassVar[dict] = {"backend": ("native", "reference"), "views": ("test", "all")}
+
     def __post_init__(self) -> None:
+        check_params(self)
         if self.views not in ("test", "all"):
             raise ValueError(f"views must be 'test' or 'all', got {self.views!r}")
         if self.mask_threshold is not None and not 0.0 < self.mask_threshold < 1.0:  # COB-GS masks: [0, 1]

@@ -15,8 +15,9 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import ClassVar
 
-from cobgs.configs import SfmOptions
+from cobgs.configs import SfmOptions, check_params
 from pipeline import Resources, Stage
 
 from ._common import StageInputError, load_scene, read_json, read_spec, spec_path, write_json
@@ -38,7 +39,10 @@ class SfmParams:
     options: SfmOptions = field(default_factory=SfmOptions)
     triangulate: bool = True
 
+    CHOICES: ClassVar[dict] = {"mode": ("auto", "always", "never")}
+
     def __post_init__(self) -> None:
+        check_params(self)
         if self.mode not in ("auto", "always", "never"):
             raise ValueError(f"mode must be 'auto', 'always' or 'never', got {self.mode!r}")
         if self.options.device != SfmOptions.device:

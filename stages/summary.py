@@ -23,7 +23,9 @@ from __future__ import annotations
 import csv
 from dataclasses import dataclass
 from pathlib import Path
+from typing import ClassVar
 
+from cobgs.configs import check_params
 from pipeline import Resources, Stage
 
 from ._common import read_json, write_json
@@ -42,6 +44,11 @@ class SummaryParams:
     """
 
     target_miou: float = 0.0
+
+    RANGES: ClassVar[dict] = {"target_miou": "[0, 1]"}
+
+    def __post_init__(self) -> None:
+        check_params(self)
 
 
 def _walk(entry: Path, seen: dict) -> None:

@@ -50,3 +50,62 @@ def test_h1_synth_noise_overwrite_refuses_a_folder_it_did_not_write(tmp_path, ca
     assert main(["synth-noise", str(scene / "masks"), "--out", str(noisy)]) == 0
     assert main(["synth-noise", str(scene / "masks"), "--out", str(noisy), "--overwrite"]) == 0
     assert (noisy / "noise.json").is_file()
+
+
+# -- H2 / M1 / L7 / L10: every numeric param has a valid range, checked when planned ----------
+DEMO = Path(__file__).resolve().parents[2] / "workflows" / "demo.toml"
+
+
+@pytest.mark.parametrize("setting", [
+    # H2: values that ruined results silently
+    "train.prune_min_opacity=inf", "train.ssim_weight=nan", "train.position_lr_init=nan", "train.adam_eps=0",
+    "train.init_opacity=1.5", "refine.cobgs.mask_lambda=nan", "refine.cobgs.split_size_fraction=nan",
+    "refine.cobgs.raem_footprint_px=-1",
+    # M1: errors that came late, after upstream tasks ran
+    "train.position_lr_init=-1", "train.adam_eps=nan", "train.log_interval_its=0", "train.backend=evil",
+    "evaluate.boundary_ratio=nan", "dataset.workers=-3", "dataset.num_views=-1", "refine.cobgs.label_name=x",
+    # L7: no upper bounds
+    "train.iterations=10000000000000000000", "refine.cobgs.split_children=1000000", "dataset.width_px=100000",
+    # L10
+    "evaluate.boundary_ratio=5", "summary.target_miou=nan", "evaluate.warn_psnr_drop_db=inf",
+])
+def test_params_out_of_range_refused_when_planned_naming_set_and_key(setting):
+    from pipeline import Plan, WorkflowError, load_workflow
+    from stages.registry import load_registry
+
+    key = setting.split("=")[0]
+    with pytest.raises(WorkflowError) as err:
+        Plan(load_workflow(DEMO, load_registry(), [setting]))
+    text = str(err.value)
+    assert "--set" in text and key.split(".")[-1] in text, text
+    assert ("must be in" in text or "must be one of" in text or "finite" in text
+            or "an integer" in text), text
+
+
+def test_every_numeric_param_states_a_range_or_is_finite():
+    """The rule behind the list above: each float param of every stage has a stated range
+    or must be finite; the generated docs list every range."""
+    import dataclasses
+    import typing
+
+    from cobgs.configs import check_params
+    from stages.registry import load_registry
+
+    for stage in load_registry().stages.values():
+        cls = stage.params
+        if cls is None:
+            continue
+        todo = [cls]
+        while todo:
+            c = todo.pop()
+            hints = typing.get_type_hints(c)
+            for f in dataclasses.fields(c):
+                tp = hints[f.name]
+                if dataclasses.is_dataclass(tp):
+                    todo.append(tp)
+            # a float field holding nan is refused by every params class
+            for f in dataclasses.fields(c):
+                if hints[f.name] is float:
+                    inst = c()
+                    with pytest.raises(ValueError):
+                        check_params(dataclasses.replace(inst, **{f.name: float("nan")}))
