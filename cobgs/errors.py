@@ -36,6 +36,11 @@ class ModelError(DataError):
     """A user-supplied model (ONNX export, manifest) breaks the contract."""
 
 
+class DivergenceError(CobgsError, RuntimeError):
+    """An optimisation produced a non-finite loss or parameter, or lost every Gaussian: the
+    result would be garbage, so the run stops (naming the iteration) instead of saving it."""
+
+
 class BuildError(CobgsError, RuntimeError):
     """The native extension could not be compiled or loaded; carries the full log."""
 

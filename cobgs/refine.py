@@ -293,6 +293,7 @@ class Refiner:
                         ambiguous_final = info["ambiguous"]
                 st.gaussians_end = len(self.model)
                 st.wall_s = time.perf_counter() - t0
+                _check_refined(self.model, c.label_name, f"{desc}: stage {si} ({kind}), iteration {self.iteration}")
                 stats.append(st)
                 if bar is not None:
                     bar.set_postfix(stage=f"{kind}{si}", it=self.iteration, gaussians=len(self.model), ambiguous=last_amb)
@@ -300,6 +301,17 @@ class Refiner:
             if bar is not None:
                 bar.close()
         return stats, scores, ambiguous_final
+
+
+def _check_refined(model: GaussianModel, label: str, where: str) -> None:
+    """Stop a refinement whose labels or parameters became non-finite (never a result)."""
+    from .errors import DivergenceError
+    from .train import check_model_finite
+
+    check_model_finite(model, where)
+    lg = model.data.get(label)
+    if lg is not None and not bool(torch.isfinite(lg.detach()).all()):
+        raise DivergenceError(f"{where}: non-finite label logits; nothing is saved")
 
 
 def _label_sets(logits: Tensor) -> tuple[Tensor, Tensor]:

@@ -51,7 +51,7 @@ from ._memory import retain_freed_memory
 from .adam_moments import export_moments
 from .data.scene import Scene, View
 from .configs import Schedule, TrainConfig  # noqa: F401 (defined there, torch-free; re-exported)
-from .errors import DataError, InputError
+from .errors import DataError, DivergenceError, InputError
 from .gaussians import GaussianModel, inverse_sigmoid
 from .losses import photometric_loss
 from .metrics import psnr as psnr_metric
@@ -427,6 +427,18 @@ def peak_rss_bytes() -> int:
     return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
 
 
+def check_model_finite(model, where: str) -> None:
+    """Raise :class:`DivergenceError` when ``model`` has no Gaussian or a non-finite
+    parameter (``where`` names the run and iteration)."""
+    if len(model) == 0:
+        raise DivergenceError(f"{where}: no Gaussian left (check prune_min_opacity and the learning rates)")
+    for k in ("means", "log_scales", "quats", "opacity_logits", "sh0", "shN"):
+        t = model.data.get(k)
+        if t is not None and t.numel() and not bool(torch.isfinite(t.detach()).all()):
+            raise DivergenceError(f"{where}: non-finite values in {k} (a learning rate or loss weight too "
+                                  "large?); nothing is saved")
+
+
 def train(
     scene: Scene,
     config: TrainConfig = TrainConfig(),
@@ -470,6 +482,11 @@ def train(
     while trainer.iteration < config.iterations:
         info = trainer.step()
         it = trainer.iteration
+        if not math.isfinite(info["loss"]):
+            raise DivergenceError(f"training diverged at iteration {it}: loss {info['loss']} "
+                                  f"({len(trainer.model)} Gaussians); nothing is saved")
+        if it % config.log_interval_its == 0 or it == config.iterations:
+            check_model_finite(trainer.model, f"training at iteration {it}")
         ema_loss = info["loss"] if ema_loss is None else 0.9 * ema_loss + 0.1 * info["loss"]
         if callback is not None:
             callback(trainer, info)

@@ -247,3 +247,25 @@ def test_random_background_refuses_rgba_composited_scenes(tiny_scene):
     blender_like = dataclasses.replace(tiny_scene, kind="blender", background=(1.0, 1.0, 1.0))
     with pytest.raises(InputError, match="random_background.*composited"):
         Trainer(blender_like, _cfg(random_background=True))
+
+
+def test_non_finite_training_stops_naming_the_iteration(tiny_scene, tmp_path):
+    """Issue 38 H2: a loss or a parameter that becomes non-finite stops the run with the
+    iteration; no result and no final checkpoint are written."""
+    from cobgs.errors import DivergenceError
+
+    scene = tiny_scene
+    bad = [View(v.camera, v.image * float("nan"), v.name) for v in scene.train + scene.test]
+    bad_scene = make_scene(bad, test_names=[v.name for v in scene.test], kind="test")
+    bad_scene.init_bounds = scene.init_bounds
+    with pytest.raises(DivergenceError, match=r"iteration 1: loss nan"):
+        train(bad_scene, _cfg(), progress=False, checkpoint_dir=tmp_path)
+
+    def poison(trainer, info):
+        if trainer.iteration == 7:
+            with torch.no_grad():
+                trainer.model.data["log_scales"][0, 0] = float("inf")
+
+    with pytest.raises(DivergenceError, match=r"iteration (8|9|10): (non-finite values in log_scales|loss)"):
+        train(scene, _cfg(), progress=False, callback=poison, checkpoint_dir=tmp_path)
+    assert not (tmp_path / "ckpt_final.pt").exists()
