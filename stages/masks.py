@@ -229,6 +229,12 @@ def mask_route(source: str, from_folder: bool) -> str:
     return "scribbles -> SAM2"
 
 
+def same_aspect(w1: int, h1: int, w2: int, h2: int, tol: float = 0.01) -> bool:
+    """Whether two image sizes have the same aspect ratio, up to ``tol`` (relative; a
+    downscale's rounding, 1008x756 vs 4032x3024 or 510x382 vs 512x384, passes)."""
+    return abs(w1 * h2 - w2 * h1) <= tol * w2 * h1
+
+
 _MASK_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff")
 
 
@@ -260,6 +266,10 @@ def _folder_masks(views, folder: Path, threshold: int) -> tuple[dict, dict]:
             raise StageInputError(f"mask file {f}: cannot read it as an image ({exc})") from exc
         m = (a > threshold).any(axis=-1).astype(np.uint8) * 255
         sizes[v.name] = [int(m.shape[1]), int(m.shape[0])]
+        if not same_aspect(m.shape[1], m.shape[0], v.width, v.height):
+            raise StageInputError(f"mask file {f}: {m.shape[1]}x{m.shape[0]} px, but view {v.name!r} is "
+                                  f"{v.width}x{v.height}: another aspect ratio (transposed, cropped or another "
+                                  "view's?); masks are resized to the view only when the aspect matches")
         if m.shape != (v.height, v.width):  # NEAREST, as the evaluation scripts resize
             resized.append(v.name)
         out[v.name] = resize_nearest(m, v.height, v.width)

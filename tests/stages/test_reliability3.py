@@ -109,3 +109,28 @@ def test_every_numeric_param_states_a_range_or_is_finite():
                     inst = c()
                     with pytest.raises(ValueError):
                         check_params(dataclasses.replace(inst, **{f.name: float("nan")}))
+
+
+# -- M2: a mask of another aspect is refused, not stretched ------------------------------------
+def test_m2_mask_of_another_aspect_refused(tmp_path):
+    import cv2
+    import numpy as np
+
+    from stages.masks import _folder_masks, same_aspect
+
+    class V:
+        def __init__(self, name, w, h):
+            self.name, self.width, self.height = name, w, h
+
+    folder = tmp_path / "m"
+    folder.mkdir()
+    cv2.imwrite(str(folder / "a.png"), np.full((160, 120), 255, np.uint8))  # 120x160: transposed
+    cv2.imwrite(str(folder / "b.png"), np.full((240, 320), 255, np.uint8))  # 320x240: 2x, same aspect
+    from stages._common import StageInputError
+
+    with pytest.raises(StageInputError, match=r"a\.png: 120x160 px, but view 'a' is 160x120: another aspect"):
+        _folder_masks([V("a", 160, 120)], folder, 0)
+    out, info = _folder_masks([V("b", 160, 120)], folder, 0)
+    assert out["b"].shape == (120, 160) and info["resized_nearest"] == ["b"]
+    assert same_aspect(4032, 3024, 1008, 756) and same_aspect(510, 382, 512, 384)
+    assert not same_aspect(120, 160, 160, 120)
