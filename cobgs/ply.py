@@ -183,6 +183,11 @@ def load_ply(path: os.PathLike | str, device: str | torch.device = "cpu") -> Gau
     missing = [p for p in need if p not in props]
     if missing:
         raise DataError(f"missing standard 3DGS properties {missing}", path)
+    not_float = [f"{p} ({v.dtype[p]})" for p in need if v.dtype[p].kind != "f"]
+    if not_float:
+        raise DataError(f"standard 3DGS properties must be float (float32 / float64), got {not_float}: "
+                        "positions, scales, rotations, opacities and colours stored as integers would "
+                        "be read as other numbers (a quantised or compressed export? decompress it first)", path)
     bad = np.zeros(n, bool)
     bad_props = []
     for p in need:

@@ -153,3 +153,17 @@ def test_non_finite_values_are_refused_with_a_count(tmp_path):
     with pytest.raises(DataError, match=r"2 of 5 Gaussians have non-finite values .*'x'.*'opacity'") as info:
         load_ply(tmp_path / "nan.ply")
     assert "nan.ply" in str(info.value)
+
+
+@pytest.mark.parametrize("props, dtype", [(("x", "y", "z"), "i4"), (("opacity",), "u1")])
+def test_integer_core_properties_are_refused_naming_them(tmp_path, props, dtype):
+    """Issue 38 M3: x/y/z as int32 or opacity as uchar imported as other numbers."""
+    arr = _standard_vertex(4)
+    descr = [(n, dtype if n in props else arr.dtype[n].str) for n in arr.dtype.names]
+    out = np.zeros(4, dtype=descr)
+    for n in arr.dtype.names:
+        out[n] = arr[n].astype(out.dtype[n]) if n not in props else np.arange(4)
+    PlyData([PlyElement.describe(out, "vertex")]).write(str(tmp_path / "int.ply"))
+    with pytest.raises(DataError, match=rf"must be float .*'{props[0]} \(") as info:
+        load_ply(tmp_path / "int.ply")
+    assert "int.ply" in str(info.value)
