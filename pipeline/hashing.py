@@ -91,11 +91,25 @@ def tree_hash(path: Path) -> TreeHash:
     return TreeHash(digest.hexdigest(), "dir", total, files, sizes, small)
 
 
-def stat_fingerprint(path: Path) -> str:
+#: Bounds of one fingerprint walk: a folder tree larger or deeper than this (a symlink to
+#: "/", a network mount) is fingerprinted up to the bound, with a warning naming it.
+FINGERPRINT_MAX_FILES = 1_000_000
+FINGERPRINT_MAX_DEPTH = 40
+
+
+def stat_fingerprint(path: Path, max_files: Optional[int] = None, max_depth: Optional[int] = None) -> str:
     """A cheap fingerprint of external data (a file or a folder tree): the sorted relative
     paths with each file's size and modification time, hashed. Nothing is read, so a
     dataset folder of thousands of images costs milliseconds; an edit, a replaced file or an
-    added / removed one changes it (an edit that keeps size and mtime does not)."""
+    added / removed one changes it (an edit that keeps size and mtime does not).
+
+    Symlinked folders are followed once each: a link back into the tree (``-> .``, ``-> ..``)
+    is recorded as a link, not walked again, and the walk stops at ``max_files`` files or
+    ``max_depth`` levels (a link to ``/``), warning which folder it cut short."""
+    import warnings
+
+    max_files = FINGERPRINT_MAX_FILES if max_files is None else max_files
+    max_depth = FINGERPRINT_MAX_DEPTH if max_depth is None else max_depth
     path = Path(path)
     try:
         st = path.stat()
@@ -103,14 +117,49 @@ def stat_fingerprint(path: Path) -> str:
         return "missing"
     if not path.is_dir():
         return sha256_text(f"{st.st_size} {st.st_mtime_ns}")
-    rows = []
+    rows: list[str] = []
+    seen = {(st.st_dev, st.st_ino)}
+    skipped: list[str] = []
+    truncated = False
     for root, dirs, files in os.walk(path, followlinks=True):
-        dirs.sort()
+        rel_root = Path(root).relative_to(path)
+        depth = len(rel_root.parts)
+        keep = []
+        for d in sorted(dirs):
+            full = os.path.join(root, d)
+            try:
+                ds = os.stat(full)
+            except OSError:
+                continue
+            key = (ds.st_dev, ds.st_ino)
+            rel = (rel_root / d).as_posix()
+            if key in seen:  # a loop or a second link to a folder already walked
+                rows.append(f"{rel}\tLINK-SEEN")
+                skipped.append(rel)
+            elif depth + 1 > max_depth:
+                rows.append(f"{rel}\tTOO-DEEP")
+                skipped.append(rel)
+            else:
+                seen.add(key)
+                keep.append(d)
+        dirs[:] = keep
         for name in sorted(files):
             p = Path(root) / name
             try:
                 s = p.stat()
             except OSError:
                 continue
-            rows.append(f"{p.relative_to(path).as_posix()}\t{s.st_size}\t{s.st_mtime_ns}")
+            rows.append(f"{(rel_root / name).as_posix()}\t{s.st_size}\t{s.st_mtime_ns}")
+            if len(rows) >= max_files:
+                truncated = True
+                break
+        if truncated:
+            rows.append("TRUNCATED")
+            break
+    if truncated or skipped:
+        what = (f"stopped after {max_files} files" if truncated else "") + \
+               ("; " if truncated and skipped else "") + \
+               (f"did not follow {len(skipped)} linked or too-deep folder(s) such as {skipped[:3]}" if skipped else "")
+        warnings.warn(f"fingerprint of {path}: {what} (symlink loops or links to large trees are "
+                      "not walked; the fingerprint covers the rest)", RuntimeWarning, stacklevel=2)
     return sha256_text("\n".join(rows))

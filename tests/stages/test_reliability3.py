@@ -134,3 +134,43 @@ def test_m2_mask_of_another_aspect_refused(tmp_path):
     assert out["b"].shape == (120, 160) and info["resized_nearest"] == ["b"]
     assert same_aspect(4032, 3024, 1008, 756) and same_aspect(510, 382, 512, 384)
     assert not same_aspect(120, 160, 160, 120)
+
+
+# -- M4: a symlink loop (or a link to "/") in a data folder does not hang the fingerprint ----
+@pytest.mark.parametrize("target", [".", "..", "/"])
+def test_m4_fingerprint_guards_symlink_loops_and_bounds_the_walk(tmp_path, target):
+    import os
+    import time
+
+    from pipeline.hashing import stat_fingerprint
+
+    d = tmp_path / "masks"
+    (d / "obj").mkdir(parents=True)
+    (d / "obj" / "0000.png").write_bytes(b"x")
+    os.symlink(target, d / "obj" / "link")
+    t0 = time.perf_counter()
+    with pytest.warns(RuntimeWarning, match=r"fingerprint of .*masks: .*obj/link"):
+        a = stat_fingerprint(d, max_files=20_000)
+    assert time.perf_counter() - t0 < 30
+    assert a == stat_fingerprint(d, max_files=20_000)  # repeatable
+    (d / "obj" / "0001.png").write_bytes(b"y")  # still sees the data
+    assert stat_fingerprint(d, max_files=20_000) != a
+
+
+def test_m4_status_returns_on_a_data_folder_with_a_loop(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    cap = tmp_path / "capture"
+    (cap / "images").mkdir(parents=True)
+    (cap / "images" / "0000.png").write_bytes(b"x")
+    os.symlink("..", cap / "images" / "up")
+    os.symlink(".", cap / "images" / "again")  # two loops: the unguarded walk grows as 2^depth
+    wf = tmp_path / "w.toml"
+    wf.write_text(f'[workflow]\nnested = {{ object = "scene" }}\n[axes.scene.s]\nkind = "images"\n'
+                  f'path = "{cap}"\n[axes.method.cobgs]\n[axes.object.s.ball]\n')
+    r = subprocess.run([sys.executable, "-m", "stages.commands.cli", "status", str(wf), "--cache-dir",
+                        str(tmp_path / "cache")], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert "fingerprint of" in r.stderr and "images/up" in r.stderr, r.stderr[-2000:]
