@@ -102,6 +102,42 @@ def outputs_problem(outputs: Any) -> str:
     return ""
 
 
+def inside(folder: Path, rel: Any) -> bool:
+    """Whether ``rel`` (a path read from a manifest) names something inside ``folder``: a
+    relative path without ``..`` that stays inside after symlinks are resolved. A shared
+    cache (NFS, Ray) is written by other hosts and users: nothing it names is trusted."""
+    if not isinstance(rel, str) or not rel or "\0" in rel:
+        return False
+    p = Path(rel)
+    if p.is_absolute() or ".." in p.parts:
+        return False
+    base = os.path.realpath(folder)
+    target = os.path.realpath(os.path.join(base, rel))
+    return target == base or target.startswith(base + os.sep)
+
+
+def manifest_problem(manifest: Any, folder: Path) -> str:
+    """What makes an entry's manifest untrustworthy ("" when nothing): a malformed
+    ``outputs`` table, or a path (output, a file of an output folder, the log) that leaves
+    the entry folder."""
+    if not isinstance(manifest, dict):
+        return "the manifest is not a JSON object"
+    shape = outputs_problem(manifest.get("outputs"))
+    if shape:
+        return shape
+    for name, out in manifest["outputs"].items():
+        if not inside(folder, out["path"]):
+            return f"output {name!r} points outside its entry ({out['path']!r})"
+        base = folder / out["path"]
+        for table in ("sizes", "small"):
+            for rel in (out.get(table) or {}):
+                if not inside(base, rel):
+                    return f"output {name!r} lists a file outside its entry ({rel!r})"
+    if "log" in manifest and not inside(folder, manifest["log"]):
+        return f"the log points outside its entry ({manifest['log']!r})"
+    return ""
+
+
 class Cache:
     """A cache folder; every method is safe to call from several processes and hosts."""
 
@@ -152,7 +188,7 @@ class Cache:
                 or manifest.get("status") != "ok" or not isinstance(manifest.get("outputs"), dict):
             return EntryCheck("corrupt", reason="manifest does not describe a finished entry "
                                                 "with this key")
-        shape = outputs_problem(manifest["outputs"])
+        shape = manifest_problem(manifest, folder)
         if shape:
             return EntryCheck("corrupt", reason=f"manifest is malformed: {shape}")
         for name, out in manifest["outputs"].items():

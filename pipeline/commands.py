@@ -233,7 +233,7 @@ def cmd_gc(args: argparse.Namespace, registry_factory: RegistryFactory,
 
 def cmd_ls(args: argparse.Namespace, stream: Optional[TextIO] = None) -> int:
     stream = stream if stream is not None else sys.stdout
-    from .cache import MANIFEST, Cache, outputs_problem, read_json_object
+    from .cache import MANIFEST, Cache, manifest_problem, read_json_object
 
     cache = Cache(default_cache_dir(args.cache_dir))
     n = 0
@@ -243,7 +243,7 @@ def cmd_ls(args: argparse.Namespace, stream: Optional[TextIO] = None) -> int:
         if args.stage and stage != args.stage:
             continue
         m = read_json_object(folder / MANIFEST)
-        if m is None or (not args.failed and outputs_problem(m.get("outputs"))) \
+        if m is None or (not args.failed and manifest_problem(m, folder)) \
                 or not isinstance(m.get("item") or {}, dict):
             m = {"status": "corrupt"}
         outs = m.get("outputs") if isinstance(m.get("outputs"), dict) else {}
@@ -261,7 +261,7 @@ def cmd_ls(args: argparse.Namespace, stream: Optional[TextIO] = None) -> int:
 
 def cmd_verify(args: argparse.Namespace, stream: Optional[TextIO] = None) -> int:
     stream = stream if stream is not None else sys.stdout
-    from .cache import MANIFEST, Cache, outputs_problem, read_json
+    from .cache import MANIFEST, Cache, manifest_problem, read_json
     from .hashing import tree_hash
 
     cache = Cache(default_cache_dir(args.cache_dir))
@@ -271,8 +271,9 @@ def cmd_verify(args: argparse.Namespace, stream: Optional[TextIO] = None) -> int
         problem = ""
         try:
             m = read_json(folder / MANIFEST)
-            if not isinstance(m, dict) or outputs_problem(m.get("outputs")):
-                raise ValueError("the manifest is malformed")
+            why = manifest_problem(m, folder)
+            if why:
+                raise ValueError(f"the manifest is malformed: {why}")
             for name, out in m["outputs"].items():
                 if tree_hash(folder / out["path"]).sha256 != out["sha256"]:
                     problem = f"output {name!r} does not match its recorded hash"

@@ -205,13 +205,21 @@ class TaskState:
         """The log of a done entry or of the last failure with this key."""
         if self.entry_dir is None or self.state not in ("done", "failed"):
             return None
-        return self.entry_dir / (self.manifest or {}).get("log", "log.txt")
+        from .cache import inside
+
+        rel = (self.manifest or {}).get("log", "log.txt")
+        return self.entry_dir / rel if inside(self.entry_dir, rel) else None
 
     def output(self, name: str) -> Path:
         """Path of output artifact ``name`` of a done entry."""
         if self.state != "done" or self.manifest is None or self.entry_dir is None:
             raise KeyError(f"{self.task.id} is {self.state}, it has no outputs")
-        return self.entry_dir / self.manifest["outputs"][name]["path"]
+        from .cache import inside
+
+        rel = self.manifest["outputs"][name]["path"]
+        if not inside(self.entry_dir, rel):  # (checked when the entry was read; a failure record too)
+            raise KeyError(f"{self.task.id}: output {name!r} points outside its entry")
+        return self.entry_dir / rel
 
 
 def inspect(plan: Plan, cache: Cache, with_reasons: bool = True) -> list[TaskState]:

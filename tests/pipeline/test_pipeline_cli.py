@@ -180,3 +180,31 @@ def test_progress_of_a_running_task_reaches_a_non_tty_console(toy):
     lines = [l.strip() for l in proc.stderr.splitlines() if l.strip().startswith("refine[alpha/full]")]
     assert lines and lines[0].startswith("refine[alpha/full] refining: 1/3 (33%)") and "ETA" in lines[0], proc.stderr
     assert any(l.startswith("refine[alpha/full] refining: 3/3 (100%)") for l in lines), lines
+
+
+@pytest.mark.parametrize("edit, where", [
+    (lambda m: m.update(log="/etc/passwd"), "the log points outside its entry"),
+    (lambda m: m.update(log="../../../../../../etc/passwd"), "the log points outside its entry"),
+    (lambda m: next(iter(m["outputs"].values())).update(path="../../../../etc/hostname"),
+     "points outside its entry"),
+    (lambda m: next(iter(m["outputs"].values())).update(path="/etc"), "points outside its entry"),
+])
+def test_manifest_paths_outside_the_entry_make_it_corrupt(toy, edit, where):
+    """Issue 38 M5: every path read from a manifest must resolve inside its entry (a shared
+    NFS / Ray cache is written by others); otherwise the entry is corrupt, never served."""
+    import json
+
+    wf, cache = toy.path, toy.cache
+    cobgs("run", wf, "--cache-dir", cache, check=0)
+    entry = next((cache / "entries" / "load").iterdir())
+    m = json.loads((entry / "manifest.json").read_text())
+    edit(m)
+    (entry / "manifest.json").write_text(json.dumps(m))
+    out = cobgs("cache", "verify", "--cache-dir", cache, check=1).stdout
+    assert where in out and "12 of 13" in out
+    out = cobgs("status", wf, "--cache-dir", cache, check=0).stdout
+    assert "corrupt" in out.split("\n")[1] or "corrupt" in out, out
+    proc = cobgs("run", wf, "--cache-dir", cache, check=0)  # recomputed, not served
+    assert "Traceback" not in proc.stderr
+    m2 = json.loads(next((cache / "entries" / "load").iterdir()).joinpath("manifest.json").read_text())
+    assert m2.get("log", "log.txt") == "log.txt"
