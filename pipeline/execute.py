@@ -73,6 +73,32 @@ class JobResult:
     log_path: Optional[str] = None
     note: str = ""
     measures: dict = field(default_factory=dict)
+    disk_full: bool = False  # the failure was "no space left" on a disk (the cache's, or an output's)
+
+
+def is_disk_full(exc: BaseException) -> bool:
+    """Whether ``exc`` (or an exception it was raised from) is "no space left on device" or
+    "disk quota exceeded"."""
+    import errno
+
+    seen = set()
+    e: Optional[BaseException] = exc
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        if isinstance(e, OSError) and e.errno in (errno.ENOSPC, errno.EDQUOT):
+            return True
+        e = e.__cause__ or e.__context__
+    return False
+
+
+def _close_log(log: logging.Logger, handler: logging.Handler) -> None:
+    """Close a task's log handler; on a full disk its last flush fails, which must not
+    turn a task's failure into a crash of the failure handler itself."""
+    try:
+        handler.close()
+    except OSError:
+        pass
+    log.removeHandler(handler)
 
 
 class _Tee:
@@ -273,8 +299,7 @@ def _run_locked(job: Job, cache: Cache) -> JobResult:
     manifest = _base_manifest(job, measures)
     manifest.update(status="ok", outputs=outputs, extra=ctx.extra)
     log.info("done in %.3f s", measures["wall_s"])
-    handler.close()
-    log.removeHandler(handler)
+    _close_log(log, handler)
     with _sigint_shielded():
         try:
             write_json_atomic(tmp / MANIFEST, manifest)  # last file written
@@ -283,7 +308,7 @@ def _run_locked(job: Job, cache: Cache) -> JobResult:
         except OSError as exc:
             shutil.rmtree(tmp, ignore_errors=True)
             return JobResult(job.index, "failed", job.key, wall_s=measures["wall_s"],
-                             error=f"cannot commit the entry: {exc}")
+                             error=f"cannot commit the entry: {exc}", disk_full=is_disk_full(exc))
     return JobResult(job.index, "ok", job.key, outputs, os.fspath(final),
                      wall_s=measures["wall_s"], measures=measures, note=warnings_note(ctx.extra))
 
@@ -299,15 +324,14 @@ def _fail(job: Job, cache: Cache, tmp: Path, log: logging.Logger, handler: loggi
     wall = measures["wall_s"]
     if isinstance(exc, KeyboardInterrupt):
         log.warning("interrupted after %.3f s; the entry is discarded", wall)
-        handler.close()
-        log.removeHandler(handler)
+        _close_log(log, handler)
         shutil.rmtree(tmp, ignore_errors=True)
         return JobResult(job.index, "interrupted", job.key, wall_s=wall)
     summary = f"{type(exc).__name__}: {exc}".strip()
+    full = is_disk_full(exc)
     log.error("failed after %.3f s\n%s", wall,
               "".join(traceback.format_exception(type(exc), exc, exc.__traceback__)))
-    handler.close()
-    log.removeHandler(handler)
+    _close_log(log, handler)
     manifest = _base_manifest(job, measures)
     manifest.update(status="failed", outputs={}, error={
         "type": type(exc).__name__, "summary": summary,
@@ -316,11 +340,12 @@ def _fail(job: Job, cache: Cache, tmp: Path, log: logging.Logger, handler: loggi
     try:
         folder = cache.record_failure(tmp, job.stage.name, job.key, manifest)
         log_path: Optional[str] = os.fspath(folder / LOG)
-    except OSError:
+    except OSError as exc2:
         shutil.rmtree(tmp, ignore_errors=True)
         log_path = None
+        full = full or is_disk_full(exc2)
     return JobResult(job.index, "failed", job.key, wall_s=wall, error=summary,
-                     log_path=log_path, measures=measures)
+                     log_path=log_path, measures=measures, disk_full=full)
 
 
 def record_crash(job: Job, reason: str) -> JobResult:

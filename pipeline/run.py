@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any, Optional, TextIO
 
 from .cache import Cache, ref_record
-from .errors import ExecutorError, WorkflowError
+from .errors import CacheError, ExecutorError, WorkflowError
 from .execute import Job, JobResult, warnings_note
 from .executors import ForkExecutor, InlineExecutor
 from .items import ItemFilter, Item
@@ -74,6 +74,7 @@ class RunSummary:
     interrupted: bool = False
     wall_s: float = 0.0
     total: int = 0  # tasks the run set out to settle (selected and their upstream)
+    stopped: str = ""  # why the run stopped starting tasks (a full disk), "" when it did not
 
     def tasks_in(self, *states: str) -> list[Task]:
         return [self.plan.tasks[i] for i, o in sorted(self.outcomes.items()) if o.state in states]
@@ -82,7 +83,7 @@ class RunSummary:
     def exit_code(self) -> int:
         if self.interrupted:
             return 130
-        return 1 if self.tasks_in("failed", "blocked", "unavailable") else 0
+        return 1 if self.stopped or self.tasks_in("failed", "blocked", "unavailable") else 0
 
 
 @dataclass(frozen=True)
@@ -183,7 +184,12 @@ def run_workflow(workflow: Workflow, options: RunOptions, stream: Optional[TextI
         return dry_run(plan, sel, cache, stream, t0)
     check_params(plan, sel, cache)
     cache.ensure()
-    cache.note_workflow(workflow.id, workflow.path, workflow.name)
+    if free_bytes(cache.root) < MIN_FREE_BYTES:
+        raise CacheError(disk_full_message(cache.root))
+    try:
+        cache.note_workflow(workflow.id, workflow.path, workflow.name)
+    except OSError as exc:
+        raise CacheError(f"{cache.root}: cannot write to the cache: {exc}") from None
     for note in sel.notes:
         print(note, file=stream)
     executor = executor or _make_executor(options)
@@ -191,6 +197,26 @@ def run_workflow(workflow: Workflow, options: RunOptions, stream: Optional[TextI
         return _Scheduler(plan, sel, cache, options, executor, stream).run(t0)
     finally:
         executor.close()
+
+
+#: A run does not start on a cache disk with less free space than this.
+MIN_FREE_BYTES = 16 << 20
+
+
+def free_bytes(path: Path) -> int:
+    import shutil
+
+    try:
+        return shutil.disk_usage(path).free
+    except OSError:
+        return 1 << 62  # unknown: let the writes say
+
+
+def disk_full_message(root: Path) -> str:
+    """One line: which disk is full, how much is free, what to do."""
+    free = free_bytes(root)
+    return (f"the disk of the cache {root} is full ({free / 2**20:.1f} MiB free): free some space "
+            "(`cobgs cache gc WORKFLOW` removes entries no workflow uses) or pass --cache-dir on another disk")
 
 
 def check_params(plan: Plan, sel: Selection, cache: Cache) -> None:
@@ -358,6 +384,9 @@ class _Scheduler:
                                result.note)
             self._settle(result.index, Outcome(state, result.wall_s, result.note, key=result.key))
         elif result.status == "failed":
+            if result.disk_full and not self.summary.stopped:
+                self.summary.stopped = disk_full_message(self.cache.root)
+                print(f"cobgs run: {self.summary.stopped}; no new task is started", file=sys.stderr)
             self._write_ref(task, result.key, "failed", hashes)
             self.progress.line(task, "FAILED", result.wall_s, result.error)
             if result.log_path:
@@ -374,7 +403,7 @@ class _Scheduler:
                 self.ready.sort()
                 cap = self.executor.capacity()
                 deferred = []
-                while self.ready and (cap is None or len(self.jobs) < cap):
+                while self.ready and (cap is None or len(self.jobs) < cap) and not self.summary.stopped:
                     index = self.ready.pop(0)
                     if not self._start(index):
                         deferred.append(index)
@@ -382,6 +411,8 @@ class _Scheduler:
                 if self.jobs:
                     for result in self.executor.wait():
                         self._finish(result)
+                elif self.summary.stopped:
+                    break
         except KeyboardInterrupt:
             self.summary.interrupted = True
         if self.summary.interrupted and self.jobs:
@@ -410,6 +441,9 @@ def print_summary(summary: RunSummary, stream: TextIO) -> None:
         print(f"interrupted: {finished} of {total} tasks finished ({rest or 'none'}); {stopped} running "
               f"or waiting on them were stopped, {total - len(summary.outcomes)} not started "
               f"({summary.wall_s:.2f} s)", file=stream)
+    elif summary.stopped:
+        print(f"run stopped: {summary.stopped}. {len(summary.outcomes)} of {summary.total} tasks settled "
+              f"({', '.join(parts) or 'none'}), the rest not started ({summary.wall_s:.2f} s)", file=stream)
     else:
         print(f"run finished: {len(summary.outcomes)} tasks: {', '.join(parts) or 'nothing to do'} "
               f"({summary.wall_s:.2f} s)", file=stream)

@@ -53,12 +53,17 @@ def run_load(ctx, inputs):
 class TrainParams:
     iterations: int = 10
     fail_on: str = ""  # scene name whose training raises
+    disk_full_on: str = ""  # scene name whose training fails with "No space left on device"
 
 
 def run_train(ctx, inputs):
     record("train", ctx)
     if ctx.params.fail_on and ctx.item["scene"] == ctx.params.fail_on:
         raise RuntimeError(f"toy training diverged on {ctx.item['scene']}")
+    if ctx.params.disk_full_on and ctx.item["scene"] == ctx.params.disk_full_on:
+        import errno
+
+        raise OSError(errno.ENOSPC, "No space left on device", str(ctx.out_dir / "model"))
     data = Path(inputs["data"]).read_text()
     folder = ctx.out_dir / "model"
     folder.mkdir()

@@ -55,7 +55,7 @@ def test_manifest_records_the_run(toy):
     rec = states(toy)[("train", "beta")]
     m = rec.manifest
     assert m["key"] == rec.key and m["status"] == "ok" and m["stage"] == "train"
-    assert m["version"] == 1 and m["params"] == {"iterations": 20, "fail_on": ""}
+    assert m["version"] == 1 and m["params"] == {"iterations": 20, "fail_on": "", "disk_full_on": ""}
     assert m["item"]["id"] == "beta" and m["item"]["values"] == {"scene": "beta"}
     assert m["item"]["attrs"] == {"scene": {"kind": "synthetic"}}
     upstream = states(toy)[("load", "beta")]
@@ -481,3 +481,77 @@ def test_a_kill_during_a_replacing_commit_keeps_an_entry(tmp_path, monkeypatch, 
     check = cache.check("s", "k1")
     assert check.state == "done", (k, steps, check.reason)
     assert (cache.entry_dir("s", "k1") / "out.txt").read_text() in ("old", "new!")
+
+
+def test_disk_full_stops_the_run_after_the_first_failure(toy):
+    """Issue 38 M6: the first "no space left" failure stops the run with one clear message
+    naming the cache and its free space; no further task starts."""
+    s = toy.run(["train.disk_full_on=alpha"])
+    assert s.exit_code == 1 and s.stopped
+    assert "disk of the cache" in s.stopped and str(toy.cache.resolve()) in s.stopped and "MiB free" in s.stopped
+    assert "run stopped: the disk of the cache" in s.output
+    started = {s.plan.tasks[i].id for i in s.outcomes}
+    assert "train[alpha]" in started and "train[beta]" not in started
+    assert s.output.count("FAILED") >= 1 and "Traceback" not in s.output
+
+
+def test_disk_full_before_the_run_is_refused_with_the_free_space(toy, monkeypatch):
+    import pipeline.run as R
+    from pipeline import CacheError
+
+    monkeypatch.setattr(R, "free_bytes", lambda path: 1 << 20)
+    with pytest.raises(CacheError, match=r"is full \(1\.0 MiB free\)"):
+        toy.run()
+
+
+def _tmpfs(path, size):
+    import subprocess
+
+    path.mkdir(parents=True, exist_ok=True)
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(path)], capture_output=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a small tmpfs here ({r.stderr.decode(errors='replace').strip()[:80]}): "
+                    "the full-disk run is tested with an injected ENOSPC above")
+    return path
+
+
+@pytest.mark.parametrize("fill", ["all", "almost"])
+def test_a_real_full_cache_disk(toy, tmp_path, fill, monkeypatch):
+    """On a cache disk that is full (or fills up during the run), `cobgs run` neither crashes
+    in its failure handler nor goes on computing: the up-front check is switched off here
+    so that the tasks meet the full disk themselves."""
+    import subprocess
+
+    import pipeline.run as R
+
+    monkeypatch.setattr(R, "MIN_FREE_BYTES", 0)
+    mnt = _tmpfs(tmp_path / "small", "1m")
+    try:
+        toy.cache = mnt / "cache"
+        if fill == "all":
+            toy.cache.mkdir()
+            for sub in ("entries", "failed", "tmp", "locks", "refs"):
+                (toy.cache / sub).mkdir()
+        import os
+
+        big = mnt / "filler"
+        fd = os.open(big, os.O_WRONLY | os.O_CREAT)  # unbuffered: fill to the last block
+        try:
+            while True:
+                os.write(fd, b"\0" * 4096)
+        except OSError:
+            pass
+        if fill == "almost":  # a few blocks left: the run starts, then the writes fail
+            os.ftruncate(fd, os.fstat(fd).st_size - 16 * 1024)
+        os.close(fd)
+        from pipeline import CacheError
+
+        try:
+            s = toy.run()
+        except CacheError as exc:  # the cache folder itself cannot be written: said so
+            assert str(toy.cache) in str(exc) and ("MiB free" in str(exc) or "cannot" in str(exc))
+            return
+        assert s.exit_code == 1 and s.stopped and "Traceback" not in s.output
+        assert len(s.outcomes) < s.total  # stopped, not every task computed and failed
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
