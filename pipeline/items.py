@@ -238,7 +238,15 @@ def agrees(a: Item, b: Item) -> bool:
     return all(bv.get(axis, v) == v for axis, v in a.pairs)
 
 
+#: Longest axis value name: names become folder and file names (export, report; an object
+#: folder holds ``<scene>_<method>_<object>...`` files), which most filesystems cap at 255 bytes.
+MAX_VALUE_BYTES = 100
+
+
 def check_value_name(name: str, axis: str, source: str) -> None:
+    if isinstance(name, str) and len(name.encode("utf-8")) > MAX_VALUE_BYTES:
+        raise WorkflowError(f"value name {name[:40]!r}... is {len(name.encode('utf-8'))} bytes long; at most "
+                            f"{MAX_VALUE_BYTES} (names become folder and file names)", source, f"axes.{axis}")
     if not isinstance(name, str) or not VALUE_RE.match(name):
         raise WorkflowError(f"value name {name!r} may not be empty, start with a space or '.', end "
                             "with a space, or contain '/', '\\', ',', '=' or a control character "

@@ -70,32 +70,68 @@ def detect(folder: Path) -> dict:
 
 
 def _name(text: str) -> str:
-    """A workflow / item name from free text: no separators, no leading dot."""
-    s = re.sub(r"[/\\,=\x00-\x1f]+", "_", text).strip().lstrip(".")
+    """A workflow / item name from free text: no separators, no control characters, no
+    leading dot, at most 100 bytes (the pipeline's rules for value names)."""
+    s = re.sub(r"[/\\,=\x00-\x1f\x7f]+", "_", text).strip().lstrip(".").strip()
+    while len(s.encode("utf-8")) > 100:
+        s = s[:-1].rstrip()
     return s or "scene"
 
 
+def _unique_names(objects: list[str]) -> dict[str, str]:
+    """object folder / prompt -> its item name: :func:`_name`, made unique (``a,b`` and
+    ``a=b`` both clean to ``a_b``: the second becomes ``a_b_2``)."""
+    out: dict[str, str] = {}
+    used: set[str] = set()
+    for obj in objects:
+        base = name = _name(obj)
+        k = 2
+        while name in used:
+            name = f"{base}_{k}"
+            k += 1
+        used.add(name)
+        out[obj] = name
+    return out
+
+
 def _toml_str(text: str) -> str:
-    return '"' + text.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    """A TOML basic string: backslash, quote and every control character escaped."""
+    out = []
+    for ch in text:
+        if ch == "\\":
+            out.append("\\\\")
+        elif ch == '"':
+            out.append('\\"')
+        elif ord(ch) < 0x20 or ord(ch) == 0x7F:
+            out.append({"\n": "\\n", "\t": "\\t", "\r": "\\r"}.get(ch, f"\\u{ord(ch):04x}"))
+        else:
+            out.append(ch)
+    return '"' + "".join(out) + '"'
+
+
+def _comment(text: str) -> str:
+    """Free text safe inside a one-line TOML comment (control characters shown escaped)."""
+    return "".join(repr(ch)[1:-1] if ord(ch) < 0x20 or ord(ch) == 0x7F else ch for ch in text)
 
 
 def workflow_text(folder: Path, info: dict, name: str, prompts: list[str], views_every: int) -> str:
     scene = _name(folder.name)
     lines = [
-        f"# Written by `cobgs new {folder}`: the choices below are cobgs new's; change any of them.",
-        f"#   data: {folder}",
+        f"# Written by `cobgs new {_comment(os.fspath(folder))}`: the choices below are cobgs new's; change "
+        "any of them.",
+        f"#   data: {_comment(os.fspath(folder))}",
         f"#   kind = {info['kind']!r}: {info['why']}",
         f"#   {info['images']} images" + (f", {info['size']} (first image)" if info["size"] != "?" else ""),
     ]
     if prompts:
         source = "onnx"
         objects = prompts
-        lines.append(f"#   masks: text prompts {prompts} -> Grounding DINO + SAM2 (two-stage), through the "
+        lines.append(f"#   masks: text prompts {_comment(str(prompts))} -> Grounding DINO + SAM2 (two-stage), through the "
                      "ONNX exports in $COBGS_MODELS_DIR (`cobgs export-onnx sam2 ...` and `gdino ...`)")
     elif info["objects"]:
         source = "files"
         objects = info["objects"]
-        lines.append(f"#   masks: from files, masks/<object>/ named after the photos: {objects} "
+        lines.append(f"#   masks: from files, masks/<object>/ named after the photos: {_comment(str(objects))} "
                      "(any resolution; a pixel counts when it is >= 128: save masks as 0/255)")
     else:
         raise SystemExit(f"cobgs new: {folder} has no masks/<object>/ folder of masks named after the "
@@ -145,11 +181,40 @@ def workflow_text(folder: Path, info: dict, name: str, prompts: list[str], views
               f"#                           {why[st_default]})", "",
               "[axes.method.cobgs]", "# peers, to compare: uncomment",
               '# [axes.method.nosplit]\n# refine = { method = "nosplit" }', ""]
+    names = _unique_names(objects)
     for obj in objects:
-        lines.append(f"[axes.object.{_toml_str(scene)}.{_toml_str(_name(obj))}]")
+        lines.append(f"[axes.object.{_toml_str(scene)}.{_toml_str(names[obj])}]")
         if source == "onnx":
             lines.append(f"prompt = {_toml_str(obj)}")
+        elif names[obj] != obj:  # the folder's own name, which the item name could not keep
+            lines.append(f"mask = {_toml_str(obj)}                # the folder masks/{_comment(obj)}/")
     return "\n".join(lines) + "\n"
+
+
+def _check_loads(text: str, out: Path) -> str:
+    """Why the workflow ``text`` would not load (as if saved at ``out``); "" when it loads."""
+    import tempfile
+    import tomllib
+
+    try:
+        tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        return f"invalid TOML: {exc}"
+    from pipeline import WorkflowError, load_workflow
+    from stages.registry import load_registry
+
+    fd, probe = tempfile.mkstemp(prefix=".cobgs-new-", suffix=".toml", dir=out.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        # the model folder of text prompts may not exist yet: `cobgs run` asks for it
+        env = {**os.environ, "COBGS_MODELS_DIR": os.environ.get("COBGS_MODELS_DIR") or "/models-set-later"}
+        load_workflow(Path(probe), load_registry(), environ=env)
+    except (WorkflowError, ValueError) as exc:
+        return str(exc)
+    finally:
+        os.unlink(probe)
+    return ""
 
 
 def _new(args) -> int:
@@ -165,12 +230,28 @@ def _new(args) -> int:
         print(exc, file=sys.stderr)
         return 2
     out = Path(args.out or f"{name}.toml")
+    if out.is_dir():
+        print(f"cobgs new: --out {out} is a folder; give the TOML file to write", file=sys.stderr)
+        return 2
+    if not out.parent.is_dir():
+        print(f"cobgs new: --out {out}: the folder {out.parent} does not exist", file=sys.stderr)
+        return 2
     if out.exists() and not args.force:
         print(f"cobgs new: {out} exists (pass --force to replace it)", file=sys.stderr)
         return 2
+    problem = _check_loads(text, out)
+    if problem:
+        print(f"cobgs new: the workflow written for {folder} would not load ({problem}); nothing written",
+              file=sys.stderr)
+        return 2
     tmp = out.with_name(f".{out.name}.tmp-{os.getpid()}")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, out)
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, out)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        print(f"cobgs new: cannot write {out}: {exc}", file=sys.stderr)
+        return 2
     print(f"wrote {out}: kind {info['kind']!r}, {info['images']} images, "
           f"objects {list(args.prompt or info['objects'])}")
     print(f"next: cobgs run {out} && cobgs report {out}")

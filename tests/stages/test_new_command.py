@@ -76,3 +76,52 @@ def test_refusals_say_what_to_do(tmp_path, capsys):
     assert main(["new", str(bare), "--out", str(tmp_path / "c.toml")]) == 2
     assert "--force" in capsys.readouterr().err and (tmp_path / "c.toml").read_text() == "mine"
     assert main(["new", str(bare), "--out", str(tmp_path / "c.toml"), "--force"]) == 0
+
+
+# -- issue 38 M7: whatever `new` writes loads, and its objects find their mask folders -------
+def test_renamed_mask_folders_map_back_and_collisions_stay_valid(tmp_path):
+    import tomllib
+
+    from stages.masks import ObjectAttrs  # noqa: F401  (the object schema the file must satisfy)
+
+    root = tmp_path / "cap"
+    _png(root / "images" / "a.png")
+    for folder in (".hid", "a,b", "a=b", "plain"):
+        _png(root / "masks" / folder / "a.png")
+    out = tmp_path / "w.toml"
+    assert main(["new", str(root), "--out", str(out)]) == 0
+    data = tomllib.loads(out.read_text())
+    objs = data["axes"]["object"]["cap"]
+    assert objs["hid"]["mask"] == ".hid" and objs["a_b"]["mask"] == "a,b" and objs["a_b_2"]["mask"] == "a=b"
+    assert "mask" not in objs["plain"]
+    plan = _load(out)
+    masks = {t.item["object"]: getattr(t.item.attrs["object"], "mask", "") for t in plan.tasks
+             if t.stage.name == "masks"}
+    assert masks == {"hid": ".hid", "a_b": "a,b", "a_b_2": "a=b", "plain": ""}
+
+
+@pytest.mark.parametrize("bad", ["new\nline", "tab\there", 'quote"s', "back\\slash"])
+def test_control_characters_in_names_and_prompts_write_valid_toml(tmp_path, bad):
+    import tomllib
+
+    root = tmp_path / f"cap {bad}" if "\n" not in bad else tmp_path / "cap\nx"
+    _png(root / "images" / "a.png")
+    out = tmp_path / "w.toml"
+    assert main(["new", str(root), "--out", str(out), "--prompt", bad]) == 0
+    data = tomllib.loads(out.read_text())
+    scene = next(iter(data["axes"]["scene"].values()))
+    assert scene["path"] == str(root)
+    obj = next(iter(next(iter(data["axes"]["object"].values())).values()))
+    assert obj["prompt"] == bad
+
+
+def test_out_into_a_missing_folder_or_onto_a_folder_is_refused_cleanly(tmp_path, capsys):
+    root = tmp_path / "cap"
+    _png(root / "images" / "a.png")
+    _png(root / "masks" / "m" / "a.png")
+    assert main(["new", str(root), "--out", str(tmp_path / "nope" / "w.toml")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    (tmp_path / "dir.toml").mkdir()
+    assert main(["new", str(root), "--out", str(tmp_path / "dir.toml"), "--force"]) == 2
+    assert "is a folder" in capsys.readouterr().err
+    assert not [p for p in tmp_path.iterdir() if ".tmp" in p.name or p.name.startswith(".cobgs-new")]

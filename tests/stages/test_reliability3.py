@@ -174,3 +174,16 @@ def test_m4_status_returns_on_a_data_folder_with_a_loop(tmp_path):
                         str(tmp_path / "cache")], capture_output=True, text=True, timeout=60)
     assert r.returncode == 0, r.stderr[-2000:]
     assert "fingerprint of" in r.stderr and "images/up" in r.stderr, r.stderr[-2000:]
+
+
+# -- L1: a name too long for a file name is refused at load ---------------------------------------
+def test_l1_long_value_names_refused_at_load(tmp_path):
+    from pipeline import WorkflowError, load_workflow
+    from stages.registry import load_registry
+
+    name = "o" * 300
+    wf = tmp_path / "w.toml"
+    wf.write_text(f'[workflow]\nnested = {{ object = "scene" }}\n[axes.scene.s]\nkind = "synthetic"\n'
+                  f'[axes.method.cobgs]\n[axes.object.s.{name}]\n')
+    with pytest.raises(WorkflowError, match=r"is 300 bytes long; at most 100"):
+        load_workflow(wf, load_registry())
