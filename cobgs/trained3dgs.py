@@ -37,6 +37,7 @@ from typing import Optional
 import numpy as np
 import torch
 
+from .data.trained_layout import find_trained_ply, read_cameras_json, read_cfg_args, saved_iterations
 from .errors import DataError
 from .gaussians import GaussianModel
 
@@ -72,11 +73,8 @@ def read_trained(path: Path, iteration: int = 0) -> ImportedScene:
     path = Path(path)
     if path.is_dir():
         return read_3dgs_output(path, iteration)
-    if path.is_file():
-        if iteration:
-            raise DataError("an iteration is only meaningful for a 3DGS output folder", path)
-        return read_trained_ply(path)
-    raise DataError("trained scene not found (a 3DGS output folder or a PLY file)", path)
+    find_trained_ply(path, iteration)  # a missing path or an iteration of a bare PLY: named
+    return read_trained_ply(path)
 
 
 def read_trained_ply(path: Path) -> ImportedScene:
@@ -92,34 +90,22 @@ def read_3dgs_output(folder: Path, iteration: int = 0) -> ImportedScene:
     from .ply import load_ply
 
     folder = Path(folder)
-    pc = folder / "point_cloud"
-    found = {}
-    if pc.is_dir():
-        for d in pc.iterdir():
-            m = re.fullmatch(r"iteration_(\d+)", d.name)
-            if m and (d / "point_cloud.ply").is_file():
-                found[int(m.group(1))] = d / "point_cloud.ply"
-    if not found:
-        raise DataError("not a 3DGS output folder: no point_cloud/iteration_<N>/point_cloud.ply",
-                        folder)
-    if iteration:
-        if iteration not in found:
-            raise DataError(f"no iteration {iteration} (saved iterations: {sorted(found)})", pc)
-        it = iteration
-    else:
-        it = max(found)
-    model = load_ply(found[it])
-    src = {"kind": "3dgs_output", "folder": str(folder), "iteration": it, "ply": str(found[it]),
-           "saved_iterations": sorted(found), "num_gaussians": len(model),
+    ply, it = find_trained_ply(folder, iteration)
+    model = load_ply(ply)
+    src = {"kind": "3dgs_output", "folder": str(folder), "iteration": it, "ply": str(ply),
+           "saved_iterations": sorted(saved_iterations(folder)), "num_gaussians": len(model),
            "sh_degree": model.sh_degree}
     notes = []
-    cfg = _read_cfg_args(folder / "cfg_args")
+    cfg = read_cfg_args(folder / "cfg_args")
     if cfg:
         src["cfg_args"] = cfg
-        if "sh_degree" in cfg and int(cfg["sh_degree"]) != model.sh_degree:
-            raise DataError(f"cfg_args says sh_degree={cfg['sh_degree']}, but {found[it].name} of "
+        if "sh_degree" in cfg and cfg["sh_degree"] != model.sh_degree:
+            raise DataError(f"cfg_args says sh_degree={cfg['sh_degree']}, but {ply.name} of "
                             f"iteration {it} holds degree {model.sh_degree}", folder / "cfg_args")
-    cameras = _read_cameras_json(folder / "cameras.json") if (folder / "cameras.json").is_file() else {}
+    cameras = {}
+    if (folder / "cameras.json").is_file():
+        cameras = {k: (np.asarray(p, np.float64), fx, w)
+                   for k, (p, fx, w) in read_cameras_json(folder / "cameras.json").items()}
     if cameras:
         src["cameras_json"] = str(folder / "cameras.json")
     ck = folder / f"chkpnt{it}.pth"
@@ -193,45 +179,6 @@ def read_3dgs_checkpoint_moments(path: Path, model: GaussianModel) -> dict:
     missing = sorted(set(_GROUPS.values()) - set(out))
     if missing:
         raise DataError(f"the checkpoint's optimizer has no state for {missing}", path)
-    return out
-
-
-def _read_cfg_args(path: Path) -> dict:
-    """The simple values of 3DGS's cfg_args (``Namespace(key=value, ...)``), read as text."""
-    if not path.is_file():
-        return {}
-    text = path.read_text(errors="replace")
-    out = {}
-    for key, val in re.findall(r"(\w+)=('[^']*'|\"[^\"]*\"|[-\w.]+)", text):
-        if val[:1] in "'\"":
-            out[key] = val[1:-1]
-        elif re.fullmatch(r"-?\d+", val):
-            out[key] = int(val)
-        elif re.fullmatch(r"-?\d*\.\d*(e-?\d+)?", val):
-            out[key] = float(val)
-        else:
-            out[key] = val
-    return out
-
-
-def _read_cameras_json(path: Path) -> dict:
-    try:
-        cams = json.loads(path.read_text())
-    except (OSError, ValueError) as e:
-        raise DataError(f"unreadable cameras.json: {e}", path) from e
-    out = {}
-    try:
-        for c in cams:
-            name = Path(str(c["img_name"])).stem
-            pos, fx, width = np.asarray(c["position"], np.float64), float(c["fx"]), int(c["width"])
-            if pos.shape != (3,) or not np.isfinite(pos).all() or not (math.isfinite(fx) and fx > 0) \
-                    or width <= 0:
-                raise DataError(f"camera {name!r}: expected a finite 3-vector position, fx > 0 and "
-                                f"width > 0, got position {pos.tolist()}, fx {fx}, width {width}",
-                                path)
-            out[name] = (pos, fx, width)
-    except (TypeError, KeyError, ValueError) as e:
-        raise DataError(f"expected a list of {{img_name, position, fx, width, ...}}: {e!r}", path) from e
     return out
 
 

@@ -156,11 +156,11 @@ def key_document(task: Task, workflow: Workflow, hashes: Mapping[str, Any]) -> d
         "version": stage.version,
         "params": task.params.key_json,
         "item": task.item.to_json(),
-        "attrs": workflow.key_attrs(task.item),
+        "attrs": workflow.key_attrs(task.item, stage.name),
         "inputs": hashes,
         "device": workflow.settings.device if stage.uses_device else None,
     }
-    data = workflow.data_fingerprints(task.item, task.params.value)
+    data = workflow.data_fingerprints(task.item, task.params.value, stage.name)
     if data:  # (absent when no path is named: such keys are unchanged)
         doc["data"] = data
     return doc
@@ -303,7 +303,8 @@ def diff_reasons(task: Task, wf: Workflow, ref: Mapping[str, Any],
         names = [n for n in hashes if old_in.get(n) != hashes[n]]
         reasons.append("input changed (" + ", ".join(names) + ")")
     if "data" in ref:
-        old_data, new_data = ref.get("data") or {}, wf.data_fingerprints(task.item, task.params.value)
+        old_data = ref.get("data") or {}
+        new_data = wf.data_fingerprints(task.item, task.params.value, task.stage.name)
         changed = sorted(k for k in set(old_data) | set(new_data) if old_data.get(k) != new_data.get(k))
         if changed:
             reasons.append("data on disk changed (" + ", ".join(changed[:3]) + ")")

@@ -291,7 +291,7 @@ class _Scheduler:
         self.cache.write_ref(self.wf.id, task.stage.name, task.item.id, ref_record(
             key, status, task.stage.version, task.params.key_json, hashes,
             self.wf.settings.device, task.item.id,
-            self.wf.data_fingerprints(task.item, task.params.value)))
+            self.wf.data_fingerprints(task.item, task.params.value, task.stage.name)))
 
     # -- one ready task ----------------------------------------------------------------------
     def _start(self, index: int) -> bool:

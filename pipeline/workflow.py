@@ -138,7 +138,13 @@ class Workflow:
             layers.append(self._cli_layers[stage])
         return layers
 
-    def data_fingerprints(self, item: Item, params: Any) -> dict[str, str]:
+    def _applies(self, axis: str, attr: str, stage: Optional[str]) -> bool:
+        """Whether attribute ``attr`` enters the keys of ``stage`` (None: every stage's):
+        an attribute whose field names ``key_stages`` enters only theirs."""
+        staged = self._key_attrs.get("__staged__", {}).get((axis, attr))
+        return staged is None or stage is None or stage in staged[0]
+
+    def data_fingerprints(self, item: Item, params: Any, stage: Optional[str] = None) -> dict[str, str]:
         """Fingerprints (:func:`~pipeline.hashing.stat_fingerprint`) of the files and folders
         that the item's key attributes and ``params`` name (every ``Path`` value), keyed
         by where the path is set: external data read by a task enter its cache key, so a
@@ -148,7 +154,7 @@ class Workflow:
         for axis, attrs in item.attrs.items():
             keep = self._key_attrs.get(axis)
             for name, value in _paths(attrs, f"{axis}"):
-                if keep is None or name.split(".")[1] in keep:
+                if (keep is None or name.split(".")[1] in keep) and self._applies(axis, name.split(".")[1], stage):
                     found[name] = value
         found.update(_paths(params, "params"))
         out = {}
@@ -159,14 +165,21 @@ class Workflow:
             out[name] = self._fingerprints[k]
         return out
 
-    def key_attrs(self, item: Item) -> dict[str, Any]:
-        """The attributes of ``item`` that enter cache keys, as JSON."""
+    def key_attrs(self, item: Item, stage: Optional[str] = None) -> dict[str, Any]:
+        """The attributes of ``item`` that enter the cache keys of ``stage``, as JSON. An
+        attribute read by some stages only (``key_stages``) shows its default to the others,
+        so that their keys are those of the same item without it."""
         out: dict[str, Any] = {}
+        staged = self._key_attrs.get("__staged__", {})
         for axis, attrs in item.attrs.items():
             data = P.to_json(attrs)
             keep = self._key_attrs.get(axis)
             if keep is not None and isinstance(data, dict):
                 data = {k: v for k, v in data.items() if k in keep}
+            if isinstance(data, dict):
+                for k in list(data):
+                    if not self._applies(axis, k, stage):
+                        data[k] = P.to_json(staged[(axis, k)][1])
             out[axis] = data
         return out
 
@@ -396,6 +409,7 @@ def _load_axes(axes_raw: dict, nested: dict, graph: Graph, registry: Registry, s
                base: Path) -> tuple[Axes, dict, dict]:
     item_layers: dict[tuple[str, str], dict[str, P.Layer]] = {}
     key_attrs: dict[str, tuple[str, ...]] = {}
+    staged = key_attrs.setdefault("__staged__", {})  # (axis, attr) -> (stages, default)
     axes: list[Axis] = []
     only_raw: dict[tuple[str, str], Any] = {}
     for child, parent in nested.items():
@@ -417,6 +431,9 @@ def _load_axes(axes_raw: dict, nested: dict, graph: Graph, registry: Registry, s
         if schema is not None:
             key_attrs[axis_name] = tuple(f.name for f in dataclasses.fields(schema)
                                          if f.metadata.get("cache_key", True))
+            for f in dataclasses.fields(schema):
+                if f.metadata.get("key_stages"):
+                    staged[(axis_name, f.name)] = (tuple(f.metadata["key_stages"]), f.default)
         parent = nested.get(axis_name)
         if parent is None:
             values = {}

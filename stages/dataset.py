@@ -20,7 +20,7 @@ Kinds:
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar, Optional, Union
 
@@ -66,13 +66,22 @@ class SceneAttrs:
     labels: Optional[Path] = None
     task: Union[str, tuple[str, ...]] = ""
     scene_type: str = ""
-    trained: Optional[Path] = None
-    trained_iteration: int = 0
+    # read by the train stage only: its cache key (and the PLY's fingerprint) are the train
+    # stage's, so touching the PLY does not rerun the dataset or SfM stages
+    trained: Optional[Path] = field(default=None, metadata={"key_stages": ("train",)})
+    trained_iteration: int = field(default=0, metadata={"key_stages": ("train",)})
 
     def __post_init__(self) -> None:
-        if self.trained is not None and not Path(self.trained).exists():
-            raise ValueError(f"trained {self.trained} does not exist (a 3DGS output folder or a "
-                             f"PLY file)")
+        if self.trained is not None:
+            if not Path(self.trained).exists():
+                raise ValueError(f"trained {self.trained} does not exist (a 3DGS output folder or a "
+                                 f"PLY file)")
+            from cobgs.data.trained_layout import check_trained
+
+            try:  # the folder's layout, the PLY's header, cfg_args, cameras.json: before any task runs
+                check_trained(Path(self.trained), self.trained_iteration)
+            except Exception as exc:  # DataError names the file
+                raise ValueError(f"trained: {exc}") from exc
         if self.trained_iteration < 0:
             raise ValueError(f"trained_iteration must be >= 0, got {self.trained_iteration}")
         if self.kind not in KINDS:

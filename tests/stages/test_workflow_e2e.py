@@ -599,10 +599,25 @@ def test_a_scene_trained_elsewhere_replaces_training(tiny, tmp_path):
     wf_path = tmp_path / "imported.toml"
     wf_path.write_text(path.read_text().replace('[axes.scene.tiny]\nkind = "synthetic"\n',
                                                 f'[axes.scene.tiny]\nkind = "synthetic"\ntrained = "{out}"\n'))
-    # (the scene's attributes enter its tasks' keys: dataset and SfM run again for it)
+    # `trained` enters the train stage's key only: dataset and SfM are served from the cache
+    # (issue 38 M8: they do not read it)
     wf2, summary, log = _run(wf_path, cache, only=("dataset", "sfm", "train", "masks", "refine"),
                              items="tiny/cobgs/ball")
     assert summary.exit_code == 0, log
+    states = {(t.stage.name, t.item.id): summary.outcomes[t.index].state
+              for t in summary.plan.tasks if t.index in summary.outcomes}
+    assert states[("dataset", "tiny")] == states[("sfm", "tiny")] == "cached"
+    assert states[("train", "tiny")] == "done"
+    # touching the PLY reruns the import (its fingerprint is the train stage's), nothing before it
+    import os
+
+    ply = out / "point_cloud" / "iteration_500" / "point_cloud.ply"
+    os.utime(ply, ns=(ply.stat().st_atime_ns, ply.stat().st_mtime_ns + 10**9))
+    _, dry, _ = _run(wf_path, cache, only=("dataset", "sfm", "train"), items="tiny/cobgs/ball", dry_run=True)
+    notes = {(dry.plan.tasks[i].stage.name, dry.plan.tasks[i].item.id): (o.state, o.note)
+             for i, o in dry.outcomes.items()}
+    assert notes[("dataset", "tiny")][0] == notes[("sfm", "tiny")][0] == "cached"
+    assert notes[("train", "tiny")][0] == "would run" and "data on disk changed" in notes[("train", "tiny")][1]
     imported = _entry(wf2, cache, "train", "tiny").output("scene")
     info = json.loads((imported / "train.json").read_text())
     assert info["imported"]["kind"] == "3dgs_output" and info["imported"]["iteration"] == 500
