@@ -27,9 +27,6 @@ decided is returned for the manifest.
 
 from __future__ import annotations
 
-import json
-import math
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
