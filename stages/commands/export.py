@@ -48,6 +48,23 @@ def _size(path) -> int:
     return dir_size(path) if path.is_dir() else (path.stat().st_size if path.exists() else 0)
 
 
+def _human(n: int) -> str:
+    return f"{n / 2**30:.1f} GiB" if n >= 1 << 30 else f"{n / 2**20:.1f} MiB"
+
+
+#: A turntable GIF frame of an object, bounded (the renders are at most the dataset's size,
+#: palette-coded): the estimate the free-space check uses.
+TURNTABLE_FRAME_BYTES = 256 << 10
+
+
+def export_bytes(plan, objects_with_turntables: int, turntables: int) -> int:
+    """What an export writes: the files it copies, two turntable GIFs per object, and its
+    export.json (a few KiB per file)."""
+    files = sum(_size(src) for src, _, _ in plan)
+    gifs = 2 * objects_with_turntables * turntables * TURNTABLE_FRAME_BYTES
+    return files + gifs + 4096 * (len(plan) + 1)
+
+
 def export(workflow, cache_dir, to, stream=None, ply: bool = True, turntables: int = 0) -> dict:
     """Copy the exports of ``workflow`` (a loaded :class:`pipeline.Workflow`) from
     ``cache_dir`` into ``to``; returns the record written to ``export.json``.
@@ -56,7 +73,8 @@ def export(workflow, cache_dir, to, stream=None, ply: bool = True, turntables: i
     benchmark's hundreds of scenes are tens of GB). ``turntables=N`` adds, per object, an
     N-frame orbit GIF of the object alone and of the scene without it
     (``turntable_object.gif``, ``turntable_removed.gif``; :mod:`cobgs.turntable`). A copy the destination's disk cannot
-    hold (with 1 GiB to spare) is refused before anything is written.
+    hold (with a margin of 64 MiB + 10 %, at most 1 GiB) is refused before anything is written,
+    saying what it needs and what is free.
 
     ``to`` is replaced as a whole (:func:`pipeline.publish.publish_folder`): a kill leaves
     the previous export or the new one, never a mix. It may be absent, empty or an earlier
@@ -94,16 +112,20 @@ def export(workflow, cache_dir, to, stream=None, ply: bool = True, turntables: i
                 plan.append((folder / name, Path(*parts, name), rec))
     import shutil
 
-    need = sum(_size(src) for src, _, _ in plan)
+    need = export_bytes(plan, len(segments) if turntables > 0 else 0, turntables)
     probe = to.parent if not to.exists() else to
     while not probe.exists():
         probe = probe.parent
     free = shutil.disk_usage(probe).free
-    if need + (1 << 30) > free:
+    spare = min(1 << 30, (64 << 20) + need // 10)  # a margin that scales with the export
+    if need + spare > free:
         from pipeline.errors import PipelineError
 
-        raise PipelineError(f"the export needs {need / 2**30:.1f} GiB but {probe} has {free / 2**30:.1f} GiB free "
-                            "(1 GiB kept spare); use --no-ply to leave the PLYs in the cache, or another --to")
+        ply_bytes = sum(_size(src) for src, _, _ in plan if src.name.endswith(".ply"))
+        hint = ("use --no-ply to leave the PLYs in the cache, or another --to" if ply and ply_bytes
+                else "free some space or choose another --to")
+        raise PipelineError(f"the export needs {_human(need)} (+ {_human(spare)} kept spare) but {probe} has "
+                            f"{_human(free)} free; {hint}")
     copied = []
 
     def write(tmp: Path) -> None:
