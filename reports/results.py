@@ -386,8 +386,18 @@ def scene_records(data: RunData) -> list[dict]:
                      "iterations": t.get("iterations"), "num_gaussians": t.get("num_gaussians"),
                      "train_s": _train_s(sc, t), "psnr": ev.get("psnr"), "ssim": ev.get("ssim"),
                      "status": sc.train_task.state if sc.train_task else "not in workflow",
-                     "notes": "; ".join(spec.get("notes") or [])})
+                     "notes": "; ".join([*(spec.get("notes") or []), *_init_note(t)])})
     return recs
+
+
+def _init_note(t: dict) -> list[str]:
+    """A note when training started from a random box instead of SfM / triangulated points."""
+    init = t.get("initial_points")
+    if isinstance(init, str) and init.startswith("random box"):
+        return [f"training started from a {init} of points, not from SfM or triangulated points "
+                "(the 3DGS recipe for NeRF-synthetic; on a real capture expect a weaker baseline: set "
+                "sfm.mode or keep sfm.triangulate on)"]
+    return []
 
 
 def _train_s(sc, t: dict) -> Optional[float]:

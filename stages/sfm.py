@@ -119,9 +119,6 @@ def _run(ctx, inputs):
 def _triangulate(ctx, p: SfmParams, spec: dict, inputs) -> dict:
     """Initial points of a posed scene that has none (see ``SfmParams.triangulate``):
     ``points.npz`` in the artifact, and what was done."""
-    images = spec.get("images")
-    if not images:
-        return {"source": "none needed or possible", "why": "the dataset has no image folder"}
     scene = load_scene(inputs["dataset"], None)
     if scene.points is not None and len(scene.points) > 0:
         return {"source": "the dataset's", "points": int(len(scene.points))}
@@ -131,11 +128,24 @@ def _triangulate(ctx, p: SfmParams, spec: dict, inputs) -> dict:
 
     from cobgs.sfm import triangulate_known_poses
 
-    image_dir = spec_path(Path(inputs["dataset"]), images["dir"])
-    views = {v.name: v for v in scene.views}
+    images = spec.get("images")
     cams = {}
-    for n in images["names"]:
-        v = views.get(Path(n).stem)
+    if images:
+        image_dir = spec_path(Path(inputs["dataset"]), images["dir"])
+        names = images["names"]
+        views = {v.name: v for v in scene.views}
+        pairs = [(n, views.get(Path(n).stem)) for n in names]
+    else:
+        # A posed layout without one image folder (NeRF's train/ and test/ with
+        # transforms_*.json): the training views' own files, when they share a folder.
+        files = [(v, Path(v.path)) for v in scene.train if v.path is not None]
+        dirs = {f.parent for _, f in files}
+        if len(dirs) != 1:
+            return {"source": "random box", "why": "the training views' images are not in one folder "
+                                                   f"({len(dirs)} folders)"}
+        image_dir = dirs.pop()
+        pairs = [(f.name, v) for v, f in files]
+    for n, v in pairs:
         if v is not None:
             c = v.camera
             cams[n] = (c.fx, c.fy, c.cx, c.cy, c.width, c.height, c.viewmat.double().cpu().numpy())

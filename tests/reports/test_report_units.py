@@ -234,3 +234,11 @@ def test_psnr_plot_stems_start_at_each_methods_own_vanilla(tmp_path):
     assert plots.psnr(tmp_path / "q.svg", ["a", "b"], [31.0, 30.5], [30.0, 30.0], colors)
     svg = (tmp_path / "q.svg").read_text()
     assert "vanilla 30.00" in svg and "31.00 (+1.00)" in svg
+
+
+def test_scene_notes_say_when_training_started_from_a_random_box():
+    """Issue 38 M10: the report says when a scene's training started from a random box."""
+    from reports.results import _init_note
+
+    assert "random box (100000)" in _init_note({"initial_points": "random box (100000)"})[0]
+    assert _init_note({"initial_points": 1234}) == [] and _init_note({}) == []

@@ -745,6 +745,15 @@ def test_nerf_synthetic_layout_with_mask_folders(tmp_path):
     assert "object 'crate'" in note and "no masks/crate/ folder" in note and "masks of ['ball'] only" in note, note
     img = cv2.imread(str(root / "train" / "r_0.png"), cv2.IMREAD_UNCHANGED)
     assert img.ndim == 3 and img.shape[2] == 3  # really no alpha
+    # Issue 38 M10: the posed NeRF layout (train/, test/, no single image folder) is
+    # triangulated with its own poses, not trained from a random box
+    wf_path.write_text(wf_path.read_text().replace("[axes.object.s.crate]\n", ""))
+    wf, summary, log = _run(wf_path, tmp_path / "cache", only=("dataset", "sfm"))
+    assert summary.exit_code == 0, log
+    sfm = json.loads((_entry(wf, tmp_path / "cache", "sfm", "s").output("poses") / "sfm.json").read_text())
+    init = sfm["initial_points"]
+    assert init["source"] == "triangulated with the known poses" and init["points"] > 50, init
+    assert init["images"] == 6
 
 
 def test_a_single_posed_image_falls_back_to_the_random_box(tmp_path):
