@@ -187,12 +187,14 @@ def build_table(table_id: str, caption: str, columns: Sequence[Column], records:
 def to_markdown(table: Table) -> str:
     """The table as GitHub Markdown, with the page's display text (the method's options and
     other second lines in brackets, best values in bold), caption above and notes below."""
+    def esc(text: str) -> str:  # names reach tables: `a|b` must stay one cell
+        return str(text).replace("\\", "\\\\").replace("|", "\\|").replace("\r", " ").replace("\n", " ")
+
     def cell(c: Cell) -> str:
-        text = c.text + (f" ({c.sub})" if c.sub else "")
-        text = text.replace("|", "\\|").replace("\n", " ")
+        text = esc(c.text + (f" ({c.sub})" if c.sub else ""))
         return f"**{text}**" if "best" in c.classes and text else text
 
-    lines = [f"**{table.caption}**", "", "| " + " | ".join(c.label for c in table.columns) + " |",
+    lines = [f"**{esc(table.caption)}**", "", "| " + " | ".join(esc(c.label) for c in table.columns) + " |",
              "|" + "|".join("---:" if c.numeric else "---" for c in table.columns) + "|"]
     lines += ["| " + " | ".join(cell(c) for c in r.cells) + " |" for r in table.rows]
     if not table.rows:

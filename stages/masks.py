@@ -262,7 +262,7 @@ def _folder_masks(views, folder: Path, threshold: int) -> tuple[dict, dict]:
         try:
             with Image.open(f) as im:
                 a = np.asarray(im.convert("RGB"))
-        except (OSError, ValueError) as exc:
+        except (OSError, ValueError, Image.DecompressionBombError) as exc:  # (a bomb: > 179 Mpx)
             raise StageInputError(f"mask file {f}: cannot read it as an image ({exc})") from exc
         m = (a > threshold).any(axis=-1).astype(np.uint8) * 255
         sizes[v.name] = [int(m.shape[1]), int(m.shape[0])]

@@ -21,7 +21,7 @@ def load_rgb(path: Union[str, os.PathLike]) -> np.ndarray:
     try:
         with Image.open(path) as im:
             return np.asarray(im.convert("RGB")).copy()
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, Image.DecompressionBombError) as exc:
         raise DataError(f"cannot read image: {exc}", path) from exc
 
 
@@ -64,5 +64,5 @@ def image_size(path: Union[str, os.PathLike]) -> Tuple[int, int]:
     try:
         with Image.open(path) as im:
             return im.size[1], im.size[0]
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, Image.DecompressionBombError) as exc:
         raise DataError(f"cannot read image: {exc}", Path(path)) from exc

@@ -32,7 +32,7 @@ def _load_scribble(path: PathLike, threshold: int) -> np.ndarray:
             transparent = im.mode in ("RGBA", "LA", "PA") or \
                 (im.mode == "P" and "transparency" in im.info)
             a = np.asarray(im.convert("RGBA" if transparent else "RGB"))
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, Image.DecompressionBombError) as exc:
         raise DataError(f"cannot read scribble: {exc}", path) from exc
     mask = (a[..., :3] > threshold).any(axis=-1)
     if transparent:

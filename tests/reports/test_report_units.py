@@ -242,3 +242,17 @@ def test_scene_notes_say_when_training_started_from_a_random_box():
 
     assert "random box (100000)" in _init_note({"initial_points": "random box (100000)"})[0]
     assert _init_note({"initial_points": 1234}) == [] and _init_note({}) == []
+
+
+def test_markdown_tables_escape_names():
+    """Issue 38 L4: names go into tables.md; `a|b` and a newline stay inside one cell."""
+    from reports.tables import Cell, Column, Row, Table, to_markdown
+
+    t = Table(id="t", caption="scene a|b", columns=[Column("object", "obj|ect", numeric=False),
+                                                     Column("iou", "IoU")],
+              rows=[Row([Cell("a|b\nc"), Cell("0.5")])])
+    md = to_markdown(t).splitlines()
+    header, row = md[2], md[4]
+    unescaped = lambda line: len(__import__("re").findall(r"(?<!\\)\|", line))  # noqa: E731
+    assert unescaped(header) == unescaped(row) == 3
+    assert "a\\|b c" in row and "obj\\|ect" in header

@@ -221,3 +221,31 @@ def _ply(path, xyz_type="float"):
     head = "ply\nformat binary_little_endian 1.0\nelement vertex 0\n" + "".join(
         f"property {t} {n}\n" for n, t in props) + "end_header\n"
     path.write_bytes(head.encode())
+
+
+# -- L3: a decompression-bomb-sized mask names the file --------------------------------------------
+def test_l3_huge_mask_png_named(tmp_path):
+    import zlib
+
+    from stages._common import StageInputError
+    from stages.masks import _folder_masks
+
+    class V:
+        name, width, height = "a", 20000, 20000
+
+    # a valid 20000x20000 1-bit PNG written by hand (tiny on disk, 400 Mpx decoded)
+    def chunk(tag, data):
+        import struct
+
+        return struct.pack(">I", len(data)) + tag + data + struct.pack(">I", zlib.crc32(tag + data) & 0xFFFFFFFF)
+
+    import struct
+
+    raw = zlib.compress(b"".join(b"\x00" + b"\x00" * 2500 for _ in range(20000)), 9)
+    png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 20000, 20000, 1, 0, 0, 0, 0))
+           + chunk(b"IDAT", raw) + chunk(b"IEND", b""))
+    folder = tmp_path / "m"
+    folder.mkdir()
+    (folder / "a.png").write_bytes(png)
+    with pytest.raises(StageInputError, match=r"mask file .*a\.png: cannot read it as an image .*decompression bomb"):
+        _folder_masks([V()], folder, 0)
