@@ -107,6 +107,8 @@ def register(sub: Any, registry_factory: RegistryFactory, package_version: Calla
     q.add_argument("workflows", nargs="+", help="every workflow whose results to keep")
     q.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE")
     q.add_argument("--dry-run", action="store_true", help="list what would be removed")
+    q.add_argument("--yes", action="store_true", help="do not ask (on a terminal, gc lists what it removes "
+                   "and asks first)")
     q.add_argument("--cache-dir", help=cache_help)
     q.set_defaults(func=_guard("cache gc", lambda a: cmd_gc(a, registry_factory)))
     q = csub.add_parser("ls", help="list cache entries")
@@ -213,14 +215,35 @@ def referenced_keys(workflows: Sequence[str], registry: Any, sets: Sequence[str]
     return keep
 
 
+def _require_cache(cache_dir) -> None:
+    """A cache command on a folder that is no cache (a typo) is an error, not "nothing to do"."""
+    root = Path(cache_dir)
+    if not (root / "entries").is_dir():
+        why = "does not exist" if not root.exists() else "is not a cobgs cache (no entries/ folder)"
+        raise PipelineError(f"cache folder {root} {why}")
+
+
 def cmd_gc(args: argparse.Namespace, registry_factory: RegistryFactory,
            stream: Optional[TextIO] = None) -> int:
     stream = stream if stream is not None else sys.stdout
     from .gc import collect, snapshot
 
     cache_dir = default_cache_dir(args.cache_dir)
+    _require_cache(cache_dir)
     existing = snapshot(cache_dir)  # entries committed from now on are kept (a run beside gc)
     keep = referenced_keys(args.workflows, registry_factory(), args.sets, cache_dir)
+    if not args.dry_run and not getattr(args, "yes", False) and sys.stdin is not None and sys.stdin.isatty():
+        # on a terminal: say what goes, and ask (a mistyped workflow would empty the cache)
+        plan = collect(cache_dir, keep, dry_run=True, existing=existing)
+        if plan.removed:
+            for line in plan.lines:
+                print(f"  would remove {line}", file=stream)
+            total = plan.removed + plan.kept
+            print(f"cache gc: remove {plan.removed} of {total} entries/records ({_fmt_bytes(plan.bytes)}) "
+                  f"that {len(args.workflows)} workflow(s) do not use? [y/N] ", end="", file=stream, flush=True)
+            if input().strip().lower() not in ("y", "yes"):
+                print("cache gc: nothing removed", file=stream)
+                return 1
     report = collect(cache_dir, keep, dry_run=args.dry_run, existing=existing)
     verb = "would remove" if args.dry_run else "removed"
     for line in report.lines:
@@ -235,6 +258,7 @@ def cmd_ls(args: argparse.Namespace, stream: Optional[TextIO] = None) -> int:
     stream = stream if stream is not None else sys.stdout
     from .cache import MANIFEST, Cache, manifest_problem, read_json_object
 
+    _require_cache(default_cache_dir(args.cache_dir))
     cache = Cache(default_cache_dir(args.cache_dir))
     n = 0
     print(f"{'stage':<12} {'key':<12}  {'item':<24} {'status':<7} {'size':>10} {'wall':>10}  finished",
@@ -264,6 +288,7 @@ def cmd_verify(args: argparse.Namespace, stream: Optional[TextIO] = None) -> int
     from .cache import MANIFEST, Cache, manifest_problem, read_json
     from .hashing import tree_hash
 
+    _require_cache(default_cache_dir(args.cache_dir))
     cache = Cache(default_cache_dir(args.cache_dir))
     bad = total = 0
     for stage, key, folder in cache.iter_entries():

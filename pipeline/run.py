@@ -183,20 +183,37 @@ def run_workflow(workflow: Workflow, options: RunOptions, stream: Optional[TextI
         check_params(plan, sel, cache)
         return dry_run(plan, sel, cache, stream, t0)
     check_params(plan, sel, cache)
-    cache.ensure()
-    if free_bytes(cache.root) < MIN_FREE_BYTES:
-        raise CacheError(disk_full_message(cache.root))
+    read_only = False
     try:
-        cache.note_workflow(workflow.id, workflow.path, workflow.name)
-    except OSError as exc:
-        raise CacheError(f"{cache.root}: cannot write to the cache: {exc}") from None
+        cache.ensure()
+    except CacheError:
+        if not _all_done(plan, sel, cache):
+            raise
+        read_only = True  # everything is cached: serve it without writing a byte
+        print(f"the cache {cache.root} is read-only; every task is cached, so it is served as it is "
+              "(nothing recorded)", file=stream)
+    if not read_only:
+        if free_bytes(cache.root) < MIN_FREE_BYTES:
+            raise CacheError(disk_full_message(cache.root))
+        try:
+            cache.note_workflow(workflow.id, workflow.path, workflow.name)
+        except OSError as exc:
+            raise CacheError(f"{cache.root}: cannot write to the cache: {exc}") from None
     for note in sel.notes:
         print(note, file=stream)
     executor = executor or _make_executor(options)
     try:
-        return _Scheduler(plan, sel, cache, options, executor, stream).run(t0)
+        return _Scheduler(plan, sel, cache, options, executor, stream, read_only).run(t0)
     finally:
         executor.close()
+
+
+def _all_done(plan: Plan, sel: Selection, cache: Cache) -> bool:
+    """Whether every task this run would settle is done in the cache (and none forced)."""
+    if sel.forced:
+        return False
+    states = {st.task.index: st.state for st in inspect(plan, cache, with_reasons=False)}
+    return all(states.get(i) == "done" for i in sel.relevant)
 
 
 #: A run does not start on a cache disk with less free space than this.
@@ -245,8 +262,9 @@ def check_params(plan: Plan, sel: Selection, cache: Cache) -> None:
 
 class _Scheduler:
     def __init__(self, plan: Plan, sel: Selection, cache: Cache, options: RunOptions,
-                 executor: Any, stream: TextIO):
+                 executor: Any, stream: TextIO, read_only: bool = False):
         self.plan, self.sel, self.cache, self.options = plan, sel, cache, options
+        self.read_only = read_only
         self.executor, self.stream = executor, stream
         self.wf = plan.workflow
         self.table = OutputTable(plan)
@@ -288,6 +306,8 @@ class _Scheduler:
         self._settle(index, outcome)
 
     def _write_ref(self, task: Task, key: str, status: str, hashes: Any) -> None:
+        if self.read_only:
+            return
         self.cache.write_ref(self.wf.id, task.stage.name, task.item.id, ref_record(
             key, status, task.stage.version, task.params.key_json, hashes,
             self.wf.settings.device, task.item.id,

@@ -291,15 +291,25 @@ def load_workflow(path: os.PathLike | str, registry: Registry, sets: Sequence[st
     environ = os.environ if environ is None else environ
     cwd = Path(os.path.abspath(cwd or os.getcwd()))
     try:
-        text = path.read_text(encoding="utf-8")
+        data = path.read_bytes()
     except FileNotFoundError:
         raise WorkflowError("workflow file not found", source) from None
     except OSError as exc:
         raise WorkflowError(f"cannot read the workflow file: {exc}", source) from None
+    if data.startswith(b"\xef\xbb\xbf"):  # a UTF-8 byte-order mark (some Windows editors add one)
+        data = data[3:]
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        line = data[: exc.start].count(b"\n") + 1
+        raise WorkflowError(f"not UTF-8 text: byte 0x{data[exc.start]:02x} on line {line} (TOML files are "
+                            "UTF-8; save it as UTF-8)", source) from None
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise WorkflowError(f"invalid TOML: {exc}", source) from None
+    except RecursionError:
+        raise WorkflowError("invalid TOML: arrays or tables nested too deep to read", source) from None
     _check_keys(raw, TOP_KEYS, source, "")
     try:
         graph_all = registry.graph()

@@ -208,3 +208,35 @@ def test_manifest_paths_outside_the_entry_make_it_corrupt(toy, edit, where):
     assert "Traceback" not in proc.stderr
     m2 = json.loads(next((cache / "entries" / "load").iterdir()).joinpath("manifest.json").read_text())
     assert m2.get("log", "log.txt") == "log.txt"
+
+
+def test_cache_commands_refuse_a_folder_that_is_no_cache(toy, tmp_path):
+    """Issue 38 L8: a mistyped --cache-dir is an error, not "removed 0 entries"."""
+    for args in (("cache", "gc", toy.path), ("cache", "ls"), ("cache", "verify")):
+        proc = cobgs(*args, "--cache-dir", tmp_path / "typo", check=2)
+        assert "typo does not exist" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_cache_gc_on_a_terminal_lists_and_asks(toy, tmp_path):
+    """Issue 38 L8: on a terminal, gc lists what it would remove and asks; "n" keeps all,
+    --yes does not ask."""
+    import os
+    import pty
+
+    wf, cache = toy.path, toy.cache
+    cobgs("run", wf, "--cache-dir", cache, check=0)
+    other = tmp_path / "other.toml"  # a workflow that shares nothing: gc would remove almost all
+    other.write_text(wf.read_text().replace("[axes.scene.alpha]", "[axes.scene.zeta]"))
+    before = cobgs("cache", "ls", "--cache-dir", cache, check=0).stdout.splitlines()[-1]
+    master, slave = pty.openpty()
+    os.write(master, b"n\n")
+    proc = subprocess.run([sys.executable, "-m", "stages.commands.cli", "cache", "gc", str(other),
+                           "--cache-dir", str(cache)], cwd=REPO, env=cli_env(), stdin=slave,
+                          capture_output=True, text=True, timeout=120)
+    os.close(slave)
+    os.close(master)
+    assert proc.returncode == 1 and "would remove entries/" in proc.stdout and "[y/N]" in proc.stdout
+    assert "nothing removed" in proc.stdout
+    assert cobgs("cache", "ls", "--cache-dir", cache, check=0).stdout.splitlines()[-1] == before
+    out = cobgs("cache", "gc", other, "--cache-dir", cache, "--yes", check=0).stdout
+    assert "removed" in out and "[y/N]" not in out

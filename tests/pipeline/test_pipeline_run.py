@@ -555,3 +555,24 @@ def test_a_real_full_cache_disk(toy, tmp_path, fill, monkeypatch):
         assert len(s.outcomes) < s.total  # stopped, not every task computed and failed
     finally:
         subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
+
+
+def test_a_fully_cached_run_is_served_from_a_read_only_cache(toy, monkeypatch):
+    """Issue 38 L9: a read-only cache (a shared, published one) serves a run whose every task
+    is cached; a run that must compute is still refused, saying why."""
+    import os
+
+    import pipeline.cache as C
+    from pipeline import CacheError
+
+    assert toy.run().exit_code == 0
+    refs = sorted(p for p in (toy.cache / "refs").rglob("*") if p.is_file())
+    stamps = [p.stat().st_mtime_ns for p in refs]
+    real = os.access
+    monkeypatch.setattr(C.os, "access", lambda p, mode: False if mode == os.W_OK else real(p, mode))
+    s = toy.run()
+    assert s.exit_code == 0 and "is read-only; every task is cached" in s.output
+    assert all(o.state == "cached" for o in s.outcomes.values())
+    assert [p.stat().st_mtime_ns for p in refs] == stamps  # nothing written
+    with pytest.raises(CacheError, match="not writable"):
+        toy.run(["train.iterations=11"])

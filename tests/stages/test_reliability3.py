@@ -249,3 +249,27 @@ def test_l3_huge_mask_png_named(tmp_path):
     (folder / "a.png").write_bytes(png)
     with pytest.raises(StageInputError, match=r"mask file .*a\.png: cannot read it as an image .*decompression bomb"):
         _folder_masks([V()], folder, 0)
+
+
+# -- L5: unreadable workflow files get one clear error ---------------------------------------------
+@pytest.mark.parametrize("data, match", [
+    (b'[workflow]\nname = "caf\xe9"\n', r"not UTF-8 text: byte 0xe9 on line 2"),
+    (b"x = " + b"[" * 100_000 + b"]" * 100_000 + b"\n", r"nested too deep"),
+])
+def test_l5_unreadable_workflow_files(tmp_path, data, match):
+    from pipeline import WorkflowError, load_workflow
+    from stages.registry import load_registry
+
+    wf = tmp_path / "w.toml"
+    wf.write_bytes(data)
+    with pytest.raises(WorkflowError, match=match):
+        load_workflow(wf, load_registry())
+
+
+def test_l5_a_byte_order_mark_is_read(tmp_path):
+    from pipeline import load_workflow
+    from stages.registry import load_registry
+
+    wf = tmp_path / "w.toml"
+    wf.write_bytes(b"\xef\xbb\xbf" + DEMO.read_bytes())
+    assert load_workflow(wf, load_registry()).name == "demo"
