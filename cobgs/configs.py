@@ -254,7 +254,9 @@ class RefineConfig:
         "opacity_lr": "[0, 1]", "scaling_lr": "[0, 1]", "rotation_lr": "[0, 1]", "ssim_weight": "[0, 1]",
         "seed": "[0, 2147483647]",
     }
-    CHOICES: ClassVar[dict] = {"backend": ("native", "reference"), "label_name": (LABEL,)}
+    CHOICES: ClassVar[dict] = {"backend": ("native", "reference"), "label_name": (LABEL,),
+                               "scene_type": tuple(SCENE_DEFAULTS), "raem": RAEM_VARIANTS,
+                               "score": ("count", "weight"), "texture_adam": TEXTURE_ADAM}
 
     def __post_init__(self):
         check_params(self)
@@ -362,7 +364,8 @@ class SA3DConfig:
 
     RANGES: ClassVar[dict] = {"lr": "(0, 100]", "neg_weight": "[0, 100]", "passes": "[1, 100]",
                               "skip_iou": "[0, 1]", "adam_eps": "(0, 0.001]", "seed": "[0, 2147483647]"}
-    CHOICES: ClassVar[dict] = {"backend": ("native", "reference")}
+    CHOICES: ClassVar[dict] = {"backend": ("native", "reference"), "order": ("fixed", "random"),
+                               "render_values": ("label", "one")}
 
     def __post_init__(self):
         check_params(self)
@@ -449,6 +452,8 @@ class TwoStageConfig:
         "prompt_frame": "[0, 1e7]", "box_threshold": "[0, 1]", "text_threshold": "[0, 1]",
         "keep_ratio_of_best": "[0, 1]", "stage2_box_threshold_min": "[0, 1]", "stage2_ratio_of_best": "[0, 1]",
         "stage2_text_threshold_min": "[0, 1]"}
+    CHOICES: ClassVar[dict] = {"stage2_reprompt": ("correct", "condition"), "empty_rule": ("first_object", "union"),
+                               "detection_order": ("query", "confidence")}
 
     def __post_init__(self) -> None:
         check_params(self)
@@ -584,6 +589,7 @@ class SfmOptions:
         "exhaustive_max_images": "[1, 1e6]", "sequential_overlap": "[1, 1e4]", "max_image_size_px": "[1, 1e5]",
         "max_num_features": "[1, 1e7]", "min_num_matches": "[1, 1e6]", "min_registered_fraction": "[0, 1]",
         "num_threads": "[0, 1024]", "seed": "[0, 2147483647]", "camera_params": "[-1e7, 1e7]"}
+    CHOICES: ClassVar[dict] = {"matcher": MATCHERS, "device": ("cpu", "cuda")}
 
     def __post_init__(self) -> None:
         check_params(self)

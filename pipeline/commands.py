@@ -123,7 +123,10 @@ def register(sub: Any, registry_factory: RegistryFactory, package_version: Calla
 
     p = sub.add_parser("stages", help="list the registered stages (or their params as TOML)")
     p.add_argument("--toml", action="store_true",
-                   help="print every stage's default params as a [params.STAGE] table")
+                   help="print every stage's default params as a [params.STAGE] table, with each "
+                   "value's valid range")
+    p.add_argument("--docs", metavar="FILE", help="write that text into FILE between its generated-params "
+                   "markers (docs/pipeline.md)")
     p.set_defaults(func=_guard("stages", lambda a: cmd_stages(a, registry_factory)))
 
 
@@ -315,21 +318,48 @@ def cmd_verify(args: argparse.Namespace, stream: Optional[TextIO] = None) -> int
     return 1 if bad and not args.fix else 0
 
 
+DOCS_BEGIN = "<!-- BEGIN GENERATED PARAMS (cobgs stages --toml) -->"
+DOCS_END = "<!-- END GENERATED PARAMS -->"
+
+
+def stages_toml(registry) -> str:
+    """Every stage's default params as ``[params.STAGE]`` tables, each value's valid range
+    beside it (what ``cobgs stages --toml`` prints)."""
+    from .params import defaults_toml
+
+    graph = registry.graph()
+    return "".join(defaults_toml(graph.stages[n].params, f"params.{n}") + "\n\n" for n in graph.order)
+
+
+def write_params_docs(path: Path, text: str) -> int:
+    """Put ``text`` between the generated-params markers of a Markdown file (a ```toml block);
+    returns the number of tables written."""
+    doc = path.read_text(encoding="utf-8")
+    if DOCS_BEGIN not in doc or DOCS_END not in doc:
+        raise PipelineError(f"{path}: no {DOCS_BEGIN} ... {DOCS_END} markers to write between")
+    head, rest = doc.split(DOCS_BEGIN, 1)
+    _, tail = rest.split(DOCS_END, 1)
+    path.write_text(f"{head}{DOCS_BEGIN}\n```toml\n{text.rstrip()}\n```\n{DOCS_END}{tail}", encoding="utf-8")
+    return text.count("[params.")
+
+
 def cmd_stages(args: argparse.Namespace, registry_factory: RegistryFactory,
                stream: Optional[TextIO] = None) -> int:
     stream = stream if stream is not None else sys.stdout
-    from .params import defaults_toml
-
     registry = registry_factory()
     graph = registry.graph()
     if not graph.order:
         print("no stages are registered", file=stream)
         return 0
+    if getattr(args, "docs", None):
+        n = write_params_docs(Path(args.docs), stages_toml(registry))
+        print(f"wrote {n} params tables into {args.docs}", file=stream)
+        return 0
+    if args.toml:
+        print(stages_toml(registry), file=stream, end="")
+        return 0
     for name in graph.order:
         s = graph.stages[name]
-        if args.toml:
-            print(defaults_toml(s.params, f"params.{name}") + "\n", file=stream)
-            continue
         level = " x ".join(s.level) or "workflow"
         print(f"{name} v{s.version}  per {level}  {list(s.inputs)} -> {list(s.outputs)}"
               f"{'  (uses device)' if s.uses_device else ''}"

@@ -322,11 +322,28 @@ def defaults_toml(cls: type, table: str) -> str:
         else:
             lines.append(f"# {f.name} = ...  # required ({type_name(tp)})")
             continue
+        valid = valid_values(cls, f.name, tp)
         if is_dataclass_type(tp):
             nested.append(defaults_toml(tp, f"{table}.{f.name}"))
         elif default is None:
-            lines.append(f"# {f.name} = ...  # default: none ({type_name(tp)})")
+            lines.append(f"# {f.name} = ...  # default: none ({type_name(tp)})" + (f"; {valid}" if valid else ""))
         else:
-            note = f.metadata.get("help") if f.metadata else None
+            note = "; ".join(x for x in (valid, f.metadata.get("help") if f.metadata else None) if x)
             lines.append(f"{f.name} = {_toml_value(to_json(default))}" + (f"  # {note}" if note else ""))
     return "\n".join(lines + ([""] + nested if nested else []))
+
+
+def valid_values(cls: type, name: str, tp: Any) -> str:
+    """The valid values of a params field in words, from the class's ``RANGES`` (numeric
+    intervals, "[0, 1)" ...) and ``CHOICES`` attributes — the convention the params classes
+    follow and enforce in ``__post_init__``; a float without a range must be finite."""
+    choices = (getattr(cls, "CHOICES", None) or {}).get(name)
+    if choices is not None:
+        return "one of " + ", ".join(str(c) for c in choices)
+    interval = (getattr(cls, "RANGES", None) or {}).get(name)
+    if interval is not None:
+        return f"in {interval}"
+    inner, _ = _unwrap_optional(tp)
+    if inner is float:
+        return "finite"
+    return ""

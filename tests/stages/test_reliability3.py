@@ -273,3 +273,16 @@ def test_l5_a_byte_order_mark_is_read(tmp_path):
     wf = tmp_path / "w.toml"
     wf.write_bytes(b"\xef\xbb\xbf" + DEMO.read_bytes())
     assert load_workflow(wf, load_registry()).name == "demo"
+
+
+def test_docs_list_every_param_with_its_range_as_generated():
+    """docs/pipeline.md states the valid range of every param, generated from the params
+    classes (`cobgs stages --docs docs/pipeline.md` rewrites it), never written twice."""
+    from pipeline.commands import DOCS_BEGIN, DOCS_END, stages_toml
+    from stages.registry import load_registry
+
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "pipeline.md").read_text()
+    inside = doc.split(DOCS_BEGIN, 1)[1].split(DOCS_END, 1)[0]
+    expected = f"\n```toml\n{stages_toml(load_registry()).rstrip()}\n```\n"
+    assert inside == expected, "docs/pipeline.md is stale: run `cobgs stages --docs docs/pipeline.md`"
+    assert "prune_min_opacity = 0.005  # in [0, 1)" in inside and "boundary_ratio = 0.02  # in (0, 0.5]" in inside
