@@ -55,7 +55,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Mapping, Optional, Sequence
+from typing import Callable, Mapping, Optional, Sequence
 
 import torch
 from torch import Tensor
@@ -178,6 +178,7 @@ class Refiner:
         self.raem_keep: Optional[Tensor] = None
         self.raem_removed: Optional[GaussianModel] = None
         self.iteration = 0
+        self.last_mask_info: dict = {}
 
     @property
     def optimizers(self) -> list:
@@ -243,11 +244,20 @@ class Refiner:
                 generator=self.split_rng,
             )
         self.scores.reset(len(m))
+        self.last_mask_info = info  # (for diagnostics: Refiner.run's on_stage_end)
         return info
 
     # -- the whole run -----------------------------------------------------------------------
-    def run(self, progress=True, desc: str = "refine") -> tuple[list[StageStats], list[Tensor], int]:
+    def run(self, progress=True, desc: str = "refine",
+            on_stage_end: Optional["Callable[[Refiner, StageStats], None]"] = None,
+            on_stage_start: Optional["Callable[[Refiner, int, str], None]"] = None,
+            ) -> tuple[list[StageStats], list[Tensor], int]:
         """Run every stage of ``config.plan()``.
+
+        ``on_stage_start(refiner, index, kind)`` and ``on_stage_end(refiner, stats)`` are
+        called around every stage (after its split / RAEM): diagnostics read the model,
+        labels and scores there (``tests/benchmarks/bm_refine_trajectory.py``); they must not
+        edit them.
 
         Returns:
             (stage statistics, stage-mean scores of each mask stage, ambiguous count at
@@ -266,6 +276,8 @@ class Refiner:
         n_mask_done = 0
         try:
             for si, kind in enumerate(plan):
+                if on_stage_start is not None:
+                    on_stage_start(self, si, kind)
                 t0 = time.perf_counter()
                 n0 = len(self.model)
                 losses = []
@@ -294,6 +306,8 @@ class Refiner:
                 st.gaussians_end = len(self.model)
                 st.wall_s = time.perf_counter() - t0
                 _check_refined(self.model, c.label_name, f"{desc}: stage {si} ({kind}), iteration {self.iteration}")
+                if on_stage_end is not None:
+                    on_stage_end(self, st)
                 stats.append(st)
                 if bar is not None:
                     bar.set_postfix(stage=f"{kind}{si}", it=self.iteration, gaussians=len(self.model), ambiguous=last_amb)

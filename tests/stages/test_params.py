@@ -96,12 +96,12 @@ def test_kind_images_without_an_images_folder_is_refused_at_load(tmp_path):
 
 
 @pytest.mark.parametrize("sets, where, message", [
-    (["train.iterations=-5"], "--set: train.iterations", "iterations must be >= 1"),
+    (["train.iterations=-5"], "--set: train.iterations", "iterations must be in [1, 1e7]"),
     (["refine.cobgs.delta=-2"], "--set: refine.cobgs.delta", "delta must be in [0, 1]"),
     (["dataset.preset=nope"], "--set: dataset.preset", "preset must be one of"),
     (["sfm.options.camera_model=FISHEYEZ"], "--set: sfm.options.camera_model", "not a COLMAP camera model"),
     (["segment.mask_threshold=7"], "--set: segment.mask_threshold", "must be in (0, 1)"),
-    ([], "w.toml: params.train.iterations", "iterations must be >= 1"),
+    ([], "w.toml: params.train.iterations", "iterations must be in [1, 1e7]"),
 ])
 def test_bad_values_stop_the_run_before_any_task(tmp_path, sets, where, message):
     """Values only the library can judge (TrainConfig, RefineConfig, SfmOptions and
