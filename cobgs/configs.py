@@ -23,7 +23,7 @@ __all__ = ["check_params", "parse_interval", "in_interval", "TrainConfig", "Sche
 
 LABEL = "mask_logit"  # name of the per-Gaussian label-logit extra
 RAEM_VARIANTS = ("off", "released", "paper")
-SCENE_DEFAULTS = {"forward": (0.5, 6), "360": (0.8, 4)}  # δ, mask stages (SPEC §2)
+SCENE_DEFAULTS = {"forward": (0.5, 6), "360": (0.8, 4)}  # δ, mask stages (docs/method.md §2)
 TEXTURE_ADAM = ("baseline", "fresh")
 MATCHERS = ("auto", "exhaustive", "sequential")
 
@@ -180,7 +180,7 @@ class Schedule:
     opacity_reset_interval: int
 
 
-# -- COB-GS refinement (cobgs.refine); the texture stage's lrs are the baseline's (SPEC §2)
+# -- COB-GS refinement (cobgs.refine); the texture stage's lrs are the baseline's (docs/method.md §2)
 @dataclass(frozen=True)
 class RefineConfig:
     """Every parameter of the COB-GS refinement (defaults: the released behaviour, except
@@ -314,7 +314,7 @@ class RefineConfig:
 # -- peers (cobgs.peers) ------------------------------------------------------------------
 @dataclass(frozen=True)
 class SA3DConfig:
-    """SA3D-GS parameters (SPEC §3; docs/method.md, "SA3D-GS"). The defaults are the
+    """SA3D-GS parameters (docs/method.md §3, "SA3D-GS"). The defaults are the
     official ``sa3d-gs`` rules (``train_seg.py``, ``gaussian_model.py``, ``render.py``);
     :meth:`strict` is the stricter variant this project ran before (a stronger peer, kept
     as an option and a benchmark row) and :meth:`binary` the official training rendered
@@ -398,7 +398,7 @@ class SA3DConfig:
 
 @dataclass(frozen=True)
 class FlashSplatConfig:
-    """FlashSplat parameters (SPEC §3).
+    """FlashSplat parameters (docs/method.md §3).
 
     Attributes:
         background_bias: added to the normalised background entry before the argmax
@@ -419,7 +419,7 @@ class FlashSplatConfig:
 # -- two-stage masks and scribbles (cobgs.masks) ------------------------------------------
 @dataclass(frozen=True)
 class TwoStageConfig:
-    """Thresholds of Alg. 1 as the authors ran it (SPEC section 4)."""
+    """Thresholds of Alg. 1 as the authors ran it (docs/method.md §4)."""
 
     prompt_frame: int = 0
     box_threshold: float = 0.3

@@ -1,4 +1,4 @@
-"""Evaluation protocols (SPEC §5) on predicted and ground-truth masks and renders.
+"""Evaluation protocols (docs/method.md §5) on predicted and ground-truth masks and renders.
 
 Everything here works on arrays (or image files) already produced: the pipeline's segment
 stage renders the predictions, the evaluate stage hands them over with the protocol's GT.
@@ -100,7 +100,7 @@ def visible_object_mask(result, camera, threshold=None, backend: str = "native",
         result: a :class:`cobgs.refine_result.RefineResult` (any method).
         camera: the view.
         threshold: foreground where the blended mask value is above it (None: the
-            method's own bar, :func:`cobgs.segment.method_threshold`; SPEC: 0.5).
+            method's own bar, :func:`cobgs.segment.method_threshold`; docs/method.md §2: 0.5).
         soft: return the blended mask value instead of the thresholded mask.
 
     Returns:
@@ -248,7 +248,7 @@ def lerf_prompt_scores(preds: Mapping[str, object], gt_paths: Mapping[str, Optio
                        test_views: Sequence[str], boundary_ratio: float = BOUNDARY_RATIO) -> dict:
     """LERF-mask scores of one prompt over its annotated test views.
 
-    Every GT file is scored, as Gaussian Grouping's ``eval_lerf_mask.py`` does (SPEC §5):
+    Every GT file is scored, as Gaussian Grouping's ``eval_lerf_mask.py`` does (docs/method.md §5):
     an empty GT mask scores IoU 0 (and boundary IoU 0) when the prediction is not empty;
     when both are empty the scores are NaN and left out of the means. Both cases are
     listed under ``"empty_gt"`` and counted.
@@ -418,7 +418,7 @@ ORACLE_METHOD = "flashsplat_oracle"
 def oracle_choice(rows: Sequence[Mapping], kind: str = "flashsplat", metric: str = "biou") -> dict:
     """Per scene, the ``kind`` method item with the best mean ``metric`` over the scene's
     objects — FlashSplat's background bias tuned per scene as upstream does, but picked on
-    the held-out GT: an oracle in its favour (SPEC §3). Scenes with fewer than two such
+    the held-out GT: an oracle in its favour (docs/method.md §3). Scenes with fewer than two such
     items (no sweep) get no choice.
 
     Args:

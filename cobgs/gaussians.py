@@ -1,6 +1,6 @@
 """The Gaussian scene model: raw parameters, activations, extras and optimizer-safe edits.
 
-Storage (SPEC §1), all tensors with a leading dimension N, in one ordered dict:
+Storage (docs/method.md §1), all tensors with a leading dimension N, in one ordered dict:
 
     means          [N, 3]      float32  world positions
     log_scales     [N, 3]      float32  log of the per-axis standard deviations

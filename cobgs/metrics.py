@@ -1,6 +1,6 @@
 """Evaluation metrics: PSNR, SSIM for images; IoU, accuracy, boundary IoU for masks.
 
-Mask metrics follow SPEC §5: masks are binary arrays of the same size (binarise and
+Mask metrics follow docs/method.md §5: masks are binary arrays of the same size (binarise and
 resize before calling; :func:`binarize` does the "> 128 of 255" rule); IoU = TP / (TP +
 FP + FN), accuracy = (TP + TN) / pixels, boundary IoU compares the inner boundaries
 ``mask − erode(mask)`` with a 3x3 kernel applied d = max(1, round(0.02 · diagonal))

@@ -1,4 +1,4 @@
-"""The peers of SPEC §3, run in the same harness as COB-GS.
+"""The peers of docs/method.md §3, run in the same harness as COB-GS.
 
 Every peer takes the same trained scene, training views and masks as :func:`cobgs.refine.refine`
 and returns the same :class:`~cobgs.refine_result.RefineResult`, so
@@ -72,7 +72,7 @@ def nosplit_config(base: RefineConfig = RefineConfig()) -> RefineConfig:
     """``base`` with BAGS, BGTR and RAEM off (paper Table 5, first row), training labels as
     long as the released labels-only run does: every stage of ``base``'s alternation becomes
     a mask stage (forward: 6 mask + 5 texture stages -> 11 mask stages = 22·V iterations;
-    360°: 4 + 3 -> 7 = 14·V), not only the mask stages' share (SPEC §3)."""
+    360°: 4 + 3 -> 7 = 14·V), not only the mask stages' share (docs/method.md §3)."""
     return dataclasses.replace(base, bags=False, bgtr=False, raem="off", mask_stages=len(base.plan()))
 
 

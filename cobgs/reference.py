@@ -6,7 +6,7 @@ tensor code, so its gradients come from autograd and can be compared with the
 hand-written C++ backward. ``rasterize_reference`` composes them with the exact
 signature of :func:`cobgs.rasterize`.
 
-The rendering contract (SPEC §1, standard 3D Gaussian Splatting):
+The rendering contract (docs/method.md §1, standard 3D Gaussian Splatting):
 
 * **Camera.** ``viewmat`` [4, 4] maps world to camera, OpenCV axes (+x right, +y down,
   +z forward). ``K`` [3, 3] holds pixel intrinsics ``fx, fy, cx, cy`` (no skew). Pixel

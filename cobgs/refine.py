@@ -1,4 +1,4 @@
-"""COB-GS refinement (SPEC §2): alternating MASK / TEXTURE stages with boundary splits.
+"""COB-GS refinement (docs/method.md §2): alternating MASK / TEXTURE stages with boundary splits.
 
 The schedule, with V training views and stages of 2V iterations::
 
@@ -93,7 +93,7 @@ __all__ = [
     "BG_THRESHOLD",
 ]
 
-FG_THRESHOLD = 0.9  # SPEC §2 segmentation: foreground = label > 0.9
+FG_THRESHOLD = 0.9  # docs/method.md §2 segmentation: foreground = label > 0.9
 BG_THRESHOLD = 0.1  # background = label < 0.1
 OBJECT_LOGITS = "object_logits"
 OBJECT_ID = "object_id"
@@ -117,7 +117,7 @@ class Refiner:
         extent: scene extent (world units).
         config: the parameters.
         background: RGB behind the scene in TEXTURE stages (the baseline's).
-        reset_labels: start every label logit at 0 (SPEC §2).
+        reset_labels: start every label logit at 0 (docs/method.md §2).
         texture_moments: the baseline's Adam moments of the texture tensors
             (:mod:`cobgs.adam_moments`); used when ``config.texture_adam == "baseline"``.
 
@@ -474,7 +474,7 @@ def apply_raem(
 # -- multi-object ---------------------------------------------------------------------------
 @dataclass
 class MultiObjectResult:
-    """K objects refined sequentially on one scene (SPEC §2 multi-object).
+    """K objects refined sequentially on one scene (docs/method.md §2 multi-object).
 
     Attributes:
         model: the final scene, with extras ``object_logits`` [N, K] (each object's label

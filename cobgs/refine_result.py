@@ -88,7 +88,7 @@ class RefineResult:
         texture_moments: the COB-GS texture Adam's final moments (only when asked for:
             :func:`cobgs.refine.refine` ``return_moments``), else None.
         mask_threshold: the bar of this method's object render (None: the caller's,
-            0.5 in SPEC §2; SA3D-GS's official render: 0.1 on composited raw labels).
+            0.5 in docs/method.md §2; SA3D-GS's official render: 0.1 on composited raw labels).
         raem_keep: [N before RAEM] bool, the Gaussians RAEM kept (None: RAEM removed
             nothing or did not run).
         raem_removed: the Gaussians RAEM removed, as a model (None as above); with

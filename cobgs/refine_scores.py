@@ -1,11 +1,11 @@
 """COB-GS mask labels: the rendered mask, the mask loss and the N⁺/N⁻ ambiguity scores.
 
-SPEC §2 (paper Eqs. 2–7). Every Gaussian carries one raw label logit (the model extra
+docs/method.md §2 (paper Eqs. 2–7). Every Gaussian carries one raw label logit (the model extra
 :data:`LABEL`); its label is ``m = sigmoid(logit)``, logit 0 (label 0.5) at the start.
 
 * **Rendered mask** (Eq. 2): ``M(p) = Σ mᵢ αᵢ Tᵢ`` with the colour path's α / T cut-offs,
   no background term, not clamped. Geometry and opacity enter *detached*, so the mask
-  loss reaches the labels only (SPEC §2 "mask loss reaches labels only").
+  loss reaches the labels only (docs/method.md §2 "mask loss reaches labels only").
 * **Mask loss** (Eq. 3 as released): ``L = (−Σ G·M + λ Σ (1−G)·M) / (H·W)``, λ = 1; the
   per-pixel gradient dL/dM is −1/HW where G = 1 and +λ/HW where G = 0, so its sign is the
   supervising label. Pixels marked "don't care" (label −1) contribute nothing.
@@ -115,7 +115,7 @@ def render_label_mask(
         cam.K,
         int(cam.width),
         int(cam.height),
-        background=None,  # SPEC §2: no background term in M
+        background=None,  # docs/method.md §2: no background term in M
         pixel_labels=pixel_labels,
         num_labels=2,
         backend=backend,
@@ -123,7 +123,7 @@ def render_label_mask(
 
 
 def mask_loss(rendered: Tensor, pixel_labels: Tensor, lam: float = 1.0, normalise: bool = True) -> Tensor:
-    """COB-GS mask loss ``(−Σ G·M + λ Σ (1−G)·M) / (H·W)`` (SPEC §2).
+    """COB-GS mask loss ``(−Σ G·M + λ Σ (1−G)·M) / (H·W)`` (docs/method.md §2).
 
     Args:
         rendered: [H, W] rendered mask M.

@@ -1,6 +1,6 @@
 """COB-GS structural edits: boundary-adaptive splitting (BAGS) and the RAEM pruning.
 
-SPEC §2:
+docs/method.md §2:
 
 * **Boundary-adaptive split.** Of the ambiguous Gaussians (stage-mean score < δ), those
   whose largest scale exceeds ``0.01 × scene extent`` are each replaced by 2 children:

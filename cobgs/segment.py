@@ -1,6 +1,6 @@
 """Segmentation of a refined scene: extraction, PLY export and evaluation renders.
 
-SPEC §2 "Segmentation" / "Evaluation render":
+docs/method.md §2 "Segmentation" / "Evaluation render":
 
 * foreground = label > 0.9, background = label < 0.1 (the complement used for object
   removal; Gaussians in between belong to neither);
@@ -171,7 +171,7 @@ def render_object_mask(
 ) -> Tensor:
     """The object's mask at ``camera``: foreground Gaussians only, mask channel, above
     ``threshold`` (None: the method's own bar, ``result.mask_threshold``, else 0.5 as
-    SPEC §2).
+    docs/method.md §2).
 
     Returns:
         [H, W] bool (or the float mask channel when ``soft``).
@@ -239,11 +239,11 @@ def evaluate_masks(
         gt_masks: [H, W] bool GT per view (None = not annotated: skipped).
         skip_empty_gt: skip views whose GT is empty (object out of view), as the
             LERF-mask protocol does; counted in ``skipped``.
-        boundary_ratio: boundary width ratio of the boundary IoU (SPEC §5).
+        boundary_ratio: boundary width ratio of the boundary IoU (docs/method.md §5).
         visible: predict the object's *visible* pixels
             (:func:`cobgs.evaluate.visible_object_mask`: every Gaussian rendered, the
             object's with their mask value, the others with 0, so occluders hide it) instead
-            of the released object-only render (:func:`render_object_mask`, SPEC §2), which
+            of the released object-only render (:func:`render_object_mask`, docs/method.md §2), which
             also predicts the parts another object hides. Use it whenever the GT masks are
             visible-pixel masks (synthetic scenes, NeRF-synthetic alpha): there the
             object-only render counts every occluded object pixel as a false positive.

@@ -1,4 +1,4 @@
-"""Baseline 3DGS optimisation (SPEC §1): the scene COB-GS later refines.
+"""Baseline 3DGS optimisation (docs/method.md §1): the scene COB-GS later refines.
 
 Recipe: 0.8·L1 + 0.2·(1 − SSIM); Adam (eps 1e-15) with per-tensor learning rates and an
 exponentially decaying position lr scaled by the scene extent; SH degree raised on a

@@ -3,7 +3,7 @@
 Only where the protocol is the paper's (NVOS, LERF-mask) and the method is the one the
 paper ran are quoted numbers shown, always labelled as quoted: they were measured by the
 authors on an RTX 3090, not by this run. Values are percentages (IoU, accuracy) or dB (PSNR)
-exactly as printed in the paper; SPEC.md §5 lists the same numbers.
+exactly as printed in the paper; docs/method.md §5 lists the same numbers.
 """
 
 from __future__ import annotations
@@ -46,7 +46,7 @@ _PSNR = {
     "orchids": (19.82, 19.80, 19.83, 19.91), "trex": (24.68, 23.35, 24.71, 24.97),
 }
 _PSNR_MEAN = (23.06, 22.61, 23.07, 23.13)
-# SPEC §5 (the paper's LERF-mask results), COB-GS: mIoU / mBIoU (%) per scene.
+# docs/method.md §5 (the paper's LERF-mask results), COB-GS: mIoU / mBIoU (%) per scene.
 _LERF = {
     "figurines": {"iou": 76.3, "biou": 73.9}, "ramen": {"iou": 78.1, "biou": 69.2},
     "teatime": {"iou": 77.2, "biou": 72.8},
@@ -113,4 +113,4 @@ def lerf_quote(scene: str, method: Optional[tuple]) -> Optional[Quote]:
     key = scene.lower()
     if key not in _LERF:
         return None
-    return Quote("COB-GS", _LERF[key], "paper, LERF-mask (SPEC §5)")
+    return Quote("COB-GS", _LERF[key], "paper, LERF-mask (docs/method.md §5)")

@@ -22,7 +22,7 @@ GLOSSARY = {
     "biou": "boundary IoU: IoU of the two masks' boundary bands (mask minus its erosion, width 2 % of "
             "the image diagonal): how clean the object's outline is; mBIoU: its mean",
     "acc": "pixel accuracy ((TP + TN) / all pixels); mAcc: its mean",
-    "headline": "the headline protocol (SPEC §5): the object's Gaussians rendered alone (label > 0.9, mask "
+    "headline": "the headline protocol (docs/method.md §5): the object's Gaussians rendered alone (label > 0.9, mask "
                 "> 0.5; SA3D-GS: its own 0.1 bar) against the object's whole silhouette where the data has it "
                 "(synthetic scenes, a one-object alpha matte), else against the visible GT",
     "biou_released": "released protocol: the same object-only render against the visible GT (parts another "

@@ -1,8 +1,8 @@
-"""Stage ``evaluate``: the scene's protocol (SPEC §5) on one method x object.
+"""Stage ``evaluate``: the scene's protocol (docs/method.md §5) on one method x object.
 
 The dataset spec names the protocol:
   exact      held-out views against the dataset's exact masks (synthetic scenes, Blender
-             alpha). Three mask protocols, each on every object (SPEC §5):
+             alpha). Three mask protocols, each on every object (docs/method.md §5):
                headline    the released evaluation render (the object's Gaussians alone,
                            ``pred_masks``) against the object's whole silhouette (amodal
                            GT) where the dataset has it (synthetic scenes; a one-object

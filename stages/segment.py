@@ -33,7 +33,7 @@ from ._common import load_scene, read_json, read_spec, to_device, torch_device, 
 class SegmentParams:
     """Attributes:
         mask_threshold: the rendered object mask is foreground above this; None = the
-            method's own bar (COB-GS, FlashSplat and the strict SA3D-GS: 0.5 as SPEC §2;
+            method's own bar (COB-GS, FlashSplat and the strict SA3D-GS: 0.5 as docs/method.md §2;
             SA3D-GS's official render: 0.1 on its composited raw labels).
         views: "test" (the held-out views) or "all" (training views too).
         backend: rasterizer backend.

@@ -119,7 +119,7 @@ def _run(ctx, inputs):
     for row, entry in heads:
         row["entries"] = _chain(entry, root)
     # FlashSplat at its best background bias per scene (an oracle chosen on the held-out GT,
-    # SPEC §3), where the workflow sweeps the bias: copies of the chosen item's rows.
+    # docs/method.md §3), where the workflow sweeps the bias: copies of the chosen item's rows.
     oracle = oracle_choice(rows)
     for r in [r for r in rows if oracle.get(r["scene"]) == r["method"]]:
         rows.append(dict(r, method=ORACLE_METHOD, oracle_choice=r["method"], item=f"{r['item']}#oracle"))

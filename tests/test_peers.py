@@ -1,4 +1,4 @@
-"""The peers (SPEC §3) on hand-built cases, and the run_method dispatch."""
+"""The peers (docs/method.md §3) on hand-built cases, and the run_method dispatch."""
 
 from __future__ import annotations
 

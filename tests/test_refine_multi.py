@@ -1,4 +1,4 @@
-"""Multi-object refinement bookkeeping (SPEC §2 multi-object)."""
+"""Multi-object refinement bookkeeping (docs/method.md §2 multi-object)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The LERF-mask benchmark (Gaussian Grouping's annotations of LERF scenes), SPEC §5.
+"""The LERF-mask benchmark (Gaussian Grouping's annotations of LERF scenes), docs/method.md §5.
 
 Published layout of a scene folder::
 

@@ -1,6 +1,6 @@
 """Mask-noise emulation: the errors of SAM-style video masks, applied to exact masks.
 
-COB-GS claims robustness against erroneous 2D masks (SPEC section 2, RAEM). To test that
+COB-GS claims robustness against erroneous 2D masks (docs/method.md §2, RAEM). To test that
 with exact synthetic masks we corrupt them the way tracked SAM masks go wrong, each kind of
 error happening to a mask with its own probability:
 

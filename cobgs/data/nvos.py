@@ -1,4 +1,4 @@
-"""The NVOS benchmark's label archive (SPEC §5): tasks, held-out target, scribbles, GT.
+"""The NVOS benchmark's label archive (docs/method.md §5): tasks, held-out target, scribbles, GT.
 
 Published layout of the labels folder (one sub-folder per task)::
 

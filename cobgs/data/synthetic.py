@@ -6,7 +6,7 @@ axes, per-frame intrinsics, ``test_filenames``), ``images/``, ``masks/<object>/`
 is in an object's mask when a strict majority of its subsamples see that object first),
 ``coverage/<object>/`` (round(255 x fraction of subsamples)), ``amodal/<object>/`` for
 the held-out views (the object's whole silhouette, occluders ignored, same majority rule:
-the GT of the headline protocol, SPEC §5) and ``scene.json``.
+the GT of the headline protocol, docs/method.md §5) and ``scene.json``.
 
 The output is deterministic: the same preset, seed and overrides give bit-identical files.
 It is written to a temporary sibling folder and renamed into place at the end, so an

@@ -306,7 +306,7 @@ def generate_masks_from_scribbles(
     options: Optional[RunOptions] = None,
 ) -> MaskGenerationResult:
     """NVOS protocol: scribbles on the reference view -> sampled points -> SAM2 on that
-    view -> propagation to all views (SPEC section 5)."""
+    view -> propagation to all views (docs/method.md §5)."""
     paths = _paths(image_paths)
     if not 0 <= reference_frame < len(paths):
         raise InputError(f"reference_frame must be in [0, {len(paths)}), got {reference_frame}")

@@ -1,6 +1,6 @@
 """``manifest.json``: what a user's model folder holds and how its tensors map onto ours.
 
-The contract (``ONNX_CONTRACT.md``) fixes *our* tensor names, dtypes and shapes. A manifest
+The contract (``docs/onnx_contract.md``) fixes *our* tensor names, dtypes and shapes. A manifest
 maps them onto an export's own names (``io``), may override dtypes/shapes where a layout
 flag changes them, and carries the preprocessing and model constants the host needs. A
 folder written by ``cobgs export-onnx`` has a manifest that maps every name onto itself.

@@ -1,4 +1,4 @@
-"""NVOS scribbles -> SAM2 point prompts (SPEC section 5).
+"""NVOS scribbles -> SAM2 point prompts (docs/method.md §5).
 
 Each scribble image is binarised (a scribble pixel is any pixel with a non-zero colour
 channel, as the reference methods read them: pure red or blue strokes count) and

@@ -342,7 +342,7 @@ def test_llff_count_mismatch(tmp_path):
         detect_format(tmp_path / "images_8")
 
 
-# -- the two published copies of the NVOS LLFF scenes (SPEC §5) -----------------------------------
+# -- the two published copies of the NVOS LLFF scenes (docs/method.md §5) -----------------------------------
 def _nerf_llff_data_fixture(root, n=4, W=160, H=120, k1=-0.05):
     """nerf_llff_data's layout: sparse/0 with one SIMPLE_RADIAL camera over full-resolution
     images/IMG_*.JPG, and images_4/ named image000.png ... (the same views, 1/4 size)."""

@@ -65,7 +65,7 @@ def test_sampling_rule_seed_and_scaling(tmp_path):
 @pytest.mark.parametrize("colour", [(255, 0, 0), (0, 0, 255), (40, 40, 40)],
                          ids=["pure red", "pure blue", "dark grey"])
 def test_any_non_zero_channel_is_a_scribble_pixel(tmp_path, colour):
-    """The protocol's rule (SPEC §5): pure red / blue strokes (luminance 76 / 29) and
+    """The protocol's rule (docs/method.md §5): pure red / blue strokes (luminance 76 / 29) and
     anti-aliased edges count; a luminance threshold of 127 lost all of them."""
     from cobgs.masks.scribbles import _load_scribble
 

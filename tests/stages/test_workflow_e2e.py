@@ -821,7 +821,7 @@ refine = { method = "flashsplat", flashsplat = { background_bias = -0.3 } }
     assert seg["mask_threshold"] == 0.1
     ref = json.loads((_entry(wf2, cache2, "refine", "tiny/cobgs/ball").output("refined") / "refine.json").read_text())
     cseg = _entry(wf2, cache2, "segment", "tiny/cobgs/ball").output("segmentation")
-    assert json.loads((cseg / "segment.json").read_text())["mask_threshold"] == 0.5  # SPEC §2's bar
+    assert json.loads((cseg / "segment.json").read_text())["mask_threshold"] == 0.5  # docs/method.md §2's bar
     assert (cseg / "render_before_raem").is_dir() == (ref["raem_pruned"] > 0)
     if ref["raem_pruned"] == 0:
         assert rows["cobgs"]["psnr_before_raem"] == rows["cobgs"]["psnr"]
