@@ -93,36 +93,6 @@ class MaskScores:
         return asdict(self)
 
 
-def visible_object_mask(result, camera, threshold=None, backend: str = "native", soft: bool = False):
-    """The object's *visible* mask at ``camera`` (occlusion-aware; see the module docstring).
-
-    Args:
-        result: a :class:`cobgs.refine_result.RefineResult` (any method).
-        camera: the view.
-        threshold: foreground where the blended mask value is above it (None: the
-            method's own bar, :func:`cobgs.segment.method_threshold`; docs/method.md §2: 0.5).
-        soft: return the blended mask value instead of the thresholded mask.
-
-    Returns:
-        [H, W] bool (or float32 when ``soft``).
-    """
-    import torch
-
-    from .render import render
-
-    m = result.model
-    vals = torch.where(result.foreground, result.mask_values.to(m.means.dtype), torch.zeros((), dtype=m.means.dtype,
-                                                                                          device=m.device))
-    with torch.no_grad():
-        out = render(m, camera, None, features=vals[:, None].contiguous(), backend=backend)
-    mask = out.image[..., 0]
-    if soft:
-        return mask
-    from .segment import method_threshold
-
-    return mask > method_threshold(result, threshold)
-
-
 def nanmean(values: Iterable[float]) -> float:
     """Mean of the finite values (nan when there is none)."""
     vals = [float(v) for v in values if v is not None and math.isfinite(float(v))]
@@ -471,3 +441,13 @@ def bootstrap_mean_diff(pairs: Mapping[str, Sequence[tuple]], reps: int = 2000, 
     lo, hi = boots[int(0.025 * reps)], boots[min(reps - 1, int(math.ceil(0.975 * reps)) - 1)]
     return {"diff": stat(by_obj), "lo": lo, "hi": hi, "objects": len(by_obj),
             "views": sum(len(v) for v in by_obj.values())}
+
+
+def __getattr__(name):
+    # visible_object_mask is a renderer and lives in cobgs.segment; still importable from
+    # here, lazily (this module stays free of torch: the summary stage imports it).
+    if name == "visible_object_mask":
+        from .segment import visible_object_mask
+
+        return visible_object_mask
+    raise AttributeError(f"module 'cobgs.evaluate' has no attribute {name!r}")

@@ -46,6 +46,7 @@ __all__ = [
     "render_object_rgb",
     "render_removed_rgb",
     "evaluate_masks",
+    "visible_object_mask",
 ]
 
 
@@ -241,7 +242,7 @@ def evaluate_masks(
             LERF-mask protocol does; counted in ``skipped``.
         boundary_ratio: boundary width ratio of the boundary IoU (docs/method.md §5).
         visible: predict the object's *visible* pixels
-            (:func:`cobgs.evaluate.visible_object_mask`: every Gaussian rendered, the
+            (:func:`visible_object_mask`: every Gaussian rendered, the
             object's with their mask value, the others with 0, so occluders hide it) instead
             of the released object-only render (:func:`render_object_mask`, docs/method.md §2), which
             also predicts the parts another object hides. Use it whenever the GT masks are
@@ -260,8 +261,6 @@ def evaluate_masks(
             skipped.append(v.name)
             continue
         if visible:
-            from .evaluate import visible_object_mask
-
             pred = visible_object_mask(result, v.camera, backend=backend).cpu().numpy()
         else:
             pred = render_object_mask(result, v.camera, backend=backend).cpu().numpy()
@@ -271,3 +270,33 @@ def evaluate_masks(
     for k in ("iou", "acc", "biou"):
         out[k] = float(np.mean([p[k] for p in per.values()])) if per else float("nan")
     return out
+
+
+def visible_object_mask(result, camera, threshold=None, backend: str = "native", soft: bool = False):
+    """The object's *visible* mask at ``camera`` (occlusion-aware): every Gaussian is
+    rendered, the object's with their mask values and the others with 0, so what occludes
+    the object in this view hides it (the occlusion-aware column of the evaluation).
+
+    Args:
+        result: a :class:`cobgs.refine_result.RefineResult` (any method).
+        camera: the view.
+        threshold: foreground where the blended mask value is above it (None: the
+            method's own bar, :func:`method_threshold`; docs/method.md §2: 0.5).
+        soft: return the blended mask value instead of the thresholded mask.
+
+    Returns:
+        [H, W] bool (or float32 when ``soft``).
+    """
+    import torch
+
+    from .render import render
+
+    m = result.model
+    vals = torch.where(result.foreground, result.mask_values.to(m.means.dtype), torch.zeros((), dtype=m.means.dtype,
+                                                                                          device=m.device))
+    with torch.no_grad():
+        out = render(m, camera, None, features=vals[:, None].contiguous(), backend=backend)
+    mask = out.image[..., 0]
+    if soft:
+        return mask
+    return mask > method_threshold(result, threshold)

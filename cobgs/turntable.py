@@ -114,3 +114,25 @@ def write_animation(frames: Sequence[np.ndarray], path: Path, frame_ms: int = 80
                    optimize=False)
     tmp.replace(path)
     return path
+
+
+def object_turntables(object_ply: Path, background_ply: Path, cameras: Sequence[Camera], background,
+                      frames: int, dst: dict) -> list[str]:
+    """Orbit GIFs of a segmented object alone (``object_ply``) and of the scene without it
+    (``background_ply``), around the object's centre, with cameras like ``cameras``. ``dst``
+    maps "object" / "removed" to the GIF paths; returns the kinds written (none when the
+    object PLY is missing or empty)."""
+    from .ply import load_ply
+
+    if not Path(object_ply).is_file():
+        return []
+    obj = load_ply(object_ply)
+    if len(obj) == 0:
+        return []
+    cams = orbit_cameras(cameras, object_center(obj), n_frames=frames)
+    written = []
+    for kind, model in (("object", obj), ("removed", load_ply(background_ply))):
+        Path(dst[kind]).parent.mkdir(parents=True, exist_ok=True)
+        write_animation(render_turntable(model, cams, background), Path(dst[kind]))
+        written.append(kind)
+    return written

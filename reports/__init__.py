@@ -1,7 +1,10 @@
 """HTML result reports built from a workflow's pipeline cache (``cobgs report``).
 
-    from reports import build_report
+    from stages.commands.report import build_report   # the program's registry and scene reader
     index = build_report("workflows/demo.toml", out_dir="runs/reports/demo")
+
+(``reports.build_report`` itself takes them as arguments: ``reports/`` imports nothing of
+``stages/``.)
 
 Modules: :mod:`~reports.collect` reads the cache, :mod:`~reports.results` turns it into
 records, :mod:`~reports.tables`, :mod:`~reports.pictures` and :mod:`~reports.plots` render

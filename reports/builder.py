@@ -40,7 +40,7 @@ def default_out_dir(workflow) -> Path:
 def build_report(workflow_path: os.PathLike | str, out_dir: Optional[os.PathLike | str] = None,
                  cache_dir: Optional[os.PathLike | str] = None, sets: Iterable[str] = (),
                  registry=None, stream=None, turntables: int = 0, viewer: bool = True,
-                 viewer_mb: Optional[float] = None) -> Path:
+                 viewer_mb: Optional[float] = None, scene_cameras=None) -> Path:
     """Build the report of a workflow from its cache; returns the path of ``index.html``.
 
     Args:
@@ -48,7 +48,10 @@ def build_report(workflow_path: os.PathLike | str, out_dir: Optional[os.PathLike
         out_dir: report folder (default ``runs/reports/<workflow name>``).
         cache_dir: cache folder (default: ``$COBGS_CACHE_DIR``, else ``runs/cache``).
         sets: ``--set`` overrides, as for ``cobgs run`` (they select the cache entries).
-        registry: stage registry (default: the program's, :func:`stages.registry.load_registry`).
+        registry: the stage registry (required; the command layer hands in the program's:
+            :func:`stages.commands.report.build_report`).
+        scene_cameras: ``(dataset dir, poses dir) -> (cameras, background)`` of a scene,
+            for turntables and the 3D viewers (the command layer hands in the stages' reader).
         stream: where to print progress lines (None: quiet).
         turntables: frames of an orbit GIF per method and object (object alone, scene
             without it; rendered on the CPU while building): 0 = none.
@@ -61,9 +64,8 @@ def build_report(workflow_path: os.PathLike | str, out_dir: Optional[os.PathLike
     from pipeline.commands import default_cache_dir
 
     if registry is None:
-        from stages.registry import load_registry
-
-        registry = load_registry()
+        raise ReportError("build_report needs the stage registry (the command layer hands it in: "
+                          "stages.commands.report.build_report does)")
     sets = list(sets)
     wf = load_workflow(workflow_path, registry, sets=sets)
     cache = Path(default_cache_dir(os.fspath(cache_dir) if cache_dir else None))
@@ -74,6 +76,7 @@ def build_report(workflow_path: os.PathLike | str, out_dir: Optional[os.PathLike
     _check_destination(out)
     t0 = time.perf_counter()
     data = collect(wf, cache)
+    data.scene_cameras = scene_cameras
     try:
         publish_folder(out, lambda tmp: _write(data, tmp, sets, turntables, viewer, viewer_mb), MARKER, "report")
     except DestinationError as exc:

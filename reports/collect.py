@@ -151,6 +151,16 @@ class RunData:
     results: list[Result]
     scenes: dict[str, Scene]
     methods: list[str]  # in workflow order
+    # (dataset dir, poses dir or None) -> (training cameras, background): the command layer
+    # hands it in (reports read no artifact layout of the stages; turntables, 3D viewers)
+    scene_cameras: Optional[Any] = None
+
+    def cameras(self, scene: "Scene") -> tuple[list, tuple]:
+        """(training cameras, background) of a scene, through :attr:`scene_cameras`."""
+        if self.scene_cameras is None:
+            raise ReportError("turntables and 3D viewers need the scenes' cameras: build the report through "
+                              "`cobgs report` (stages.commands.report.build_report), which hands them in")
+        return self.scene_cameras(scene.dataset_dir, scene.poses_dir)
 
     @property
     def failed(self) -> list[Task]:

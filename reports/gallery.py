@@ -24,22 +24,24 @@ def scored_mask_folder(row: Optional[dict]) -> str:
     return MASK_FOLDERS.get(str((row or {}).get("mask_render", "object_only")), "pred_masks")
 
 
-def _turntables(ps: PictureSet, rs: dict, scene, root: Path, base: str, frames: int, cameras: dict) -> None:
+def _turntables(data: RunData, ps: PictureSet, rs: dict, scene, root: Path, base: str, frames: int,
+                cameras: dict) -> None:
     """Orbit GIFs of each method's object alone and scene without it (cobgs.turntable)."""
-    from stages._common import scene_cameras, segment_turntables
+    from cobgs.turntable import object_turntables
 
     if scene is None or scene.dataset_dir is None:
         return
     if scene.name not in cameras:
-        cameras[scene.name] = scene_cameras(scene.dataset_dir, scene.poses_dir)
+        cameras[scene.name] = data.cameras(scene)
     refs, bg = cameras[scene.name]
     for mp in ps.methods:
         r = rs.get(mp.method)
         if r is None or r.segment_dir is None:
             continue
         urls = {k: f"{base}/{slug(mp.method)}_turn_{k}.gif" for k in ("object", "removed")}
-        for kind in segment_turntables(Path(r.segment_dir), refs, bg, frames,
-                                       {k: root / u for k, u in urls.items()}):
+        seg = Path(r.segment_dir)
+        for kind in object_turntables(seg / "object.ply", seg / "background.ply", refs, bg, frames,
+                                      {k: root / u for k, u in urls.items()}):
             mp.files[f"turn_{kind}"] = urls[kind]
 
 
@@ -112,7 +114,7 @@ def picture_sets(data: RunData, infos: dict, root: Path, turntables: int = 0) ->
         base = f"img/{slug(scene)}/{slug(obj)}/{slug(view)}"
         compose(ps, image, gt, preds, renders, root / base, base)
         if turntables > 0:
-            _turntables(ps, rs, data.scenes.get(scene), root, f"img/{slug(scene)}/{slug(obj)}", turntables,
+            _turntables(data, ps, rs, data.scenes.get(scene), root, f"img/{slug(scene)}/{slug(obj)}", turntables,
                         cameras)
         sets.append(ps)
     return sets

@@ -91,7 +91,6 @@ def viewer_sets(data, pictures: list, root: Path, max_mb: Optional[float] = DEFA
     from cobgs import splat_pack
     from cobgs.segment import subset
     from cobgs.turntable import object_center
-    from stages._common import scene_cameras
 
     results = {(r.scene, r.object, r.method): r for r in data.results}
 
@@ -114,7 +113,7 @@ def viewer_sets(data, pictures: list, root: Path, max_mb: Optional[float] = DEFA
                     loaded[(ps.id, mp.method)] = got
         if not loaded:
             continue
-        cams, background = scene_cameras(sc.dataset_dir, sc.poses_dir)
+        cams, background = data.cameras(sc)
         cam_records = [_camera_record(c) for c in cams]
         up = _up(cams)
         total = sum(len(m) for m, _, _ in loaded.values())

@@ -258,26 +258,3 @@ def scene_cameras(dataset_dir: Path, poses_dir: Optional[Path]) -> tuple[list, t
     needs (turntables). Loads the scene once; callers keep it per scene."""
     scene = load_scene(Path(dataset_dir), Path(poses_dir) if poses_dir else None)
     return [v.camera for v in scene.train], tuple(scene.background)
-
-
-def segment_turntables(seg_dir: Path, cameras: list, background, frames: int, dst: Mapping[str, Path]) -> list[str]:
-    """Orbit GIFs (:mod:`cobgs.turntable`) of a segment artifact's object alone
-    (``object.ply``) and of the scene without it (``background.ply``), around the object's
-    centre. ``dst`` maps "object" / "removed" to the GIF paths; returns the kinds written
-    (none when the object is empty or the artifact has no object.ply)."""
-    from cobgs.ply import load_ply
-    from cobgs.turntable import object_center, orbit_cameras, render_turntable, write_animation
-
-    seg_dir = Path(seg_dir)
-    if not (seg_dir / "object.ply").is_file():
-        return []
-    obj = load_ply(seg_dir / "object.ply")
-    if len(obj) == 0:
-        return []
-    cams = orbit_cameras(cameras, object_center(obj), n_frames=frames)
-    written = []
-    for kind, model in (("object", obj), ("removed", load_ply(seg_dir / "background.ply"))):
-        Path(dst[kind]).parent.mkdir(parents=True, exist_ok=True)
-        write_animation(render_turntable(model, cams, background), Path(dst[kind]))
-        written.append(kind)
-    return written

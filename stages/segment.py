@@ -60,8 +60,8 @@ def _run(ctx, inputs):
 
     from cobgs.ply import load_ply, save_ply
     from cobgs.refine_result import RefineResult
-    from cobgs.evaluate import visible_object_mask
-    from cobgs.segment import extract, method_threshold, render_object_mask, render_object_rgb, render_removed_rgb
+    from cobgs.segment import (extract, method_threshold, render_object_mask, render_object_rgb, render_removed_rgb,
+                               visible_object_mask)
     from cobgs.render import render_image
 
     p: SegmentParams = ctx.params

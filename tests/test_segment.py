@@ -141,7 +141,7 @@ def test_evaluate_masks_visible_mode_lets_occluders_hide_the_object():
     model = GaussianModel(means, log_scales, torch.tensor([[1.0, 0, 0, 0]] * 2), torch.full((2,), 8.0),
                           torch.zeros(2, 1, 3), torch.zeros(2, 0, 3))
     r = _result(model, torch.tensor([True, False]), torch.tensor([False, True]))
-    from cobgs.evaluate import visible_object_mask
+    from cobgs.segment import visible_object_mask
 
     amodal = render_object_mask(r, cam)
     vis = visible_object_mask(r, cam)

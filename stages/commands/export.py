@@ -137,7 +137,8 @@ def export(workflow, cache_dir, to, stream=None, ply: bool = True, turntables: i
             _copy(src, dst)
             copied.append({"file": rel.as_posix(), "stage": rec.stage, "item": rec.item.id,
                            "entry": str(src.parent)})
-        from stages._common import scene_cameras, segment_turntables
+        from cobgs.turntable import object_turntables
+        from stages._common import scene_cameras
 
         cameras: dict = {}  # scene -> (cameras, background): each scene loaded once
         for rec in segments if turntables > 0 else ():
@@ -151,8 +152,9 @@ def export(workflow, cache_dir, to, stream=None, ply: bool = True, turntables: i
             refs, bg = cameras[v.get("scene")]
             rel = Path(v.get("scene"), v.get("method"), v.get("object"))
             names = {k: f"turntable_{k}.gif" for k in ("object", "removed")}
-            for kind in segment_turntables(rec.output("segmentation"), refs, bg, turntables,
-                                           {k: tmp / rel / n for k, n in names.items()}):
+            seg = rec.output("segmentation")
+            for kind in object_turntables(seg / "object.ply", seg / "background.ply", refs, bg, turntables,
+                                          {k: tmp / rel / n for k, n in names.items()}):
                 copied.append({"file": (rel / names[kind]).as_posix(), "stage": "segment", "item": rec.item.id,
                                "entry": "rendered by cobgs.turntable"})
         record.update(copied=copied)

@@ -45,11 +45,23 @@ def _megabytes(text: str) -> float:
     return v
 
 
+def build_report(workflow_path, **kw):
+    """:func:`reports.build_report` with the program's stage registry and the stages' scene
+    reader (for turntables and 3D viewers): the command layer hands ``reports/`` what it needs,
+    so that ``reports/`` imports nothing of ``stages/``. Keywords as there."""
+    from reports import build_report as build
+    from stages._common import scene_cameras
+    from stages.registry import load_registry
+
+    kw.setdefault("registry", load_registry())
+    kw.setdefault("scene_cameras", scene_cameras)
+    return build(workflow_path, **kw)
+
+
 def _report(args) -> int:
     import sys
 
     from pipeline import PipelineError
-    from reports import build_report
 
     try:
         index = build_report(args.workflow, out_dir=args.out, cache_dir=args.cache_dir, sets=args.sets,

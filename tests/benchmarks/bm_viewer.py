@@ -91,7 +91,7 @@ def main(argv=None) -> int:
     tmp = None
     report = args.report
     if report is None:
-        from reports import build_report
+        from stages.commands.report import build_report
 
         tmp = tempfile.TemporaryDirectory(prefix="bm-viewer-")
         report = Path(tmp.name) / "demo"

@@ -24,7 +24,7 @@ class Recorded:
         self.registry = fixture_run.registry()
 
     def build(self, out: Path, **kw) -> Path:
-        from reports import build_report
+        from stages.commands.report import build_report
 
         return build_report(self.workflow, out_dir=out, cache_dir=self.cache, registry=self.registry, **kw)
 
@@ -46,7 +46,7 @@ def report(recorded, tmp_path_factory) -> Path:
 def demo_report(tmp_path_factory) -> Path:
     """The embedded demo workflow (workflows/demo.toml) run for real (~1 min on 2 cores) and
     reported with the default options, as `make demo` does (without its turntables)."""
-    from reports import build_report
+    from stages.commands.report import build_report
     from stages.commands.cli import main
 
     root = tmp_path_factory.mktemp("demo")

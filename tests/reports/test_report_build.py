@@ -253,7 +253,7 @@ def test_leftovers_of_a_killed_report_are_cleaned(recorded, tmp_path):
 
 
 def test_missing_cache_is_a_clear_error(recorded, tmp_path):
-    from reports import build_report
+    from stages.commands.report import build_report
 
     with pytest.raises(ReportError, match="cache folder .* does not exist"):
         build_report(recorded.workflow, out_dir=tmp_path / "r", cache_dir=tmp_path / "nope",
@@ -262,7 +262,7 @@ def test_missing_cache_is_a_clear_error(recorded, tmp_path):
 
 def test_never_run_workflow_reports_missing_everything(recorded, tmp_path):
     (tmp_path / "cache").mkdir()
-    from reports import build_report
+    from stages.commands.report import build_report
 
     index = build_report(recorded.workflow, out_dir=tmp_path / "r", cache_dir=tmp_path / "cache",
                          registry=recorded.registry)
@@ -326,7 +326,7 @@ def test_metadata_lists_the_dependency_versions_the_tasks_recorded(recorded, rep
 def test_gpu_peak_column_only_when_tasks_recorded_one(recorded, report, tmp_path):
     import shutil
 
-    from reports import build_report
+    from stages.commands.report import build_report
 
     assert "Peak GPU" not in report.read_text(encoding="utf-8")  # a CPU run: no empty column
     cache = tmp_path / "cache"

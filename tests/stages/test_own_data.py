@@ -74,7 +74,7 @@ def test_masks_made_for_the_photos_are_undistorted_like_them(own):
 
 
 def test_the_report_builds_and_loads_cleanly_without_ground_truth(own, tmp_path):
-    from reports import build_report
+    from stages.commands.report import build_report
 
     root, path, _, recs = own
     index = build_report(path, out_dir=tmp_path / "report", cache_dir=root / "cache", sets=SHORT)
@@ -103,7 +103,7 @@ def test_a_psnr_drop_beyond_the_margin_is_a_warning_everywhere(own, tmp_path):
     setting to try; under the margin there is none."""
     import io
 
-    from reports import build_report
+    from stages.commands.report import build_report
 
     root, path, wf, recs = own
     # The authors' released RAEM prunes every ambiguous Gaussian: the PSNR drop this test needs

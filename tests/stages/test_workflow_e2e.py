@@ -783,7 +783,7 @@ def test_peers_as_their_code_runs_them_and_the_flashsplat_oracle(tiny, tmp_path)
     every row carries the three named protocols and the PSNR before RAEM."""
     import shutil
 
-    from reports.builder import build_report
+    from stages.commands.report import build_report
 
     path, cache, wf, _ = tiny
     cache2 = tmp_path / "cache"
