@@ -175,7 +175,15 @@ def _or_zeros(grad: Optional[Tensor], shape, like: Tensor) -> Tensor:
 
 def project(means, quats, scales, viewmat, K, width: int, height: int,
             near_plane: float = NEAR_PLANE) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Native ``cobgs::project`` (see :func:`cobgs.reference.project_reference`)."""
+    """Native ``cobgs::project`` (see :func:`cobgs.reference.project_reference`).
+
+    Args:
+        means [N, 3], quats [N, 4] (w, x, y, z), scales [N, 3] (linear), viewmat [4, 4]
+        (world -> camera, OpenCV axes), K [3, 3]; width, height in pixels.
+
+    Returns:
+        means2d [N, 2] (pixels), conics [N, 3], depths [N], radii [N] int32 (0 = culled).
+    """
     ensure_loaded()
     return torch.ops.cobgs.project(means.contiguous(), quats.contiguous(), scales.contiguous(),
                                    viewmat.contiguous(), K.contiguous(), width, height,
@@ -183,7 +191,15 @@ def project(means, quats, scales, viewmat, K, width: int, height: int,
 
 
 def bin_tiles(means2d, radii, depths, width: int, height: int) -> Tuple[Tensor, Tensor]:
-    """Native ``cobgs::bin_tiles`` (see :func:`cobgs.reference.bin_tiles_reference`)."""
+    """Native ``cobgs::bin_tiles`` (see :func:`cobgs.reference.bin_tiles_reference`).
+
+    Args:
+        means2d [N, 2], radii [N] int32, depths [N] (from :func:`project`).
+
+    Returns:
+        tile_offsets [T + 1] int32 (T = 16x16 tiles of the image), flat_ids [M] int32
+        (the Gaussians of each tile, front to back).
+    """
     ensure_loaded()
     return torch.ops.cobgs.bin_tiles(means2d.detach().contiguous(), radii.contiguous(),
                                      depths.detach().contiguous(), width, height)
@@ -194,7 +210,15 @@ def bin_tiles_tight(means2d, radii, depths, conics, opacities, width: int,
     """Native ``cobgs::bin_tiles_tight``: :func:`bin_tiles` lists without the entries that
     cannot reach α >= 1/255 anywhere in the tile (the blended pixels, their order, the
     image and the gradients are unchanged; ``n_contrib`` indexes the shorter lists), plus
-    ``prep``, the per-Gaussian records :func:`blend` and the backward pass then reuse."""
+    ``prep``, the per-Gaussian records :func:`blend` and the backward pass then reuse.
+
+    Args:
+        means2d [N, 2], radii [N] int32, depths [N], conics [N, 3], opacities [N].
+
+    Returns:
+        tile_offsets [T + 1] int32, flat_ids [M'] int32 (M' <= M of :func:`bin_tiles`),
+        prep [N, P] (per-Gaussian records; P fixed by the op).
+    """
     ensure_loaded()
     return torch.ops.cobgs.bin_tiles_tight(
         means2d.detach().contiguous(), radii.contiguous(), depths.detach().contiguous(),
@@ -211,6 +235,11 @@ def blend(means2d, conics, opacities, features, background, tile_offsets, flat_i
     ``check``: on CUDA, raise on bad tile lists / labels / n_contrib (the kernels find
     them; reading their verdict synchronises with the host). False for lists made by
     :func:`bin_tiles` (bad values are skipped, never dereferenced, either way).
+
+    Args:
+        means2d [N, 2], conics [N, 3], opacities [N], features [N, C], background [C],
+        tile_offsets [T + 1] and flat_ids [M] (from :func:`bin_tiles` / :func:`bin_tiles_tight`),
+        pixel_labels [H, W] int (−1 = ignore) or None, num_labels K.
 
     Returns image [H, W, C], transmittance [H, W], n_contrib [H, W] int32, label_counts
     [N, K] int32 and label_weights [N, K] float32 (both [0, K] without pixel_labels).
