@@ -26,13 +26,13 @@ from __future__ import annotations
 
 import io
 import os
-import tempfile
 from pathlib import Path
 from typing import Mapping, Optional
 
 import torch
 from torch import Tensor
 
+from ._atomic import write_bytes_atomic
 from .errors import DataError, InputError
 
 __all__ = ["MOMENTS_FILE", "export_moments", "load_moments", "save_moments", "read_moments"]
@@ -124,22 +124,12 @@ def save_moments(path: os.PathLike | str, moments: Moments, num_gaussians: int) 
                 raise InputError(f"moments of {name!r}: {k} has {entry[k].shape[0]} rows, expected {num_gaussians}")
     payload = {"format": MOMENTS_FORMAT, "version": MOMENTS_VERSION, "num_gaussians": int(num_gaussians),
                "tensors": {n: {k: torch.as_tensor(e[k]).detach().cpu() for k in _KEYS} for n, e in moments.items()}}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        # Through a buffer: torch.save names the archive's records after the file it writes,
-        # and the temporary name is random, so saving to it directly made every file
-        # different; from a buffer the same moments are the same bytes.
-        buf = io.BytesIO()
-        torch.save(payload, buf)
-        with open(tmp, "wb") as f:
-            f.write(buf.getbuffer())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    # Through a buffer: torch.save names the archive's records after the file it writes,
+    # and the temporary name is random, so saving to it directly made every file
+    # different; from a buffer the same moments are the same bytes.
+    buf = io.BytesIO()
+    torch.save(payload, buf)
+    return write_bytes_atomic(path, buf.getbuffer())
 
 
 def read_moments(path: os.PathLike | str, num_gaussians: Optional[int] = None,

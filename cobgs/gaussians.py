@@ -527,3 +527,13 @@ def _swap_param(opt: torch.optim.Optimizer, old: Tensor, new: Tensor, fix) -> No
                         for k, v in state.items()
                     }
                 return
+
+
+def gaussian_lrs(config, position_lr: float, extent: float) -> dict:
+    """The 3DGS learning rate of every Gaussian tensor, one table for the baseline training
+    and COB-GS's texture stages: ``config`` has ``sh0_lr``, ``shN_lr``, ``opacity_lr``,
+    ``scaling_lr`` and ``rotation_lr`` (:class:`~cobgs.configs.TrainConfig`,
+    :class:`~cobgs.configs.RefineConfig`); the position lr is scaled by the scene extent."""
+    return {"means": position_lr * extent, "sh0": config.sh0_lr, "shN": config.shN_lr,
+            "opacity_logits": config.opacity_lr, "log_scales": config.scaling_lr, "quats": config.rotation_lr}
+

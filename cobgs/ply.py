@@ -19,13 +19,13 @@ from __future__ import annotations
 import logging
 import os
 import re
-import tempfile
 from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
 import torch
 
+from ._atomic import write_atomic
 from .errors import DataError, InputError
 from .gaussians import GaussianModel, check_extra_name
 
@@ -99,17 +99,7 @@ def save_ply(path: os.PathLike | str, model: GaussianModel, extras: Optional[Seq
     for c, _, v in cols:
         vertex[c] = v
     el = PlyElement.describe(vertex, "vertex")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            PlyData([el], text=False, byte_order="<", comments=comments).write(f)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    return write_atomic(path, lambda f: PlyData([el], text=False, byte_order="<", comments=comments).write(f))
 
 
 def _extra_to_numpy(name: str, t: torch.Tensor) -> tuple[np.ndarray, str]:

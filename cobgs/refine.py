@@ -64,7 +64,7 @@ from .progress import Progress
 from .adam_moments import Moments, export_moments, load_moments
 from .data.scene import Scene, View
 from .errors import InputError
-from .gaussians import GaussianModel
+from .gaussians import GaussianModel, gaussian_lrs
 from .losses import photometric_loss
 from .refine_result import PeakMemory, RefineResult, StageStats
 from .refine_scores import (
@@ -155,17 +155,7 @@ class Refiner:
             raise InputError("no view has an annotated mask pixel for this object")
         ensure_label(model, c.label_name, reset=reset_labels)
         self.label_opt = model.make_adam({c.label_name: c.label_lr}, eps=c.adam_eps)
-        self.texture_opt = model.make_adam(
-            {
-                "means": c.position_lr * self.extent,
-                "sh0": c.sh0_lr,
-                "shN": c.shN_lr,
-                "opacity_logits": c.opacity_lr,
-                "log_scales": c.scaling_lr,
-                "quats": c.rotation_lr,
-            },
-            eps=c.adam_eps,
-        )
+        self.texture_opt = model.make_adam(gaussian_lrs(c, c.position_lr, self.extent), eps=c.adam_eps)
         self.texture_adam = "fresh"
         if c.texture_adam == "baseline" and texture_moments is not None:
             load_moments(self.texture_opt, texture_moments, "texture_moments")

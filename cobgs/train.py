@@ -38,7 +38,6 @@ import math
 import os
 import pickle
 import resource
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,12 +46,13 @@ from typing import Callable, Optional, Sequence
 import torch
 from torch import Tensor
 
+from ._atomic import write_bytes_atomic
 from ._memory import retain_freed_memory
 from .adam_moments import export_moments
 from .data.scene import Scene, View
 from .configs import Schedule, TrainConfig  # noqa: F401 (defined there, torch-free; re-exported)
 from .errors import DataError, DivergenceError, InputError
-from .gaussians import GaussianModel, inverse_sigmoid
+from .gaussians import GaussianModel, gaussian_lrs, inverse_sigmoid
 from .losses import photometric_loss
 from .metrics import psnr as psnr_metric
 from .metrics import ssim as ssim_metric
@@ -165,17 +165,7 @@ class Trainer:
     # -- pieces -----------------------------------------------------------------------------
     def _make_optimizer(self) -> torch.optim.Adam:
         c = self.config
-        return self.model.make_adam(
-            {
-                "means": c.position_lr_init * self.extent,
-                "sh0": c.sh0_lr,
-                "shN": c.shN_lr,
-                "opacity_logits": c.opacity_lr,
-                "log_scales": c.scaling_lr,
-                "quats": c.rotation_lr,
-            },
-            eps=c.adam_eps,
-        )
+        return self.model.make_adam(gaussian_lrs(c, c.position_lr_init, self.extent), eps=c.adam_eps)
 
     def _reset_stats(self) -> None:
         n, dev = len(self.model), self.model.device
@@ -378,21 +368,9 @@ def _load_safely(path: Path):
 
 def save_atomic(obj, path: os.PathLike | str) -> Path:
     """``torch.save`` into a temporary file in the same folder, then rename into place."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        buf = io.BytesIO()  # (torch.save names records after the file: the same bytes via a buffer)
-        torch.save(obj, buf)
-        with open(tmp, "wb") as f:
-            f.write(buf.getbuffer())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
+    buf = io.BytesIO()  # (torch.save names records after the file: the same bytes via a buffer)
+    torch.save(obj, buf)
+    return write_bytes_atomic(path, buf.getbuffer())
 
 
 def evaluate(

@@ -32,16 +32,15 @@ from .scene import (
 )
 from .undistort import DROPPABLE_MODELS, PINHOLE_MODELS, split_pinhole, undistort_view_arrays
 
-_MODEL_FILES = ("cameras", "images", "points3D")
 
 
 def find_model_dir(root: os.PathLike | str) -> Path:
     """The folder holding the COLMAP model under ``root`` (sparse/0, sparse, or root)."""
-    root = Path(root)
-    for cand in (root / "sparse" / "0", root / "sparse", root):
-        for ext in (".bin", ".txt"):
-            if all((cand / f"{n}{ext}").is_file() for n in _MODEL_FILES):
-                return cand
+    from .layout import colmap_model_dir
+
+    found = colmap_model_dir(root)
+    if found is not None:
+        return found
     raise DataError(
         "no COLMAP model found (expected cameras, images, points3D as .bin or .txt in "
         "sparse/0/, sparse/ or the scene folder)",

@@ -21,8 +21,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import shutil
-import tempfile
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +28,7 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from .._atomic import build_folder_atomic
 from ..configs import MaskNoiseParams  # noqa: F401 (defined there)
 from ..errors import DataError, InputError
 
@@ -176,10 +175,9 @@ def noise_mask_folder(src: os.PathLike | str, dst: os.PathLike | str, params: Ma
         if dst.resolve() == src.resolve() or src.resolve().is_relative_to(dst.resolve()):
             raise InputError(f"output mask folder {dst} holds the input {src}: refusing to replace it")
     files = [(o, f) for o in objects for f in sorted((src / o).glob("*.png"))]
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{dst.name}.tmp-", dir=dst.parent))
     log: Dict[str, Dict[str, dict]] = {o: {} for o in objects}
-    try:
+
+    def build(tmp: Path) -> None:
         for o in objects:
             (tmp / o).mkdir()
         for o, f in tqdm(files, desc="mask noise", unit="mask", disable=not progress):
@@ -193,14 +191,6 @@ def noise_mask_folder(src: os.PathLike | str, dst: os.PathLike | str, params: Ma
         with open(tmp / "noise.json", "w", encoding="utf-8") as fh:
             json.dump({"params": dataclasses.asdict(params), "source": str(src), "masks": log},
                       fh, indent=1)
-        if dst.exists():
-            trash = Path(tempfile.mkdtemp(prefix=f".{dst.name}.old-", dir=dst.parent))
-            os.replace(dst, trash / "old")
-            os.replace(tmp, dst)
-            shutil.rmtree(trash, ignore_errors=True)
-        else:
-            os.replace(tmp, dst)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+
+    build_folder_atomic(dst, build)
     return log

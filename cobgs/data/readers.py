@@ -12,22 +12,14 @@ from .scene import Scene
 
 def detect_format(path: os.PathLike | str) -> str:
     """"blender", "transforms", "colmap" or "llff", from the files present in ``path``."""
-    from .colmap import find_model_dir
+    from .layout import detect_layout
 
     root = Path(path)
     if not root.is_dir():
         raise DataError("scene folder not found", root)
-    if (root / "transforms_train.json").is_file():
-        return "blender"
-    if (root / "transforms.json").is_file():
-        return "transforms"
-    try:
-        find_model_dir(root)
-        return "colmap"
-    except DataError:
-        pass
-    if (root / "poses_bounds.npy").is_file():
-        return "llff"
+    found = detect_layout(root)
+    if found is not None:
+        return found
     raise DataError(
         "unrecognised scene layout (expected transforms_train.json, transforms.json, a "
         "COLMAP model in sparse/0/, or poses_bounds.npy)",

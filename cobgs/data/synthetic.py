@@ -18,13 +18,12 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
-import shutil
-import tempfile
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
+from .._atomic import build_folder_atomic
 from ..errors import DataError, InputError
 from .synth_cameras import PinholeCamera, intrinsics_from_fov, opencv_to_opengl
 from .synth_presets import BUILDERS, PRESETS, SynthPreset
@@ -212,21 +211,7 @@ def generate_scene(out_dir: os.PathLike | str, preset: str | SynthPreset = "demo
     workers = workers or (os.cpu_count() or 1)
     p, scene, cams = build_scene(preset, seed, width_px=width_px, height_px=height_px,
                                  num_views=num_views, supersampling=supersampling)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
-    try:
-        _write(tmp, p, scene, cams, seed, progress, workers)
-        if out.exists():
-            trash = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
-            os.replace(out, trash / "old")
-            os.replace(tmp, out)
-            shutil.rmtree(trash, ignore_errors=True)
-        else:
-            os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return out
+    return build_folder_atomic(out, lambda tmp: _write(tmp, p, scene, cams, seed, progress, workers))
 
 
 def _write(root: Path, p: SynthPreset, scene: Scene, cams: List[PinholeCamera], seed: int,

@@ -25,6 +25,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Dict, List, Optional, Tuple, Union
 
+from cobgs._atomic import write_text_atomic
 from cobgs.errors import ModelError
 
 MANIFEST_NAME = "manifest.json"
@@ -631,9 +632,7 @@ def write_manifest(models_dir: Union[str, os.PathLike], entries: dict) -> Path:
         except (OSError, json.JSONDecodeError):
             pass  # a broken manifest is replaced
     data.update(entries)
-    tmp = mpath.with_name(f".{MANIFEST_NAME}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(data, indent=2) + "\n")
-    os.replace(tmp, mpath)
+    write_text_atomic(mpath, json.dumps(data, indent=2) + "\n")
     return mpath
 
 

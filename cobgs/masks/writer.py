@@ -9,19 +9,12 @@ from typing import Union
 
 import numpy as np
 
+from cobgs._atomic import write_bytes_atomic
 from cobgs.errors import DataError
 
 
 def _atomic_bytes(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)  # readers never see a half-written file
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    write_bytes_atomic(path, data)  # readers never see a half-written file
 
 
 def write_mask_png(path: Union[str, os.PathLike], mask: np.ndarray) -> None:

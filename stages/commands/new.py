@@ -44,15 +44,16 @@ def _image_size(path: Path) -> str:
 
 def detect(folder: Path) -> dict:
     """What the folder holds: kind, why, image count and size, mask objects."""
-    if (folder / "transforms.json").is_file():
-        kind, why = "transforms", "transforms.json (NeRF / nerfstudio cameras) found"
-    elif (folder / "transforms_train.json").is_file():
-        kind, why = "blender", "transforms_train.json (NeRF-synthetic layout) found"
-    elif any((folder / "sparse" / "0" / f"cameras.{e}").is_file() for e in ("bin", "txt")) or \
-            any((folder / f"cameras.{e}").is_file() for e in ("bin", "txt")):
-        kind, why = "colmap", "a COLMAP model (sparse/0) found: its cameras and points are used"
-    elif (folder / "poses_bounds.npy").is_file():
-        kind, why = "llff", "poses_bounds.npy (LLFF poses) found; points come from triangulation"
+    from cobgs.data.layout import detect_layout  # the readers' own detector (standard library only)
+
+    layout = detect_layout(folder)
+    why_of = {"blender": "transforms_train.json (NeRF-synthetic layout) found; its posed views are "
+                         "triangulated for the initial points",
+              "transforms": "transforms.json (NeRF / nerfstudio cameras) found",
+              "colmap": "a COLMAP model (sparse/0) found: its cameras and points are used",
+              "llff": "poses_bounds.npy (LLFF poses) found; points come from triangulation"}
+    if layout is not None:
+        kind, why = layout, why_of[layout]
     elif _images(folder / "images"):
         kind, why = "images", "photos in images/ and no cameras: SfM (pycolmap) will find them"
     elif _images(folder):

@@ -25,7 +25,8 @@ def _load(path, env=None):
 
 @pytest.mark.parametrize("layout, kind", [
     ({"images/a.png": 1, "images/b.png": 1}, "images"),
-    ({"images/a.png": 1, "sparse/0/cameras.txt": 0}, "colmap"),
+    ({"images/a.png": 1, "sparse/0/cameras.txt": 0, "sparse/0/images.txt": 0, "sparse/0/points3D.txt": 0},
+     "colmap"),
     ({"images/a.png": 1, "poses_bounds.npy": 0}, "llff"),
     ({"images/a.png": 1, "transforms.json": 0}, "transforms"),
 ])
@@ -125,3 +126,17 @@ def test_out_into_a_missing_folder_or_onto_a_folder_is_refused_cleanly(tmp_path,
     assert main(["new", str(root), "--out", str(tmp_path / "dir.toml"), "--force"]) == 2
     assert "is a folder" in capsys.readouterr().err
     assert not [p for p in tmp_path.iterdir() if ".tmp" in p.name or p.name.startswith(".cobgs-new")]
+
+
+def test_new_and_the_readers_agree_on_the_layout(tmp_path):
+    """Issue 39: one layout detector. A folder holding both transforms.json and
+    transforms_train.json is the NeRF-synthetic layout for `cobgs new` and for the readers."""
+    from cobgs.data.readers import detect_format
+    from stages.commands.new import detect
+
+    root = tmp_path / "both"
+    _png(root / "images" / "a.png")
+    (root / "transforms.json").write_text("{}")
+    (root / "transforms_train.json").write_text("{}")
+    _png(root / "masks" / "m" / "a.png")
+    assert detect(root)["kind"] == detect_format(root) == "blender"
