@@ -8,17 +8,27 @@ from __future__ import annotations
 
 __version__ = "0.1.0"
 
-from .errors import BuildError, CobgsError, DataError, InputError, ModelError  # noqa: F401
+from cobgs.errors import BuildError, CobgsError, DataError, InputError, ModelError  # noqa: F401
 
 
-def __getattr__(name):  # lazy entry points keep `import cobgs` light
-    if name in ("rasterize", "RasterOutput"):
-        # importlib, not `from . import rasterize`: the latter looks the name up on this
-        # package first and would re-enter __getattr__ forever. Importing the submodule
-        # binds `cobgs.rasterize` to the module; rebind it to the function.
-        import importlib
+#: The main entry points, importable from ``cobgs`` itself (lazily: ``import cobgs`` stays light).
+_PUBLIC = {
+    "rasterize": "cobgs.render.rasterize", "RasterOutput": "cobgs.render.rasterize",
+    "GaussianModel": "cobgs.train.gaussians", "load_ply": "cobgs.train.ply", "save_ply": "cobgs.train.ply",
+    "train": "cobgs.train.optimize", "TrainConfig": "cobgs.configs",
+    "refine": "cobgs.refine.alternation", "refine_objects": "cobgs.refine.alternation",
+    "RefineConfig": "cobgs.configs", "run_method": "cobgs.refine.peers",
+    "read_scene": "cobgs.data.readers",
+}
 
-        module = importlib.import_module(".rasterize", __name__)
-        globals().update(rasterize=module.rasterize, RasterOutput=module.RasterOutput)
-        return globals()[name]
-    raise AttributeError(f"module 'cobgs' has no attribute {name!r}")
+
+def __getattr__(name):
+    # (importlib, not `from . import x`: that looks the name up on this package first and
+    # would re-enter __getattr__.)
+    if name not in _PUBLIC:
+        raise AttributeError(f"module 'cobgs' has no attribute {name!r}")
+    import importlib
+
+    value = getattr(importlib.import_module(_PUBLIC[name]), name)
+    globals()[name] = value
+    return value

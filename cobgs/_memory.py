@@ -12,7 +12,7 @@ higher (819 → 887 MiB).
 
 :func:`retain_freed_memory` raises both thresholds with ``mallopt``. It changes the
 allocator of the whole process, so the library calls it only where it runs a long
-optimisation loop (:class:`cobgs.train.Trainer`, :class:`cobgs.refine.Refiner`) and the
+optimisation loop (:class:`cobgs.train.optimize.Trainer`, :class:`cobgs.refine.alternation.Refiner`) and the
 ``cobgs`` command calls it at start-up. ``COBGS_RETAIN_FREED_MEMORY=0`` turns it off.
 Stdlib only (the CLI imports this before torch).
 """

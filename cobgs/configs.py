@@ -15,7 +15,7 @@ import re
 from dataclasses import dataclass, field
 from typing import ClassVar, Optional, Tuple
 
-from .errors import InputError
+from cobgs.errors import InputError
 
 __all__ = ["check_params", "parse_interval", "in_interval", "TrainConfig", "Schedule", "RefineConfig",
            "SA3DConfig", "FlashSplatConfig", "TwoStageConfig", "ScribbleConfig", "MaskNoiseParams", "SfmOptions", "LABEL",
@@ -77,7 +77,7 @@ def check_params(obj) -> None:
                 raise InputError(f"{cls.__name__}.{f.name} must be a finite number, got {x!r}")
 
 
-# -- baseline training (cobgs.train) ---------------------------------------------------------
+# -- baseline training (cobgs.train.optimize) ---------------------------------------------------------
 @dataclass(frozen=True)
 class TrainConfig:
     """Every knob of the baseline optimisation (defaults: the 3DGS paper's)."""
@@ -180,7 +180,7 @@ class Schedule:
     opacity_reset_interval: int
 
 
-# -- COB-GS refinement (cobgs.refine); the texture stage's lrs are the baseline's (docs/method.md §2)
+# -- COB-GS refinement (cobgs.refine.alternation); the texture stage's lrs are the baseline's (docs/method.md §2)
 @dataclass(frozen=True)
 class RefineConfig:
     """Every parameter of the COB-GS refinement (defaults: the released behaviour, except
@@ -196,7 +196,7 @@ class RefineConfig:
         bags: boundary-adaptive Gaussian splitting on/off (Table 5).
         bgtr: boundary-guided texture restoration (TEXTURE stages) on/off (Table 5).
         raem: final pruning: "off", "released" (every ambiguous Gaussian) or "paper"
-            (ambiguous and below the pixel footprint; :mod:`cobgs.refine_split`).
+            (ambiguous and below the pixel footprint; :mod:`cobgs.refine.split`).
         score: "count" (pixel counts N⁺/N⁻, released) or "weight" (Σ α·T, ablation).
         texture_adam: "baseline" — the TEXTURE stages' Adam starts from the baseline's
             moments when the caller passes them (``texture_moments``; the released code
@@ -311,7 +311,7 @@ class RefineConfig:
         return d
 
 
-# -- peers (cobgs.peers) ------------------------------------------------------------------
+# -- peers (cobgs.refine.peers) ------------------------------------------------------------------
 @dataclass(frozen=True)
 class SA3DConfig:
     """SA3D-GS parameters (docs/method.md §3, "SA3D-GS"). The defaults are the
@@ -544,7 +544,7 @@ class MaskNoiseParams:
             raise InputError(f"MaskNoiseParams.seed must be an int >= 0, got {self.seed!r}")
 
 
-# -- SfM (cobgs.sfm) -----------------------------------------------------------------------
+# -- SfM (cobgs.data.sfm) -----------------------------------------------------------------------
 @dataclass(frozen=True)
 class SfmOptions:
     """Options of :func:`run_sfm`.

@@ -1,7 +1,7 @@
 // Schemas of every op in the `cobgs` namespace (one place, as torchvision does). Kernels
 // register their implementations per backend with TORCH_LIBRARY_IMPL in their own files;
 // autograd formulas and shape-only fake kernels are registered from Python
-// (cobgs/_ops.py). Tensor shapes are documented in each op family's header.
+// (cobgs/render/_ops.py). Tensor shapes are documented in each op family's header.
 //
 // blend / blend_bwd `check`: whether the CUDA kernels report bad tile lists, labels and
 // n_contrib as errors (one synchronisation with the host per call). Bad values are never

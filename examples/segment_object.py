@@ -11,9 +11,9 @@ from pathlib import Path
 import cv2
 
 from cobgs.data.readers import read_scene
-from cobgs.ply import load_ply, save_ply
-from cobgs.refine import RefineConfig, masks_for, refine
-from cobgs.segment import extract, render_object_mask
+from cobgs.train.ply import load_ply, save_ply
+from cobgs.refine.alternation import RefineConfig, masks_for, refine
+from cobgs.refine.segment import extract, render_object_mask
 
 ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 ap.add_argument("scene"), ap.add_argument("ply"), ap.add_argument("object")

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
 
-from cobgs.evaluate import ORACLE_METHOD, oracle_choice
+from cobgs.evaluate.protocols import ORACLE_METHOD, oracle_choice
 
 from .errors import ReportError
 
@@ -274,7 +274,7 @@ def collect(workflow, cache_dir: os.PathLike | str) -> RunData:
 
 
 def _oracle_results(results: list) -> list:
-    """FlashSplat at its best bias per scene (:func:`cobgs.evaluate.oracle_choice`): copies
+    """FlashSplat at its best bias per scene (:func:`cobgs.evaluate.protocols.oracle_choice`): copies
     of the chosen item's results under the method ``flashsplat_oracle``."""
     import dataclasses
 

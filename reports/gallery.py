@@ -26,8 +26,8 @@ def scored_mask_folder(row: Optional[dict]) -> str:
 
 def _turntables(data: RunData, ps: PictureSet, rs: dict, scene, root: Path, base: str, frames: int,
                 cameras: dict) -> None:
-    """Orbit GIFs of each method's object alone and scene without it (cobgs.turntable)."""
-    from cobgs.turntable import object_turntables
+    """Orbit GIFs of each method's object alone and scene without it (cobgs.render.turntable)."""
+    from cobgs.render.turntable import object_turntables
 
     if scene is None or scene.dataset_dir is None:
         return

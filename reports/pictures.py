@@ -3,7 +3,7 @@ crop, object alone and object removed — composed from cached PNGs with numpy a
 
 Nothing here measures anything: the overlay shows the pixels the evaluate stage counted
 (the prediction resized NEAREST to the GT's size and both binarised at > 128, exactly as
-:func:`cobgs.evaluate.compare_masks` does), and the numbers printed under a picture are the
+:func:`cobgs.evaluate.protocols.compare_masks` does), and the numbers printed under a picture are the
 evaluate stage's own per-view numbers.
 
 One boundary crop window is chosen per (scene, object, view) and shared by every method,
@@ -33,7 +33,7 @@ CROP_RGB = (255, 221, 0)
 MAX_WIDTH_PX = 480
 JPEG_QUALITY = 90  # photographs (held-out view, object alone / removed); masks and overlays stay PNG
 CROP_DISPLAY_PX = 240
-THRESHOLD_U8 = 128  # as cobgs.evaluate: "> 128 of 255"
+THRESHOLD_U8 = 128  # as cobgs.evaluate.protocols: "> 128 of 255"
 
 
 def slug(name: str) -> str:

@@ -1,7 +1,7 @@
 """From collected run data to the report's records: method descriptions, the result tables
 (by method, by scene x method, by object), the quoted paper numbers beside them, and the
 data of the plots. Numbers are averaged exactly as the summary stage does
-(:func:`cobgs.evaluate.aggregate`: over objects within a scene, then over scenes).
+(:func:`cobgs.evaluate.protocols.aggregate`: over objects within a scene, then over scenes).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from . import paper
 from .collect import Result, RunData, Task
 from .fmt import finite
 
-from cobgs.evaluate import ORACLE_METHOD
+from cobgs.evaluate.protocols import ORACLE_METHOD
 
 KIND_LABELS = {"cobgs": "COB-GS", "nosplit": "labels only, no split", "sa3d": "SA3D-GS", "flashsplat": "FlashSplat"}
 METRICS = ("iou", "acc", "biou", "iou_released", "biou_released", "iou_occlusion", "biou_occlusion", "psnr",
@@ -82,7 +82,7 @@ def refine_defaults(workflow) -> dict:
     return to_json(workflow.stages[stage].params())
 
 
-# The no-split row forces COB-GS's switches off whatever the params say (cobgs.peers.run_method)
+# The no-split row forces COB-GS's switches off whatever the params say (cobgs.refine.peers.run_method)
 _FORCED = {"nosplit": ("cobgs.bags", "cobgs.bgtr", "cobgs.raem")}
 
 
@@ -178,7 +178,7 @@ def _status(results: list[Result], log_href: LogHref) -> tuple[str, list[str], O
 
 
 def _aggregate(rows: list[dict], by: tuple[str, ...]) -> list[dict]:
-    from cobgs.evaluate import aggregate
+    from cobgs.evaluate.protocols import aggregate
 
     return aggregate(rows, METRICS, by=by, within="scene", over="object")
 
@@ -529,12 +529,12 @@ def task_records(data: RunData, log_href: LogHref) -> list[dict]:
 def difference_records(data: RunData, infos: dict, ref: Optional[str]) -> tuple[list[dict], list[str]]:
     """Per scene (and mask route, where a scene mixes them): the reference method's headline
     mBIoU minus each peer's and the no-split row's, in points, with a 95 % interval from
-    resampling the held-out views of each object (:func:`cobgs.evaluate.bootstrap_mean_diff`).
+    resampling the held-out views of each object (:func:`cobgs.evaluate.protocols.bootstrap_mean_diff`).
 
     Returns:
         (records with one "d:<method>" cell per compared method, the compared methods).
     """
-    from cobgs.evaluate import bootstrap_mean_diff
+    from cobgs.evaluate.protocols import bootstrap_mean_diff
 
     if ref is None:
         return [], []

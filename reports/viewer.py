@@ -1,5 +1,5 @@
 """The 3D viewers of the report: per scene x object, each method's segmentation as
-quantised Gaussians (:mod:`cobgs.splat_pack`) for ``static/viewer.js``.
+quantised Gaussians (:mod:`cobgs.render.splat_pack`) for ``static/viewer.js``.
 
 A method's model is the segment stage's ``object.ply`` (label 1) followed by its
 ``background.ply`` (label 0): together, the refined scene as the segmentation split it, so
@@ -10,7 +10,7 @@ only when a viewer is opened.
 
 Size cap: the payload of a scene (all its objects and methods) is held under
 ``max_mb``; when it is over, every model of the scene keeps the same fraction of its
-Gaussians, the most opaque x largest first (:func:`cobgs.splat_pack.keep_order`), and the
+Gaussians, the most opaque x largest first (:func:`cobgs.render.splat_pack.keep_order`), and the
 page says so.
 """
 
@@ -60,8 +60,8 @@ def _load(seg_dir: Path):
     import numpy as np
     import torch
 
-    from cobgs.gaussians import CORE, GaussianModel
-    from cobgs.ply import load_ply
+    from cobgs.train.gaussians import CORE, GaussianModel
+    from cobgs.train.ply import load_ply
 
     obj_p, bg_p = seg_dir / "object.ply", seg_dir / "background.ply"
     if not (obj_p.is_file() and bg_p.is_file()):
@@ -88,9 +88,9 @@ def viewer_sets(data, pictures: list, root: Path, max_mb: Optional[float] = DEFA
     """
     import torch
 
-    from cobgs import splat_pack
-    from cobgs.segment import subset
-    from cobgs.turntable import object_center
+    from cobgs.render import splat_pack
+    from cobgs.refine.segment import subset
+    from cobgs.render.turntable import object_center
 
     results = {(r.scene, r.object, r.method): r for r in data.results}
 

@@ -7,7 +7,7 @@ documented in README "Workflows"):
   scene in ``scene/``. External data stays where it is and is referenced by absolute path
   (it is never written to).
 * ``poses`` — ``sfm.json``; when SfM ran also ``images/`` (undistorted, PINHOLE) and
-  ``sparse/0/`` (cobgs.sfm's layout).
+  ``sparse/0/`` (cobgs.data.sfm's layout).
 * ``scene`` (train) — ``scene.ply`` (standard 3DGS), ``train.json``, ``renders/<view>.png``.
 * ``masks`` — ``<view>.png`` (0/255, one per training view), ``masks.json``.
 * ``refined`` — ``refined.ply`` (with label extras), ``segmentation.npz``, ``refine.json``,

@@ -57,7 +57,7 @@ class SceneAttrs:
             of the original 3DGS code (``point_cloud/iteration_<N>/point_cloud.ply``,
             ``cameras.json``, ``cfg_args``, optional ``chkpnt<N>.pth`` whose Adam state the
             texture stages continue) or any standard 3DGS PLY, trained on this scene's data
-            (checked: :mod:`cobgs.trained3dgs`).
+            (checked: :mod:`cobgs.data.trained3dgs`).
         trained_iteration: which saved iteration of a 3DGS output folder (0 = the highest).
     """
 

@@ -76,7 +76,7 @@ PROTOCOL_NAMES = {
 def _amodal_gts(spec: dict, dataset_dir: Path, obj: str, visible: dict):
     """{view: amodal GT or None} of ``obj`` on the held-out views, or None where the
     dataset has no amodal GT of it (the headline then scores against the visible GT)."""
-    from cobgs.evaluate import read_mask_u8
+    from cobgs.evaluate.protocols import read_mask_u8
 
     info = spec.get("amodal") or {}
     if obj not in (info.get("objects") or []):
@@ -95,7 +95,7 @@ def _amodal_gts(spec: dict, dataset_dir: Path, obj: str, visible: dict):
 
 
 def _read_preds(folder: Path, names) -> dict:
-    from cobgs.evaluate import read_mask_u8
+    from cobgs.evaluate.protocols import read_mask_u8
 
     out = {}
     for n in names:
@@ -109,7 +109,7 @@ def _read_preds(folder: Path, names) -> dict:
 def _run(ctx, inputs):
     import numpy as np
 
-    from cobgs import evaluate as E
+    from cobgs.evaluate import protocols as E
 
     p: EvaluateParams = ctx.params
     spec = read_spec(inputs["dataset"])

@@ -46,7 +46,7 @@ class HeldoutParams:
 
 def _gt_of(spec: dict, obj: str, item_object: str = ""):
     """A function view -> (uint8 0/255 [H, W] GT mask or None, reason when None)."""
-    from cobgs import evaluate as E
+    from cobgs.evaluate import protocols as E
 
     protocol = spec["protocol"]
     if protocol == "nvos":
@@ -74,7 +74,7 @@ def _pick(names: list[str], k: int) -> list[str]:
 def _run(ctx, inputs):
     import numpy as np
 
-    from cobgs.evaluate import THRESHOLD_U8
+    from cobgs.evaluate.protocols import THRESHOLD_U8
 
     p: HeldoutParams = ctx.params
     spec = read_spec(inputs["dataset"])

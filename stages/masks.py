@@ -244,7 +244,7 @@ def _folder_masks(views, folder: Path, threshold: int) -> tuple[dict, dict]:
     import numpy as np
     from PIL import Image
 
-    from cobgs.evaluate import resize_nearest
+    from cobgs.evaluate.protocols import resize_nearest
 
     by_stem: dict = {}
     for f in sorted(folder.iterdir()):

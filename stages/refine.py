@@ -3,7 +3,7 @@
 The ``method`` axis holds COB-GS, its ablation rows and the peers as items with param
 overrides, e.g. ``[axes.method.no_bags] refine = { cobgs = { bags = false } }`` or
 ``[axes.method.flashsplat] refine = { method = "flashsplat" }``. Every method starts from
-the same trained scene and the same masks (:func:`cobgs.peers.run_method`).
+the same trained scene and the same masks (:func:`cobgs.refine.peers.run_method`).
 
 Output ``refined``: ``refined.ply`` (the scene after the method, with its label extras:
 ``mask_logit`` for COB-GS), ``segmentation.npz`` (``foreground``, ``background`` [N] bool,
@@ -41,7 +41,7 @@ class RefineParams:
     """Attributes:
         method: "cobgs" (ablations through ``cobgs``), "nosplit", "sa3d", "flashsplat".
         scene_type: "auto" (the dataset's: forward-facing or 360°), "forward" or "360";
-            the scene type of :class:`cobgs.refine.RefineConfig` (default δ and number of
+            the scene type of :class:`cobgs.refine.alternation.RefineConfig` (default δ and number of
             stages).
         cobgs: COB-GS parameters (also the no-split peer's, with its switches forced off).
         sa3d: SA3D-GS parameters.
@@ -68,7 +68,7 @@ class RefineParams:
 
 
 def method_config(p: RefineParams, dataset_scene_type: str):
-    """The library config object :func:`cobgs.peers.run_method` takes for ``p.method``."""
+    """The library config object :func:`cobgs.refine.peers.run_method` takes for ``p.method``."""
     if p.method in ("cobgs", "nosplit"):
         st = dataset_scene_type if p.scene_type == "auto" else p.scene_type
         return dataclasses.replace(p.cobgs, scene_type=st or "forward")
@@ -81,9 +81,9 @@ def _run(ctx, inputs):
     import numpy as np
     import torch
 
-    from cobgs.adam_moments import MOMENTS_FILE, read_moments
-    from cobgs.peers import run_method
-    from cobgs.ply import load_ply, save_ply
+    from cobgs.train.adam_moments import MOMENTS_FILE, read_moments
+    from cobgs.refine.peers import run_method
+    from cobgs.train.ply import load_ply, save_ply
 
     p: RefineParams = ctx.params
     spec = read_spec(inputs["dataset"])
@@ -134,7 +134,7 @@ def _run(ctx, inputs):
                    scene=spec["scene"], train_views=len(scene.train),
                    views_with_mask=sum(m is not None for m in masks), extent=scene.extent)
     if p.method in ("cobgs", "nosplit"):
-        from cobgs.peers import nosplit_config
+        from cobgs.refine.peers import nosplit_config
 
         eff = nosplit_config(config) if p.method == "nosplit" else config
         summary.update(delta=eff.threshold, scene_type=eff.scene_type, mask_stages=eff.num_mask_stages,

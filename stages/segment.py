@@ -7,7 +7,7 @@ Output ``segmentation``:
                                object's Gaussians alone, mask channel above the method's bar
                                (0.5; SA3D-GS's official render: 0.1) — the headline protocol
   pred_visible/<view>.png      the object's visible mask: every Gaussian rendered, occluders
-                               block the object (the exact-GT protocol; cobgs.evaluate)
+                               block the object (the exact-GT protocol; cobgs.evaluate.protocols)
   render/<view>.png            the refined scene (texture quality vs the vanilla scene)
   render_before_raem/<view>.png  the refined scene before RAEM's pruning (only when RAEM
                                removed Gaussians; paper Table 4 measures texture there)
@@ -58,11 +58,11 @@ def _run(ctx, inputs):
     import numpy as np
     import torch
 
-    from cobgs.ply import load_ply, save_ply
-    from cobgs.refine_result import RefineResult
-    from cobgs.segment import (extract, method_threshold, render_object_mask, render_object_rgb, render_removed_rgb,
+    from cobgs.train.ply import load_ply, save_ply
+    from cobgs.refine.result import RefineResult
+    from cobgs.refine.segment import (extract, method_threshold, render_object_mask, render_object_rgb, render_removed_rgb,
                                visible_object_mask)
-    from cobgs.render import render_image
+    from cobgs.render.image import render_image
 
     p: SegmentParams = ctx.params
     dev = torch_device(ctx.device)
@@ -79,7 +79,7 @@ def _run(ctx, inputs):
                           mask_threshold=info.get("mask_threshold"))
     before_raem = None
     if "raem_keep" in seg.files:
-        from cobgs.refine_result import restore_pruned
+        from cobgs.refine.result import restore_pruned
 
         before_raem = restore_pruned(model, torch.from_numpy(seg["raem_keep"]).to(dev),
                                      load_ply(rdir / "raem_removed.ply", device=dev))

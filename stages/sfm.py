@@ -1,12 +1,12 @@
-"""Stage ``sfm``: camera poses with pycolmap (cobgs.sfm), or a recorded skip.
+"""Stage ``sfm``: camera poses with pycolmap (cobgs.data.sfm), or a recorded skip.
 
 ``mode = "auto"`` runs SfM only when the dataset has no poses; ``"always"`` runs it anyway
 (the demo reconstructs its synthetic views, as a user's capture would be); ``"never"``
-skips it. The matcher follows :class:`cobgs.sfm.SfmOptions` ("auto": exhaustive up to
+skips it. The matcher follows :class:`cobgs.data.sfm.SfmOptions` ("auto": exhaustive up to
 ``exhaustive_max_images`` images, sequential above — ordered captures). Too few
 registered images fail the task with a message naming the images that did not register.
 
-Output ``poses``: ``sfm.json`` (``{"ran": bool, "reason", ...cobgs.sfm summary}``) and,
+Output ``poses``: ``sfm.json`` (``{"ran": bool, "reason", ...cobgs.data.sfm summary}``) and,
 when SfM ran, ``images/`` (undistorted, PINHOLE) and ``sparse/0/``.
 """
 
@@ -51,7 +51,7 @@ class SfmParams:
 
 
 def _run(ctx, inputs):
-    from cobgs.sfm import run_sfm
+    from cobgs.data.sfm import run_sfm
 
     p: SfmParams = ctx.params
     spec = read_spec(inputs["dataset"])
@@ -93,7 +93,7 @@ def _run(ctx, inputs):
     src = spec.get("reader", {}).get("path")
     data_root = spec_path(Path(inputs["dataset"]), src) if src is not None else None
     if data_root is not None and (data_root / "masks").is_dir():
-        from cobgs.sfm import undistort_masks
+        from cobgs.data.sfm import undistort_masks
 
         mask_info = undistort_masks(res.root, data_root, ctx.out_dir / "masks")
         if mask_info["masks"]:
@@ -126,7 +126,7 @@ def _triangulate(ctx, p: SfmParams, spec: dict, inputs) -> dict:
 
     import numpy as np
 
-    from cobgs.sfm import triangulate_known_poses
+    from cobgs.data.sfm import triangulate_known_poses
 
     images = spec.get("images")
     cams = {}
@@ -176,7 +176,7 @@ def _check(p: SfmParams) -> None:
     pycolmap's list), before any task runs."""
     import pycolmap
 
-    from cobgs.sfm import _check_camera
+    from cobgs.data.sfm import _check_camera
 
     _check_camera(pycolmap, p.options)
 

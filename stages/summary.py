@@ -89,7 +89,7 @@ def _write_csv(path: Path, rows: list[dict]) -> None:
 
 
 def _run(ctx, inputs):
-    from cobgs.evaluate import ORACLE_METHOD, aggregate, nanmean, oracle_choice
+    from cobgs.evaluate.protocols import ORACLE_METHOD, aggregate, nanmean, oracle_choice
     from pipeline import entry_of, load_manifest
 
     p: SummaryParams = ctx.params

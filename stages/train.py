@@ -1,15 +1,15 @@
-"""Stage ``train``: the baseline 3DGS scene (cobgs.train) that every method refines.
+"""Stage ``train``: the baseline 3DGS scene (cobgs.train.optimize) that every method refines.
 
 Params are :class:`cobgs.configs.TrainConfig` itself (``--set train.iterations=3000``).
 Output ``scene``: ``scene.ply`` (standard 3DGS layout), ``adam_moments.pt`` (the
 optimizer's final Adam moments, which COB-GS's texture stages continue from, as the
-released code continues its 3DGS checkpoint; :mod:`cobgs.adam_moments`), ``train.json`` (config, resolved
+released code continues its 3DGS checkpoint; :mod:`cobgs.train.adam_moments`), ``train.json`` (config, resolved
 schedule, loss / PSNR history, held-out PSNR / SSIM per view, Gaussian count, timings) and
 ``renders/<view>.png`` (8-bit renders of the held-out views: the vanilla side of the
 texture comparison).
 
 With the scene's ``trained`` attribute the stage imports that scene instead of training
-(:mod:`cobgs.trained3dgs`: an original-3DGS output folder, with its checkpoint's Adam
+(:mod:`cobgs.data.trained3dgs`: an original-3DGS output folder, with its checkpoint's Adam
 state when present, or any standard 3DGS PLY), checked against the data; train.json's
 ``imported`` says what was read.
 """
@@ -29,10 +29,10 @@ from ._common import load_scene, to_device, torch_device, write_json, write_png
 def _run(ctx, inputs):
     import torch
 
-    from cobgs.adam_moments import MOMENTS_FILE, save_moments
-    from cobgs.ply import save_ply
-    from cobgs.render import render_image
-    from cobgs.train import train
+    from cobgs.train.adam_moments import MOMENTS_FILE, save_moments
+    from cobgs.train.ply import save_ply
+    from cobgs.render.image import render_image
+    from cobgs.train.optimize import train
 
     cfg: TrainConfig = ctx.params
     scene = to_device(load_scene(inputs["dataset"], inputs["poses"]), ctx.device)
@@ -91,11 +91,11 @@ def _import_trained(ctx, cfg, scene, dev, path: Path):
     """The scene's ``trained`` 3DGS instead of training one: read, checked against the data,
     written as this stage's artifacts (scene.ply, its Adam moments when a checkpoint holds
     them, train.json saying where it came from, the held-out renders)."""
-    from cobgs.adam_moments import MOMENTS_FILE, save_moments
-    from cobgs.ply import save_ply
-    from cobgs.render import render_image
-    from cobgs.train import evaluate
-    from cobgs.trained3dgs import check_against_scene, read_trained
+    from cobgs.train.adam_moments import MOMENTS_FILE, save_moments
+    from cobgs.train.ply import save_ply
+    from cobgs.render.image import render_image
+    from cobgs.train.optimize import evaluate
+    from cobgs.data.trained3dgs import check_against_scene, read_trained
 
     t0 = time.perf_counter()
     attrs = ctx.item.attrs["scene"]

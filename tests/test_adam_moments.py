@@ -8,11 +8,11 @@ import logging
 import pytest
 import torch
 
-from cobgs.adam_moments import MOMENTS_FILE, export_moments, load_moments, read_moments, save_moments
+from cobgs.train.adam_moments import MOMENTS_FILE, export_moments, load_moments, read_moments, save_moments
 from cobgs.errors import DataError, InputError
-from cobgs.losses import photometric_loss
-from cobgs.refine import Refiner, RefineConfig, masks_for, refine, refine_objects
-from cobgs.render import render
+from cobgs.train.losses import photometric_loss
+from cobgs.refine.alternation import Refiner, RefineConfig, masks_for, refine, refine_objects
+from cobgs.render.image import render
 from test_refine_fixtures import tiny_scene
 
 TEXTURE = ("means", "sh0", "shN", "opacity_logits", "log_scales", "quats")
@@ -134,12 +134,12 @@ def test_refine_records_how_the_texture_adam_started(baseline, caplog):
     model, views, extent, opt = baseline
     mom = export_moments(opt)
     cfg = RefineConfig(mask_stages=2, stage_length_views=1)
-    with caplog.at_level(logging.WARNING, logger="cobgs.refine"):
+    with caplog.at_level(logging.WARNING, logger="cobgs.refine.alternation"):
         cold = refine(model, views, masks_for(views, "ball"), extent, cfg, progress=False, object_name="ball")
     assert cold.config["texture_adam"] == "fresh" and cold.texture_moments is None
     assert any("no baseline Adam moments" in r.getMessage() for r in caplog.records)
     caplog.clear()
-    with caplog.at_level(logging.WARNING, logger="cobgs.refine"):
+    with caplog.at_level(logging.WARNING, logger="cobgs.refine.alternation"):
         warm = refine(model, views, masks_for(views, "ball"), extent, cfg, progress=False, texture_moments=mom,
                       return_moments=True)
     assert warm.config["texture_adam"] == "baseline" and not caplog.records
@@ -151,7 +151,7 @@ def test_refine_records_how_the_texture_adam_started(baseline, caplog):
 
 
 def test_refine_objects_chains_the_texture_moments(baseline, monkeypatch):
-    import cobgs.refine as refine_mod
+    import cobgs.refine.alternation as refine_mod
 
     model, views, extent, opt = baseline
     mom = export_moments(opt)
@@ -178,7 +178,7 @@ def test_the_same_moments_are_the_same_bytes(tmp_path):
     import subprocess
     import sys
 
-    code = ("import sys, torch\nfrom cobgs.adam_moments import save_moments\n"
+    code = ("import sys, torch\nfrom cobgs.train.adam_moments import save_moments\n"
             "g = torch.Generator().manual_seed(0)\n"
             "m = {'means': {'exp_avg': torch.randn(7, 3, generator=g), 'exp_avg_sq': torch.rand(7, 3, generator=g),"
             " 'step': torch.tensor(5.0)}}\n"

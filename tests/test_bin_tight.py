@@ -12,8 +12,8 @@ import math
 import pytest
 import torch
 
-from cobgs import _ops
-from cobgs import reference as ref
+from cobgs.render import _ops
+from cobgs.render import reference as ref
 
 W, H = 70, 45
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from cobgs.camera import Camera, scene_extent
+from cobgs.render.camera import Camera, scene_extent
 from cobgs.errors import InputError
 
 

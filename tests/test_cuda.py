@@ -35,7 +35,7 @@ W, H = 157, 93  # not multiples of 16: edge tiles
 def _cuda_kernels():
     if not torch.cuda.is_available():
         pytest.skip("no CUDA device")
-    from cobgs import _build, _ops
+    from cobgs.render import _build, _ops
 
     _ops.ensure_loaded()
     if not _ops.serves(torch.device("cuda")):
@@ -70,9 +70,9 @@ def random_scene(dtype, n=3000, seed=0, width=W, height=H):
 
 
 def _orbit_views(model, n, w, h, device):
-    from cobgs.camera import Camera
+    from cobgs.render.camera import Camera
     from cobgs.data.scene import View
-    from cobgs.render import render
+    from cobgs.render.image import render
 
     views = []
     for i in range(n):
@@ -92,7 +92,7 @@ def _orbit_views(model, n, w, h, device):
 
 
 def _ground_truth(device):
-    from cobgs.gaussians import GaussianModel
+    from cobgs.train.gaussians import GaussianModel
 
     g = torch.Generator().manual_seed(0)
     n = 600
@@ -104,7 +104,7 @@ def _ground_truth(device):
 
 
 def _train_config(iterations):
-    from cobgs.train import TrainConfig
+    from cobgs.train.optimize import TrainConfig
 
     return TrainConfig(iterations=iterations, scale_schedule=False, random_init_points=2000,
                        sh_degree=1, sh_degree_interval_its=100, position_lr_decay_its=iterations,
@@ -126,7 +126,7 @@ def trained_scene():
     path = os.environ.get("COBGS_TRAINED_PLY")
     w, h = 160, 120
     if path:
-        from cobgs.ply import load_ply
+        from cobgs.train.ply import load_ply
 
         import json
 
@@ -136,7 +136,7 @@ def trained_scene():
         viewmat, K = torch.tensor(cam["viewmat"]), torch.tensor(cam["K"])
     else:
         from cobgs.data.scene import make_scene
-        from cobgs.train import train
+        from cobgs.train.optimize import train
 
         views = _orbit_views(_ground_truth("cuda"), 16, w, h, "cuda")
         scene = make_scene(views, test_every=8, kind="test")
@@ -377,7 +377,7 @@ def test_device_camera_checks_are_remembered_until_the_camera_changes():
 # -- blur / SSIM / photometric loss ---------------------------------------------------------
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_blur_ssim_and_photometric_loss_match_the_cpu_ops(dtype):
-    from cobgs.losses import _gauss_1d
+    from cobgs.train.losses import _gauss_1d
 
     g = torch.Generator().manual_seed(7)
     x = torch.rand(2, 3, 45, 61, generator=g, dtype=dtype)
@@ -454,7 +454,7 @@ def test_training_on_cuda_follows_the_cpu_run():
     """The same 60 iterations (with densification) on the CPU and on CUDA from the same
     start: losses agree closely (gradients differ only by summation order) and both fall."""
     from cobgs.data.scene import make_scene
-    from cobgs.train import train
+    from cobgs.train.optimize import train
 
     losses = {}
     for dev in ("cpu", "cuda"):

@@ -1,4 +1,4 @@
-"""Evaluation protocols (cobgs.evaluate): rules that decide the reported numbers."""
+"""Evaluation protocols (cobgs.evaluate.protocols): rules that decide the reported numbers."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
-from cobgs import evaluate as E
+from cobgs.evaluate import protocols as E
 from cobgs.errors import InputError
 
 

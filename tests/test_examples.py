@@ -16,9 +16,9 @@ REPO = Path(__file__).resolve().parents[1]
 def test_segment_object_example(tmp_path):
     from cobgs.data.readers import read_scene
     from cobgs.data.synthetic import generate_scene
-    from cobgs.gaussians import GaussianModel
-    from cobgs.ply import load_ply, save_ply
-    from cobgs.train import TrainConfig, train
+    from cobgs.train.gaussians import GaussianModel
+    from cobgs.train.ply import load_ply, save_ply
+    from cobgs.train.optimize import TrainConfig, train
     from test_refine_fixtures import synthetic_surface_points  # tests/ is on sys.path
 
     size = dict(width_px=128, height_px=96, num_views=24)

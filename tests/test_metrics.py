@@ -7,9 +7,9 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from cobgs import metrics
+from cobgs.evaluate import metrics
 from cobgs.errors import InputError
-from cobgs.losses import photometric_loss, ssim
+from cobgs.train.losses import photometric_loss, ssim
 
 
 def _ssim_2d(x, y):

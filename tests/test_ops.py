@@ -1,4 +1,4 @@
-"""The torch.library ops behind cobgs.rasterize (cobgs/_ops.py): registration and per-op
+"""The torch.library ops behind cobgs.rasterize (cobgs/render/_ops.py): registration and per-op
 gradients.
 
 ``torch.library.opcheck`` checks each op's schema (no undeclared mutation or aliasing),
@@ -12,8 +12,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from cobgs import _ops
-from cobgs import reference as ref
+from cobgs.render import _ops
+from cobgs.render import reference as ref
 
 W, H = 20, 14
 
@@ -232,7 +232,7 @@ def test_simd_dispatch_is_bitwise_identical(tmp_path):
 import sys, torch
 sys.path.insert(0, {str(Path(__file__).parent)!r})
 from test_ops import projected, W, H, _hard_projection_inputs
-from cobgs import _ops
+from cobgs.render import _ops
 m2, conics, _, _, opacities, features, offsets, ids = projected(torch.float32)
 bg = torch.full((3,), 0.25)
 labels = torch.randint(-1, 3, (H, W), generator=torch.Generator().manual_seed(0),
@@ -253,7 +253,7 @@ col = torch.ops.cobgs.sh_colors(pm, torch.randn(len(pm), 1, 3, generator=g), shN
                                 torch.zeros(3), 3)
 shg = torch.ops.cobgs.sh_colors_bwd(pm, torch.randn(len(pm), 1, 3, generator=g), shN,
                                     torch.zeros(3), 3, torch.randn(col.shape, generator=g))
-from cobgs.losses import _gauss_1d
+from cobgs.train.losses import _gauss_1d
 blurs = []
 for dt in (torch.float32, torch.float64):  # widths: lane blocks plus a tail, and under 8
     for shape in ((2, 3, 29, 37), (1, 2, 13, 5)):

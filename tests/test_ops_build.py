@@ -1,4 +1,4 @@
-"""Building and loading the native extension (cobgs/_build.py)."""
+"""Building and loading the native extension (cobgs/render/_build.py)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from cobgs import _build
+from cobgs.render import _build
 from cobgs.errors import BuildError
 
 REPO = Path(__file__).resolve().parents[1]
@@ -31,7 +31,7 @@ def test_import_and_reference_work_without_a_compiler(tmp_path):
     code = """
 import sys, torch
 import cobgs
-assert "cobgs._ops" not in sys.modules, "import cobgs must not load the extension"
+assert "cobgs.render._ops" not in sys.modules, "import cobgs must not load the extension"
 args = (torch.zeros(1, 3) + torch.tensor([0., 0., 2.]), torch.tensor([[1., 0, 0, 0]]),
         torch.full((1, 3), 0.1), torch.tensor([0.5]), torch.ones(1, 3), torch.eye(4),
         torch.tensor([[10., 0, 4], [0, 10, 4], [0, 0, 1]]), 8, 8)
@@ -92,7 +92,7 @@ def test_second_process_waits_for_the_builder(tmp_path):
     with open(lock, "a+") as fh:
         fcntl.flock(fh, fcntl.LOCK_EX)
         child = subprocess.Popen(
-            [sys.executable, "-c", "from cobgs import _build; print(_build.load_extension())"],
+            [sys.executable, "-c", "from cobgs.render import _build; print(_build.load_extension())"],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO)
         try:
             # Wait (at most 60 s) until the child reports that it is blocked on the lock.
@@ -141,7 +141,7 @@ def test_wheel_carries_the_sources_and_builds_from_them(tmp_path):
     site = tmp_path / "site"
     with zipfile.ZipFile(wheel) as z:
         z.extractall(site)
-    code = ("import cobgs._build as b; print(b.CSRC); print(b.build_key())")
+    code = ("import cobgs.render._build as b; print(b.CSRC); print(b.build_key())")
     env = {**os.environ, "PYTHONPATH": str(site)}
     out = subprocess.run([sys.executable, "-c", code], env=env, cwd=tmp_path, capture_output=True,
                          text=True, timeout=120, check=True).stdout.split()

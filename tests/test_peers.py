@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from cobgs.errors import InputError
-from cobgs.peers import (
+from cobgs.refine.peers import (
     FlashSplatConfig,
     SA3DConfig,
     flashsplat_votes,
@@ -16,8 +16,8 @@ from cobgs.peers import (
     run_method,
     run_sa3d,
 )
-from cobgs.refine import RefineConfig, masks_for
-from cobgs.refine_scores import pixel_labels_from_mask
+from cobgs.refine.alternation import RefineConfig, masks_for
+from cobgs.refine.scores import pixel_labels_from_mask
 from test_refine_fixtures import three_gaussians, tiny_scene
 
 
@@ -72,7 +72,7 @@ def test_flashsplat_multi_object_l1_rule():
 def test_flashsplat_multi_object_bias_normalises_the_pair_first(monkeypatch):
     """upstream render.py multi_instance_opt: with a non-zero slackness the [others,
     object] pair is L2-normalised per Gaussian before the bias is added to "others"."""
-    import cobgs.peers as peers
+    import cobgs.refine.peers as peers
 
     model, view = three_gaussians()
     left = view.masks["obj"]
@@ -126,7 +126,7 @@ def test_sa3d_official_keeps_label_above_zero_strict_above_half():
     assert off.foreground.tolist() == [True, True, False]  # label > 0
     assert strict.foreground.tolist() == [False, False, False]  # label > 0.5
     assert strict.mask_threshold == 0.5 and torch.all(strict.mask_values == 1)
-    from cobgs.segment import render_object_mask
+    from cobgs.refine.segment import render_object_mask
 
     m = render_object_mask(off, view.camera, soft=True)
     assert torch.equal(render_object_mask(off, view.camera), m > 0.1)  # the method's own bar
@@ -143,7 +143,7 @@ def _opaque_three():
 
 
 def _render_of(model, view, labels):
-    from cobgs.refine_scores import render_label_mask
+    from cobgs.refine.scores import render_label_mask
 
     return render_label_mask(model, view.camera, labels, None).image[..., 0].detach()
 
@@ -196,7 +196,7 @@ def test_sa3d_second_pass_has_no_gate_and_skips_exactly_the_first_pass_skips(mon
     """train_seg.py:246-250: the second pass tests nothing; it skips the views the first
     skipped. The gate is scripted: view 1 passes and view 2 fails in pass 1; any test in
     pass 2 would fail every view."""
-    import cobgs.peers as peers
+    import cobgs.refine.peers as peers
 
     model, view = _opaque_three()
     half = view.masks["obj"]
@@ -229,7 +229,7 @@ def test_sa3d_keeps_every_gaussian_when_no_label_is_positive():
     lab = r.model.data["sa3d_label"]
     assert lab[0] < 0 and lab[1] < 0 and lab[2] == 0
     # The official render composites those raw labels: nothing passes 0.1.
-    from cobgs.segment import render_object_mask
+    from cobgs.refine.segment import render_object_mask
 
     assert not bool(render_object_mask(r, view.camera).any())
     s = run_sa3d(model, [view], [empty], SA3DConfig.strict(passes=2), progress=False)
@@ -258,7 +258,7 @@ def test_sa3d_unnormalised_weighted_loss():
     # Step 2: Adam keeps moving both up; C never moves.
     assert lab[0] > 1.0 and lab[1] > 1.0 and lab[2] == 0.0
     # The COB-GS loss (lambda = 1) would push B down instead: the 0.3 weight matters.
-    from cobgs.refine_scores import mask_loss as ml, render_label_mask as rlm
+    from cobgs.refine.scores import mask_loss as ml, render_label_mask as rlm
 
     px = pixel_labels_from_mask(mask, 32, 32)
     x = torch.zeros(3, requires_grad=True)
@@ -304,7 +304,7 @@ def test_run_method_dispatch_and_errors():
 
 
 def test_make_config():
-    from cobgs.peers import make_config
+    from cobgs.refine.peers import make_config
 
     assert make_config("sa3d", {"lr": 0.5}) == SA3DConfig(lr=0.5)
     assert make_config("cobgs", {"raem": "paper", "delta": 0.6}) == RefineConfig(raem="paper", delta=0.6)

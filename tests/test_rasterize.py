@@ -1,4 +1,4 @@
-"""cobgs.rasterize: native C++ ops against the pure-PyTorch reference (cobgs/reference.py).
+"""cobgs.rasterize: native C++ ops against the pure-PyTorch reference (cobgs/render/reference.py).
 
 Tolerances. In float64 both backends evaluate the same formulas and differ only in
 summation order (matmul vs explicit sums, cumprod vs a running product, the backward's
@@ -19,7 +19,7 @@ import pytest
 import torch
 
 import cobgs
-from cobgs import reference as ref
+from cobgs.render import reference as ref
 from cobgs.errors import InputError
 
 RTOL64 = 1e-9
@@ -178,7 +178,7 @@ def test_everything_culled():
 
 
 def test_tile_lists_equal_reference():
-    from cobgs import _ops
+    from cobgs.render import _ops
 
     scene = make_scene(7, 500, 70, 45)
     for dtype in (torch.float64, torch.float32):
@@ -400,7 +400,7 @@ def test_bad_backend():
 
 def test_native_ops_reject_bad_tensors_with_named_errors():
     """Direct torch.ops calls (bypassing the Python checks) fail cleanly, naming the tensor."""
-    from cobgs import _ops
+    from cobgs.render import _ops
 
     _ops.ensure_loaded()
     s = _good()

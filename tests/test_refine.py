@@ -9,9 +9,9 @@ import pytest
 import torch
 
 from cobgs.errors import InputError
-from cobgs.gaussians import GaussianModel, quat_to_rotmat
-from cobgs.refine import RefineConfig, Refiner, masks_for, refine
-from cobgs.refine_scores import (
+from cobgs.train.gaussians import GaussianModel, quat_to_rotmat
+from cobgs.refine.alternation import RefineConfig, Refiner, masks_for, refine
+from cobgs.refine.scores import (
     LABEL,
     ScoreAccumulator,
     ensure_label,
@@ -20,7 +20,7 @@ from cobgs.refine_scores import (
     render_label_mask,
     view_scores,
 )
-from cobgs.refine_split import boundary_split, pixel_footprint, raem_prune_mask, split_candidates
+from cobgs.refine.split import boundary_split, pixel_footprint, raem_prune_mask, split_candidates
 from test_refine_fixtures import three_gaussians, tiny_scene
 
 CORE_NO_LABEL = ("means", "log_scales", "quats", "opacity_logits", "sh0", "shN")
@@ -364,7 +364,7 @@ def test_refine_input_errors():
 
 @pytest.mark.parametrize("variant", ["released", "paper"])
 def test_apply_raem_matches_running_with_raem(variant):
-    from cobgs.refine import apply_raem
+    from cobgs.refine.alternation import apply_raem
 
     model, views, extent = tiny_scene(n_views=3)
     base = RefineConfig(mask_stages=2, stage_length_views=2, raem_footprint_px=2.0)
@@ -384,7 +384,7 @@ def test_apply_raem_matches_running_with_raem(variant):
 
 
 def test_peak_memory_sees_an_allocation_after_a_free():
-    from cobgs.refine_result import PeakMemory
+    from cobgs.refine.result import PeakMemory
 
     big = torch.ones(40_000_000)  # 160 MB allocated and freed: stays in the process
     del big
@@ -420,7 +420,7 @@ def test_final_scores_are_full_stage_means_over_split_children():
 def test_scene_before_raem_is_the_run_without_raem():
     """RAEM is the last edit: the pruned Gaussians put back at their indices give exactly
     the scene of the same run with RAEM off (paper Table 4 measures texture there)."""
-    from cobgs.refine_result import restore_pruned
+    from cobgs.refine.result import restore_pruned
 
     model, views, extent = tiny_scene(n_views=4)
     masks = masks_for(views, "ball")
@@ -435,7 +435,7 @@ def test_scene_before_raem_is_the_run_without_raem():
         assert torch.equal(before.data[k], off.model.data[k]), k
     assert off.model_before_raem() is off.model  # nothing pruned: the model itself
     # apply_raem records the same pieces
-    from cobgs.refine import apply_raem
+    from cobgs.refine.alternation import apply_raem
 
     again = apply_raem(off, "released", views)
     assert torch.equal(again.raem_keep, on.raem_keep)

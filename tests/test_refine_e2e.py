@@ -13,11 +13,11 @@ import torch
 
 from cobgs.data.readers import read_scene
 from cobgs.data.synthetic import generate_scene
-from cobgs.gaussians import GaussianModel
-from cobgs.peers import run_method
-from cobgs.refine import RefineConfig, masks_for
-from cobgs.segment import evaluate_masks
-from cobgs.train import TrainConfig, evaluate, train
+from cobgs.train.gaussians import GaussianModel
+from cobgs.refine.peers import run_method
+from cobgs.refine.alternation import RefineConfig, masks_for
+from cobgs.refine.segment import evaluate_masks
+from cobgs.train.optimize import TrainConfig, evaluate, train
 from test_refine_fixtures import synthetic_surface_points
 
 pytestmark = pytest.mark.slow

@@ -13,10 +13,10 @@ import math
 import numpy as np
 import torch
 
-from cobgs.camera import Camera
+from cobgs.render.camera import Camera
 from cobgs.data.scene import View
-from cobgs.gaussians import GaussianModel
-from cobgs.render import render_image
+from cobgs.train.gaussians import GaussianModel
+from cobgs.render.image import render_image
 
 SPHERES = {"ball": ((-0.35, 0.0, 0.0), 0.45), "cube": ((0.45, 0.1, 0.1), 0.3)}
 

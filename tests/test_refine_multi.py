@@ -8,10 +8,10 @@ import pytest
 import torch
 
 from cobgs.errors import InputError
-from cobgs.ply import load_ply
-from cobgs.refine import OBJECT_ID, OBJECT_LOGITS, RefineConfig, assign_object_ids, masks_for, refine_objects
-from cobgs.refine_scores import LABEL
-from cobgs.segment import export_objects, object_index
+from cobgs.train.ply import load_ply
+from cobgs.refine.alternation import OBJECT_ID, OBJECT_LOGITS, RefineConfig, assign_object_ids, masks_for, refine_objects
+from cobgs.refine.scores import LABEL
+from cobgs.refine.segment import export_objects, object_index
 from test_refine_fixtures import tiny_scene
 
 L9 = math.log(9.0)

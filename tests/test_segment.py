@@ -8,11 +8,11 @@ import pytest
 import torch
 
 from cobgs.errors import InputError
-from cobgs.ply import load_ply
-from cobgs.refine import RefineConfig, masks_for, refine
-from cobgs.refine_result import RefineResult
-from cobgs.render import render_image
-from cobgs.segment import (
+from cobgs.train.ply import load_ply
+from cobgs.refine.alternation import RefineConfig, masks_for, refine
+from cobgs.refine.result import RefineResult
+from cobgs.render.image import render_image
+from cobgs.refine.segment import (
     evaluate_masks,
     export_ply,
     extract,
@@ -128,9 +128,9 @@ def test_evaluate_masks_metrics_and_skips():
 def test_evaluate_masks_visible_mode_lets_occluders_hide_the_object():
     """With visible-pixel GT the object-only render counts hidden object pixels as false
     positives; ``visible=True`` renders the occluder (with mask value 0) in front."""
-    from cobgs.camera import Camera
+    from cobgs.render.camera import Camera
     from cobgs.data.scene import View
-    from cobgs.gaussians import GaussianModel
+    from cobgs.train.gaussians import GaussianModel
 
     W = H = 32
     cam = Camera(K=torch.tensor([[50.0, 0, 16.0], [0, 50.0, 16.0], [0, 0, 1]]), viewmat=torch.eye(4),
@@ -141,7 +141,7 @@ def test_evaluate_masks_visible_mode_lets_occluders_hide_the_object():
     model = GaussianModel(means, log_scales, torch.tensor([[1.0, 0, 0, 0]] * 2), torch.full((2,), 8.0),
                           torch.zeros(2, 1, 3), torch.zeros(2, 0, 3))
     r = _result(model, torch.tensor([True, False]), torch.tensor([False, True]))
-    from cobgs.segment import visible_object_mask
+    from cobgs.refine.segment import visible_object_mask
 
     amodal = render_object_mask(r, cam)
     vis = visible_object_mask(r, cam)

@@ -12,7 +12,7 @@ import pytest
 
 from cobgs.data.synthetic import generate_scene
 from cobgs.errors import DataError, InputError
-from cobgs.sfm import SfmOptions, SfmResult, run_sfm
+from cobgs.data.sfm import SfmOptions, SfmResult, run_sfm
 
 pycolmap = pytest.importorskip("pycolmap")
 
@@ -143,7 +143,7 @@ def test_triangulation_with_known_poses_lands_on_the_surfaces(demo, tmp_path):
     depth at the pixel it projects to."""
     from cobgs.data.synth_render import make_caster
     from cobgs.data.synthetic import build_scene
-    from cobgs.sfm import triangulate_known_poses
+    from cobgs.data.sfm import triangulate_known_poses
 
     meta = json.loads((demo / "scene.json").read_text())
     w, h = meta["image_size"]

@@ -1,5 +1,5 @@
 """The native ``cobgs::sh_colors`` op (render's colour on the CPU) against the pure-PyTorch
-SH colour of :meth:`cobgs.gaussians.GaussianModel.colors` / :func:`cobgs.sh.sh_to_color`.
+SH colour of :meth:`cobgs.train.gaussians.GaussianModel.colors` / :func:`cobgs.render.sh.sh_to_color`.
 
 Float64 comparisons use rtol 1e-12: both sides evaluate the same polynomials with a few
 dozen roundings each (the sums run in a different order). Float32 uses 1e-5 relative to
@@ -11,8 +11,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from cobgs import _ops
-from cobgs.sh import num_coeffs, sh_to_color
+from cobgs.render import _ops
+from cobgs.render.sh import num_coeffs, sh_to_color
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -94,9 +94,9 @@ def test_bad_inputs_name_the_tensor():
 
 
 def test_render_uses_the_same_colours_as_the_model():
-    from cobgs.camera import Camera  # noqa: F401  (render's camera type)
-    from cobgs.gaussians import GaussianModel
-    from cobgs.render import render
+    from cobgs.render.camera import Camera  # noqa: F401  (render's camera type)
+    from cobgs.train.gaussians import GaussianModel
+    from cobgs.render.image import render
 
     means, sh0, shN, _ = sh_inputs(n=50, dtype=torch.float32)
     means[:, 2] = means[:, 2].abs() + 3.0
@@ -111,7 +111,7 @@ def test_render_uses_the_same_colours_as_the_model():
 
 
 def _camera():
-    from cobgs.camera import Camera
+    from cobgs.render.camera import Camera
 
     K = torch.tensor([[30.0, 0, 16], [0, 30.0, 12], [0, 0, 1]])
     return Camera(K=K, viewmat=torch.eye(4), width=32, height=24)

@@ -1,4 +1,4 @@
-"""The viewer's quantised Gaussians (cobgs.splat_pack): layout, round trip, ranking."""
+"""The viewer's quantised Gaussians (cobgs.render.splat_pack): layout, round trip, ranking."""
 
 from __future__ import annotations
 
@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from cobgs import splat_pack
+from cobgs.render import splat_pack
 from cobgs.errors import InputError
-from cobgs.gaussians import GaussianModel
+from cobgs.train.gaussians import GaussianModel
 
 
 def _model(n=500, seed=0, sh_degree=1):

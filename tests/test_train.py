@@ -5,12 +5,12 @@ import math
 import pytest
 import torch
 
-from cobgs.camera import Camera
+from cobgs.render.camera import Camera
 from cobgs.data.scene import View, make_scene
 from cobgs.errors import DataError, InputError
-from cobgs.gaussians import GaussianModel
-from cobgs.render import render
-from cobgs.train import Trainer, TrainConfig, evaluate, expon_lr, load_model, train
+from cobgs.train.gaussians import GaussianModel
+from cobgs.render.image import render
+from cobgs.train.optimize import Trainer, TrainConfig, evaluate, expon_lr, load_model, train
 
 
 def _orbit_camera(i, n, w, h, radius=3.0):
@@ -206,7 +206,7 @@ def test_a_crafted_checkpoint_is_refused_without_running_code(tiny_scene, tmp_pa
 
 
 def test_random_background_draws_a_colour_per_iteration_and_resumes_exactly(tiny_scene, tmp_path, monkeypatch):
-    import cobgs.train as train_mod
+    import cobgs.train.optimize as train_mod
 
     seen = []
     real_render = train_mod.render

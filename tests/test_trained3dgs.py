@@ -1,4 +1,4 @@
-"""Bring your own trained 3DGS (cobgs.trained3dgs): original-3DGS output folders, plain
+"""Bring your own trained 3DGS (cobgs.data.trained3dgs): original-3DGS output folders, plain
 PLYs, checkpoints read safely, and the checks that refuse a scene of other data."""
 
 from __future__ import annotations
@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 import torch
 
-from cobgs.camera import Camera
+from cobgs.render.camera import Camera
 from cobgs.data.scene import View, make_scene
 from cobgs.errors import DataError
-from cobgs.gaussians import GaussianModel
-from cobgs.ply import save_ply
-from cobgs.trained3dgs import check_against_scene, read_trained
+from cobgs.train.gaussians import GaussianModel
+from cobgs.train.ply import save_ply
+from cobgs.data.trained3dgs import check_against_scene, read_trained
 
 
 def _camera(i, n, w=40, h=30):

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from cobgs.errors import InputError
-from cobgs.turntable import object_center, orbit_cameras, render_turntable, write_animation
+from cobgs.render.turntable import object_center, orbit_cameras, render_turntable, write_animation
 from test_refine_fixtures import tiny_scene
 
 
@@ -33,8 +33,8 @@ def test_orbit_looks_at_the_centre_from_the_first_cameras_height_with_up_upwards
     assert min(ref_angles) - 1e-3 <= min(cam_angles) and max(cam_angles) <= max(ref_angles) + 1e-3
     assert max(cam_angles) - min(cam_angles) > 0.9 * (max(ref_angles) - min(ref_angles))
     # cameras all round (one more on the far side): a full circle, frame 0 at the first camera
-    from cobgs.camera import Camera
-    from cobgs.turntable import _look_at
+    from cobgs.render.camera import Camera
+    from cobgs.render.turntable import _look_at
 
     off = refs[0].center.double() - c.double()
     h = (off @ up.double()) * up.double()

@@ -16,9 +16,9 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ..camera import Camera
-from ..errors import DataError
-from .scene import (Scene, View, find_object_files, load_rgb, make_scene, read_image_array,
+from cobgs.render.camera import Camera
+from cobgs.errors import DataError
+from cobgs.data.scene import (Scene, View, find_object_files, load_rgb, make_scene, read_image_array,
                     read_mask_array, resize_mask, target_size)
 
 # 3DGS initialises NeRF-synthetic scenes with random points in this cube.

@@ -16,9 +16,9 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
-from ..camera import Camera
-from ..errors import DataError
-from .scene import (
+from cobgs.render.camera import Camera
+from cobgs.errors import DataError
+from cobgs.data.scene import (
     Scene,
     View,
     find_object_files,
@@ -30,13 +30,13 @@ from .scene import (
     resize_mask,
     target_size,
 )
-from .undistort import DROPPABLE_MODELS, PINHOLE_MODELS, split_pinhole, undistort_view_arrays
+from cobgs.data.undistort import DROPPABLE_MODELS, PINHOLE_MODELS, split_pinhole, undistort_view_arrays
 
 
 
 def find_model_dir(root: os.PathLike | str) -> Path:
     """The folder holding the COLMAP model under ``root`` (sparse/0, sparse, or root)."""
-    from .layout import colmap_model_dir
+    from cobgs.data.layout import colmap_model_dir
 
     found = colmap_model_dir(root)
     if found is not None:

@@ -11,7 +11,7 @@ Training views are the names in ``images_train/``; test views are all other imag
 sorted by name, and ``<idx>`` is a view's position in that sorted list (``0``, ``1``,
 ...; zero-padded folder names are accepted). Some test views have no GT folder (left out
 and listed, :func:`read_lerf_gt`), and some GT masks are empty: those are scored as
-Gaussian Grouping's script scores them (:func:`cobgs.evaluate.lerf_prompt_scores`).
+Gaussian Grouping's script scores them (:func:`cobgs.evaluate.protocols.lerf_prompt_scores`).
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..errors import DataError
+from cobgs.errors import DataError
 
 #: The published prompts of each scene.
 LERF_PROMPTS: dict[str, tuple[str, ...]] = {

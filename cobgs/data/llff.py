@@ -23,9 +23,9 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from ..camera import Camera
-from ..errors import DataError
-from .scene import (
+from cobgs.render.camera import Camera
+from cobgs.errors import DataError
+from cobgs.data.scene import (
     Scene,
     View,
     finish_rgb,
@@ -54,7 +54,7 @@ def read_llff(
         test_names: explicit held-out views (image stems or file names).
 
     Returns:
-        Scene without SfM points (LLFF ships none; run :mod:`cobgs.sfm` for them).
+        Scene without SfM points (LLFF ships none; run :mod:`cobgs.data.sfm` for them).
     """
     root = Path(path)
     pb_path = root / "poses_bounds.npy"

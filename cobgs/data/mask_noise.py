@@ -28,9 +28,9 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from .._atomic import build_folder_atomic
-from ..configs import MaskNoiseParams  # noqa: F401 (defined there)
-from ..errors import DataError, InputError
+from cobgs._atomic import build_folder_atomic
+from cobgs.configs import MaskNoiseParams  # noqa: F401 (defined there)
+from cobgs.errors import DataError, InputError
 
 
 @dataclass(frozen=True)

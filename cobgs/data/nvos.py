@@ -22,7 +22,7 @@ from typing import Optional
 
 import numpy as np
 
-from ..errors import DataError, InputError
+from cobgs.errors import DataError, InputError
 
 #: task -> (LLFF scene, target view stem, reference view stem), as published.
 NVOS_TASKS: dict[str, tuple[str, str, str]] = {
@@ -199,7 +199,7 @@ def read_nvos_task(labels_dir: os.PathLike | str, task: str) -> NvosTask:
 def read_gt_mask(path: os.PathLike | str) -> np.ndarray:
     """A ground-truth mask as 8-bit grey [H, W] uint8 (colour masks: their luminance).
 
-    The protocol binarises with ``> 128`` afterwards (:func:`cobgs.metrics.binarize`).
+    The protocol binarises with ``> 128`` afterwards (:func:`cobgs.evaluate.metrics.binarize`).
     """
     import cv2
 

@@ -6,13 +6,13 @@ import os
 from pathlib import Path
 from typing import Optional, Sequence
 
-from ..errors import DataError
-from .scene import Scene
+from cobgs.errors import DataError
+from cobgs.data.scene import Scene
 
 
 def detect_format(path: os.PathLike | str) -> str:
     """"blender", "transforms", "colmap" or "llff", from the files present in ``path``."""
-    from .layout import detect_layout
+    from cobgs.data.layout import detect_layout
 
     root = Path(path)
     if not root.is_dir():
@@ -53,24 +53,24 @@ def read_scene(
     """
     fmt = format or detect_format(path)
     if fmt == "blender":
-        from .blender import read_blender
+        from cobgs.data.blender import read_blender
 
         if test_names is not None:
             raise DataError("Blender scenes use transforms_test.json; test_names is not supported", path)
         kw = {} if background is None else {"background": background}
         return read_blender(path, downscale=downscale, **kw)
     if fmt == "transforms":
-        from .transforms import read_transforms
+        from cobgs.data.transforms import read_transforms
 
         kw = {} if background is None else {"background": background}
         return read_transforms(path, downscale=downscale, test_every=test_every, test_names=test_names, **kw)
     if fmt == "colmap":
-        from .colmap import read_colmap
+        from cobgs.data.colmap import read_colmap
 
         return read_colmap(path, downscale=downscale, test_every=test_every, test_names=test_names,
                            distortion=distortion)
     if fmt == "llff":
-        from .llff import read_llff
+        from cobgs.data.llff import read_llff
 
         k = int(round(downscale))
         if abs(downscale - k) > 1e-9:

@@ -17,8 +17,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..camera import Camera, scene_extent
-from ..errors import DataError, InputError
+from cobgs.render.camera import Camera, scene_extent
+from cobgs.errors import DataError, InputError
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".exr", ".webp")
 

@@ -15,7 +15,7 @@ from typing import List, Tuple
 
 import numpy as np
 
-from ..errors import InputError
+from cobgs.errors import InputError
 
 # transforms.json flips the camera's y and z axes (OpenGL looks down -z with +y up).
 _CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])

@@ -14,11 +14,11 @@ from typing import Callable, Dict, List, Tuple
 
 import numpy as np
 
-from ..errors import InputError
-from .synth_cameras import forward_facing, orbit
-from .synth_primitives import Box, Cylinder, Plane, Sphere, rotation_from_euler_deg
-from .synth_render import Scene, SceneObject
-from .synth_textures import Texture
+from cobgs.errors import InputError
+from cobgs.data.synth_cameras import forward_facing, orbit
+from cobgs.data.synth_primitives import Box, Cylinder, Plane, Sphere, rotation_from_euler_deg
+from cobgs.data.synth_render import Scene, SceneObject
+from cobgs.data.synth_textures import Texture
 
 
 @dataclass(frozen=True)

@@ -13,10 +13,10 @@ from typing import Dict, Tuple
 
 import numpy as np
 
-from ..errors import InputError
-from .synth_cameras import PinholeCamera
-from .synth_primitives import T_MIN, Primitive, rowdot
-from .synth_textures import Texture, _lattice, evaluate
+from cobgs.errors import InputError
+from cobgs.data.synth_cameras import PinholeCamera
+from cobgs.data.synth_primitives import T_MIN, Primitive, rowdot
+from cobgs.data.synth_textures import Texture, _lattice, evaluate
 
 RGB = Tuple[float, float, float]
 

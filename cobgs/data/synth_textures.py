@@ -13,7 +13,7 @@ from typing import Tuple
 
 import numpy as np
 
-from ..errors import InputError
+from cobgs.errors import InputError
 
 RGB = Tuple[float, float, float]
 KINDS = ("checker", "stripes", "noise", "dots")

@@ -23,11 +23,11 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from .._atomic import build_folder_atomic
-from ..errors import DataError, InputError
-from .synth_cameras import PinholeCamera, intrinsics_from_fov, opencv_to_opengl
-from .synth_presets import BUILDERS, PRESETS, SynthPreset
-from .synth_render import RenderedView, Scene, make_caster, render_view, silhouette_hits
+from cobgs._atomic import build_folder_atomic
+from cobgs.errors import DataError, InputError
+from cobgs.data.synth_cameras import PinholeCamera, intrinsics_from_fov, opencv_to_opengl
+from cobgs.data.synth_presets import BUILDERS, PRESETS, SynthPreset
+from cobgs.data.synth_render import RenderedView, Scene, make_caster, render_view, silhouette_hits
 
 GENERATOR = "cobgs.data.synthetic"
 FORMAT_VERSION = 1

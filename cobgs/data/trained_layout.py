@@ -5,7 +5,7 @@ A workflow's ``trained`` attribute names an original-3DGS output folder
 ``chkpnt<N>.pth``) or a standard 3DGS PLY. :func:`check_trained` is what the workflow's
 load runs: it finds the PLY, reads its header (the standard properties present and float),
 and parses ``cfg_args`` and ``cameras.json``, so that a bad folder is named before any
-task runs; :mod:`cobgs.trained3dgs` then reads the data itself with the same finders.
+task runs; :mod:`cobgs.data.trained3dgs` then reads the data itself with the same finders.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import math
 import re
 from pathlib import Path
 
-from ..errors import DataError
+from cobgs.errors import DataError
 
 _PLY_TYPES_FLOAT = {"float", "float32", "double", "float64"}
 _CORE = ("x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",

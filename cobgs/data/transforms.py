@@ -19,10 +19,10 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
-from ..camera import Camera
-from ..errors import DataError
-from .blender import _load_json, check_pose, resolve_image
-from .scene import (
+from cobgs.render.camera import Camera
+from cobgs.errors import DataError
+from cobgs.data.blender import _load_json, check_pose, resolve_image
+from cobgs.data.scene import (
     Scene,
     View,
     find_object_files,
@@ -34,7 +34,7 @@ from .scene import (
     resize_mask,
     target_size,
 )
-from .undistort import undistort_view_arrays
+from cobgs.data.undistort import undistort_view_arrays
 
 _PINHOLE = ("PINHOLE", "SIMPLE_PINHOLE")
 _MODELS = (*_PINHOLE, "OPENCV", "OPENCV_FISHEYE")

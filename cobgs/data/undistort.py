@@ -14,7 +14,7 @@ from typing import Sequence
 import cv2
 import numpy as np
 
-from ..errors import DataError
+from cobgs.errors import DataError
 
 # Models whose pixels are already pinhole: only re-expressed, never resampled.
 PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE")

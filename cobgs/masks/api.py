@@ -23,13 +23,13 @@ import numpy as np
 
 from cobgs.errors import InputError, ModelError
 
-from .encoder_cache import EncoderCache
-from .manifest import ModelsNotConfiguredError, load_manifest
-from .scribbles import ScribbleConfig, scribble_points
-from .session import RunOptions
-from .two_stage import TwoStageConfig, run_two_stage
-from .video import VideoPredictor
-from .writer import write_json, write_mask_png
+from cobgs.masks.encoder_cache import EncoderCache
+from cobgs.masks.manifest import ModelsNotConfiguredError, load_manifest
+from cobgs.masks.scribbles import ScribbleConfig, scribble_points
+from cobgs.masks.session import RunOptions
+from cobgs.masks.two_stage import TwoStageConfig, run_two_stage
+from cobgs.masks.video import VideoPredictor
+from cobgs.masks.writer import write_json, write_mask_png
 
 log = logging.getLogger("cobgs.masks")
 PathLike = Union[str, os.PathLike]
@@ -69,7 +69,7 @@ def _paths(image_paths: Sequence[PathLike]) -> List[Path]:
 
 
 def _sam2(models_dir: PathLike, options: Optional[RunOptions]):
-    from .sam2_models import Sam2Models
+    from cobgs.masks.sam2_models import Sam2Models
 
     manifest = load_manifest(models_dir)
     if manifest.sam2 is None:
@@ -153,7 +153,7 @@ def generate_masks(
         ModelError: an export breaks the contract (named file, tensor, expected, found).
         NoDetectionError: nothing detected on the prompt frame.
     """
-    from .gdino import GroundingDino
+    from cobgs.masks.gdino import GroundingDino
 
     t0 = time.perf_counter()
     paths = _paths(image_paths)
@@ -310,7 +310,7 @@ def generate_masks_from_scribbles(
     paths = _paths(image_paths)
     if not 0 <= reference_frame < len(paths):
         raise InputError(f"reference_frame must be in [0, {len(paths)}), got {reference_frame}")
-    from .images import image_size
+    from cobgs.masks.images import image_size
 
     pts, labs = scribble_points(positive_scribbles, negative_scribbles,
                                 image_size(paths[reference_frame]), config)

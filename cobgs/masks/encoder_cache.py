@@ -15,8 +15,8 @@ from typing import Dict, Optional, Sequence, Tuple, Union
 
 import numpy as np
 
-from .images import load_rgb, to_model_input
-from .sam2_models import EncodedFrame, Sam2Models
+from cobgs.masks.images import load_rgb, to_model_input
+from cobgs.masks.sam2_models import EncodedFrame, Sam2Models
 
 _FIELDS = ("feats", "pos", "hr0", "hr1")
 
@@ -61,7 +61,7 @@ class EncoderCache:
             if isinstance(src, np.ndarray):
                 self._sizes[idx] = src.shape[:2]
             else:
-                from .images import image_size
+                from cobgs.masks.images import image_size
 
                 self._sizes[idx] = image_size(src)
         return self._sizes[idx]

@@ -17,9 +17,9 @@ import numpy as np
 
 from cobgs.errors import InputError, ModelError
 
-from .images import to_model_input
-from .manifest import GdinoManifest, keep_aspect_size
-from .session import GraphSession, RunOptions
+from cobgs.masks.images import to_model_input
+from cobgs.masks.manifest import GdinoManifest, keep_aspect_size
+from cobgs.masks.session import GraphSession, RunOptions
 
 
 @dataclass(frozen=True)

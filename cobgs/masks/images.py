@@ -11,7 +11,7 @@ import numpy as np
 
 from cobgs.errors import DataError
 
-from .manifest import Preprocess
+from cobgs.masks.manifest import Preprocess
 
 
 def load_rgb(path: Union[str, os.PathLike]) -> np.ndarray:

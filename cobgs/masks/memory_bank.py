@@ -23,8 +23,8 @@ from typing import Dict, List, Optional, Tuple
 
 import numpy as np
 
-from .manifest import Sam2Config
-from .postprocess import sine_pe_1d
+from cobgs.masks.manifest import Sam2Config
+from cobgs.masks.postprocess import sine_pe_1d
 
 HW = 4096  # 64 x 64 memory tokens per frame
 

@@ -13,8 +13,8 @@ import numpy as np
 
 from cobgs.errors import ModelError
 
-from .manifest import Sam2Manifest
-from .session import GraphSession, RunOptions
+from cobgs.masks.manifest import Sam2Manifest
+from cobgs.masks.session import GraphSession, RunOptions
 
 VIDEO_REFUSED = (
     "this SAM2 export is image-only (no memory_attention / memory_encoder graphs), so it "

@@ -17,7 +17,7 @@ import numpy as np
 
 from cobgs.errors import ModelError
 
-from .manifest import GraphSpec, TensorSpec
+from cobgs.masks.manifest import GraphSpec, TensorSpec
 
 log = logging.getLogger("cobgs.masks")
 

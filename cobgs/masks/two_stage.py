@@ -33,8 +33,8 @@ import numpy as np
 from cobgs.configs import TwoStageConfig  # noqa: F401 (defined there)
 from cobgs.errors import CobgsError, InputError
 
-from .gdino import Detection, GroundingDino
-from .video import VideoPredictor
+from cobgs.masks.gdino import Detection, GroundingDino
+from cobgs.masks.video import VideoPredictor
 
 
 log = logging.getLogger("cobgs.masks")

@@ -31,11 +31,11 @@ import numpy as np
 
 from cobgs.errors import InputError, ModelError
 
-from .encoder_cache import EncoderCache
-from .memory_bank import FrameMemory, MemoryBank
-from .postprocess import (NO_OBJ_SCORE, choose_mask, fill_holes, resize_logits,
+from cobgs.masks.encoder_cache import EncoderCache
+from cobgs.masks.memory_bank import FrameMemory, MemoryBank
+from cobgs.masks.postprocess import (NO_OBJ_SCORE, choose_mask, fill_holes, resize_logits,
                           round_bfloat16)
-from .sam2_models import EncodedFrame, Sam2Models
+from cobgs.masks.sam2_models import EncodedFrame, Sam2Models
 
 
 @dataclass

@@ -1,5 +1,5 @@
 // Op family `bin_tiles`: lists, for every 16x16 tile, the Gaussians whose 3-sigma box
-// touches it, in front-to-back order. Contract and oracle: cobgs/reference.py
+// touches it, in front-to-back order. Contract and oracle: cobgs/render/reference.py
 // (tile_rects, bin_tiles_reference).
 #pragma once
 

@@ -1,5 +1,5 @@
 // The tile rectangle of a Gaussian, shared by the CPU and CUDA binning kernels: the tiles
-// its 3-sigma square touches (cobgs/reference.py, tile_rects), optionally narrowed to the
+// its 3-sigma square touches (cobgs/render/reference.py, tile_rects), optionally narrowed to the
 // tiles that hold a pixel of its α >= 1/255 box (the `prep` record).
 #pragma once
 

@@ -1,6 +1,6 @@
 // Op family `blend`: front-to-back alpha blending of depth-sorted Gaussians per 16x16
 // tile, with optional per-label contribution statistics, and its backward pass.
-// Per-pixel rule: csrc/common/gs_math.h; contract and oracle: cobgs/reference.py
+// Per-pixel rule: csrc/common/gs_math.h; contract and oracle: cobgs/render/reference.py
 // (blend_reference).
 #pragma once
 

@@ -1,5 +1,5 @@
 // Op family `gauss_blur`: separable, zero-padded 1D-kernel filtering of image planes, the
-// blur of the SSIM loss (cobgs/losses.py `_blur`: a vertical then a horizontal
+// blur of the SSIM loss (cobgs/train/losses.py `_blur`: a vertical then a horizontal
 // cross-correlation with the same odd-length kernel, "same" output size).
 #pragma once
 
@@ -68,7 +68,7 @@ at::Tensor gauss_blur_cpu(const at::Tensor& x, const at::Tensor& g);
 
 // Mean SSIM of x against y (both [B, C, H, W], dynamic range 1, C1 = 0.01², C2 = 0.03²,
 // the separable window g) and its gradient d mean / dx [B, C, H, W] (y held fixed):
-// cobgs/losses.py's _MeanSSIM forward and backward in one call (csrc/blur/ssim_cpu.cpp).
+// cobgs/train/losses.py's _MeanSSIM forward and backward in one call (csrc/blur/ssim_cpu.cpp).
 std::tuple<at::Tensor, at::Tensor> ssim_mean_grad_cpu(const at::Tensor& x, const at::Tensor& y,
                                                       const at::Tensor& g);
 

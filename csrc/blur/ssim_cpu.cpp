@@ -9,7 +9,7 @@
 //   ∂S/∂μx = 2 μy (A2 − A1) / (B1 B2) − 2 μx S (1/B1 − 1/B2),
 //   ∂S/∂E[x²] = −S / B2,  ∂S/∂E[xy] = 2 A1 / (B1 B2),
 //   d mean(S) / dx = (blur(∂S/∂μx) + 2 x blur(∂S/∂E[x²]) + y blur(∂S/∂E[xy])) / numel
-// (the zero-padded symmetric blur is its own adjoint) — the formulas of cobgs/losses.py
+// (the zero-padded symmetric blur is its own adjoint) — the formulas of cobgs/train/losses.py
 // (_ssim_terms, _MeanSSIM), evaluated in the same order.
 #include <torch/library.h>
 

@@ -1,5 +1,5 @@
 // Input checks shared by the CPU and CUDA op implementations. Python validates user input
-// with typed errors first (cobgs/rasterize.py); these guard direct torch.ops.cobgs.* calls
+// with typed errors first (cobgs/render/rasterize.py); these guard direct torch.ops.cobgs.* calls
 // so that a wrong tensor is an error naming it, never a crash. The shape / dtype checks of
 // each op family are written once (in its header) against a reference tensor `ref`; each
 // backend first checks that `ref` is on its kind of device.

@@ -8,7 +8,7 @@
 // rounded IEEE operations (+ - * /, sqrt, ceil, comparisons, selects) and no branches on
 // values, so every lane of a vector evaluation is bit-identical to the scalar one.
 //
-// The contract these formulas implement is written out in cobgs/reference.py (the
+// The contract these formulas implement is written out in cobgs/render/reference.py (the
 // pure-PyTorch oracle); keep the two in step. Expressions that decide whether a
 // (Gaussian, pixel) pair contributes (`pixel_power`, `pixel_alpha`) are written with the
 // same operation order as the reference, and the extension is compiled with

@@ -1,6 +1,6 @@
 // Optional phase timers and pair counters of the CPU kernels, compiled out by default.
 //
-// Build with COBGS_PROFILE=1 in the environment (cobgs/_build.py then adds -DCOBGS_PROFILE,
+// Build with COBGS_PROFILE=1 in the environment (cobgs/render/_build.py then adds -DCOBGS_PROFILE,
 // a separate cached build) to get, at process exit on stderr, the thread CPU time of every
 // phase summed over threads and calls, the number of calls of each op, and the
 // (Gaussian, pixel) pair counts of the blending kernels. Thread CPU time rather than wall

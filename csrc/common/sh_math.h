@@ -1,7 +1,7 @@
 // Real spherical harmonics up to degree 3 (3DGS convention), shared by the CPU kernel
 // (sh_cpu.cpp) and the CUDA kernel (sh_cuda.cu): the basis, its gradient with respect to
 // the direction, and the colour max(Σ_k c_k Y_k(d) + 0.5, 0). Basis order and constants as in
-// cobgs/sh.py (the pure-PyTorch oracle): coefficient k = l² + l + m.
+// cobgs/render/sh.py (the pure-PyTorch oracle): coefficient k = l² + l + m.
 #pragma once
 
 #include "gs_math.h"

@@ -1,6 +1,6 @@
 // Op family `project`: EWA projection and culling of 3D Gaussians into one camera.
 // Formulas: csrc/common/gs_math.h (project_gaussian, project_gaussian_vjp); contract and
-// oracle: cobgs/reference.py (project_reference).
+// oracle: cobgs/render/reference.py (project_reference).
 #pragma once
 
 #include <torch/types.h>

@@ -1,7 +1,7 @@
 // Op family `sh_colors`: view-dependent RGB of 3D Gaussians from their spherical-harmonic
 // coefficients, as 3DGS: colour = max(Σ_k c_k Y_k(d) + 0.5, 0), d the unit direction from
-// the camera centre to the Gaussian. Formulas: csrc/common/sh_math.h; oracle: cobgs/sh.py
-// (sh_to_color) as used by cobgs.gaussians.GaussianModel.colors.
+// the camera centre to the Gaussian. Formulas: csrc/common/sh_math.h; oracle: cobgs/render/sh.py
+// (sh_to_color) as used by cobgs.train.gaussians.GaussianModel.colors.
 #pragma once
 
 #include <torch/types.h>

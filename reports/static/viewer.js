@@ -12,7 +12,7 @@
      the scene's background; the order is an exact sort of the camera-space depth of the
      means (two 16-bit radix passes over the float bits), computed in a worker, off the
      main thread;
-   - SH degree 0 only; the data are quantised (cobgs/splat_pack.py: 21 bytes a Gaussian).
+   - SH degree 0 only; the data are quantised (cobgs/render/splat_pack.py: 21 bytes a Gaussian).
    Everything works from file:// (the Gaussians come as base64 in script files). */
 (function () {
   "use strict";
@@ -38,7 +38,7 @@
     return out;
   }
 
-  // The inverse of cobgs.splat_pack.pack: float32 arrays of the decoded Gaussians, and the
+  // The inverse of cobgs.render.splat_pack.pack: float32 arrays of the decoded Gaussians, and the
   // 16 floats per Gaussian the shaders read (centre + opacity, covariance, label, colour).
   function decode(header, bytes) {
     var n = header.count, at = 0;

@@ -72,7 +72,7 @@ def export(workflow, cache_dir, to, stream=None, ply: bool = True, turntables: i
     ``ply=False`` leaves the PLYs in the cache (metrics, masks and summary only: a
     benchmark's hundreds of scenes are tens of GB). ``turntables=N`` adds, per object, an
     N-frame orbit GIF of the object alone and of the scene without it
-    (``turntable_object.gif``, ``turntable_removed.gif``; :mod:`cobgs.turntable`). A copy the destination's disk cannot
+    (``turntable_object.gif``, ``turntable_removed.gif``; :mod:`cobgs.render.turntable`). A copy the destination's disk cannot
     hold (with a margin of 64 MiB + 10 %, at most 1 GiB) is refused before anything is written,
     saying what it needs and what is free.
 
@@ -137,7 +137,7 @@ def export(workflow, cache_dir, to, stream=None, ply: bool = True, turntables: i
             _copy(src, dst)
             copied.append({"file": rel.as_posix(), "stage": rec.stage, "item": rec.item.id,
                            "entry": str(src.parent)})
-        from cobgs.turntable import object_turntables
+        from cobgs.render.turntable import object_turntables
         from stages._common import scene_cameras
 
         cameras: dict = {}  # scene -> (cameras, background): each scene loaded once
@@ -156,7 +156,7 @@ def export(workflow, cache_dir, to, stream=None, ply: bool = True, turntables: i
             for kind in object_turntables(seg / "object.ply", seg / "background.ply", refs, bg, turntables,
                                           {k: tmp / rel / n for k, n in names.items()}):
                 copied.append({"file": (rel / names[kind]).as_posix(), "stage": "segment", "item": rec.item.id,
-                               "entry": "rendered by cobgs.turntable"})
+                               "entry": "rendered by cobgs.render.turntable"})
         record.update(copied=copied)
         (tmp / "export.json").write_text(json.dumps(record, indent=1))
 

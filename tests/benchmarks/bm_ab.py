@@ -59,8 +59,8 @@ def child(args) -> int:
     torch.set_num_threads(args.threads)
     # The variant's cobgs first: bm_train_iter puts this checkout's root on sys.path.
     import cobgs
-    from cobgs import _ops
-    from cobgs.train import Trainer, TrainConfig, load_model
+    from cobgs.render import _ops
+    from cobgs.train.optimize import Trainer, TrainConfig, load_model
 
     sys.path.insert(1, str(HERE))
     from bm_train_iter import MachineProbe, load_scene

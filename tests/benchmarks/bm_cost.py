@@ -53,7 +53,7 @@ def _peak_rss() -> int:
 
 def _scene(out: Path, images: Path | None):
     from cobgs.data.colmap import read_colmap
-    from cobgs.sfm import SfmOptions, run_sfm
+    from cobgs.data.sfm import SfmOptions, run_sfm
 
     sfm_dir = out / "fern_sfm"
     rec_path = out / "sfm.json"
@@ -70,7 +70,7 @@ def _scene(out: Path, images: Path | None):
 
 
 def _config(iterations: int):
-    from cobgs.train import TrainConfig
+    from cobgs.train.optimize import TrainConfig
 
     return TrainConfig(iterations=iterations, log_interval_its=1000, checkpoint_interval_its=1000)
 
@@ -78,7 +78,7 @@ def _config(iterations: int):
 def cmd_scene(args) -> int:
     import torch
 
-    from cobgs.train import train
+    from cobgs.train.optimize import train
 
     torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
     out = args.out
@@ -137,8 +137,8 @@ def _object_masks(model, views):
 
 
 def _load_checkpoint(scene, path: Path, iterations: int):
-    from cobgs.adam_moments import export_moments
-    from cobgs.train import Trainer
+    from cobgs.train.adam_moments import export_moments
+    from cobgs.train.optimize import Trainer
 
     tr = Trainer(scene, _config(iterations))
     tr.load_checkpoint(path)
@@ -193,10 +193,10 @@ def cmd_one(args) -> int:
     import torch
     from PIL import Image
 
-    from cobgs.metrics import iou
-    from cobgs.peers import run_method
-    from cobgs.rasterize import rasterize
-    from cobgs.segment import extract
+    from cobgs.evaluate.metrics import iou
+    from cobgs.refine.peers import run_method
+    from cobgs.render.rasterize import rasterize
+    from cobgs.refine.segment import extract
 
     torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
     out = args.out

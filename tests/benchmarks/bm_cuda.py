@@ -191,7 +191,7 @@ def bench_kernels(args) -> None:
 
 def object_masks(model, views, radius_frac: float = 0.25):
     """Visible masks of the Gaussians within a sphere around the scene's median point."""
-    from cobgs.rasterize import rasterize
+    from cobgs.render.rasterize import rasterize
 
     means = model.means.detach()
     centre = means.median(0).values
@@ -210,10 +210,10 @@ def object_masks(model, views, radius_frac: float = 0.25):
 
 def bench_fern(args) -> None:
     from cobgs.data.colmap import read_colmap
-    from cobgs.ply import save_ply
-    from cobgs.refine import RefineConfig, refine
-    from cobgs.sfm import SfmOptions, run_sfm
-    from cobgs.train import TrainConfig, train
+    from cobgs.train.ply import save_ply
+    from cobgs.refine.alternation import RefineConfig, refine
+    from cobgs.data.sfm import SfmOptions, run_sfm
+    from cobgs.train.optimize import TrainConfig, train
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

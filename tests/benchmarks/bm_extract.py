@@ -1,6 +1,6 @@
 """Extraction timing: threshold the labels of a random N-Gaussian model and gather the
-foreground (and background) models (:func:`cobgs.segment.label_sets` +
-:func:`cobgs.segment.subset`), median of ``--reps``; then the same with glibc keeping freed
+foreground (and background) models (:func:`cobgs.refine.segment.label_sets` +
+:func:`cobgs.refine.segment.subset`), median of ``--reps``; then the same with glibc keeping freed
 memory, so fresh output tensors do not page-fault. Target: < 50 ms for 500k Gaussians.
 
 Run (not collected by pytest)::
@@ -24,8 +24,8 @@ import time  # noqa: E402
 
 import torch  # noqa: E402
 
-from cobgs.gaussians import GaussianModel  # noqa: E402
-from cobgs.segment import label_sets, subset  # noqa: E402
+from cobgs.train.gaussians import GaussianModel  # noqa: E402
+from cobgs.refine.segment import label_sets, subset  # noqa: E402
 
 
 def _keep_freed_memory() -> bool:

@@ -53,7 +53,7 @@ def view_tensors(args):
         (means, quats, scales, op, feat, vm, K), _, gi, ga = R.make_scene(100_000, 0)
         return means, quats, scales, op, feat, vm, K, R.W, R.H, gi, ga, None
     import bm_train_iter as B
-    from cobgs.train import Trainer, TrainConfig, load_model
+    from cobgs.train.optimize import Trainer, TrainConfig, load_model
 
     scene = B.load_scene(args.scene, args.sfm_dir)
     model = load_model(args.ply)
@@ -91,7 +91,7 @@ def main(argv=None) -> int:
     if args.scene != "bm" and args.ply is None:
         args.ply = Path("/tmp/cobgs_bm_train") / f"{args.scene}.ply"
     torch.set_num_threads(args.threads)
-    from cobgs import _ops
+    from cobgs.render import _ops
 
     _ops.ensure_loaded()
     means, quats, scales, op, feat, vm, K, w, h, gi, ga, trainer = view_tensors(args)

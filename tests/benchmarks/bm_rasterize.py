@@ -187,7 +187,7 @@ def main(argv=None) -> int:
     # Warm-up (also builds/loads the extension) and scene statistics.
     _, _, out = run_once(tensors, "native", gi, ga, labels=torch.zeros(H, W, dtype=torch.int32))
     vis = out.radii > 0
-    from cobgs import _ops
+    from cobgs.render import _ops
 
     tile_offsets, flat_ids = _ops.bin_tiles(out.means2d, out.radii, out.depths, W, H)
     contributions = int(out.label_counts.sum())

@@ -47,10 +47,10 @@ sys.path.insert(0, str(REPO))
 
 def _headline(model, fg, test, gts, band_ratio=0.02):
     """IoU / BIoU over the held-out views, and FP / FN pixels inside / outside the band."""
-    from cobgs import evaluate as E
-    from cobgs.metrics import mask_boundary
-    from cobgs.refine_result import RefineResult
-    from cobgs.segment import render_object_mask
+    from cobgs.evaluate import protocols as E
+    from cobgs.evaluate.metrics import mask_boundary
+    from cobgs.refine.result import RefineResult
+    from cobgs.refine.segment import render_object_mask
 
     rr = RefineResult(method="cobgs", object_name="", model=model, foreground=fg, background=~fg,
                       mask_values=torch.ones(len(model)), mask_threshold=0.5)
@@ -74,21 +74,21 @@ def _headline(model, fg, test, gts, band_ratio=0.02):
 
 
 def _closed_form(model, views, pixel_labels, lam):
-    from cobgs.peers import flashsplat_votes
+    from cobgs.refine.peers import flashsplat_votes
 
     w = flashsplat_votes(model, views, pixel_labels, 2)
     return w[:, 1] > lam * w[:, 0], w.sum(1) > 0
 
 
 def trajectory(wf, cache, scene_name, method, obj, sets_note=""):
-    from cobgs import refine as R
-    from cobgs.refine_scores import pixel_labels_from_mask
+    from cobgs.refine import alternation as R
+    from cobgs.refine.scores import pixel_labels_from_mask
     from pipeline import entries
     from stages._common import load_scene, masks_for_views, read_json, read_spec
     from stages.evaluate import _amodal_gts
     from stages.refine import method_config
-    from cobgs.ply import load_ply
-    from cobgs.adam_moments import MOMENTS_FILE, read_moments
+    from cobgs.train.ply import load_ply
+    from cobgs.train.adam_moments import MOMENTS_FILE, read_moments
 
     recs = {(r.stage, r.item.id): r for r in entries(wf, cache)}
     ds = recs[("dataset", scene_name)].output("dataset")

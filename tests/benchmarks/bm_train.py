@@ -8,7 +8,7 @@ Usage::
 
 lego: every view of transforms_train.json trains, transforms_test.json is evaluated
 (white background, random initialisation in the 3DGS cube). fern: SfM with pycolmap
-(cobgs.sfm) on images_8, undistorted PINHOLE model, every 8th view held out.
+(cobgs.data.sfm) on images_8, undistorted PINHOLE model, every 8th view held out.
 Prints test PSNR / SSIM, Gaussian count, wall time, seconds per iteration, the
 process's CPU time (train + evaluation; a contention-free figure) and peak resident memory (the process's, which includes the loaded images), and writes a JSON
 line per scene to ``<out>/bm_train.jsonl`` plus the trained PLY.
@@ -49,7 +49,7 @@ def _load(kind: str, out: Path):
 
         sfm_dir = out / "fern_sfm"
         if not (sfm_dir / "sparse" / "0").is_dir():
-            from cobgs.sfm import SfmOptions, run_sfm
+            from cobgs.data.sfm import SfmOptions, run_sfm
 
             t = time.perf_counter()
             res = run_sfm(SHARED / "llff_fern" / "images_8", sfm_dir, SfmOptions(matcher="exhaustive"))
@@ -63,8 +63,8 @@ def _load(kind: str, out: Path):
 
 def run(kind: str, iterations: int, out: Path, init_points: int, scale_schedule: bool, seed: int,
         random_background: bool = False) -> dict:
-    from cobgs.ply import save_ply
-    from cobgs.train import TrainConfig, peak_rss_bytes, train
+    from cobgs.train.ply import save_ply
+    from cobgs.train.optimize import TrainConfig, peak_rss_bytes, train
 
     scene = _load(kind, out)
     img = scene.train[0].image

@@ -1,4 +1,4 @@
-"""Time of one 3DGS training iteration (render + loss + backward + Adam) with cobgs.train.
+"""Time of one 3DGS training iteration (render + loss + backward + Adam) with cobgs.train.optimize.
 
 Usage::
 
@@ -17,12 +17,12 @@ The proxy only approximates a trained scene's cost; the printed model line says 
 was used. All SH degrees are active (degree 3), as after the first 3k
 iterations of the recipe.
 
-The iteration is :meth:`cobgs.train.Trainer.step` with densification and opacity reset
+The iteration is :meth:`cobgs.train.optimize.Trainer.step` with densification and opacity reset
 switched off (the trainer is placed past ``densify_until``), so every timed iteration
 does the same work. Its parts are timed separately on the same views: SH colour,
 rasterize forward, loss (0.8 L1 + 0.2 (1 - SSIM)) forward, backward (loss and
 rasterizer), Adam step. The SH colour is the native ``cobgs::sh_colors`` op that
-:func:`cobgs.render.render` uses on the CPU. Wall and process CPU time (all threads) are reported, with the
+:func:`cobgs.render.image.render` uses on the CPU. Wall and process CPU time (all threads) are reported, with the
 load average: on a machine shared with other jobs the wall time includes waiting for a
 core.
 
@@ -69,7 +69,7 @@ def load_scene(kind: str, sfm_dir: Path):
     from cobgs.data.colmap import read_colmap
 
     if not (sfm_dir / "sparse" / "0").is_dir():
-        from cobgs.sfm import SfmOptions, run_sfm
+        from cobgs.data.sfm import SfmOptions, run_sfm
 
         run_sfm(SHARED / "llff_fern" / "images_8", sfm_dir, SfmOptions(matcher="exhaustive"))
     return read_colmap(sfm_dir, test_every=8)
@@ -78,7 +78,7 @@ def load_scene(kind: str, sfm_dir: Path):
 def scene_cost(model, camera, background) -> str:
     """What a view of the model costs the blend: tile-list entries per pixel, how far the
     pixels get down their lists (last contributor's rank) and how opaque they end up."""
-    from cobgs import _ops
+    from cobgs.render import _ops
 
     with torch.no_grad():
         d = model.data
@@ -101,7 +101,7 @@ def scene_cost(model, camera, background) -> str:
 
 def proxy_model(init, n: int, seed: int = 0):
     """A trained-size stand-in: ``init``'s Gaussians split into ``n`` children."""
-    from cobgs.gaussians import GaussianModel, inverse_sigmoid
+    from cobgs.train.gaussians import GaussianModel, inverse_sigmoid
 
     g = torch.Generator().manual_seed(seed)
     d = {k: v.detach() for k, v in init.data.items()}
@@ -110,7 +110,7 @@ def proxy_model(init, n: int, seed: int = 0):
     k = n / m
     scales = torch.exp(d["log_scales"][parent])
     rot = init.rotations.detach()[parent]
-    from cobgs.gaussians import quat_to_rotmat
+    from cobgs.train.gaussians import quat_to_rotmat
 
     offs = torch.einsum("nij,nj->ni", quat_to_rotmat(rot), scales * torch.randn(n, 3, generator=g))
     means = d["means"][parent] + offs
@@ -154,9 +154,9 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     torch.set_num_threads(args.threads)
 
-    from cobgs import losses
-    from cobgs.losses import l1_loss, ssim
-    from cobgs.train import Trainer, TrainConfig, load_model
+    from cobgs.train import losses
+    from cobgs.train.losses import l1_loss, ssim
+    from cobgs.train.optimize import Trainer, TrainConfig, load_model
 
     scene = load_scene(args.scene, args.sfm_dir)
     ply = args.ply if args.ply is not None else BM_OUT / f"{args.scene}.ply"
@@ -200,8 +200,8 @@ def main(argv=None) -> int:
         probes.append(probe.run())
 
     # The parts, on the same views, with the trainer's own model and optimizer.
-    from cobgs import _ops
-    from cobgs.render import render
+    from cobgs.render import _ops
+    from cobgs.render.image import render
 
     model, opt = trainer.model, trainer.optimizer
     parts = {k: [] for k in ("sh colour", "rasterize fwd", "loss fwd", "backward", "adam")}

@@ -44,9 +44,9 @@ def _packing_cost(report: Path, cfgs: list, cache_dir: str) -> list:
     """What the embedding itself costs, by cobgs.rasterize alone at training camera 0 (whole
     refined scene): the original PLYs with their SH bands vs degree 0 (the viewer's SH
     truncation), and vs the decoded 21-byte Gaussians (truncation + quantisation)."""
-    from cobgs import splat_pack
-    from cobgs.metrics import psnr
-    from cobgs.render import render_image
+    from cobgs.render import splat_pack
+    from cobgs.evaluate.metrics import psnr
+    from cobgs.render.image import render_image
     from pipeline import load_workflow
     from reports.collect import collect
     from reports.viewer import _load, embedded

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from cobgs.camera import Camera
+from cobgs.render.camera import Camera
 from cobgs.data.colmap import read_colmap
 from cobgs.data.llff import read_llff
 from cobgs.data.readers import detect_format, read_scene

@@ -158,7 +158,7 @@ def test_crop_window_goes_where_errors_are_and_stays_inside():
 
 
 def test_resize_nearest_matches_the_protocol_sampling():
-    from cobgs.evaluate import resize_nearest as protocol_resize
+    from cobgs.evaluate.protocols import resize_nearest as protocol_resize
 
     rng = np.random.default_rng(0)
     m = rng.random((13, 17)) > 0.5

@@ -4,7 +4,7 @@ from a training camera, and its controls move the camera.
 
 Agreement with cobgs.rasterize (measured on the demo scene, every mode, three training
 cameras): the viewer draws the embedded (quantised, SH degree 0) Gaussians, and the
-reference is :func:`cobgs.render.render_image` of the same decoded Gaussians at the same
+reference is :func:`cobgs.render.image.render_image` of the same decoded Gaussians at the same
 camera, both as 8-bit RGB. The remaining differences are the viewer's 8-bit framebuffer
 (every blend rounds), its back-to-front order against the rasterizer's front-to-back with
 early stop at transmittance 1e-4, and the footprint (the viewer draws every pixel centre
@@ -54,9 +54,9 @@ def _png(data_url: str) -> np.ndarray:
 def _reference(report_dir: Path, config: dict, method: str, mode: str, cam_index: int) -> np.ndarray:
     import torch
 
-    from cobgs import splat_pack
-    from cobgs.render import render_image
-    from cobgs.segment import subset
+    from cobgs.render import splat_pack
+    from cobgs.render.image import render_image
+    from cobgs.refine.segment import subset
     from reports.viewer import embedded
 
     header, payload = embedded(report_dir, config["models"][method])
@@ -72,7 +72,7 @@ def _camera(config: dict, index: int):
     """The viewer configuration's training camera ``index`` as a cobgs Camera."""
     import torch
 
-    from cobgs.camera import Camera
+    from cobgs.render.camera import Camera
 
     c = config["cameras"][index]
     K = torch.tensor([[c["K"][0], 0, c["K"][2]], [0, c["K"][1], c["K"][3]], [0, 0, 1]], dtype=torch.float32)

@@ -317,8 +317,8 @@ def write_3dgs_output(train_artifact: Path, scene, out: Path, iteration: int,
     state keyed by parameter group in the order the original code creates them)."""
     import torch
 
-    from cobgs.adam_moments import read_moments
-    from cobgs.ply import load_ply
+    from cobgs.train.adam_moments import read_moments
+    from cobgs.train.ply import load_ply
 
     d = out / "point_cloud" / f"iteration_{iteration}"
     d.mkdir(parents=True)

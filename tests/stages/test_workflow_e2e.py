@@ -73,7 +73,7 @@ def _entry(wf, cache, stage, item):
 
 
 def test_artifacts_and_metrics(tiny):
-    from cobgs.ply import load_ply
+    from cobgs.train.ply import load_ply
 
     path, cache, wf, _ = tiny
     spec = json.loads((_entry(wf, cache, "dataset", "tiny").output("dataset") / "dataset.json").read_text())
@@ -322,8 +322,8 @@ def test_report_viewer_data_cap_and_opt_out(tiny, tmp_path):
     the cap, most opaque x largest first, and says so; --no-viewer embeds nothing."""
     import numpy as np
 
-    from cobgs import splat_pack
-    from cobgs.ply import load_ply
+    from cobgs.render import splat_pack
+    from cobgs.train.ply import load_ply
     from reports.viewer import configs, embedded
     from stages.commands.cli import main
 
@@ -594,7 +594,7 @@ def test_a_scene_trained_elsewhere_replaces_training(tiny, tmp_path):
     its checkpoint's Adam state reaches the COB-GS texture stages."""
     import torch
 
-    from cobgs.adam_moments import read_moments
+    from cobgs.train.adam_moments import read_moments
     from protocol_fixtures import write_3dgs_output  # tests/stages is on sys.path
     from stages._common import load_scene
 

@@ -22,8 +22,8 @@ from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from ..manifest import GDINO_FILES, GdinoConfig, gdino_manifest_dict, write_manifest
-from .common import ExportError, Parity, export_graph, remove_partial, require, verify_graph
+from cobgs.masks.manifest import GDINO_FILES, GdinoConfig, gdino_manifest_dict, write_manifest
+from cobgs.masks.export.common import ExportError, Parity, export_graph, remove_partial, require, verify_graph
 
 log = logging.getLogger("cobgs.masks.export")
 
@@ -187,9 +187,9 @@ def export_gdino(
     """
     import torch
 
-    from ..gdino import Tokenizer
-    from ..images import load_rgb, to_model_input
-    from ..manifest import Preprocess
+    from cobgs.masks.gdino import Tokenizer
+    from cobgs.masks.images import load_rgb, to_model_input
+    from cobgs.masks.manifest import Preprocess
 
     cfg = GdinoConfig(num_queries=num_queries, max_text_len=max_text_len)
     out = Path(out_dir)

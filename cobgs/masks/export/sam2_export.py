@@ -20,8 +20,8 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
-from ..manifest import SAM2_FILES, Sam2Config, Sam2Layout, sam2_manifest_dict, write_manifest
-from .common import ExportError, Parity, export_graph, remove_partial, require, verify_graph
+from cobgs.masks.manifest import SAM2_FILES, Sam2Config, Sam2Layout, sam2_manifest_dict, write_manifest
+from cobgs.masks.export.common import ExportError, Parity, export_graph, remove_partial, require, verify_graph
 
 log = logging.getLogger("cobgs.masks.export")
 
@@ -92,8 +92,8 @@ def sam2_constants(model) -> Dict[str, np.ndarray]:
 
 
 def _image_input(image: Optional[str], size: int) -> np.ndarray:
-    from ..images import load_rgb, to_model_input
-    from ..manifest import Preprocess
+    from cobgs.masks.images import load_rgb, to_model_input
+    from cobgs.masks.manifest import Preprocess
 
     if image is None:  # a synthetic frame: smooth gradients and a bright disc
         yy, xx = np.mgrid[0:size, 0:size] / size
@@ -128,7 +128,7 @@ def export_sam2(
     """
     import torch
 
-    from . import sam2_modules as W
+    from cobgs.masks.export import sam2_modules as W
 
     if model is None:
         model = build_sam2_model(config, checkpoint)

@@ -34,9 +34,9 @@ from typing import Optional
 import numpy as np
 import torch
 
-from .data.trained_layout import find_trained_ply, read_cameras_json, read_cfg_args, saved_iterations
-from .errors import DataError
-from .gaussians import GaussianModel
+from cobgs.data.trained_layout import find_trained_ply, read_cameras_json, read_cfg_args, saved_iterations
+from cobgs.errors import DataError
+from cobgs.train.gaussians import GaussianModel
 
 __all__ = ["ImportedScene", "read_trained", "read_3dgs_output", "read_trained_ply",
            "read_3dgs_checkpoint_moments", "check_against_scene"]
@@ -52,7 +52,7 @@ class ImportedScene:
 
     Attributes:
         model: the Gaussians.
-        moments: Adam moments in :mod:`cobgs.adam_moments`'s layout, or None.
+        moments: Adam moments in :mod:`cobgs.train.adam_moments`'s layout, or None.
         source: what was read (for the manifest): kind, files, iteration, SH degree, ...
         cameras: ``{image name stem: (camera centre [3], fx, width)}`` from cameras.json.
         notes: decisions a user should know about.
@@ -75,7 +75,7 @@ def read_trained(path: Path, iteration: int = 0) -> ImportedScene:
 
 
 def read_trained_ply(path: Path) -> ImportedScene:
-    from .ply import load_ply
+    from cobgs.train.ply import load_ply
 
     model = load_ply(path)
     return ImportedScene(model, source={"kind": "ply", "ply": str(path), "num_gaussians": len(model),
@@ -84,7 +84,7 @@ def read_trained_ply(path: Path) -> ImportedScene:
 
 def read_3dgs_output(folder: Path, iteration: int = 0) -> ImportedScene:
     """The original 3DGS code's output folder (see the module docstring)."""
-    from .ply import load_ply
+    from cobgs.train.ply import load_ply
 
     folder = Path(folder)
     ply, it = find_trained_ply(folder, iteration)
@@ -120,7 +120,7 @@ def read_3dgs_output(folder: Path, iteration: int = 0) -> ImportedScene:
 
 def read_3dgs_checkpoint_moments(path: Path, model: GaussianModel) -> dict:
     """The Adam moments of an original-3DGS checkpoint ``(capture tuple, iteration)``, in
-    the layout of :mod:`cobgs.adam_moments`, checked against ``model`` (the PLY of the same
+    the layout of :mod:`cobgs.train.adam_moments`, checked against ``model`` (the PLY of the same
     iteration).
 
     Raises:

@@ -26,12 +26,12 @@ from typing import Iterable, Optional, Sequence
 import torch
 from torch import Tensor
 
-from .camera import Camera
-from .errors import InputError
-from .gaussians import GaussianModel
-from .reference import NEAR_PLANE
+from cobgs.render.camera import Camera
+from cobgs.errors import InputError
+from cobgs.train.gaussians import GaussianModel
+from cobgs.render.reference import NEAR_PLANE
 
-from .configs import RAEM_VARIANTS  # noqa: E402,F401
+from cobgs.configs import RAEM_VARIANTS  # noqa: E402,F401
 
 
 def split_candidates(model: GaussianModel, ambiguous: Tensor, extent: float, size_fraction: float = 0.01) -> Tensor:

@@ -46,17 +46,17 @@ from typing import Callable, Optional, Sequence
 import torch
 from torch import Tensor
 
-from ._atomic import write_bytes_atomic
-from ._memory import retain_freed_memory
-from .adam_moments import export_moments
-from .data.scene import Scene, View
-from .configs import Schedule, TrainConfig  # noqa: F401 (defined there, torch-free; re-exported)
-from .errors import DataError, DivergenceError, InputError
-from .gaussians import GaussianModel, gaussian_lrs, inverse_sigmoid
-from .losses import photometric_loss
-from .metrics import psnr as psnr_metric
-from .metrics import ssim as ssim_metric
-from .render import render
+from cobgs._atomic import write_bytes_atomic
+from cobgs._memory import retain_freed_memory
+from cobgs.train.adam_moments import export_moments
+from cobgs.data.scene import Scene, View
+from cobgs.configs import Schedule, TrainConfig  # noqa: F401 (defined there, torch-free; re-exported)
+from cobgs.errors import DataError, DivergenceError, InputError
+from cobgs.train.gaussians import GaussianModel, gaussian_lrs, inverse_sigmoid
+from cobgs.train.losses import photometric_loss
+from cobgs.evaluate.metrics import psnr as psnr_metric
+from cobgs.evaluate.metrics import ssim as ssim_metric
+from cobgs.render.image import render
 
 CHECKPOINT_VERSION = 1
 
@@ -76,7 +76,7 @@ class TrainResult:
         s_per_it: ``wall_s`` / iterations done in this call.
         peak_rss_bytes: peak resident memory of the process so far.
         adam_moments: the optimizer's final Adam state per tensor
-            (:func:`cobgs.adam_moments.export_moments`): what COB-GS's texture stages
+            (:func:`cobgs.train.adam_moments.export_moments`): what COB-GS's texture stages
             continue from (``refine(..., texture_moments=...)``).
     """
 
@@ -153,7 +153,7 @@ class Trainer:
                 f"images were composited on the fixed background {tuple(scene.background)}: "
                 "train it with random_background=False"
             )
-        # The device of the scene's images (cobgs.render moves each camera to the model's).
+        # The device of the scene's images (cobgs.render.image moves each camera to the model's).
         self.device = scene.train[0].image.device
         model = model if model is not None else initial_model(scene, config, init_rng)
         self.model = model.to(self.device) if model.device != self.device else model
@@ -340,7 +340,7 @@ def load_model(path: os.PathLike | str) -> GaussianModel:
     """The Gaussians of a training checkpoint (``.pt``) or of a PLY file."""
     path = Path(path)
     if path.suffix.lower() == ".ply":
-        from .ply import load_ply
+        from cobgs.train.ply import load_ply
 
         return load_ply(path)
     if not path.is_file():

@@ -8,7 +8,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .errors import InputError
+from cobgs.errors import InputError
 
 SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5
@@ -35,7 +35,7 @@ def _to_nchw(img: Tensor, name: str) -> Tensor:
 def _blur(t: Tensor, g: Tensor) -> Tensor:
     """Separable zero-padded Gaussian blur of every channel of [B, K, H, W]."""
     if not (torch.is_grad_enabled() and t.requires_grad):
-        from . import _ops
+        from cobgs.render import _ops
 
         if _ops.serves(t.device):  # the native op, when the rasterizer already loaded it
             return _ops.gauss_blur(t, g)
@@ -121,7 +121,7 @@ class _NativeMeanSSIM(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x: Tensor, y: Tensor, g: Tensor) -> Tensor:
-        from . import _ops
+        from cobgs.render import _ops
 
         mean, grad = _ops.ssim_mean_grad(x.detach(), y.detach(), g)
         ctx.save_for_backward(grad)
@@ -152,7 +152,7 @@ def ssim(img: Tensor, ref: Tensor) -> Tensor:
     x, y = _to_nchw(img, "img").contiguous(), _to_nchw(ref, "ref").contiguous()
     g = _gauss_1d(SSIM_WINDOW, SSIM_SIGMA, x.dtype, str(x.device))
     if y.dtype == x.dtype:
-        from . import _ops
+        from cobgs.render import _ops
 
         if _ops.serves(x.device):  # the native fused op, when the rasterizer already loaded it
             return _NativeMeanSSIM.apply(x, y, g)
@@ -174,7 +174,7 @@ class _NativePhotometricLoss(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, img: Tensor, ref: Tensor, ssim_weight: float) -> Tensor:
-        from . import _ops
+        from cobgs.render import _ops
 
         g = _gauss_1d(SSIM_WINDOW, SSIM_SIGMA, img.dtype, str(img.device))
         l1, s, grad = _ops.photometric_loss_grad(img.detach(), ref.detach(), g, ssim_weight)
@@ -202,7 +202,7 @@ def photometric_loss(img: Tensor, ref: Tensor, ssim_weight: float = 0.2) -> Tens
     if (img.requires_grad and not ref.requires_grad
             and img.dim() in (3, 4) and ref.dtype == img.dtype and ref.device == img.device
             and img.dtype in (torch.float32, torch.float64) and 0.0 <= ssim_weight <= 1.0):
-        from . import _ops
+        from cobgs.render import _ops
 
         if _ops.serves(img.device):
             return _NativePhotometricLoss.apply(img, ref, float(ssim_weight))

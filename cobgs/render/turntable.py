@@ -21,9 +21,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .camera import Camera
-from .errors import InputError
-from .gaussians import GaussianModel
+from cobgs.render.camera import Camera
+from cobgs.errors import InputError
+from cobgs.train.gaussians import GaussianModel
 
 
 def object_center(model: GaussianModel) -> Tensor:
@@ -91,7 +91,7 @@ def orbit_cameras(reference: Sequence[Camera], center: Tensor, n_frames: int = 3
 def render_turntable(model: GaussianModel, cameras: Sequence[Camera], background=(0.0, 0.0, 0.0),
                      backend: str = "native") -> list[np.ndarray]:
     """uint8 [H, W, 3] frames of ``model`` seen from ``cameras``."""
-    from .render import render_image
+    from cobgs.render.image import render_image
 
     bg = torch.as_tensor(background, dtype=torch.float32)
     frames = []
@@ -122,7 +122,7 @@ def object_turntables(object_ply: Path, background_ply: Path, cameras: Sequence[
     (``background_ply``), around the object's centre, with cameras like ``cameras``. ``dst``
     maps "object" / "removed" to the GIF paths; returns the kinds written (none when the
     object PLY is missing or empty)."""
-    from .ply import load_ply
+    from cobgs.train.ply import load_ply
 
     if not Path(object_ply).is_file():
         return []

@@ -19,8 +19,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .errors import InputError
-from .losses import ssim as _ssim
+from cobgs.errors import InputError
+from cobgs.train.losses import ssim as _ssim
 
 
 def psnr(img: Tensor, ref: Tensor, max_value: float = 1.0) -> float:

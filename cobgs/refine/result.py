@@ -1,6 +1,6 @@
 """What every segmentation method returns (COB-GS, its ablations and the peers alike).
 
-One result type makes the comparison side by side: the evaluation (:mod:`cobgs.segment`)
+One result type makes the comparison side by side: the evaluation (:mod:`cobgs.refine.segment`)
 only needs the scene after the method (``model``), which Gaussians are the object
 (``foreground``), which remain when the object is removed (``background``) and the value
 each foreground Gaussian contributes to the rendered object mask (``mask_values``).
@@ -17,9 +17,9 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from ._memory import release_free_memory
-from .errors import InputError
-from .gaussians import GaussianModel
+from cobgs._memory import release_free_memory
+from cobgs.errors import InputError
+from cobgs.train.gaussians import GaussianModel
 
 
 @dataclass
@@ -86,7 +86,7 @@ class RefineResult:
         peak_mem_bytes: peak resident memory above the level at the start (sampled).
         config: the method's parameters as a plain dict.
         texture_moments: the COB-GS texture Adam's final moments (only when asked for:
-            :func:`cobgs.refine.refine` ``return_moments``), else None.
+            :func:`cobgs.refine.alternation.refine` ``return_moments``), else None.
         mask_threshold: the bar of this method's object render (None: the caller's,
             0.5 in docs/method.md §2; SA3D-GS's official render: 0.1 on composited raw labels).
         raem_keep: [N before RAEM] bool, the Gaussians RAEM kept (None: RAEM removed

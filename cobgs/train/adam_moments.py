@@ -10,7 +10,7 @@ moments the step of a converged parameter is small, and only Gaussians with larg
 consistent gradients (the split children, whose moments start at zero) move quickly.
 
 A standard 3DGS PLY cannot hold these moments, so training exports them
-(:attr:`cobgs.train.TrainResult.adam_moments`) and the pipeline's ``train`` stage writes
+(:attr:`cobgs.train.optimize.TrainResult.adam_moments`) and the pipeline's ``train`` stage writes
 them next to ``scene.ply`` as ``adam_moments.pt`` (:func:`save_moments`).
 
 Format (a ``torch.save`` dict)::
@@ -32,8 +32,8 @@ from typing import Mapping, Optional
 import torch
 from torch import Tensor
 
-from ._atomic import write_bytes_atomic
-from .errors import DataError, InputError
+from cobgs._atomic import write_bytes_atomic
+from cobgs.errors import DataError, InputError
 
 __all__ = ["MOMENTS_FILE", "export_moments", "load_moments", "save_moments", "read_moments"]
 
@@ -48,7 +48,7 @@ Moments = Mapping[str, Mapping[str, Tensor]]
 def export_moments(optimizer: torch.optim.Optimizer) -> dict[str, dict[str, Tensor]]:
     """The Adam state of every named parameter group: ``{name: {exp_avg, exp_avg_sq, step}}``.
 
-    Groups need a ``"name"`` key (:meth:`cobgs.gaussians.GaussianModel.make_adam` sets it)
+    Groups need a ``"name"`` key (:meth:`cobgs.train.gaussians.GaussianModel.make_adam` sets it)
     and one parameter each. Parameters without state (never stepped) are left out. The
     tensors are detached references, not copies (:func:`load_moments` copies).
     """

@@ -15,7 +15,7 @@ label      uint8       0 = scene, 1 = the segmented object (any small integer)
 
 The header (a JSON-able dict) holds the count and the ranges. :func:`unpack` is the exact
 inverse the viewer computes in JavaScript (``reports/static/viewer.js``), so a test can
-render the decoded Gaussians with :func:`cobgs.rasterize.rasterize` and compare with the
+render the decoded Gaussians with :func:`cobgs.render.rasterize.rasterize` and compare with the
 browser's picture; :func:`quantisation_error` says what the packing alone costs.
 
 When a model is larger than a byte budget, :func:`keep_order` ranks the Gaussians by
@@ -30,7 +30,7 @@ from typing import Optional
 
 import numpy as np
 
-from .errors import InputError
+from cobgs.errors import InputError
 
 BYTES_PER_GAUSSIAN = 6 + 6 + 4 + 3 + 1 + 1
 FIELDS = (("position", np.uint16, 3), ("log_scale", np.uint16, 3), ("rotation", np.int8, 4),
@@ -68,7 +68,7 @@ def pack(model, labels: Optional[np.ndarray] = None, keep: Optional[np.ndarray] 
     """(header, payload) of ``model`` (its ``keep`` indices, default all).
 
     Args:
-        model: :class:`cobgs.gaussians.GaussianModel` (higher SH bands are dropped).
+        model: :class:`cobgs.train.gaussians.GaussianModel` (higher SH bands are dropped).
         labels: [N] small non-negative integers (default zeros).
         keep: indices to pack, in the order to store them.
     """
@@ -131,11 +131,11 @@ def unpack(header: dict, payload: bytes) -> dict:
 
 
 def unpacked_model(header: dict, payload: bytes):
-    """The decoded Gaussians as a degree-0 :class:`~cobgs.gaussians.GaussianModel` whose
+    """The decoded Gaussians as a degree-0 :class:`~cobgs.train.gaussians.GaussianModel` whose
     colour (max(0.5 + C0·sh0, 0)) is the decoded colour: what the viewer draws."""
     import torch
 
-    from .gaussians import GaussianModel
+    from cobgs.train.gaussians import GaussianModel
 
     d = unpack(header, payload)
     op = np.clip(d["opacity"].astype(np.float64), 1e-7, 1 - 1e-7)

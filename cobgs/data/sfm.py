@@ -27,8 +27,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
 
-from .configs import MATCHERS, SfmOptions  # noqa: F401 (defined there, torch-free; re-exported)
-from .errors import DataError, InputError
+from cobgs.configs import MATCHERS, SfmOptions  # noqa: F401 (defined there, torch-free; re-exported)
+from cobgs.errors import DataError, InputError
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 _MAX_NAMES_IN_ERROR = 30
@@ -312,7 +312,7 @@ def undistort_masks(sfm_root: os.PathLike | str, mask_root: os.PathLike | str,
     import numpy as np
     import pycolmap
 
-    from .data.scene import find_object_files
+    from cobgs.data.scene import find_object_files
 
     root = Path(sfm_root)
     dist = pycolmap.Reconstruction(str(root / "distorted" / "sparse" / "0"))

@@ -25,9 +25,9 @@ from typing import Optional, Sequence
 import numpy as np
 import torch
 
-from ._atomic import write_atomic
-from .errors import DataError, InputError
-from .gaussians import GaussianModel, check_extra_name
+from cobgs._atomic import write_atomic
+from cobgs.errors import DataError, InputError
+from cobgs.train.gaussians import GaussianModel, check_extra_name
 
 log = logging.getLogger(__name__)
 

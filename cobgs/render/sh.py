@@ -11,7 +11,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .errors import InputError
+from cobgs.errors import InputError
 
 C0 = 0.28209479177387814  # 1 / (2 sqrt(pi))
 C1 = 0.4886025119029199  # sqrt(3 / (4 pi))

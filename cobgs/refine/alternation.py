@@ -7,12 +7,12 @@ The schedule, with V training views and stages of 2V iterations::
 
 * **MASK stage** — only the label logits train (Adam, lr 0.1, eps 1e-15) on the
   normalised mask loss; the rendered mask reaches the labels only
-  (:mod:`cobgs.refine_scores`). Every iteration adds the view's per-Gaussian score
+  (:mod:`cobgs.refine.scores`). Every iteration adds the view's per-Gaussian score
   ``|N⁺ − N⁻| / (N⁺ + N⁻ + 1e-6)`` (unseen = 1) to the stage accumulator. At the end of
   the stage the Gaussians whose mean score is < δ are ambiguous; the large ones are split
-  (BAGS, :mod:`cobgs.refine_split`) and the accumulator is reset.
+  (BAGS, :mod:`cobgs.refine.split`) and the accumulator is reset.
 * **TEXTURE stage** — labels frozen; every other tensor trains on 0.8·L1 + 0.2·(1−SSIM)
-  with the 3DGS learning rates (:class:`cobgs.train.TrainConfig` defaults), except the
+  with the 3DGS learning rates (:class:`cobgs.train.optimize.TrainConfig` defaults), except the
   position lr, fixed at its final value 1.6e-6 × extent; no densification, no opacity
   reset.
 * **Last MASK stage** — ends with RAEM instead of a split, as in the released code (its
@@ -28,8 +28,8 @@ unless ``stage_length_views`` is raised.
 
 The texture optimizer continues the baseline's Adam, as the released code does (it
 restores the 3DGS checkpoint's optimizer state): pass the moments training exported
-(:attr:`cobgs.train.TrainResult.adam_moments`, or the ``adam_moments.pt`` the pipeline
-writes next to ``scene.ply``; :mod:`cobgs.adam_moments`) as ``texture_moments``. Without
+(:attr:`cobgs.train.optimize.TrainResult.adam_moments`, or the ``adam_moments.pt`` the pipeline
+writes next to ``scene.ply``; :mod:`cobgs.train.adam_moments`) as ``texture_moments``. Without
 them (a bare PLY) the texture stages start from zero moments, whose first bias-corrected
 steps move every parameter in view by about its learning rate; the run says so (a log
 warning and ``config["texture_adam"] == "fresh"``) and segments measurably worse (on the
@@ -60,14 +60,14 @@ from typing import Callable, Mapping, Optional, Sequence
 import torch
 from torch import Tensor
 
-from .progress import Progress
-from .adam_moments import Moments, export_moments, load_moments
-from .data.scene import Scene, View
-from .errors import InputError
-from .gaussians import GaussianModel, gaussian_lrs
-from .losses import photometric_loss
-from .refine_result import PeakMemory, RefineResult, StageStats
-from .refine_scores import (
+from cobgs.progress import Progress
+from cobgs.train.adam_moments import Moments, export_moments, load_moments
+from cobgs.data.scene import Scene, View
+from cobgs.errors import InputError
+from cobgs.train.gaussians import GaussianModel, gaussian_lrs
+from cobgs.train.losses import photometric_loss
+from cobgs.refine.result import PeakMemory, RefineResult, StageStats
+from cobgs.refine.scores import (
     ScoreAccumulator,
     ensure_label,
     mask_loss,
@@ -75,10 +75,10 @@ from .refine_scores import (
     render_label_mask,
     view_scores,
 )
-from .refine_split import boundary_split, raem_prune_mask, split_candidates
-from .render import render
-from ._memory import retain_freed_memory
-from .configs import RefineConfig  # noqa: F401 (defined there, torch-free; re-exported)
+from cobgs.refine.split import boundary_split, raem_prune_mask, split_candidates
+from cobgs.render.image import render
+from cobgs._memory import retain_freed_memory
+from cobgs.configs import RefineConfig  # noqa: F401 (defined there, torch-free; re-exported)
 
 __all__ = [
     "RefineConfig",
@@ -112,14 +112,14 @@ class Refiner:
     Args:
         model: the scene, edited in place (pass a clone to keep the original).
         views: training views (camera and image).
-        masks: one GT mask per view (see :func:`cobgs.refine_scores.pixel_labels_from_mask`:
+        masks: one GT mask per view (see :func:`cobgs.refine.scores.pixel_labels_from_mask`:
             [H, W] bool, or int with −1 = don't care, or None = not annotated).
         extent: scene extent (world units).
         config: the parameters.
         background: RGB behind the scene in TEXTURE stages (the baseline's).
         reset_labels: start every label logit at 0 (docs/method.md §2).
         texture_moments: the baseline's Adam moments of the texture tensors
-            (:mod:`cobgs.adam_moments`); used when ``config.texture_adam == "baseline"``.
+            (:mod:`cobgs.train.adam_moments`); used when ``config.texture_adam == "baseline"``.
 
     Attributes:
         texture_adam: "baseline" when the texture Adam started from ``texture_moments``,
@@ -256,7 +256,7 @@ class Refiner:
         c = self.config
         plan = c.plan()
         length = c.stage_length(len(self.views))
-        from .progress import make_bar
+        from cobgs.progress import make_bar
 
         bar = make_bar(progress, len(plan) * length, desc)
         stats: list[StageStats] = []
@@ -309,8 +309,8 @@ class Refiner:
 
 def _check_refined(model: GaussianModel, label: str, where: str) -> None:
     """Stop a refinement whose labels or parameters became non-finite (never a result)."""
-    from .errors import DivergenceError
-    from .train import check_model_finite
+    from cobgs.errors import DivergenceError
+    from cobgs.train.optimize import check_model_finite
 
     check_model_finite(model, where)
     lg = model.data.get(label)
@@ -358,7 +358,7 @@ def refine(
         progress: False, True (a tqdm bar) or a factory (:mod:`cobgs.progress`); shows the
             stage, iteration, loss, Gaussians and ambiguous count.
         copy: refine a clone of ``model`` (True) or ``model`` itself.
-        texture_moments: the baseline's Adam moments (:mod:`cobgs.adam_moments`) for the
+        texture_moments: the baseline's Adam moments (:mod:`cobgs.train.adam_moments`) for the
             TEXTURE stages; without them those stages start from zero moments (logged).
         return_moments: keep the texture Adam's final moments in the result (to continue
             from them, as :func:`refine_objects` does for the next object).

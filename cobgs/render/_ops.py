@@ -1,6 +1,6 @@
 """Thin wrappers over ``torch.ops.cobgs.*``: loading, autograd and fake registration.
 
-The C++ library (``csrc/``, built by :mod:`cobgs._build` on first use) defines the op
+The C++ library (``csrc/``, built by :mod:`cobgs.render._build` on first use) defines the op
 schemas and CPU kernels; this module adds what is registered from Python:
 
 * autograd for ``project``, ``blend`` and ``sh_colors`` via
@@ -18,8 +18,8 @@ from typing import Optional, Tuple
 import torch
 from torch import Tensor
 
-from . import _build
-from .reference import NEAR_PLANE, TILE_SIZE, RasterOutput
+from cobgs.render import _build
+from cobgs.render.reference import NEAR_PLANE, TILE_SIZE, RasterOutput
 
 _lock = threading.Lock()
 _ready = False
@@ -175,7 +175,7 @@ def _or_zeros(grad: Optional[Tensor], shape, like: Tensor) -> Tensor:
 
 def project(means, quats, scales, viewmat, K, width: int, height: int,
             near_plane: float = NEAR_PLANE) -> Tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Native ``cobgs::project`` (see :func:`cobgs.reference.project_reference`).
+    """Native ``cobgs::project`` (see :func:`cobgs.render.reference.project_reference`).
 
     Args:
         means [N, 3], quats [N, 4] (w, x, y, z), scales [N, 3] (linear), viewmat [4, 4]
@@ -191,7 +191,7 @@ def project(means, quats, scales, viewmat, K, width: int, height: int,
 
 
 def bin_tiles(means2d, radii, depths, width: int, height: int) -> Tuple[Tensor, Tensor]:
-    """Native ``cobgs::bin_tiles`` (see :func:`cobgs.reference.bin_tiles_reference`).
+    """Native ``cobgs::bin_tiles`` (see :func:`cobgs.render.reference.bin_tiles_reference`).
 
     Args:
         means2d [N, 2], radii [N] int32, depths [N] (from :func:`project`).
@@ -228,7 +228,7 @@ def bin_tiles_tight(means2d, radii, depths, conics, opacities, width: int,
 def blend(means2d, conics, opacities, features, background, tile_offsets, flat_ids,
           width: int, height: int, pixel_labels: Optional[Tensor] = None,
           num_labels: int = 2, prep: Optional[Tensor] = None, check: bool = True):
-    """Native ``cobgs::blend`` (see :func:`cobgs.reference.blend_reference`).
+    """Native ``cobgs::blend`` (see :func:`cobgs.render.reference.blend_reference`).
 
     ``prep``: the third output of :func:`bin_tiles_tight` for the same means2d / conics /
     opacities (saves recomputing it in both passes), or None.
@@ -256,8 +256,8 @@ def blend(means2d, conics, opacities, features, background, tile_offsets, flat_i
 def sh_colors(means, sh0, shN, center, degree: int) -> Tensor:
     """Native ``cobgs::sh_colors``: 3DGS view-dependent colour max(SH(d) + 0.5, 0).
 
-    The same numbers as :meth:`cobgs.gaussians.GaussianModel.colors` (oracle: the
-    pure-PyTorch :func:`cobgs.sh.sh_to_color`), up to float rounding; gradients flow to
+    The same numbers as :meth:`cobgs.train.gaussians.GaussianModel.colors` (oracle: the
+    pure-PyTorch :func:`cobgs.render.sh.sh_to_color`), up to float rounding; gradients flow to
     means (through the direction), sh0 and shN.
 
     Args:
@@ -299,7 +299,7 @@ _cuda_kernels: Optional[bool] = None
 def check_serves(device: torch.device) -> None:
     """Load the extension and raise :class:`~cobgs.errors.InputError` naming why when it
     has no kernels for ``device``."""
-    from .errors import InputError
+    from cobgs.errors import InputError
 
     ensure_loaded()
     if serves(device):
@@ -316,7 +316,7 @@ def check_serves(device: torch.device) -> None:
 
 def ssim_mean_grad(x: Tensor, y: Tensor, g: Tensor) -> Tuple[Tensor, Tensor]:
     """Native ``cobgs::ssim_mean_grad`` (no autograd): mean SSIM of x [B, C, H, W] against
-    a fixed y and d mean / dx, with the window g — :class:`cobgs.losses._MeanSSIM`'s
+    a fixed y and d mean / dx, with the window g — :class:`cobgs.train.losses._MeanSSIM`'s
     forward and backward fused (the loss of every training iteration)."""
     ensure_loaded()
     dt = x.dtype
@@ -336,7 +336,7 @@ def photometric_loss_grad(img: Tensor, ref: Tensor, g: Tensor,
 
 def gauss_blur(x: Tensor, g: Tensor) -> Tensor:
     """Native ``cobgs::gauss_blur`` (no autograd): the separable zero-padded blur of
-    :func:`cobgs.losses._blur`, vertical then horizontal, for x [B, K, H, W] and an
+    :func:`cobgs.train.losses._blur`, vertical then horizontal, for x [B, K, H, W] and an
     odd-length kernel g [n]."""
     ensure_loaded()
     return torch.ops.cobgs.gauss_blur(x.contiguous(), g.to(x.dtype).contiguous())

@@ -1,8 +1,8 @@
 """The peers of docs/method.md §3, run in the same harness as COB-GS.
 
-Every peer takes the same trained scene, training views and masks as :func:`cobgs.refine.refine`
-and returns the same :class:`~cobgs.refine_result.RefineResult`, so
-:func:`cobgs.segment.evaluate_masks` and the exports treat all methods alike.
+Every peer takes the same trained scene, training views and masks as :func:`cobgs.refine.alternation.refine`
+and returns the same :class:`~cobgs.refine.result.RefineResult`, so
+:func:`cobgs.refine.segment.evaluate_masks` and the exports treat all methods alike.
 
 * **nosplit** — COB-GS's label optimisation without splitting (paper Table 5, first row):
   the same MASK stages, BAGS / BGTR / RAEM off.
@@ -42,14 +42,14 @@ from typing import Mapping, Optional, Sequence
 import torch
 from torch import Tensor
 
-from .data.scene import View
-from .progress import Progress
-from .configs import FlashSplatConfig, SA3DConfig  # noqa: F401 (defined there)
-from .errors import InputError
-from .gaussians import GaussianModel
-from .refine import RefineConfig, refine
-from .refine_result import PeakMemory, RefineResult, StageStats
-from .refine_scores import mask_loss, pixel_labels_from_mask, render_label_mask
+from cobgs.data.scene import View
+from cobgs.progress import Progress
+from cobgs.configs import FlashSplatConfig, SA3DConfig  # noqa: F401 (defined there)
+from cobgs.errors import InputError
+from cobgs.train.gaussians import GaussianModel
+from cobgs.refine.alternation import RefineConfig, refine
+from cobgs.refine.result import PeakMemory, RefineResult, StageStats
+from cobgs.refine.scores import mask_loss, pixel_labels_from_mask, render_label_mask
 
 __all__ = [
     "SA3DConfig",
@@ -117,7 +117,7 @@ def run_sa3d(
         work.add_extra("source_index", torch.arange(n, device=dev), fill=-1)
         opt = work.make_adam({"sa3d_label": config.lr}, eps=config.adam_eps)
         rng = torch.Generator().manual_seed(config.seed)
-        from .progress import make_bar
+        from cobgs.progress import make_bar
 
         bar = make_bar(progress, config.passes * len(views), f"sa3d {object_name}".strip())
         skip_set: set[int] = set()  # views the first pass skipped (by index)
@@ -220,7 +220,7 @@ def flashsplat_votes(
     backend: str = "native",
 ) -> Tensor:
     """[N, num_labels] Σ α·T per GT label over all views (one forward pass per view)."""
-    from .rasterize import rasterize
+    from cobgs.render.rasterize import rasterize
 
     m = model
     acc = torch.zeros(len(m), num_labels, dtype=torch.float64, device=m.device)
@@ -373,12 +373,12 @@ def run_method(
             (:class:`RefineConfig`, switches forced off), "sa3d" (:class:`SA3DConfig`) or
             "flashsplat" (:class:`FlashSplatConfig`).
         model: the trained scene (not modified).
-        views, masks, extent, background: as in :func:`cobgs.refine.refine`.
+        views, masks, extent, background: as in :func:`cobgs.refine.alternation.refine`.
         config: the method's config (None = its defaults).
         object_name: recorded in the result.
         progress: False, True (a tqdm bar) or a factory (:mod:`cobgs.progress`).
         texture_moments: the baseline's Adam moments, where COB-GS's texture stages start
-            (:func:`cobgs.refine.refine`); the peers have no texture stages and ignore them.
+            (:func:`cobgs.refine.alternation.refine`); the peers have no texture stages and ignore them.
     """
     defaults = _CONFIGS
     if method not in defaults:

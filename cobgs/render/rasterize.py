@@ -1,7 +1,7 @@
 """``cobgs.rasterize``: render 3D Gaussians into one camera (colour, alpha, label stats).
 
 The contract (projection, culling, tiles, blending rule, pixel convention) is written out
-in :mod:`cobgs.reference`, the pure-PyTorch oracle; the native backend (``csrc/``, built
+in :mod:`cobgs.render.reference`, the pure-PyTorch oracle; the native backend (``csrc/``, built
 on first use) computes the same numbers.
 """
 
@@ -15,8 +15,8 @@ import torch
 from torch import Tensor
 from torch.utils.weak import WeakIdKeyDictionary
 
-from .errors import InputError, check_shape
-from .reference import RasterOutput, rasterize_reference
+from cobgs.errors import InputError, check_shape
+from cobgs.render.reference import RasterOutput, rasterize_reference
 
 __all__ = ["rasterize", "RasterOutput"]
 
@@ -41,7 +41,7 @@ def rasterize(
 ) -> RasterOutput:
     """Render N Gaussians with C feature channels into a ``height x width`` image.
 
-    Follows standard 3DGS exactly (see :mod:`cobgs.reference` for every formula and
+    Follows standard 3DGS exactly (see :mod:`cobgs.render.reference` for every formula and
     cut-off): EWA projection with a 0.3 px² low-pass, 3-sigma radius, near plane 0.01,
     16x16 tiles in depth order, α = min(0.99, o·exp(power)), α < 1/255 skipped, a pixel
     stops before the Gaussian that would bring its transmittance below 1e-4.
@@ -89,7 +89,7 @@ def rasterize(
     if backend == "reference":
         return rasterize_reference(means, quats, scales, opacities, features, viewmat, K,
                                    width, height, background, pixel_labels, num_labels)
-    from . import _ops
+    from cobgs.render import _ops
 
     return _ops.rasterize_native(means, quats, scales, opacities, features, viewmat, K,
                                  width, height, background, pixel_labels, num_labels)
@@ -143,7 +143,7 @@ def _validate(means, quats, scales, opacities, features, viewmat, K, width, heig
         if name in ("viewmat", "K") and not value.dtype.is_floating_point:
             raise InputError(f"{name} must be a floating-point tensor, got {value.dtype}")
     if backend == "native" and means.device.type != "cpu":
-        from . import _ops
+        from cobgs.render import _ops
 
         _ops.check_serves(means.device)  # CUDA kernels built, or a clear error
 
@@ -207,9 +207,9 @@ def _check_camera(viewmat: Tensor, K: Tensor) -> None:
 
 
 class _CallableModule(types.ModuleType):
-    """Lets ``cobgs.rasterize(...)`` work even when ``import cobgs.rasterize`` ran first.
+    """Lets ``cobgs.render.rasterize(...)`` work even when ``import cobgs.render.rasterize`` ran first.
 
-    Importing a submodule binds the package attribute ``cobgs.rasterize`` to the module,
+    Importing the submodule binds the package attribute ``cobgs.render.rasterize`` to the module,
     shadowing the function of the same name that the package exposes lazily.
     """
 

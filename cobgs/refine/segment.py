@@ -4,12 +4,12 @@ docs/method.md §2 "Segmentation" / "Evaluation render":
 
 * foreground = label > 0.9, background = label < 0.1 (the complement used for object
   removal; Gaussians in between belong to neither);
-* either part is exported as a standard 3DGS PLY (:func:`cobgs.ply.save_ply`);
+* either part is exported as a standard 3DGS PLY (:func:`cobgs.train.ply.save_ply`);
 * the evaluation mask of a view keeps only the foreground Gaussians, renders their mask
   channel ``Σ mᵢ αᵢ Tᵢ`` (mᵢ = the method's ``mask_values``) and thresholds it at 0.5;
 * RGB renders of the object alone and of the scene with the object removed.
 
-Every function takes a :class:`cobgs.refine_result.RefineResult`, so COB-GS and the peers
+Every function takes a :class:`cobgs.refine.result.RefineResult`, so COB-GS and the peers
 are evaluated by the same code. Extraction (threshold + gather) is a single comparison
 in logit space and one indexed copy per tensor.
 """
@@ -25,14 +25,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .camera import Camera
-from .data.scene import View
-from .errors import InputError
-from .gaussians import CORE, GaussianModel
-from .metrics import accuracy, boundary_iou, iou
-from .refine import BG_THRESHOLD, FG_THRESHOLD, OBJECT_ID, OBJECT_LOGITS, MultiObjectResult
-from .refine_result import RefineResult
-from .refine_scores import LABEL
+from cobgs.render.camera import Camera
+from cobgs.data.scene import View
+from cobgs.errors import InputError
+from cobgs.train.gaussians import CORE, GaussianModel
+from cobgs.evaluate.metrics import accuracy, boundary_iou, iou
+from cobgs.refine.alternation import BG_THRESHOLD, FG_THRESHOLD, OBJECT_ID, OBJECT_LOGITS, MultiObjectResult
+from cobgs.refine.result import RefineResult
+from cobgs.refine.scores import LABEL
 
 __all__ = [
     "label_sets",
@@ -118,7 +118,7 @@ def export_ply(
     Returns:
         {"object": path, "background": path}.
     """
-    from .ply import save_ply
+    from cobgs.train.ply import save_ply
 
     out = Path(out_dir)
     stem = stem or result.object_name or "object"
@@ -143,7 +143,7 @@ def export_objects(multi: MultiObjectResult, out_dir: os.PathLike | str,
     Returns:
         {object name: path, "_background": path}.
     """
-    from .ply import save_ply
+    from cobgs.train.ply import save_ply
 
     out = Path(out_dir)
     paths = {}
@@ -177,7 +177,7 @@ def render_object_mask(
     Returns:
         [H, W] bool (or the float mask channel when ``soft``).
     """
-    from .rasterize import rasterize
+    from cobgs.render.rasterize import rasterize
 
     fg = torch.nonzero(result.foreground, as_tuple=False)[:, 0]
     cam = camera.to(result.model.device)
@@ -202,7 +202,7 @@ def method_threshold(result: RefineResult, threshold: Optional[float] = None) ->
 
 
 def _render_part(result: RefineResult, part: Tensor, camera: Camera, background, backend: str) -> Tensor:
-    from .render import render
+    from cobgs.render.image import render
 
     sub = subset(result.model, part, extras=())
     with torch.no_grad():
@@ -278,7 +278,7 @@ def visible_object_mask(result, camera, threshold=None, backend: str = "native",
     the object in this view hides it (the occlusion-aware column of the evaluation).
 
     Args:
-        result: a :class:`cobgs.refine_result.RefineResult` (any method).
+        result: a :class:`cobgs.refine.result.RefineResult` (any method).
         camera: the view.
         threshold: foreground where the blended mask value is above it (None: the
             method's own bar, :func:`method_threshold`; docs/method.md §2: 0.5).
@@ -289,7 +289,7 @@ def visible_object_mask(result, camera, threshold=None, backend: str = "native",
     """
     import torch
 
-    from .render import render
+    from cobgs.render.image import render
 
     m = result.model
     vals = torch.where(result.foreground, result.mask_values.to(m.means.dtype), torch.zeros((), dtype=m.means.dtype,

@@ -42,13 +42,13 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import List, Optional
 
-from .errors import BuildError
+from cobgs.errors import BuildError
 
 # A source checkout (editable install) builds from the repository's csrc/; an installed
 # wheel carries the same files as package data in cobgs/_csrc (a link to csrc/ in the
 # repository).
-_REPO_CSRC = Path(__file__).resolve().parents[1] / "csrc"
-CSRC = _REPO_CSRC if _REPO_CSRC.is_dir() else Path(__file__).resolve().parent / "_csrc"
+_REPO_CSRC = Path(__file__).resolve().parents[2] / "csrc"
+CSRC = _REPO_CSRC if _REPO_CSRC.is_dir() else Path(__file__).resolve().parents[1] / "_csrc"
 # -O3 with auto-vectorisation of the per-row pixel loops, which needs
 # -fno-trapping-math (lets GCC if-convert float compares; results are unchanged in the
 # default floating-point environment). -ffp-contract=off keeps a*b+c unfused so scalar

@@ -29,11 +29,11 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from .camera import Camera
-from .errors import InputError
-from .gaussians import GaussianModel
+from cobgs.render.camera import Camera
+from cobgs.errors import InputError
+from cobgs.train.gaussians import GaussianModel
 
-from .configs import LABEL  # noqa: E402  (name of the per-Gaussian label-logit extra)
+from cobgs.configs import LABEL  # noqa: E402  (name of the per-Gaussian label-logit extra)
 SCORE_EPS = 1e-6  # ε of Eq. 6, as in the released code
 
 
@@ -100,9 +100,9 @@ def render_label_mask(
         backend: rasterizer backend.
 
     Returns:
-        :class:`cobgs.rasterize.RasterOutput`; ``image[..., 0]`` is M [H, W].
+        :class:`cobgs.render.rasterize.RasterOutput`; ``image[..., 0]`` is M [H, W].
     """
-    from .rasterize import rasterize
+    from cobgs.render.rasterize import rasterize
 
     cam = camera.to(model.device)
     return rasterize(

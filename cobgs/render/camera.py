@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .errors import InputError, check_shape
+from cobgs.errors import InputError, check_shape
 
 # OpenGL / NeRF camera axes (+y up, +z backward) → OpenCV (+y down, +z forward): flip y, z.
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])

@@ -6,7 +6,7 @@ stage renders the predictions, the evaluate stage hands them over with the proto
 * :func:`compare_masks` — the per-image comparison every protocol shares: the prediction
   is resized NEAREST to the GT size (PIL's nearest, as the published evaluation scripts),
   both are binarised ``> 128`` (boolean masks count as 0/255), then IoU, accuracy and
-  boundary IoU (:mod:`cobgs.metrics`).
+  boundary IoU (:mod:`cobgs.evaluate.metrics`).
 * **NVOS** (:func:`nvos_summary`): one target view per task; mIoU / mAcc = means over tasks.
 * **LERF-mask** (:func:`lerf_prompt_scores`, :func:`lerf_summary`): IoU and boundary IoU
   per prompt and test view, averaged per prompt, then over prompts; every GT file counts
@@ -18,7 +18,7 @@ stage renders the predictions, the evaluate stage hands them over with the proto
   refined scene next to the vanilla one (paper Table 4).
 
 **Which prediction.** The released COB-GS evaluation renders the object's Gaussians alone
-(:func:`cobgs.segment.render_object_mask`): where another object hides part of it, the
+(:func:`cobgs.refine.segment.render_object_mask`): where another object hides part of it, the
 hidden part is predicted too. NVOS and LERF-mask are run that way (their targets are
 rarely occluded, and it keeps the paper's numbers comparable). Exact GT masks are the
 *visible* pixels of an object, so the exact protocol compares them with
@@ -40,7 +40,7 @@ from typing import Iterable, Mapping, Optional, Sequence
 
 import numpy as np
 
-from .errors import DataError, InputError
+from cobgs.errors import DataError, InputError
 
 __all__ = [
     "MaskScores",
@@ -122,7 +122,7 @@ def to_u8(mask) -> np.ndarray:
 
 def read_mask_u8(path: os.PathLike | str) -> np.ndarray:
     """An 8-bit grey mask file as uint8 [H, W] (colour files: their luminance)."""
-    from .data.nvos import read_gt_mask
+    from cobgs.data.nvos import read_gt_mask
 
     return read_gt_mask(path)
 
@@ -145,7 +145,7 @@ def compare_masks(pred, gt, boundary_ratio: float = BOUNDARY_RATIO) -> MaskScore
         gt: [H, W] bool / uint8 / float in [0, 1].
         boundary_ratio: boundary width ratio of the boundary IoU.
     """
-    from .metrics import boundary_iou  # lazily: cobgs.metrics imports torch
+    from cobgs.evaluate.metrics import boundary_iou  # lazily: cobgs.evaluate.metrics imports torch
 
     g8 = to_u8(gt)
     p8 = to_u8(pred)
@@ -312,7 +312,7 @@ def psnr_scores(renders: Mapping[str, object], references: Mapping[str, object])
     """
     import torch
 
-    from .metrics import psnr
+    from cobgs.evaluate.metrics import psnr
 
     per = {}
     for v in sorted(references):
@@ -444,10 +444,10 @@ def bootstrap_mean_diff(pairs: Mapping[str, Sequence[tuple]], reps: int = 2000, 
 
 
 def __getattr__(name):
-    # visible_object_mask is a renderer and lives in cobgs.segment; still importable from
+    # visible_object_mask is a renderer and lives in cobgs.refine.segment; still importable from
     # here, lazily (this module stays free of torch: the summary stage imports it).
     if name == "visible_object_mask":
-        from .segment import visible_object_mask
+        from cobgs.refine.segment import visible_object_mask
 
         return visible_object_mask
-    raise AttributeError(f"module 'cobgs.evaluate' has no attribute {name!r}")
+    raise AttributeError(f"module 'cobgs.evaluate.protocols' has no attribute {name!r}")

@@ -1,4 +1,4 @@
-"""Render a :class:`~cobgs.gaussians.GaussianModel` at a :class:`~cobgs.camera.Camera`."""
+"""Render a :class:`~cobgs.train.gaussians.GaussianModel` at a :class:`~cobgs.render.camera.Camera`."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ from typing import Optional, Sequence
 import torch
 from torch import Tensor
 
-from .camera import Camera
-from .gaussians import GaussianModel
+from cobgs.render.camera import Camera
+from cobgs.train.gaussians import GaussianModel
 
 
 def render(
@@ -36,15 +36,15 @@ def render(
         backend: rasterizer backend ("native" or "reference").
 
     Returns:
-        :class:`cobgs.rasterize.RasterOutput` (``image`` [H, W, C], ``alpha``, ``radii``
+        :class:`cobgs.render.rasterize.RasterOutput` (``image`` [H, W, C], ``alpha``, ``radii``
         [N], ``means2d`` [N, 2], ...).
     """
-    from .rasterize import rasterize
+    from cobgs.render.rasterize import rasterize
 
     dev = model.device
     cam = camera.to(dev)
     if features is None:
-        from . import _ops
+        from cobgs.render import _ops
 
         if backend == "native" and (dev.type == "cpu" or _ops.serves(dev)):
             # One native op instead of ~60 small ATen ops (and their autograd nodes).
