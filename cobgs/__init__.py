@@ -15,11 +15,12 @@ from cobgs.errors import BuildError, CobgsError, DataError, InputError, ModelErr
 _PUBLIC = {
     "rasterize": "cobgs.render.rasterize", "RasterOutput": "cobgs.render.rasterize",
     "GaussianModel": "cobgs.train.gaussians", "load_ply": "cobgs.train.ply", "save_ply": "cobgs.train.ply",
-    "train": "cobgs.train.optimize", "TrainConfig": "cobgs.configs",
-    "refine": "cobgs.refine.alternation", "refine_objects": "cobgs.refine.alternation",
-    "RefineConfig": "cobgs.configs", "run_method": "cobgs.refine.peers",
+    "TrainConfig": "cobgs.configs", "RefineConfig": "cobgs.configs",
+    "refine_objects": "cobgs.refine.alternation", "run_method": "cobgs.refine.peers",
     "read_scene": "cobgs.data.readers",
 }
+# (``cobgs.train`` and ``cobgs.refine`` are the subpackages: their functions are
+# ``from cobgs.train import train`` and ``from cobgs.refine import refine``.)
 
 
 def __getattr__(name):
