@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Optional
 
+from cobgs.data.spec import DatasetSpec
 from cobgs.evaluate.protocols import ORACLE_METHOD, oracle_choice
 
 from .errors import ReportError
@@ -140,7 +141,7 @@ class Scene:
 
     @property
     def protocol(self) -> str:
-        return str((self.dataset or {}).get("protocol", ""))
+        return DatasetSpec(self.dataset or {}).protocol if self.dataset else ""
 
 
 @dataclass
@@ -220,7 +221,8 @@ def collect(workflow, cache_dir: os.PathLike | str) -> RunData:
         sc = Scene(name)
         for t in by_stage.get(producer.get("dataset", ""), {}).values():
             if t.values.get("scene") == name:
-                sc.dataset, sc.dataset_dir = load(t, "dataset")
+                raw, sc.dataset_dir = load(t, "dataset")
+                sc.dataset = DatasetSpec(raw) if raw is not None else None
         for t in by_stage.get(producer.get("poses", ""), {}).values():
             if t.values.get("scene") == name and t.state == "done":
                 sc.poses_dir = t.out("poses")

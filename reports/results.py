@@ -14,6 +14,7 @@ from . import paper
 from .collect import Result, RunData, Task
 from .fmt import finite
 
+from cobgs.data.spec import DatasetSpec
 from cobgs.evaluate.protocols import ORACLE_METHOD
 
 KIND_LABELS = {"cobgs": "COB-GS", "nosplit": "labels only, no split", "sa3d": "SA3D-GS", "flashsplat": "FlashSplat"}
@@ -242,9 +243,9 @@ def _skipped_title(r: Result) -> str:
 def _scene_tasks(data: RunData, scene: str) -> list[str]:
     """Every NVOS task a workflow scene holds (two for a shared horns scene)."""
     ds = data.scenes.get(scene)
-    spec = (ds.dataset or {}) if ds else {}
-    if spec.get("nvos_tasks"):
-        return sorted(spec["nvos_tasks"])
+    spec = DatasetSpec(ds.dataset or {}) if ds is not None else DatasetSpec()
+    if spec.nvos_tasks:
+        return sorted(spec.nvos_tasks)
     return [_scene_task(data, scene)]
 
 
@@ -252,11 +253,11 @@ def _scene_task(data: RunData, scene: str) -> str:
     """The NVOS task / LERF-mask scene a workflow scene stands for (paper lookups; a scene
     holding several NVOS tasks stands for its first: they share the scene's PSNR)."""
     ds = data.scenes.get(scene)
-    spec = (ds.dataset or {}) if ds else {}
-    if spec.get("protocol") == "nvos":
-        return str((spec.get("nvos") or {}).get("task") or scene)
-    if spec.get("protocol") == "lerf_mask":
-        src = spec.get("source") or ""
+    spec = DatasetSpec(ds.dataset or {}) if ds is not None else DatasetSpec()
+    if spec.protocol == "nvos":
+        return str((spec.nvos or {}).get("task") or scene)
+    if spec.protocol == "lerf_mask":
+        src = spec.source or ""
         base = Path(src).name.lower() if src else ""
         return base if base in paper.LERF_SCENES else scene.lower()
     return scene
@@ -377,16 +378,16 @@ def method_records(data: RunData, infos: dict, log_href: LogHref) -> tuple[list[
 def scene_records(data: RunData) -> list[dict]:
     recs = []
     for name, sc in data.scenes.items():
-        t, spec = sc.train or {}, sc.dataset or {}
+        t, spec = sc.train or {}, DatasetSpec(sc.dataset or {})
         ev = t.get("eval") or {}
         recs.append({"scene": name, "kind": spec.get("kind"), "protocol": spec.get("protocol"),
                      "scene_type": spec.get("scene_type"),
-                     "views": len(spec.get("views") or []) or None, "test_views": len(spec.get("test_views") or [])
-                     if spec else None, "objects": ", ".join(spec.get("objects") or []),
+                     "views": len(spec.views) or None, "test_views": len(spec.test_views)
+                     if spec else None, "objects": ", ".join(spec.objects),
                      "iterations": t.get("iterations"), "num_gaussians": t.get("num_gaussians"),
                      "train_s": _train_s(sc, t), "psnr": ev.get("psnr"), "ssim": ev.get("ssim"),
                      "status": sc.train_task.state if sc.train_task else "not in workflow",
-                     "notes": "; ".join([*(spec.get("notes") or []), *_init_note(t)])})
+                     "notes": "; ".join([*spec.notes, *_init_note(t)])})
     return recs
 
 

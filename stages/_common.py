@@ -32,8 +32,7 @@ from typing import Any, Mapping, Optional
 from pipeline import PipelineError
 
 SPEC_FILE = "dataset.json"
-SPEC_FORMAT = "cobgs-dataset"
-SPEC_VERSION = 1
+from cobgs.data.spec import FORMAT as SPEC_FORMAT, VERSION as SPEC_VERSION, DatasetSpec  # noqa: E402
 
 
 class StageInputError(PipelineError):
@@ -86,8 +85,9 @@ def read_json(path: Path) -> Any:
 
 
 # -- the dataset spec ------------------------------------------------------------------------
-def read_spec(dataset_dir: Path) -> dict:
-    spec = read_json(Path(dataset_dir) / SPEC_FILE)
+def read_spec(dataset_dir: Path) -> DatasetSpec:
+    """The dataset stage's ``dataset.json`` as the typed record (:class:`cobgs.data.spec.DatasetSpec`)."""
+    spec = DatasetSpec(read_json(Path(dataset_dir) / SPEC_FILE))
     if spec.get("format") != SPEC_FORMAT or spec.get("version") != SPEC_VERSION:
         raise StageInputError(f"{dataset_dir / SPEC_FILE}: expected format {SPEC_FORMAT!r} "
                               f"version {SPEC_VERSION}, got {spec.get('format')!r} "
@@ -123,9 +123,9 @@ def load_scene(dataset_dir: Path, poses_dir: Optional[Path]):
 
     dataset_dir = Path(dataset_dir)
     spec = read_spec(dataset_dir)
-    rd = spec["reader"]
+    rd = spec.reader
     root = spec_path(dataset_dir, rd.get("path"))
-    test = list(spec["test_views"])
+    test = list(spec.test_views)
     if poses_dir is not None and sfm_ran(poses_dir):
         from cobgs.data.colmap import read_colmap
 
@@ -133,7 +133,7 @@ def load_scene(dataset_dir: Path, poses_dir: Optional[Path]):
         # masks undistorted by the SfM stage (a distorted camera) replace the dataset's
         mask_root = poses_dir if (poses_dir / "masks").is_dir() or root is None else root
         scene = read_colmap(mask_root, images_dir=poses_dir / "images", model_dir=poses_dir / "sparse" / "0",
-                            downscale=float(spec.get("sfm_downscale", 1.0)), test_names=test or None,
+                            downscale=float(spec.sfm_downscale), test_names=test or None,
                             test_every=0)
     else:
         if rd.get("format") is None:
@@ -156,7 +156,7 @@ def load_scene(dataset_dir: Path, poses_dir: Optional[Path]):
             with np.load(pts) as z:  # triangulated by the SfM stage with the known poses
                 scene.points = torch.from_numpy(z["xyz"].astype(np.float32))
                 scene.points_rgb = torch.from_numpy(z["rgb"].astype(np.float32) / 255.0)
-    keep = set(spec["views"])
+    keep = set(spec.views)
     scene.train = [v for v in scene.train if v.name in keep]
     scene.test = [v for v in scene.test if v.name in keep]
     if not scene.train:
@@ -171,18 +171,14 @@ def object_name(ctx) -> str:
     return name or ctx.item["object"]
 
 
-def nvos_task(spec: dict, *names: str) -> dict:
-    """The NVOS task an object of an NVOS scene stands for: when the scene holds several
-    tasks (``nvos_tasks``), the entry of the first of ``names`` (the object value's name,
-    then its ``mask``) that is one of them; else the scene's one task."""
-    tasks = spec.get("nvos_tasks")
-    if not tasks:
-        return spec["nvos"]
-    for n in names:
-        if n in tasks:
-            return tasks[n]
-    raise StageInputError(f"NVOS scene {spec.get('scene')!r} holds the tasks {sorted(tasks)}; object "
-                          f"{' / '.join(repr(n) for n in names)} is none of them (name the object after its task)")
+def nvos_task(spec: DatasetSpec, *names: str) -> dict:
+    """The NVOS task an object of an NVOS scene stands for (:meth:`DatasetSpec.nvos_task`),
+    or a clear error when the scene's tasks do not include it."""
+    task = spec.nvos_task(*names)
+    if task is None:
+        raise StageInputError(f"NVOS scene {spec.scene!r} holds the tasks {sorted(spec.nvos_tasks)}; object "
+                              f"{' / '.join(repr(n) for n in names)} is none of them (name the object after its task)")
+    return task
 
 
 # -- images ----------------------------------------------------------------------------------

@@ -224,134 +224,21 @@ def _sfm_images_as_views(out_dir: Path, scene, sfm_dir: Path) -> Path:
 
 
 def _run(ctx, inputs):
-    from cobgs.data.readers import read_scene
-
+    """dataset.json for one scene: the fields every kind has, then its kind's builder's."""
     p: DatasetParams = ctx.params
     attrs: SceneAttrs = ctx.item.attrs["scene"]
-    name = ctx.item["scene"]
-    spec: dict = {"format": SPEC_FORMAT, "version": SPEC_VERSION, "scene": name, "kind": attrs.kind,
+    spec: dict = {"format": SPEC_FORMAT, "version": SPEC_VERSION, "scene": ctx.item["scene"], "kind": attrs.kind,
                   "protocol": "none", "objects": [], "sfm_downscale": 1.0}
     reader: dict = {"format": _POSED_FORMATS.get(attrs.kind), "path": None, "downscale": p.downscale,
                     "background": None if p.background is None else list(p.background)}
-
-    if attrs.kind == "synthetic":
-        from cobgs.data.synthetic import generate_scene
-
-        out = generate_scene(ctx.out_dir / "scene", p.preset, p.seed, progress=False,
-                             width_px=p.width_px or None, height_px=p.height_px or None,
-                             num_views=p.num_views or None, supersampling=p.supersampling or None,
-                             workers=p.workers)
-        from ._common import read_json
-
-        meta = read_json(out / "scene.json")
-        tf = read_json(out / "transforms.json")
-        reader.update(format="transforms", path="scene")
-        views = [Path(f["file_path"]).stem for f in tf["frames"]]
-        test = [Path(f).stem for f in tf.get("test_filenames", [])]
-        spec.update(protocol="exact", synthetic={k: meta[k] for k in ("preset", "seed", "trajectory",
-                                                                        "image_size", "supersampling",
-                                                                        "num_views")},
-                    objects=[o["name"] for o in meta["objects"] if o.get("target", True)],
-                    distractors=[o["name"] for o in meta["objects"] if not o.get("target", True)],
-                    scene_type=attrs.scene_type or ("360" if meta["trajectory"] == "orbit" else "forward"),
-                    images={"dir": "scene/images", "names": [Path(f["file_path"]).name for f in tf["frames"]]},
-                    has_poses=True,
-                    amodal={"source": "files", "dir": "scene/amodal",
-                            "objects": [o["name"] for o in meta["objects"]]})
-        kept = _subset(views, p)
-        spec.update(views=kept, test_views=[v for v in test if v in set(kept)])
-    else:
+    if attrs.kind != "synthetic":
         root = Path(attrs.path).resolve()
         spec["source"] = os.fspath(root)
         reader["path"] = os.fspath(root)
-        if attrs.kind == "images":
-            sfm_dir, post = _sfm_images(root, p)
-            names = _subset(_names(sfm_dir), p)
-            stems = [Path(n).stem for n in names]
-            spec.update(views=stems, test_views=_every(stems, p.test_every), has_poses=False,
-                        images={"dir": os.fspath(sfm_dir), "names": names}, sfm_downscale=post,
-                        scene_type=attrs.scene_type or "360")
-        elif attrs.kind == "nvos":
-            from cobgs.data.nvos import read_nvos_task
-
-            names = (attrs.task or name,) if isinstance(attrs.task, str) else attrs.task
-            tasks = [read_nvos_task(attrs.labels, t) for t in names]
-            task = tasks[0]
-            targets = sorted({t.target for t in tasks})
-            for t in tasks:
-                if t.reference in targets:
-                    raise StageInputError(f"NVOS task {t.task!r}: its reference view {t.reference!r} is "
-                                          f"another task's held-out target; give those tasks their own scenes")
-            fmt = _detect(root)
-            # The NVOS GT is in the captured (distorted) frame at every size, and the
-            # reference methods read nerf_llff_data's SIMPLE_RADIAL camera as a pinhole: the
-            # images are read the same way at every downscale (undistorting the full-size
-            # images would move them off the GT: 512x384 -> 510x382).
-            reader.update(format=fmt, distortion="ignore")
-            scene = read_scene(root, format=fmt, downscale=p.downscale, test_every=0, distortion="ignore")
-            stems = sorted(v.name for v in scene.views)
-            for t in tasks:
-                for need in (t.target, t.reference):
-                    if need not in stems:
-                        raise StageInputError(f"NVOS task {t.task!r}: view {need!r} is not an image of "
-                                              f"{root} (images: {stems[:3]} ...)")
-            sfm_dir, post = _sfm_images(root, p)
-            sfm_dir = _sfm_images_as_views(ctx.out_dir, scene, sfm_dir)
-            spec["notes"] = list(scene.notes)
-            if len(tasks) > 1:  # one training, shared by the scene's tasks
-                spec["nvos_tasks"] = {t.task: t.to_json() for t in tasks}
-            if any("read as a pinhole" in n for n in scene.notes):
-                spec["notes"].append(
-                    f"NVOS at downscale {p.downscale:g}: images kept in the captured frame (camera read as "
-                    "a pinhole, not undistorted), the frame the NVOS ground truth is in")
-            spec.update(protocol="nvos", nvos=task.to_json(), objects=[t.task for t in tasks],
-                        views=stems, test_views=targets, has_poses=True,
-                        images={"dir": os.fspath(sfm_dir),
-                                "names": _names(sfm_dir if sfm_dir.is_absolute()
-                                                else ctx.out_dir / sfm_dir)},
-                        sfm_downscale=post,
-                        scene_type=attrs.scene_type or "forward")
-        elif attrs.kind == "lerf_mask":
-            from cobgs.data.lerf_mask import read_lerf_gt
-
-            gt = read_lerf_gt(root)
-            every = _stems(root / "images")
-            spec.update(protocol="lerf_mask", lerf_mask=gt.to_json(), objects=gt.prompts,
-                        views=every, test_views=list(gt.test_views), has_poses=True,
-                        images={"dir": os.fspath(root / "images"), "names": _names(root / "images")},
-                        sfm_downscale=p.downscale, scene_type=attrs.scene_type or "360")
-            if gt.views_without_gt:
-                ctx.log.info("LERF-mask: %d test view(s) have no GT folder: %s", len(gt.views_without_gt),
-                             gt.views_without_gt[:10])
-        else:
-            kw = {"background": tuple(p.background)} if p.background is not None else {}
-            scene = read_scene(root, format=reader["format"], downscale=p.downscale,
-                               test_every=p.test_every, **kw)
-            spec["notes"] = list(scene.notes)
-            all_views = sorted(v.name for v in scene.views)
-            kept = set(_subset(all_views, p))
-            test = [v.name for v in scene.test if v.name in kept]
-            with_gt = sorted({k for v in scene.test for k in v.masks})
-            if attrs.kind == "blender":
-                spec["has_poses"], spec["images"] = True, None
-            else:
-                sfm_dir, post = _sfm_images(root, p)
-                spec["has_poses"] = True
-                spec["images"] = {"dir": os.fspath(sfm_dir), "names": [n for n in _names(sfm_dir)
-                                                                        if Path(n).stem in kept]}
-                spec["sfm_downscale"] = post
-            have = sorted({k for v in scene.views for k in v.masks})
-            if attrs.kind == "blender":
-                _check_blender_objects(ctx, root, have)
-                if have == ["object"] and not (root / "masks").is_dir():
-                    # one object, nothing in front of it: the alpha matte is its whole silhouette
-                    spec["amodal"] = {"source": "visible", "objects": ["object"]}
-            spec.update(views=sorted(kept), test_views=test, objects=have,
-                        protocol="exact" if with_gt else "none",
-                        scene_type=attrs.scene_type or ("360" if attrs.kind == "blender" else "forward"))
+    _BUILDERS.get(attrs.kind, _build_posed)(ctx, p, attrs, spec, reader)
     spec["reader"] = reader
     write_json(ctx.out_dir / "dataset.json", spec)
-    ctx.log.info("dataset %s (%s): %d views, %d held out, objects %s, protocol %s", name, attrs.kind,
+    ctx.log.info("dataset %s (%s): %d views, %d held out, objects %s, protocol %s", spec["scene"], attrs.kind,
                  len(spec["views"]), len(spec["test_views"]), spec["objects"], spec["protocol"])
     ctx.note(kind=attrs.kind, views=len(spec["views"]), test_views=len(spec["test_views"]),
              objects=spec["objects"], protocol=spec["protocol"], scene_type=spec["scene_type"])
@@ -375,6 +262,147 @@ def _check_blender_objects(ctx, root: Path, have: list) -> None:
         raise StageInputError(f"object {it['object']!r} of scene {ctx.item['scene']!r}: {root} gives no "
                               f"mask of {name!r} ({why}, and there is no masks/{name}/ folder); add "
                               f"masks/{name}/<image>.png, or set the object's mask / prompt")
+
+
+
+
+def _build_synthetic(ctx, p: DatasetParams, attrs: SceneAttrs, spec: dict, reader: dict) -> None:
+    """A synthetic scene, generated into the artifact (exact GT, amodal masks)."""
+    from cobgs.data.synthetic import generate_scene
+
+    out = generate_scene(ctx.out_dir / "scene", p.preset, p.seed, progress=False,
+                         width_px=p.width_px or None, height_px=p.height_px or None,
+                         num_views=p.num_views or None, supersampling=p.supersampling or None,
+                         workers=p.workers)
+    from ._common import read_json
+
+    meta = read_json(out / "scene.json")
+    tf = read_json(out / "transforms.json")
+    reader.update(format="transforms", path="scene")
+    views = [Path(f["file_path"]).stem for f in tf["frames"]]
+    test = [Path(f).stem for f in tf.get("test_filenames", [])]
+    spec.update(protocol="exact", synthetic={k: meta[k] for k in ("preset", "seed", "trajectory",
+                                                                    "image_size", "supersampling",
+                                                                    "num_views")},
+                objects=[o["name"] for o in meta["objects"] if o.get("target", True)],
+                distractors=[o["name"] for o in meta["objects"] if not o.get("target", True)],
+                scene_type=attrs.scene_type or ("360" if meta["trajectory"] == "orbit" else "forward"),
+                images={"dir": "scene/images", "names": [Path(f["file_path"]).name for f in tf["frames"]]},
+                has_poses=True,
+                amodal={"source": "files", "dir": "scene/amodal",
+                        "objects": [o["name"] for o in meta["objects"]]})
+    kept = _subset(views, p)
+    spec.update(views=kept, test_views=[v for v in test if v in set(kept)])
+
+
+def _build_images(ctx, p: DatasetParams, attrs: SceneAttrs, spec: dict, reader: dict) -> None:
+    """Photos without poses: SfM finds them."""
+    root = Path(spec["source"])
+    sfm_dir, post = _sfm_images(root, p)
+    names = _subset(_names(sfm_dir), p)
+    stems = [Path(n).stem for n in names]
+    spec.update(views=stems, test_views=_every(stems, p.test_every), has_poses=False,
+                images={"dir": os.fspath(sfm_dir), "names": names}, sfm_downscale=post,
+                scene_type=attrs.scene_type or "360")
+
+
+def _build_nvos(ctx, p: DatasetParams, attrs: SceneAttrs, spec: dict, reader: dict) -> None:
+    """An LLFF scene and the NVOS labels: one or several tasks, their targets held out."""
+    from cobgs.data.readers import read_scene
+
+    root = Path(spec["source"])
+    name = ctx.item["scene"]
+    from cobgs.data.nvos import read_nvos_task
+
+    names = (attrs.task or name,) if isinstance(attrs.task, str) else attrs.task
+    tasks = [read_nvos_task(attrs.labels, t) for t in names]
+    task = tasks[0]
+    targets = sorted({t.target for t in tasks})
+    for t in tasks:
+        if t.reference in targets:
+            raise StageInputError(f"NVOS task {t.task!r}: its reference view {t.reference!r} is "
+                                  f"another task's held-out target; give those tasks their own scenes")
+    fmt = _detect(root)
+    # The NVOS GT is in the captured (distorted) frame at every size, and the
+    # reference methods read nerf_llff_data's SIMPLE_RADIAL camera as a pinhole: the
+    # images are read the same way at every downscale (undistorting the full-size
+    # images would move them off the GT: 512x384 -> 510x382).
+    reader.update(format=fmt, distortion="ignore")
+    scene = read_scene(root, format=fmt, downscale=p.downscale, test_every=0, distortion="ignore")
+    stems = sorted(v.name for v in scene.views)
+    for t in tasks:
+        for need in (t.target, t.reference):
+            if need not in stems:
+                raise StageInputError(f"NVOS task {t.task!r}: view {need!r} is not an image of "
+                                      f"{root} (images: {stems[:3]} ...)")
+    sfm_dir, post = _sfm_images(root, p)
+    sfm_dir = _sfm_images_as_views(ctx.out_dir, scene, sfm_dir)
+    spec["notes"] = list(scene.notes)
+    if len(tasks) > 1:  # one training, shared by the scene's tasks
+        spec["nvos_tasks"] = {t.task: t.to_json() for t in tasks}
+    if any("read as a pinhole" in n for n in scene.notes):
+        spec["notes"].append(
+            f"NVOS at downscale {p.downscale:g}: images kept in the captured frame (camera read as "
+            "a pinhole, not undistorted), the frame the NVOS ground truth is in")
+    spec.update(protocol="nvos", nvos=task.to_json(), objects=[t.task for t in tasks],
+                views=stems, test_views=targets, has_poses=True,
+                images={"dir": os.fspath(sfm_dir),
+                        "names": _names(sfm_dir if sfm_dir.is_absolute()
+                                        else ctx.out_dir / sfm_dir)},
+                sfm_downscale=post,
+                scene_type=attrs.scene_type or "forward")
+
+
+def _build_lerf_mask(ctx, p: DatasetParams, attrs: SceneAttrs, spec: dict, reader: dict) -> None:
+    """A LERF-mask scene: Gaussian Grouping's GT index, its train / test split."""
+    root = Path(spec["source"])
+    from cobgs.data.lerf_mask import read_lerf_gt
+
+    gt = read_lerf_gt(root)
+    every = _stems(root / "images")
+    spec.update(protocol="lerf_mask", lerf_mask=gt.to_json(), objects=gt.prompts,
+                views=every, test_views=list(gt.test_views), has_poses=True,
+                images={"dir": os.fspath(root / "images"), "names": _names(root / "images")},
+                sfm_downscale=p.downscale, scene_type=attrs.scene_type or "360")
+    if gt.views_without_gt:
+        ctx.log.info("LERF-mask: %d test view(s) have no GT folder: %s", len(gt.views_without_gt),
+                     gt.views_without_gt[:10])
+
+
+def _build_posed(ctx, p: DatasetParams, attrs: SceneAttrs, spec: dict, reader: dict) -> None:
+    """A posed layout (transforms, Blender, COLMAP, LLFF) with its masks."""
+    from cobgs.data.readers import read_scene
+
+    root = Path(spec["source"])
+    kw = {"background": tuple(p.background)} if p.background is not None else {}
+    scene = read_scene(root, format=reader["format"], downscale=p.downscale,
+                       test_every=p.test_every, **kw)
+    spec["notes"] = list(scene.notes)
+    all_views = sorted(v.name for v in scene.views)
+    kept = set(_subset(all_views, p))
+    test = [v.name for v in scene.test if v.name in kept]
+    with_gt = sorted({k for v in scene.test for k in v.masks})
+    if attrs.kind == "blender":
+        spec["has_poses"], spec["images"] = True, None
+    else:
+        sfm_dir, post = _sfm_images(root, p)
+        spec["has_poses"] = True
+        spec["images"] = {"dir": os.fspath(sfm_dir), "names": [n for n in _names(sfm_dir)
+                                                                if Path(n).stem in kept]}
+        spec["sfm_downscale"] = post
+    have = sorted({k for v in scene.views for k in v.masks})
+    if attrs.kind == "blender":
+        _check_blender_objects(ctx, root, have)
+        if have == ["object"] and not (root / "masks").is_dir():
+            # one object, nothing in front of it: the alpha matte is its whole silhouette
+            spec["amodal"] = {"source": "visible", "objects": ["object"]}
+    spec.update(views=sorted(kept), test_views=test, objects=have,
+                protocol="exact" if with_gt else "none",
+                scene_type=attrs.scene_type or ("360" if attrs.kind == "blender" else "forward"))
+
+
+_BUILDERS = {"synthetic": _build_synthetic, "images": _build_images, "nvos": _build_nvos,
+             "lerf_mask": _build_lerf_mask}
 
 
 def _detect(root: Path) -> str:

@@ -78,7 +78,7 @@ def _amodal_gts(spec: dict, dataset_dir: Path, obj: str, visible: dict):
     dataset has no amodal GT of it (the headline then scores against the visible GT)."""
     from cobgs.evaluate.protocols import read_mask_u8
 
-    info = spec.get("amodal") or {}
+    info = spec.amodal or {}
     if obj not in (info.get("objects") or []):
         return None
     if info.get("source") == "visible":
@@ -123,9 +123,9 @@ def _run(ctx, inputs):
     missing = sorted(set(test) - set(seg["views"]))
     if missing:
         raise StageInputError(f"segment did not render held-out view(s) {missing[:5]}")
-    protocol = spec["protocol"]
+    protocol = spec.protocol
     preds = _read_preds(seg_dir / "pred_masks", list(test))
-    row: dict = {"protocol": protocol, "scene": spec["scene"], "method": ctx.item["method"],
+    row: dict = {"protocol": protocol, "scene": spec.scene, "method": ctx.item["method"],
                  "object": ctx.item["object"], "dataset_object": obj, "method_kind": ref["method"]}
     details: dict = {}
     if protocol == "exact":
@@ -154,7 +154,7 @@ def _run(ctx, inputs):
                    gt="visible", headline=PROTOCOL_NAMES["headline_visible"])
         details.update(per_view={task["target"]: s.to_json()}, skipped={})
     elif protocol == "lerf_mask":
-        gt = spec["lerf_mask"]
+        gt = spec.lerf_mask
         paths = {m["view"]: m["path"] for m in gt["masks"] if m["prompt"] == obj}
         if not paths:
             raise StageInputError(f"LERF-mask: no GT file for prompt {obj!r} (prompts: {gt['prompts']})")

@@ -48,13 +48,13 @@ def _gt_of(spec: dict, obj: str, item_object: str = ""):
     """A function view -> (uint8 0/255 [H, W] GT mask or None, reason when None)."""
     from cobgs.evaluate import protocols as E
 
-    protocol = spec["protocol"]
+    protocol = spec.protocol
     if protocol == "nvos":
         task = nvos_task(spec, item_object, obj)
         return lambda v: ((E.read_mask_u8(task["gt_mask"]), "") if v.name == task["target"]
                           else (None, "not the NVOS target view"))
     if protocol == "lerf_mask":
-        paths = {m["view"]: m["path"] for m in spec["lerf_mask"]["masks"] if m["prompt"] == obj}
+        paths = {m["view"]: m["path"] for m in spec.lerf_mask["masks"] if m["prompt"] == obj}
         return lambda v: ((E.read_mask_u8(paths[v.name]), "") if v.name in paths
                           else (None, "no GT file"))
     if protocol == "exact":
@@ -111,8 +111,8 @@ def _run(ctx, inputs):
                        gt_area_px=int(np.count_nonzero(g)))
         rows.append(row)
     write_json(ctx.out_dir / "heldout.json", {
-        "format": FORMAT, "version": 1, "scene": spec["scene"], "object": obj, "object_item": ctx.item["object"],
-        "protocol": spec["protocol"], "held_out": len(views), "views": rows,
+        "format": FORMAT, "version": 1, "scene": spec.scene, "object": obj, "object_item": ctx.item["object"],
+        "protocol": spec.protocol, "held_out": len(views), "views": rows,
         "skipped": {k: v for k, v in sorted(skipped.items()) if k not in chosen}})
     ctx.log.info("held-out views of %r: %d written (%d with GT) of %d", obj, len(rows),
                  sum(r["gt"] is not None for r in rows), len(views))

@@ -144,7 +144,7 @@ def _run(ctx, inputs):
     scene = load_scene(inputs["dataset"], inputs["poses"])
     views = scene.train
     t0 = time.perf_counter()
-    info: dict = {"source": p.source, "object": obj, "scene": spec["scene"]}
+    info: dict = {"source": p.source, "object": obj, "scene": spec.scene}
     attrs = ctx.item.attrs.get("object")
     mask_dir = getattr(attrs, "mask_dir", None) if attrs is not None else None
     if mask_dir is None and p.files_root is not None and p.source in ("files", "noisy"):
@@ -334,7 +334,7 @@ def _generate(ctx, p: MasksParams, spec: dict, obj: str, views, info: dict) -> N
                                          log_path=ctx.scratch_dir / "generated.json", options=options,
                                          extra_log={"clicks": info["clicks"]})
     else:
-        if spec.get("protocol") != "nvos":
+        if spec.protocol != "nvos":
             raise StageInputError(f"masks.source 'nvos' needs an NVOS scene (kind 'nvos'), got kind "
                                   f"{spec.get('kind')!r}")
         task = nvos_task(spec, ctx.item["object"], obj)
@@ -364,15 +364,15 @@ def _click_prompts(ctx, p: MasksParams, spec: dict, obj: str, views) -> tuple[li
     from cobgs.masks.images import image_size
 
     clicks = read_clicks(p.points_file)
-    nvos = nvos_task(spec, ctx.item["object"], obj) if spec.get("protocol") == "nvos" else None
-    names = [ctx.item["object"], obj] + ([nvos["task"]] if nvos else []) + [spec["scene"]]
+    nvos = nvos_task(spec, ctx.item["object"], obj) if spec.protocol == "nvos" else None
+    names = [ctx.item["object"], obj] + ([nvos["task"]] if nvos else []) + [spec.scene]
     try:
         entry = clicks.lookup(names)
     except ValueError as exc:
         raise StageInputError(str(exc)) from exc
     by_name = {v.name: i for i, v in enumerate(views)}
     by_stem = {Path(v.path).stem: i for i, v in enumerate(views)}
-    held_out = set(spec.get("test_views") or [])
+    held_out = set(spec.test_views or [])
     where = f"click file {p.points_file}, object {entry.key!r}"
     prompts, used = [], []
     for fc in entry.frames:

@@ -96,7 +96,7 @@ def _run(ctx, inputs):
     if all(m is None for m in masks):
         raise StageInputError(f"no mask of object {obj!r} matches a training view of {spec['scene']!r}")
     masks = [None if m is None else m.to(dev) for m in masks]
-    config = method_config(p, spec.get("scene_type", ""))
+    config = method_config(p, spec.scene_type)
     moments = None
     moments_file = Path(inputs["scene"]) / MOMENTS_FILE
     if p.method == "cobgs" and config.bgtr and config.texture_adam == "baseline":
@@ -131,7 +131,7 @@ def _run(ctx, inputs):
     masks_info = read_json(Path(inputs["masks"]) / "masks.json")
     summary.update(mask_route=masks_info.get("route"), mask_source=masks_info.get("source"))
     summary.update(method_param=p.method, method_item=ctx.item["method"], object=obj,
-                   scene=spec["scene"], train_views=len(scene.train),
+                   scene=spec.scene, train_views=len(scene.train),
                    views_with_mask=sum(m is not None for m in masks), extent=scene.extent)
     if p.method in ("cobgs", "nosplit"):
         from cobgs.refine.peers import nosplit_config

@@ -55,7 +55,7 @@ def _run(ctx, inputs):
 
     p: SfmParams = ctx.params
     spec = read_spec(inputs["dataset"])
-    has_poses = bool(spec.get("has_poses"))
+    has_poses = bool(spec.has_poses)
     run = p.mode == "always" or (p.mode == "auto" and not has_poses)
     if not run:
         reason = ("mode 'never'" if p.mode == "never" else "the dataset has poses")
@@ -68,7 +68,7 @@ def _run(ctx, inputs):
         ctx.log.info("SfM skipped: %s", reason)
         ctx.note(ran=False, reason=reason, initial_points=(info.get("initial_points") or {}).get("source"))
         return {"poses": ctx.out_dir}
-    images = spec.get("images")
+    images = spec.images
     if not images:
         raise StageInputError(f"dataset kind {spec['kind']!r} has no image folder to run SfM on "
                               "(set sfm.mode = 'auto' to use its own poses)")
@@ -90,7 +90,7 @@ def _run(ctx, inputs):
     # Masks made for the original photos, undistorted like the images (nearest), so they
     # line up with them; readers then take the masks from this artifact.
     mask_info = None
-    src = spec.get("reader", {}).get("path")
+    src = spec.reader.get("path")
     data_root = spec_path(Path(inputs["dataset"]), src) if src is not None else None
     if data_root is not None and (data_root / "masks").is_dir():
         from cobgs.data.sfm import undistort_masks
@@ -128,7 +128,7 @@ def _triangulate(ctx, p: SfmParams, spec: dict, inputs) -> dict:
 
     from cobgs.data.sfm import triangulate_known_poses
 
-    images = spec.get("images")
+    images = spec.images
     cams = {}
     if images:
         image_dir = spec_path(Path(inputs["dataset"]), images["dir"])

@@ -101,7 +101,7 @@ def trajectory(wf, cache, scene_name, method, obj, sets_note=""):
     mrec = recs[("masks", f"{scene_name}/{obj}")]
     masks = masks_for_views(mrec.output("masks"), scene.train)
     task = next(t for t in wf_plan(wf).tasks if t.stage.name == "refine" and t.item.id == f"{scene_name}/{method}/{obj}")
-    config = method_config(task.params.value, spec.get("scene_type", ""))
+    config = method_config(task.params.value, spec.scene_type)
     dobj = read_json(mrec.output("masks") / "masks.json")["object"]
     test = {v.name: v for v in scene.test}
     vis = {n: (v.masks[dobj].cpu().numpy() if dobj in v.masks else None) for n, v in test.items()}
