@@ -6,7 +6,7 @@ Public names of the modules below are importable from the package too, lazily (i
 
 from __future__ import annotations
 
-import importlib
+from cobgs._lazy import lazy_getattr
 
 _WHERE = {
     'CHECKPOINT_VERSION': 'optimize',
@@ -46,11 +46,4 @@ _WHERE = {
 
 __all__ = sorted(_WHERE)
 
-
-def __getattr__(name):
-    mod = _WHERE.get(name)
-    if mod is None:
-        raise AttributeError(f"module 'cobgs.train' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{mod}"), name)
-    globals()[name] = value
-    return value
+__getattr__ = lazy_getattr(__name__, _WHERE, globals())

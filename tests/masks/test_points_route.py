@@ -13,13 +13,13 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline import RunOptions, WorkflowError, entries, load_workflow, run_workflow
+from pipeline import RunOptions, WorkflowError, load_workflow, run_workflow
 from stages.registry import load_registry
 
 from . import scenes
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "stages"))
-from protocol_fixtures import published_names, write_llff, write_nvos_labels  # noqa: E402
+from protocol_fixtures import published_names, run_stages, write_llff, write_nvos_labels  # noqa: E402
 
 N = 8
 
@@ -46,13 +46,7 @@ def _centre(gt: np.ndarray) -> list[float]:
 
 
 def _run(tmp_path, toml: str):
-    path = tmp_path / "clicks.toml"
-    path.write_text(toml)
-    wf = load_workflow(path, load_registry())
-    out = io.StringIO()
-    summary = run_workflow(wf, RunOptions(cache_dir=tmp_path / "cache", only=("dataset", "sfm", "masks")), stream=out)
-    assert summary.exit_code == 0, out.getvalue()
-    return {(r.stage, r.item.id): r for r in entries(wf, tmp_path / "cache")}
+    return run_stages(tmp_path, toml, name="clicks.toml")
 
 
 OWN = """

@@ -350,3 +350,21 @@ def write_3dgs_output(train_artifact: Path, scene, out: Path, iteration: int,
                {"state": state, "param_groups": groups}, 1.0)
     torch.save((capture, iteration), out / f"chkpnt{iteration}.pth")
     return out
+
+
+def run_stages(folder: Path, text: str, stages=("dataset", "sfm", "masks"), name: str = "w.toml") -> dict:
+    """Write the workflow ``text`` to ``folder/name``, run ``stages`` on ``folder/cache`` and
+    assert it succeeded; returns {(stage, item id): cache record}."""
+    import io
+
+    from pipeline import RunOptions, entries, load_workflow, run_workflow
+    from stages.registry import load_registry
+
+    path = folder / name
+    path.write_text(text)
+    wf = load_workflow(path, load_registry())
+    out = io.StringIO()
+    summary = run_workflow(wf, RunOptions(cache_dir=folder / "cache", only=tuple(stages)), stream=out)
+    assert summary.exit_code == 0, out.getvalue()
+    return {(r.stage, r.item.id): r for r in entries(wf, folder / "cache")}
+

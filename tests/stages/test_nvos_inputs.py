@@ -15,7 +15,7 @@ import pytest
 from pipeline import Plan, RunOptions, WorkflowError, entries, load_workflow, run_workflow
 from stages.registry import load_registry
 
-from protocol_fixtures import to_nvos  # tests/stages is on sys.path
+from protocol_fixtures import run_stages, to_nvos  # tests/stages is on sys.path
 
 WORKFLOW = """
 [workflow]
@@ -51,13 +51,7 @@ def _nvos(synth, out: Path, layout="nex", factor=2):
 
 
 def _run(tmp_path, text, stages=("dataset", "sfm", "masks")):
-    path = tmp_path / "w.toml"
-    path.write_text(text)
-    wf = load_workflow(path, load_registry())
-    out = io.StringIO()
-    summary = run_workflow(wf, RunOptions(cache_dir=tmp_path / "cache", only=stages), stream=out)
-    assert summary.exit_code == 0, out.getvalue()
-    return {(r.stage, r.item.id): r for r in entries(wf, tmp_path / "cache")}
+    return run_stages(tmp_path, text, stages)
 
 
 def test_labels_folder_as_the_download_unpacks_it(synth, tmp_path):
