@@ -216,6 +216,11 @@ class RefineConfig:
         backend: rasterizer backend.
         label_name: name of the label-logit extra.
         record_scores: keep every mask stage's mean scores in the result (δ sweep).
+        object_check: "visible" (default; this project's addition, not the authors'): after
+            the last stage, the foreground is rendered alone in every training view and a
+            Gaussian whose votes there fall more on the mask's background than on its object
+            (pixels where something else hides the object left out) leaves the foreground
+            (:mod:`cobgs.refine.consistency`); "off": the released segmentation (label > 0.9).
     """
 
     scene_type: str = "forward"
@@ -245,6 +250,7 @@ class RefineConfig:
     backend: str = "native"
     label_name: str = LABEL
     record_scores: bool = True
+    object_check: str = "visible"
 
     RANGES: ClassVar[dict] = {
         "delta": "[0, 1]", "mask_stages": "[1, 100]", "stage_length_views": "(0, 100]",
@@ -256,7 +262,8 @@ class RefineConfig:
     }
     CHOICES: ClassVar[dict] = {"backend": ("native", "reference"), "label_name": (LABEL,),
                                "scene_type": tuple(SCENE_DEFAULTS), "raem": RAEM_VARIANTS,
-                               "score": ("count", "weight"), "texture_adam": TEXTURE_ADAM}
+                               "score": ("count", "weight"), "texture_adam": TEXTURE_ADAM,
+                               "object_check": ("off", "visible")}
 
     def __post_init__(self):
         check_params(self)

@@ -149,8 +149,19 @@ def _run(ctx, inputs):
     return {"refined": ctx.out_dir}
 
 
+def _key_params(params: RefineParams, full: dict) -> dict:
+    """The params that enter the key: all of them, except ``cobgs.object_check`` where it does
+    not apply (peers, the no-split row) or is "off" (the segmentation every entry before the
+    switch existed made), so that adding the switch kept every earlier entry valid."""
+    cob = dict(full.get("cobgs") or {})
+    if params.method != "cobgs" or cob.get("object_check") == "off":
+        cob.pop("object_check", None)
+    return dict(full, cobgs=cob)
+
+
 STAGE = Stage(
     name="refine", version=6, run=_run, inputs=("dataset", "poses", "scene", "masks"), outputs=("refined",),
-    params=RefineParams, level=("scene", "method", "object"), uses_device=True, resources=Resources(cpus=2),
+    params=RefineParams, key_params=_key_params, level=("scene", "method", "object"), uses_device=True,
+    resources=Resources(cpus=2),
     description="COB-GS (or an ablation row / a peer) on one object: labels, splits, refined scene",
 )

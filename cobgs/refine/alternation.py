@@ -67,6 +67,7 @@ from cobgs.errors import InputError
 from cobgs.train.gaussians import GaussianModel, gaussian_lrs
 from cobgs.train.losses import photometric_loss
 from cobgs.refine.result import PeakMemory, RefineResult, StageStats
+from cobgs.refine.consistency import object_render_check
 from cobgs.refine.scores import (
     ScoreAccumulator,
     ensure_label,
@@ -378,9 +379,14 @@ def refine(
                         "(pass texture_moments, e.g. TrainResult.adam_moments or read_moments(adam_moments.pt))",
                         method, object_name)
         stats, scores, amb = r.run(progress=progress, desc=f"{method} {object_name}".strip())
+        logits = m.data[config.label_name]
+        fg, bg = _label_sets(logits)
+        checked = 0
+        if config.object_check == "visible":
+            kept = object_render_check(m, fg, r.views, r.pixel_labels, config.mask_lambda, config.backend)
+            checked = int((fg & ~kept).sum())
+            fg = kept
     wall = time.perf_counter() - t0
-    logits = m.data[config.label_name]
-    fg, bg = _label_sets(logits)
     return RefineResult(
         method=method,
         object_name=object_name,
@@ -395,7 +401,7 @@ def refine(
         num_gaussians_end=len(m),
         wall_s=wall,
         peak_mem_bytes=mem.peak_bytes,
-        config=dict(config.as_dict(), texture_adam=r.texture_adam),
+        config=dict(config.as_dict(), texture_adam=r.texture_adam, object_check_dropped=checked),
         texture_moments=export_moments(r.texture_opt) if return_moments else None,
         raem_keep=r.raem_keep,
         raem_removed=r.raem_removed,

@@ -48,6 +48,7 @@ from cobgs.configs import FlashSplatConfig, SA3DConfig  # noqa: F401 (defined th
 from cobgs.errors import InputError
 from cobgs.train.gaussians import GaussianModel
 from cobgs.refine.alternation import RefineConfig, refine
+from cobgs.refine.consistency import label_votes
 from cobgs.refine.result import PeakMemory, RefineResult, StageStats
 from cobgs.refine.scores import mask_loss, pixel_labels_from_mask, render_label_mask
 
@@ -69,11 +70,12 @@ METHODS = ("cobgs", "nosplit", "sa3d", "flashsplat")
 
 
 def nosplit_config(base: RefineConfig = RefineConfig()) -> RefineConfig:
-    """``base`` with BAGS, BGTR and RAEM off (paper Table 5, first row), training labels as
+    """``base`` with BAGS, BGTR, RAEM and the object check off (paper Table 5, first row), training labels as
     long as the released labels-only run does: every stage of ``base``'s alternation becomes
     a mask stage (forward: 6 mask + 5 texture stages -> 11 mask stages = 22·V iterations;
     360°: 4 + 3 -> 7 = 14·V), not only the mask stages' share (docs/method.md §3)."""
-    return dataclasses.replace(base, bags=False, bgtr=False, raem="off", mask_stages=len(base.plan()))
+    return dataclasses.replace(base, bags=False, bgtr=False, raem="off", mask_stages=len(base.plan()),
+                               object_check="off")
 
 
 def _check(views: Sequence[View], masks: Sequence) -> None:
@@ -212,27 +214,10 @@ def _mask_iou(pred: Tensor, labels: Tensor) -> float:
     return inter / union if union else float("nan")
 
 
-def flashsplat_votes(
-    model: GaussianModel,
-    views: Sequence[View],
-    pixel_labels: Sequence[Tensor],  # each [H, W] int32 in −1..K
-    num_labels: int,
-    backend: str = "native",
-) -> Tensor:
-    """[N, num_labels] Σ α·T per GT label over all views (one forward pass per view)."""
-    from cobgs.render.rasterize import rasterize
-
-    m = model
-    acc = torch.zeros(len(m), num_labels, dtype=torch.float64, device=m.device)
-    means, quats, scales, opac = (t.detach() for t in (m.means, m.quats, m.scales, m.opacities))
-    feats = torch.zeros(len(m), 1, device=m.device)
-    with torch.no_grad():
-        for v, lab in zip(views, pixel_labels):
-            cam = v.camera
-            out = rasterize(means, quats, scales, opac, feats, cam.viewmat, cam.K, int(cam.width), int(cam.height),
-                            pixel_labels=lab.to(m.device), num_labels=num_labels, backend=backend)
-            acc += out.label_weights.to(torch.float64)
-    return acc
+def flashsplat_votes(model: GaussianModel, views: Sequence[View], pixel_labels: Sequence[Tensor], num_labels: int,
+                     backend: str = "native") -> Tensor:
+    """[N, num_labels] Σ α·T per GT label over all views (:func:`cobgs.refine.consistency.label_votes`)."""
+    return label_votes(model, views, pixel_labels, num_labels, backend)
 
 
 def run_flashsplat(

@@ -1,0 +1,95 @@
+"""Per-Gaussian label votes, and the object-render check of the foreground.
+
+* :func:`label_votes` — one forward pass per view accumulates, per Gaussian and ground-truth
+  label, Σ α·T over the pixels of that label (FlashSplat's statistic, and the closed form the
+  mask stages' label optimisation converges to: object where the object votes exceed λ × the
+  background votes).
+* :func:`object_render_check` — this project's addition to COB-GS (``RefineConfig.object_check
+  = "visible"``; docs/benchmarks/refinement_trajectory.md has the measurements behind it).
+  The mask loss judges each Gaussian by what it contributes to the *scene* render, where
+  other surfaces may hide most of it; the segmented object is used — and evaluated — rendered
+  *alone*, where nothing hides it. A Gaussian seen only weakly (mostly hidden behind others in
+  the training views) can thus become foreground on little evidence and then spill beyond the
+  object's outline in the object's own render. The check renders the foreground alone in every
+  training view and votes again, per Gaussian, with the same rule as the mask loss (object
+  where Σ α·T over object pixels > λ × that over background pixels), on that render; pixels
+  where the object is hidden in the scene render by something else are left out (a modal mask
+  says nothing about them: there the object's render may rightly show what is occluded). A
+  Gaussian that the check outvotes leaves the foreground; it stays in the scene (and in neither
+  set, like an undecided label).
+"""
+
+from __future__ import annotations
+
+from typing import Sequence
+
+import torch
+from torch import Tensor
+
+from cobgs.data.scene import View
+from cobgs.train.gaussians import GaussianModel
+
+
+def label_votes(model: GaussianModel, views: Sequence[View], pixel_labels: Sequence[Tensor], num_labels: int,
+                backend: str = "native") -> Tensor:
+    """[N, num_labels] Σ α·T per ground-truth label over all views (one forward pass per
+    view; pixel labels −1 are ignored)."""
+    from cobgs.render.rasterize import rasterize
+
+    m = model
+    acc = torch.zeros(len(m), num_labels, dtype=torch.float64, device=m.device)
+    means, quats, scales, opac = (t.detach() for t in (m.means, m.quats, m.scales, m.opacities))
+    feats = torch.zeros(len(m), 1, device=m.device)
+    with torch.no_grad():
+        for v, lab in zip(views, pixel_labels):
+            cam = v.camera
+            out = rasterize(means, quats, scales, opac, feats, cam.viewmat, cam.K, int(cam.width), int(cam.height),
+                            pixel_labels=lab.to(m.device), num_labels=num_labels, backend=backend)
+            acc += out.label_weights.to(torch.float64)
+    return acc
+
+
+def _mask_render(model: GaussianModel, values: Tensor, view: View, backend: str) -> Tensor:
+    from cobgs.render.rasterize import rasterize
+
+    cam, m = view.camera, model
+    with torch.no_grad():
+        out = rasterize(m.means.detach(), m.quats.detach(), m.scales.detach(), m.opacities.detach(),
+                        values[:, None].to(m.means.dtype).contiguous(), cam.viewmat, cam.K, int(cam.width),
+                        int(cam.height), backend=backend)
+    return out.image[..., 0]
+
+
+def object_render_check(model: GaussianModel, foreground: Tensor, views: Sequence[View],
+                        pixel_labels: Sequence[Tensor], mask_lambda: float = 1.0,
+                        backend: str = "native") -> Tensor:
+    """The foreground after the object-render check (module docstring).
+
+    Args:
+        model: the refined scene.
+        foreground: [N] bool, the foreground to check.
+        views: the training views; pixel_labels: their masks as pixel labels (1 object,
+            0 background, −1 ignored; :func:`cobgs.refine.scores.pixel_labels_from_mask`).
+        mask_lambda: λ of the mask loss (the weight of background votes).
+
+    Returns:
+        [N] bool: ``foreground`` without the Gaussians the check outvotes.
+    """
+    idx = torch.nonzero(foreground).squeeze(1)
+    if len(idx) == 0:
+        return foreground.clone()
+    obj = model.select(idx)
+    ones_obj = torch.ones(len(obj), device=model.device)
+    fg_values = foreground.to(model.means.dtype)
+    checked = []
+    for v, lab in zip(views, pixel_labels):
+        lab = lab.to(model.device)
+        alone = _mask_render(obj, ones_obj, v, backend) > 0.5        # the object rendered alone
+        visible = _mask_render(model, fg_values, v, backend) > 0.5  # the object as the scene shows it
+        q = lab.clone()
+        q[(q == 0) & alone & ~visible] = -1  # hidden behind something else: the mask says nothing here
+        checked.append(q)
+    w = label_votes(obj, views, checked, 2, backend)
+    out = foreground.clone()
+    out[idx] = w[:, 1] > mask_lambda * w[:, 0]
+    return out
