@@ -441,3 +441,75 @@ def test_scene_before_raem_is_the_run_without_raem():
     assert torch.equal(again.raem_keep, on.raem_keep)
     with pytest.raises(InputError, match="restore"):
         restore_pruned(on.model, on.raem_keep[1:], on.raem_removed)
+
+
+def _check_scene():
+    """32x32 camera at the origin (f = 50); the mask is the left half. Gaussian 0 (A) sits in
+    the object (column ~8); 1..81 are a dense 9x9 patch outside it (columns ~20-28, B = 41 its
+    centre); the last one is an opaque background wall in front of the patch."""
+    import torch
+
+    from cobgs.data.scene import View
+    from cobgs.render.camera import Camera
+    from cobgs.train.gaussians import GaussianModel
+
+    cam = Camera(K=torch.tensor([[50.0, 0, 16.0], [0, 50.0, 16.0], [0, 0, 1]]), viewmat=torch.eye(4),
+                 width=32, height=32, name="cam")
+    g = torch.arange(-4, 5, dtype=torch.float32) * 0.04
+    yy, xx = torch.meshgrid(g, g, indexing="ij")
+    patch = torch.stack([0.3 + xx.flatten(), yy.flatten(), torch.full((81,), 2.0)], 1)
+    means = torch.cat([torch.tensor([[-0.3, 0.0, 2.0]]), patch, torch.tensor([[0.3, 0.0, 1.0]])])
+    scales = torch.cat([torch.full((82, 3), 0.05), torch.full((1, 3), 0.4)])
+    n = len(means)
+    model = GaussianModel(means, scales.log(), torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), torch.full((n,), 4.0),
+                          torch.zeros(n, 1, 3), torch.zeros(n, 0, 3))
+    mask = torch.zeros(32, 32, dtype=torch.bool)
+    mask[:, :16] = True
+    return model, View(camera=cam, image=torch.zeros(32, 32, 3), name="cam", masks={"obj": mask})
+
+
+def test_object_render_check_drops_what_falls_outside_the_object_alone():
+    """docs/method.md §7: the foreground rendered alone; what lies on background pixels where
+    nothing hides it leaves the foreground; what the masks cannot judge keeps its verdict."""
+    import torch
+
+    from cobgs.refine.consistency import object_render_check
+    from cobgs.refine.scores import pixel_labels_from_mask
+
+    model, view = _check_scene()
+    n, B = len(model), 41
+    px = [pixel_labels_from_mask(view.masks["obj"], 32, 32)]
+    fg = torch.ones(n, dtype=torch.bool)
+    fg[-1] = False
+    # without the wall the patch is in plain sight on background pixels: all of it leaves
+    no_wall = model.select(torch.arange(n - 1))
+    kept = object_render_check(no_wall, fg[:-1], [view], px)
+    assert kept[0] and not kept[1:].any()
+    # behind the wall the patch is hidden in the scene render: where the object alone covers
+    # it, the masks say nothing; B (its centre) casts no vote there and keeps its verdict; the
+    # patch's rim still votes with its tails outside the object's alone render
+    kept = object_render_check(model, fg, [view], px)
+    assert kept[0] and kept[B] and not kept[-1]
+    assert not kept[1:-1].all()
+    # the check only removes, and an empty foreground stays empty
+    assert not (kept & ~fg).any()
+    assert not object_render_check(model, torch.zeros(n, dtype=torch.bool), [view], px).any()
+
+
+def test_refine_applies_the_object_check_only_when_asked():
+    """object_check = "visible" (the default) may only shrink the released foreground; "off"
+    is the authors' segmentation; the no-split row forces it off."""
+    import dataclasses
+
+    from cobgs.refine.peers import nosplit_config
+
+    model, views, extent = tiny_scene(n_views=3)
+    masks = masks_for(views, "ball")
+    cfg = RefineConfig(stage_length_views=1.0, mask_stages=2)
+    on = refine(model, views, masks, extent, cfg, progress=False)
+    off = refine(model, views, masks, extent, dataclasses.replace(cfg, object_check="off"), progress=False)
+    assert torch.equal(on.model.data["mask_logit"], off.model.data["mask_logit"])  # same refinement
+    assert not (on.foreground & ~off.foreground).any()
+    assert on.config["object_check_dropped"] == int((off.foreground & ~on.foreground).sum())
+    assert off.config["object_check_dropped"] == 0
+    assert nosplit_config(cfg).object_check == "off"

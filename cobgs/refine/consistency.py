@@ -16,7 +16,8 @@
   where the object is hidden in the scene render by something else are left out (a modal mask
   says nothing about them: there the object's render may rightly show what is occluded). A
   Gaussian that the check outvotes leaves the foreground; it stays in the scene (and in neither
-  set, like an undecided label).
+  set, like an undecided label); one the check cannot see at all (every pixel of it left out)
+  keeps its label's verdict.
 """
 
 from __future__ import annotations
@@ -91,5 +92,6 @@ def object_render_check(model: GaussianModel, foreground: Tensor, views: Sequenc
         checked.append(q)
     w = label_votes(obj, views, checked, 2, backend)
     out = foreground.clone()
-    out[idx] = w[:, 1] > mask_lambda * w[:, 0]
+    # a Gaussian the check cannot see (every pixel of it left out) keeps its label's verdict
+    out[idx] = (w[:, 1] > mask_lambda * w[:, 0]) | (w.sum(dim=1) == 0)
     return out
