@@ -15,7 +15,7 @@ import os
 import shutil
 import time
 from pathlib import Path
-from typing import Iterable, Optional
+from typing import Iterable, Optional, Sequence
 
 from pipeline.publish import DestinationError, check_destination, publish_folder
 
@@ -40,7 +40,8 @@ def default_out_dir(workflow) -> Path:
 def build_report(workflow_path: os.PathLike | str, out_dir: Optional[os.PathLike | str] = None,
                  cache_dir: Optional[os.PathLike | str] = None, sets: Iterable[str] = (),
                  registry=None, stream=None, turntables: int = 0, viewer: bool = True,
-                 viewer_mb: Optional[float] = None, scene_cameras=None) -> Path:
+                 viewer_mb: Optional[float] = None, scene_cameras=None,
+                 trajectories: Optional[os.PathLike | str] = None) -> Path:
     """Build the report of a workflow from its cache; returns the path of ``index.html``.
 
     Args:
@@ -59,6 +60,9 @@ def build_report(workflow_path: os.PathLike | str, out_dir: Optional[os.PathLike
             ``static/viewer.js``); False for a small report.
         viewer_mb: cap of the viewer payload per scene in MB (default
             :data:`reports.viewer.DEFAULT_MAX_MB`); a scene over it is subsampled.
+        trajectories: a folder of ``tests/benchmarks/bm_refine_trajectory.py`` records: the
+            refinement section draws, per scene of the run, IoU / boundary IoU after every stage
+            (:mod:`reports.trajectory`; records of other scenes are left out).
     """
     from pipeline import load_workflow
     from pipeline.commands import default_cache_dir
@@ -77,8 +81,14 @@ def build_report(workflow_path: os.PathLike | str, out_dir: Optional[os.PathLike
     t0 = time.perf_counter()
     data = collect(wf, cache)
     data.scene_cameras = scene_cameras
+    records = []
+    if trajectories is not None:  # read (and checked) before anything is written
+        from .trajectory import load_trajectories
+
+        records = load_trajectories(trajectories, data.scenes)
     try:
-        publish_folder(out, lambda tmp: _write(data, tmp, sets, turntables, viewer, viewer_mb), MARKER, "report")
+        publish_folder(out, lambda tmp: _write(data, tmp, sets, turntables, viewer, viewer_mb, records), MARKER,
+                       "report")
     except DestinationError as exc:
         raise ReportError(str(exc)) from None
     if stream is not None:
@@ -156,6 +166,23 @@ def _plots(data: RunData, infos: dict, by_method: list[dict], by_scene: list[dic
     return out
 
 
+def _trajectory_plots(data: RunData, ref: Optional[str], records: Sequence[dict], root: Path) -> list[dict]:
+    """One figure per scene with trajectory records: [{scene, path, records: [file names]}]."""
+    from . import plots as P
+    from .trajectory import by_scene
+
+    if not records:
+        return []
+    methods = list(data.methods) + sorted({r["method"] for r in records} - set(data.methods))
+    colors = P.method_colors(methods, ref)
+    out = []
+    for scene, recs in sorted(by_scene(list(records)).items()):
+        rel = f"plots/trajectory-{slug(scene)}.svg"
+        if P.trajectory(root / rel, scene, recs, colors):
+            out.append({"scene": scene, "path": rel, "records": [r["path"].name for r in recs]})
+    return out
+
+
 # -- the page ----------------------------------------------------------------------------
 def _env():
     import jinja2
@@ -169,7 +196,7 @@ def _env():
 
 
 def _write(data: RunData, root: Path, sets: list[str], turntables: int = 0, viewer: bool = True,
-           viewer_mb: Optional[float] = None) -> None:
+           viewer_mb: Optional[float] = None, trajectories: Sequence[dict] = ()) -> None:
     from . import meta
     from .viewer import DEFAULT_MAX_MB, viewer_sets
 
@@ -180,6 +207,7 @@ def _write(data: RunData, root: Path, sets: list[str], turntables: int = 0, view
     pictures = picture_sets(data, infos, root, turntables)
     viewers = viewer_sets(data, pictures, root, DEFAULT_MAX_MB if viewer_mb is None else viewer_mb) if viewer else {}
     plots = _plots(data, infos, tables["raw"]["by_method"], tables["raw"]["by_scene_method"], root)
+    plots["trajectories"] = _trajectory_plots(data, ref, trajectories, root)
     stage_table, task_table = detail_tables(data, ref, logs)
     failures = []
     for t in data.tasks:

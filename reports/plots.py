@@ -262,3 +262,51 @@ def score_curves(path: Path, panels: Sequence[tuple[str, Sequence[tuple[str, np.
     fig.legend(handles, [c[0] for c in longest[1]], loc="outside right upper", fontsize=7)
     _save(fig, path)
     return True
+
+
+TRAJECTORY_MARKERS = {"mask": "o", "texture": "s", "check": "*"}
+
+
+def trajectory(path: Path, title: str, records: Sequence[dict], colors: dict[str, str]) -> bool:
+    """Held-out IoU and boundary IoU after every stage of one scene's refinements (the
+    records of :mod:`reports.trajectory`): one line per method / object, a marker per stage
+    kind (mask ●, texture ■, the object-render check ★); x = 0 is the closed-form labels on
+    the unrefined scene; dashed lines: the closed-form labels on each stage's geometry.
+    ``colors`` must name every record's method (:func:`method_colors` over the run's methods
+    and the records')."""
+    records = [r for r in records if r.get("stages")]
+    if not records:
+        return False
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(9.2, 3.1), squeeze=False, layout="constrained")
+    most = max(len(r["stages"]) for r in records)
+    objects = sorted({r["object"] for r in records})
+    styles = ("-", (0, (4, 1.5)), (0, (1, 1)), "-.")
+    for r in records:
+        c = colors[r["method"]]
+        ls = styles[objects.index(r["object"]) % len(styles)]
+        label = f"{r['method']} / {r['object']}"
+        for ax, key in zip(axes[0], ("iou", "biou")):
+            xs = list(range(len(r["stages"]) + 1))
+            ys = [100 * r["start"][key]] + [100 * s[key] for s in r["stages"]]
+            ax.plot(xs, ys, color=c, ls=ls, lw=1.1, label=label)
+            for k, marker in TRAJECTORY_MARKERS.items():
+                pts = [(i + 1, 100 * s[key]) for i, s in enumerate(r["stages"]) if s["kind"] == k]
+                if pts:
+                    ax.plot(*zip(*pts), ls="none", marker=marker, ms=4 if k != "check" else 7, color=c)
+            if key == "biou":
+                cf = [(i + 1, 100 * s["cf_biou"]) for i, s in enumerate(r["stages"]) if "cf_biou" in s]
+                if cf:
+                    ax.plot(*zip(*cf), color=c, ls=(0, (2, 2)), lw=0.7, alpha=0.7)
+    for ax, name in zip(axes[0], ("IoU", "boundary IoU")):
+        ax.set_xlabel("stage (0 = closed-form labels, unrefined scene)")
+        ax.set_ylabel(f"held-out {name} (%)")
+        ax.set_xlim(-0.3, most + 0.3)
+        ax.set_xticks(range(most + 1))
+    axes[0][0].set_title(title)
+    handles = [plt.Line2D([], [], color="#444", ls="none", marker=m, ms=5, label=k) for k, m in TRAJECTORY_MARKERS.items()]
+    lines, labels = axes[0][0].get_legend_handles_labels()
+    fig.legend(lines[:12] + handles, labels[:12] + [h.get_label() for h in handles], loc="outside right upper",
+               fontsize=7)
+    _save(fig, path)
+    return True

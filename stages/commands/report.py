@@ -29,6 +29,9 @@ def register(sub) -> None:
     p.add_argument("--viewer-mb", type=_megabytes, default=None, metavar="MB",
                    help="cap of the embedded Gaussians per scene, in MB (default 8); a scene over it is "
                         "subsampled, most opaque x largest Gaussians first, and the page says so")
+    p.add_argument("--trajectories", metavar="DIR", default=None,
+                   help="a folder of tests/benchmarks/bm_refine_trajectory.py records: the refinement "
+                        "section draws IoU / boundary IoU after every stage, per scene of this run")
     p.set_defaults(func=_report)
 
 
@@ -66,7 +69,8 @@ def _report(args) -> int:
     try:
         index = build_report(args.workflow, out_dir=args.out, cache_dir=args.cache_dir, sets=args.sets,
                              stream=sys.stdout, turntables=args.turntables,
-                             viewer=not args.no_viewer, viewer_mb=args.viewer_mb)
+                             viewer=not args.no_viewer, viewer_mb=args.viewer_mb,
+                             trajectories=args.trajectories)
     except PipelineError as exc:  # bad workflow or --set: the engine's message names the key
         print(f"cobgs report: error: {exc}", file=sys.stderr)
         return 2

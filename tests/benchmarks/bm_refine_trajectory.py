@@ -24,8 +24,12 @@ stage resolves) with a hook at the start and end of every stage and records, per
   stages' label optimisation converges to) and their headline scores, to tell label error
   from geometry error.
 
-Writes ``<out>/<scene>__<method>__<object>.json`` and prints a table; ``--plot`` also writes
-a PNG per scene (the report's refinement section draws the same JSON).
+Where the row has the object-render check (``refine.cobgs.object_check``), a last record
+``kind = "check"`` scores the foreground after it (docs/method.md §7).
+
+Writes ``<out>/<scene>__<method>__<object>.json`` and prints a table; ``cobgs report
+WORKFLOW --trajectories OUT`` draws them in the report's refinement section (one figure per
+scene of the run).
 """
 
 from __future__ import annotations
@@ -183,6 +187,18 @@ def trajectory(wf, cache, scene_name, method, obj, sets_note=""):
     refiner = R.Refiner(m0, scene.train, masks, scene.extent, config, trained["background"], texture_moments=moments)
     refiner.run(progress=False, on_stage_start=start, on_stage_end=end)
     del fg0
+    if getattr(config, "object_check", "off") != "off":  # the row's object-render check, as refine() applies it
+        from cobgs.refine.consistency import object_render_check
+
+        m = refiner.model
+        fg = labels(refiner) > R.FG_THRESHOLD
+        kept = object_render_check(m, fg, refiner.views, refiner.pixel_labels, config.mask_lambda, config.backend)
+        row = {"stage": len(rows), "kind": "check", "iteration": refiner.iteration, "gaussians": len(m),
+               "split": 0, "pruned": 0, "fg": int(kept.sum()), "dropped": int((fg & ~kept).sum())}
+        row.update(_headline(m, kept, test, gts))
+        rows.append(row)
+        print(f"    check   : dropped {row['dropped']} of {int(fg.sum())} foreground Gaussians  IoU "
+              f"{100 * row['iou']:5.1f} BIoU {100 * row['biou']:5.1f}", flush=True)
     return {"scene": scene_name, "method": method, "object": obj, "config": config.as_dict(),
             "sets": sets_note, "views": len(scene.train), "start": base, "stages": rows,
             "wall_s": time.perf_counter() - t0}

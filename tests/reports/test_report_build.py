@@ -372,3 +372,49 @@ def test_ablation_and_psnr_tables_and_their_markdown(recorded, report):
     assert "| Scene | Method | BAGS | BGTR | RAEM |" in md and "Texture quality (paper Table 4)" in md
     assert f"| {by_scene[('s1', 'cobgs')][3][0]} |" in md or f"**{by_scene[('s1', 'cobgs')][3][0]}**" in md
     assert (report.parent / "data" / "ablation.csv").is_file() and (report.parent / "data" / "texture_psnr.csv").is_file()
+
+
+def _trajectory_record(scene: str, method: str, obj: str, stages=("mask", "texture", "mask", "check")) -> dict:
+    return {"scene": scene, "method": method, "object": obj, "start": {"iou": 0.5, "biou": 0.3},
+            "stages": [{"stage": i, "kind": k, "iou": 0.6 + 0.05 * i, "biou": 0.4 + 0.05 * i,
+                        "cf_iou": 0.6, "cf_biou": 0.41} for i, k in enumerate(stages)]}
+
+
+def test_trajectory_records_are_drawn_per_scene_of_the_run(recorded, tmp_path):
+    """`--trajectories DIR`: one figure per scene of the run with records; other scenes'
+    records are left out; the caption names the files it drew."""
+    d = tmp_path / "traj"
+    d.mkdir()
+    (d / "s1__cobgs__ball.json").write_text(json.dumps(_trajectory_record("s1", "cobgs", "ball")))
+    (d / "s1__ours__ball.json").write_text(json.dumps(_trajectory_record("s1", "ours", "ball")))  # not a run method
+    (d / "elsewhere__cobgs__ball.json").write_text(json.dumps(_trajectory_record("elsewhere", "cobgs", "ball")))
+    index = recorded.build(tmp_path / "r", trajectories=d)
+    html = index.read_text(encoding="utf-8")
+    svg = index.parent / "plots" / "trajectory-s1.svg"
+    assert svg.is_file() and "plots/trajectory-s1.svg" in html
+    assert "s1__cobgs__ball.json, s1__ours__ball.json" in html
+    assert not list((index.parent / "plots").glob("trajectory-elsewhere*")) and "elsewhere__" not in html
+    text = svg.read_text(encoding="utf-8")
+    assert "cobgs / ball" in text and "ours / ball" in text
+    # without the option: no such figure
+    plain = recorded.build(tmp_path / "r2")
+    assert not list((plain.parent / "plots").glob("trajectory-*"))
+
+
+@pytest.mark.parametrize("mutate, match", [
+    (lambda r: r.pop("scene"), r"field 'scene'"),
+    (lambda r: r["stages"][1].update(kind="mystery"), r"stages\[1\]\.kind: expected one of mask, texture, check"),
+    (lambda r: r["stages"][2].update(biou=float("nan")), r"stages\[2\]\.biou: expected a finite number"),
+    (lambda r: r.update(stages=[]), r"field 'stages': expected a non-empty list"),
+])
+def test_a_bad_trajectory_record_stops_the_report_before_anything_is_written(recorded, tmp_path, mutate, match):
+    d = tmp_path / "traj"
+    d.mkdir()
+    rec = _trajectory_record("s1", "cobgs", "ball")
+    mutate(rec)
+    (d / "bad.json").write_text(json.dumps(rec))
+    with pytest.raises(ReportError, match=r"bad\.json: " + match):
+        recorded.build(tmp_path / "r", trajectories=d)
+    assert not (tmp_path / "r").exists()
+    with pytest.raises(ReportError, match="not a folder"):
+        recorded.build(tmp_path / "r", trajectories=tmp_path / "absent")
