@@ -194,12 +194,37 @@ def _axis_names(workflow, axis: str, parent_value: Optional[str] = None) -> list
     return workflow.axes[axis].names(parent_value)
 
 
+# Refine params added after cache entries were written, with the value those entries ran with:
+# the refine stage leaves such a param out of its key at that value (stages/refine.py
+# _key_params), so an old entry is served for it; filled in here so that a method's old and
+# new entries read alike (otherwise its options "vary by scene").
+LATER_PARAMS = {("cobgs", "object_check"): "off"}
+
+
+def _with_later_params(params: dict, defaults: dict) -> dict:
+    """``params`` with each of :data:`LATER_PARAMS` that the stage's own defaults know of
+    (a stage registry without it — another program's refine stage — is left alone)."""
+    for (section, key), value in LATER_PARAMS.items():
+        sec = params.get(section)
+        if isinstance(sec, dict) and key not in sec and key in ((defaults.get(section) or {})):
+            params[section] = dict(sec, **{key: value})
+    return params
+
+
+def _refine_defaults(workflow) -> dict:
+    from pipeline.params import to_json
+
+    stage = workflow.graph.producer.get("refined")
+    return to_json(workflow.stages[stage].params()) if stage is not None else {}
+
+
 def collect(workflow, cache_dir: os.PathLike | str) -> RunData:
     """Everything the report needs about ``workflow`` (a loaded :class:`pipeline.Workflow`)
     from the cache at ``cache_dir``."""
     cache_dir = Path(cache_dir)
     tasks = _tasks(workflow, cache_dir)
     producer = workflow.graph.producer
+    refine_defaults = _refine_defaults(workflow)
     by_stage: dict[str, dict[Any, Task]] = {}
     for t in tasks:
         by_stage.setdefault(t.stage, {})[t.item] = t
@@ -260,7 +285,7 @@ def collect(workflow, cache_dir: os.PathLike | str) -> RunData:
             rt = task_for("refined", mt.item)
             r.refine, r.refine_dir = load(rt, "refined")
             if rt is not None and rt.manifest is not None and rt.state == "done":
-                r.refine_params = dict(rt.manifest.get("params") or {})
+                r.refine_params = _with_later_params(dict(rt.manifest.get("params") or {}), refine_defaults)
             st = task_for("segmentation", mt.item)
             r.segment, r.segment_dir = load(st, "segmentation")
             results.append(r)

@@ -59,22 +59,35 @@ _PAPER_DEFAULTS = {"delta": None, "mask_stages": None, "stage_length_views": 2.0
                    "mask_lambda": 1.0, "label_lr": 0.1}
 
 
-def paper_method(kind: str, refine_params: Optional[Mapping]) -> Optional[tuple]:
-    """Which of the paper's methods a method item is, or None when it is none of them.
-
-    Returns:
-        ``("cobgs", (bags, bgtr, raem))`` for COB-GS and its ablation rows (the switches
-        that the paper's Table 5 varies), ``("nosplit",)``, ``("sa3d",)``, ``("flashsplat",)``.
-    """
-    if kind in ("sa3d", "flashsplat", "nosplit"):
-        return (kind,)
+def cobgs_switches(kind: str, refine_params: Optional[Mapping]) -> Optional[tuple]:
+    """``(bags, bgtr, raem on, object check)`` of a COB-GS item whose other measured params
+    are the released ones (a Table 5-style row), else None. The object-render check
+    (docs/method.md §7) is this project's switch, not the paper's: "off" where the params
+    do not name it (entries written before it existed ran without it)."""
     if kind != "cobgs" or not refine_params:
         return None
     c = refine_params.get("cobgs") or {}
     for k, v in _PAPER_DEFAULTS.items():
         if k in c and c[k] != v:
             return None
-    return ("cobgs", (bool(c.get("bags", True)), bool(c.get("bgtr", True)), c.get("raem", "released") != "off"))
+    return (bool(c.get("bags", True)), bool(c.get("bgtr", True)), c.get("raem", "released") != "off",
+            str(c.get("object_check", "off")))
+
+
+def paper_method(kind: str, refine_params: Optional[Mapping]) -> Optional[tuple]:
+    """Which of the paper's methods a method item is, or None when it is none of them.
+
+    Returns:
+        ``("cobgs", (bags, bgtr, raem))`` for COB-GS and its ablation rows (the switches
+        that the paper's Table 5 varies; with the object-render check on it is our variant,
+        not the paper's method: None), ``("nosplit",)``, ``("sa3d",)``, ``("flashsplat",)``.
+    """
+    if kind in ("sa3d", "flashsplat", "nosplit"):
+        return (kind,)
+    sw = cobgs_switches(kind, refine_params)
+    if sw is None or sw[3] != "off":
+        return None
+    return ("cobgs", sw[:3])
 
 
 def nvos_quote(method: Optional[tuple]) -> Optional[Quote]:

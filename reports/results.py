@@ -46,6 +46,8 @@ class MethodInfo:
     role: str = "peer"
     paper: Optional[tuple] = None
     raem: Optional[str] = None  # COB-GS's RAEM variant ("released", "paper", "off")
+    # (BAGS, BGTR, RAEM on, object check) of a Table 5-style row (:func:`reports.paper.cobgs_switches`)
+    switches: Optional[tuple] = None
 
     @property
     def kind_label(self) -> str:
@@ -84,7 +86,7 @@ def refine_defaults(workflow) -> dict:
 
 
 # The no-split row forces COB-GS's switches off whatever the params say (cobgs.refine.peers.run_method)
-_FORCED = {"nosplit": ("cobgs.bags", "cobgs.bgtr", "cobgs.raem")}
+_FORCED = {"nosplit": ("cobgs.bags", "cobgs.bgtr", "cobgs.raem", "cobgs.object_check")}
 
 
 def options_of(kind: str, params: Optional[dict], defaults: dict) -> list[str]:
@@ -109,6 +111,8 @@ def method_infos(data: RunData) -> dict[str, MethodInfo]:
         if r.method not in seen:
             info.kind, info.options = r.method_kind, opts
             info.paper = paper.paper_method(r.method_kind, r.refine_params)
+            info.switches = ((False, False, False, "off") if r.method_kind == "nosplit"
+                             else paper.cobgs_switches(r.method_kind, r.refine_params))
             if r.method_kind == "cobgs":
                 info.raem = str(((r.refine_params.get("cobgs") or {}).get("raem")
                                  or (defaults.get("cobgs") or {}).get("raem") or "released"))
@@ -116,7 +120,7 @@ def method_infos(data: RunData) -> dict[str, MethodInfo]:
     for m, variants in seen.items():
         if len(variants) > 1:  # per-scene overrides: say so rather than pick one
             infos[m].options = infos[m].options + ["(varies by scene)"]
-            infos[m].paper = None
+            infos[m].paper = infos[m].switches = None
     if ORACLE_METHOD in infos:
         picks = sorted({str((r.row or {}).get("oracle_choice")) for r in data.results if r.method == ORACLE_METHOD})
         infos[ORACLE_METHOD] = MethodInfo(ORACLE_METHOD, kind="flashsplat", options=[
@@ -529,7 +533,8 @@ def task_records(data: RunData, log_href: LogHref) -> list[dict]:
 
 def difference_records(data: RunData, infos: dict, ref: Optional[str]) -> tuple[list[dict], list[str]]:
     """Per scene (and mask route, where a scene mixes them): the reference method's headline
-    mBIoU minus each peer's and the no-split row's, in points, with a 95 % interval from
+    mBIoU minus each peer's, the no-split row's and, where the reference is the checked
+    variant, its faithful COB-GS twin's (:func:`faithful_twins`), in points, with a 95 % interval from
     resampling the held-out views of each object (:func:`cobgs.evaluate.protocols.bootstrap_mean_diff`).
 
     Returns:
@@ -539,8 +544,9 @@ def difference_records(data: RunData, infos: dict, ref: Optional[str]) -> tuple[
 
     if ref is None:
         return [], []
+    twins = faithful_twins(infos, ref)
     others = [m for m in data.methods if m != ref and m in infos
-              and (infos[m].role == "peer" or infos[m].kind == "nosplit")]
+              and (infos[m].role == "peer" or infos[m].kind == "nosplit" or m in twins)]
     key = _scene_route_key(data.results)
     groups: dict[tuple, dict] = {}
     for r in data.results:
@@ -587,12 +593,26 @@ _RAEM_ORDER = {"off": 0, "released": 1, "paper": 2}
 
 
 def _switches(info: Optional[MethodInfo]) -> Optional[tuple]:
-    """(BAGS, BGTR, RAEM) of a Table 5 row: COB-GS and its switch ablations, no-split = none."""
-    if info is None or info.paper is None:
+    """(BAGS, BGTR, RAEM) of a Table 5 row: COB-GS and its switch ablations, no-split = none
+    (with or without the object-render check: :func:`_check`)."""
+    if info is None or info.switches is None:
         return None
-    if info.paper[0] == "nosplit":
-        return (False, False, False)
-    return info.paper[1] if info.paper[0] == "cobgs" else None
+    return tuple(info.switches[:3])
+
+
+def _check(info: Optional[MethodInfo]) -> str:
+    """The object-render check of a Table 5-style row ("off" / "visible")."""
+    return str(info.switches[3]) if info is not None and info.switches is not None else "off"
+
+
+def faithful_twins(infos: dict, ref: Optional[str]) -> list[str]:
+    """The faithful COB-GS rows the reference is the checked variant of: all three switches
+    on, the same RAEM, object check off (docs/method.md §7: our variant beside the faithful)."""
+    mine = infos.get(ref) if ref else None
+    if mine is None or mine.switches is None or _check(mine) == "off":
+        return []
+    return [m for m, i in infos.items() if m != ref and i.switches is not None and _check(i) == "off"
+            and tuple(i.switches[:3]) == tuple(mine.switches[:3]) and i.raem == mine.raem]
 
 
 def ablation_records(by_scene: list[dict], infos: dict) -> list[dict]:
@@ -611,9 +631,12 @@ def ablation_records(by_scene: list[dict], infos: dict) -> list[dict]:
         if sw is None:
             continue
         raem = "off" if not sw[2] else (info.raem or "released")
+        check = _check(info)
         row = dict(rec)
         row.update(bags="✓" if sw[0] else "", bgtr="✓" if sw[1] else "", raem=raem,
-                   _sort=(order[rec["_group"]], _switch_order(sw), _RAEM_ORDER.get(raem, 3), rec["method"]))
+                   check="" if check == "off" else check,
+                   _sort=(order[rec["_group"]], _switch_order(sw), _RAEM_ORDER.get(raem, 3), check != "off",
+                          rec["method"]))
         row["_text"] = dict(rec.get("_text") or {})
         out.append(row)
     out.sort(key=lambda r: r["_sort"])

@@ -147,7 +147,7 @@ def result_tables(data: RunData, infos: dict, logs: R.LogHref) -> dict:
     ref = R.reference_method(infos)
     drecs, compared = R.difference_records(data, infos, ref)
     t_diff = build_table(
-        "t-diff", f"mBIoU of {ref} minus each peer's, per scene (headline protocol; points, 95 % interval from "
+        "t-diff", f"mBIoU of {ref} minus each peer's (and the faithful COB-GS row's where {ref} is a variant of it), per scene (headline protocol; points, 95 % interval from "
                   "resampling the held-out views of each object)",
         [Column("scene", "Scene", numeric=False),
          *([Column("masks", "Masks", numeric=False)] if any(r.get("masks") for r in drecs) else []),
@@ -166,6 +166,10 @@ def result_tables(data: RunData, infos: dict, logs: R.LogHref) -> dict:
          Column("bgtr", "BGTR", numeric=False, title="texture stages between the mask stages"),
          Column("raem", "RAEM", numeric=False, title="final pruning of ambiguous Gaussians: off, released (every "
                 "ambiguous Gaussian) or paper (only those below the pixel footprint)"),
+         *([Column("check", "Object check", numeric=False,
+                   title="this project's object-render check (docs/method.md §7), not the paper's: the "
+                         "foreground rendered alone, what falls on the masks' background leaves it")]
+           if any(r.get("check") for r in arecs) else []),
          Column("iou", "mIoU", fmt.pct, better="max"), Column("acc", "mAcc", fmt.pct, better="max"),
          Column("biou", "mBIoU", fmt.pct, better="max"), *_protocol_cols(arecs),
          Column("psnr_delta", "ΔPSNR", lambda v: fmt.db(v, signed=True), better="max",

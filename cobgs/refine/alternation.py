@@ -532,6 +532,11 @@ def refine_objects(
 ) -> MultiObjectResult:
     """Refine and segment K objects in one run (see the module docstring).
 
+    Each object's foreground here is its label column > 0.9 (the authors' segmentation):
+    ``config.object_check`` (docs/method.md §7) is not applied to the joint result, whose
+    object ids come from the labels alone; refine objects one at a time (:func:`refine`, as
+    the refine stage does) for the checked foreground.
+
     Args:
         model: the trained scene (not modified; a clone is refined).
         views: training views.

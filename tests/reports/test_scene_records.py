@@ -69,28 +69,37 @@ def test_difference_to_each_peer_with_a_view_bootstrap_interval():
     assert rec["d:same"] == 0 and rec["_text"]["d:same"] == "+0.00 [+0.00, +0.00]"
 
 
-def _infos():
+def _infos(ours: bool = False):
     from reports.results import MethodInfo
 
-    return {"cobgs": MethodInfo("cobgs", kind="cobgs", role="reference", paper=("cobgs", (True, True, True)),
-                                raem="released"),
-            "raem_paper": MethodInfo("raem_paper", kind="cobgs", options=["raem=paper"], role="variant",
-                                     paper=("cobgs", (True, True, True)), raem="paper"),
-            "no_raem": MethodInfo("no_raem", kind="cobgs", options=["raem=off"], role="variant",
-                                  paper=("cobgs", (True, True, False)), raem="off"),
-            "t5_bags": MethodInfo("t5_bags", kind="cobgs", options=["bgtr=false", "raem=off"], role="variant",
-                                  paper=("cobgs", (True, False, False)), raem="off"),
-            "nosplit": MethodInfo("nosplit", kind="nosplit", role="variant", paper=("nosplit",)),
-            "sa3d": MethodInfo("sa3d", kind="sa3d", paper=("sa3d",)),
-            "delta_0.3": MethodInfo("delta_0.3", kind="cobgs", options=["delta=0.3"], role="variant")}
+    def cob(name, paper_sw, raem, options=(), role="variant", check="off"):
+        return MethodInfo(name, kind="cobgs", options=list(options), role=role,
+                          paper=("cobgs", paper_sw) if check == "off" else None, raem=raem,
+                          switches=paper_sw + (check,))
+
+    out = {"cobgs": cob("cobgs", (True, True, True), "released", role="reference"),
+           "raem_paper": cob("raem_paper", (True, True, True), "paper", ["raem=paper"]),
+           "no_raem": cob("no_raem", (True, True, False), "off", ["raem=off"]),
+           "t5_bags": cob("t5_bags", (True, False, False), "off", ["bgtr=false", "raem=off"]),
+           "nosplit": MethodInfo("nosplit", kind="nosplit", role="variant", paper=("nosplit",),
+                                 switches=(False, False, False, "off")),
+           "sa3d": MethodInfo("sa3d", kind="sa3d", paper=("sa3d",)),
+           "delta_0.3": MethodInfo("delta_0.3", kind="cobgs", options=["delta=0.3"], role="variant")}
+    if ours:
+        out["cobgs"].role = "variant"
+        out["ours"] = cob("ours", (True, True, True), "paper", ["raem=paper", "object_check=visible"],
+                          role="reference", check="visible")
+    return out
 
 
-def _table_data():
+def _table_data(ours: bool = False):
     """Two scenes; scene s mixes exact and noisy masks. PSNR per object: vanilla 30."""
     psnr = {"cobgs": (29.5, 29.95), "raem_paper": (29.8, 29.95), "no_raem": (29.95, 29.95),
             "t5_bags": (29.0, 29.0), "nosplit": (30.0, 30.0), "sa3d": (30.0, 30.0), "delta_0.3": (29.9, 29.9)}
     biou = {"cobgs": 0.8, "raem_paper": 0.79, "no_raem": 0.78, "t5_bags": 0.75, "nosplit": 0.7, "sa3d": 0.72,
             "delta_0.3": 0.77}
+    if ours:  # the checked variant of raem_paper: the same scene (PSNR), another foreground
+        psnr["ours"], biou["ours"] = psnr["raem_paper"], 0.81
     results = []
     for scene, objects in (("s", (("a", "exact"), ("a_noisy", "noisy"))), ("t", (("b", "exact"),))):
         for obj, route in objects:
@@ -101,6 +110,7 @@ def _table_data():
                 r = _res(scene, m, obj, biou[m] - (0.1 if route == "noisy" else 0), route, kind)
                 r.row.update(psnr=after, psnr_before_raem=before, psnr_vanilla=30.0, psnr_delta=after - 30.0,
                              psnr_delta_before_raem=before - 30.0)
+                r.per_view = {f"v{i}": {"biou": r.row["biou"] + 0.01 * i} for i in range(3)}
                 results.append(r)
     return RunData(workflow=None, cache_dir=Path("."), tasks=[], results=results, scenes={n: SimpleNamespace(protocol="exact", dataset={}) for n in "st"},
                    methods=list(psnr))
@@ -146,3 +156,40 @@ def test_a_method_run_on_part_of_the_workflow_is_never_best_by_method():
     recs = {r["method"]: r for r in R.method_records(data, infos, lambda t: None)[0]}
     assert recs["delta_0.3"]["_nobest"] and not recs["cobgs"]["_nobest"]
     assert recs["delta_0.3"]["_text"]["scenes"] == "1" and recs["cobgs"]["_text"]["scenes"] == "2"
+
+
+def test_the_checked_variant_sits_beside_its_faithful_row():
+    """docs/method.md §7: with the object-render check the reference is our variant: it is no
+    paper row (no paper quotes), its ablation row says so, and its faithful twin (same switches
+    and RAEM, check off) is compared with it like a peer."""
+    from reports.paper import cobgs_switches, paper_method
+
+    params = {"method": "cobgs", "cobgs": {"raem": "paper", "object_check": "visible"}}
+    assert paper_method("cobgs", params) is None
+    assert cobgs_switches("cobgs", params) == (True, True, True, "visible")
+    assert paper_method("cobgs", {"method": "cobgs", "cobgs": {"raem": "paper"}}) == ("cobgs", (True, True, True))
+    data, infos = _table_data(ours=True), _infos(ours=True)
+    assert R.faithful_twins(infos, "ours") == ["raem_paper"]
+    assert R.faithful_twins(infos, "cobgs") == []  # a faithful reference has no twin
+    by_scene = R.scene_method_records(data, infos, lambda t: None)
+    first = [r for r in R.ablation_records(by_scene, infos) if (r["scene"], r["masks"]) == ("s", "exact")]
+    assert [(r["method"], r["check"]) for r in first][-2:] == [("raem_paper", ""), ("ours", "visible")]
+    recs, used = R.difference_records(data, infos, "ours")
+    assert "raem_paper" in used and "cobgs" not in used and "no_raem" not in used
+    rec = next(r for r in recs if r["scene"] == "t")
+    assert rec["d:raem_paper"] == pytest.approx(2.0)
+    psnr = {(r["scene"], r["masks"]): r for r in R.psnr_records(by_scene, infos, "ours")}
+    assert psnr[("t", None)]["raem_paper"] == 29.8  # the check leaves the scene as it was
+
+
+def test_params_recorded_before_the_object_check_existed_read_as_off():
+    """Entries written before `cobgs.object_check` existed ran without it and share the key of
+    "off" (stages/refine.py): the report reads them so, so that a method's old and new entries
+    do not look like per-scene overrides."""
+    from reports.collect import _with_later_params
+
+    defaults = {"cobgs": {"object_check": "visible", "raem": "paper"}}
+    assert _with_later_params({"cobgs": {"raem": "paper"}}, defaults)["cobgs"]["object_check"] == "off"
+    assert _with_later_params({"cobgs": {"object_check": "visible"}}, defaults)["cobgs"]["object_check"] == "visible"
+    # a refine stage that has no such param (another program's) is left alone
+    assert "object_check" not in _with_later_params({"cobgs": {}}, {"cobgs": {}})["cobgs"]

@@ -57,6 +57,12 @@ def _area(path) -> int:
     return int((cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) > 128).sum())
 
 
+def _over_segments_but_finds_the_object(metrics: dict) -> None:
+    pv = metrics["details"]["per_view"].values()
+    tp, fn = sum(v["tp"] for v in pv), sum(v["fn"] for v in pv)
+    assert tp / (tp + fn) > 0.95 and metrics["row"]["iou"] > 0.25, metrics["row"]
+
+
 @pytest.mark.slow
 def test_nvos_and_lerf_mask_workflows(tmp_path):
     from cobgs.data.synthetic import generate_scene
@@ -94,11 +100,14 @@ def test_nvos_and_lerf_mask_workflows(tmp_path):
         assert m["row"]["mask_render"] == "object_only"
         # the GT compared is the target's: its area is 4x the training-size exact mask's
         assert pv["tp"] + pv["fn"] == 4 * _area(scene / "masks" / "ball" / "0008.png")
-    # Measured on this 500-iteration scene, 3 mask stages, SfM on one thread (repeatable):
-    # COB-GS 0.896, no split 0.955, SA3D-GS 0.875, FlashSplat 0.954. A mis-wired protocol
-    # scores far lower.
-    for method in ("cobgs", "nosplit", "sa3d", "flashsplat"):
+    # Measured on this 500-iteration scene, 3 mask stages, SfM on one thread (repeatable;
+    # 2026-11-27): COB-GS (the default, with the object check) 0.948, no split 0.955,
+    # FlashSplat 0.954; SA3D-GS by its official rules 0.380 with every GT pixel found: its
+    # 0.1 evaluation bar over-segments at this image size (docs/method.md §3). A mis-wired
+    # protocol (wrong view, GT at the wrong size) loses the recall too.
+    for method in ("cobgs", "nosplit", "flashsplat"):
         assert rows[f"synthball/{method}/ball"]["row"]["iou"] > 0.75, method
+    _over_segments_but_finds_the_object(rows["synthball/sa3d/ball"])
     # LERF-mask: every GT file is scored (an empty GT: 0 against a non-empty prediction, NaN
     # against an empty one, both counted), views without a file are listed, and the GT of
     # test index i is the i-th sorted test view's (its area identifies it).
@@ -114,12 +123,14 @@ def test_nvos_and_lerf_mask_workflows(tmp_path):
         obj = item.split("/")[-1]
         for view, pv in m["details"]["per_view"].items():
             assert pv["tp"] + pv["fn"] == _area(scene / "masks" / obj / f"{view[len('frame_'):]}.png"), view
-    # Measured: ball 0.752 / can 0.645 (COB-GS; RAEM prunes part of this small scene after
-    # only 3 mask stages), 0.948 / 0.883 (no split), 0.883 / 0.788 (SA3D-GS), 0.947 / 0.879
-    # (FlashSplat); no test view of this fixture has an empty GT.
-    for method in ("cobgs", "nosplit", "sa3d", "flashsplat"):
+    # Measured (2026-11-27): ball 0.946 / can 0.914 (COB-GS, the default), 0.946 / 0.880 (no
+    # split), 0.947 / 0.879 (FlashSplat), SA3D-GS official 0.409 / 0.327 with recall 1.0 (the
+    # 0.1 bar again); no test view of this fixture has an empty GT.
+    for method in ("cobgs", "nosplit", "flashsplat"):
         for obj in ("ball", "can"):
-            assert rows[f"lerf/{method}/{obj}"]["row"]["iou"] > 0.6, (method, obj)
+            assert rows[f"lerf/{method}/{obj}"]["row"]["iou"] > 0.75, (method, obj)
+    for obj in ("ball", "can"):
+        _over_segments_but_finds_the_object(rows[f"lerf/sa3d/{obj}"])
 
     summ = json.loads((recs[("summary", "")].output("summary") / "summary.json").read_text())
     per = {(r["scene"], r["method"]): r for r in summ["by_scene_method"]}
