@@ -116,7 +116,7 @@ def method_infos(data: RunData) -> dict[str, MethodInfo]:
             if r.method_kind == "cobgs":
                 info.raem = str(((r.refine_params.get("cobgs") or {}).get("raem")
                                  or (defaults.get("cobgs") or {}).get("raem") or "released"))
-        seen.setdefault(r.method, set()).add(tuple(opts))
+        seen.setdefault(r.method, set()).add(tuple(sorted(opts)))  # the same options in any order
     for m, variants in seen.items():
         if len(variants) > 1:  # per-scene overrides: say so rather than pick one
             infos[m].options = infos[m].options + ["(varies by scene)"]
