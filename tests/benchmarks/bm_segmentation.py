@@ -188,6 +188,9 @@ def main(argv=None) -> int:
     ap.add_argument("--report-dir", default=str(REPO / "runs" / "reports" / "synthetic_bench"))
     ap.add_argument("--docs", default=str(REPO / "docs" / "benchmarks" / "segmentation.md"))
     ap.add_argument("--no-run", action="store_true", help="only rebuild the report and the docs page")
+    ap.add_argument("--trajectories", default=None, metavar="DIR",
+                    help="bm_refine_trajectory.py records of this cache's scenes, drawn in the report "
+                         "(only records made on the same trained scenes: a rerun trains other baselines)")
     args = ap.parse_args(argv)
     cache = ["--cache-dir", args.cache_dir] if args.cache_dir else []
     wall = None
@@ -197,7 +200,9 @@ def main(argv=None) -> int:
         wall = time.perf_counter() - t0
         if rc != 0:
             print(f"cobgs run exited {rc}: the report shows what failed", file=sys.stderr)
-    subprocess.run([os.fspath(COBGS), "report", os.fspath(WORKFLOW), "--out", args.report_dir, *cache], check=True)
+    traj = ["--trajectories", args.trajectories] if args.trajectories else []
+    subprocess.run([os.fspath(COBGS), "report", os.fspath(WORKFLOW), "--out", args.report_dir, *cache, *traj],
+                   check=True)
     command = "python tests/benchmarks/bm_segmentation.py" + (f" -j {args.jobs}" if args.jobs != 1 else "") + \
         (" --no-run" if args.no_run else "")
     text = docs_page(Path(args.report_dir), command, wall)
