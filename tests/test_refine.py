@@ -513,3 +513,35 @@ def test_refine_applies_the_object_check_only_when_asked():
     assert on.config["object_check_dropped"] == int((off.foreground & ~on.foreground).sum())
     assert off.config["object_check_dropped"] == 0
     assert nosplit_config(cfg).object_check == "off"
+
+
+def test_short_stages_cannot_carry_a_restarted_label_past_foreground_and_say_so(caplog):
+    """Adam at lr 0.1 with a gradient of one sign moves a logit by lr per step: 21 steps
+    leave a label from 0.5 below 0.9, 22 pass it. A splitting schedule with shorter stages
+    (9 views x 2 = 18 iterations, the LERF-mask fixture) is named in a warning."""
+    import logging
+
+    from cobgs.refine.alternation import short_stage_warning, steps_to_foreground
+
+    need = steps_to_foreground(0.1)
+    assert need == 22 and steps_to_foreground(0.05) == 44
+    for steps, passes in ((need - 1, False), (need, True)):
+        logit = torch.zeros(1, requires_grad=True)
+        opt = torch.optim.Adam([logit], lr=0.1, eps=1e-15)
+        for _ in range(steps):
+            opt.zero_grad()
+            (-logit).sum().backward()  # the object's pixels pull the label up
+            opt.step()
+        assert (torch.sigmoid(logit).item() > 0.9) is passes, steps
+    cfg = RefineConfig()
+    msg = short_stage_warning(cfg, 9)
+    assert msg and "18 iterations" in msg and "stage_length_views >= 2.5" in msg
+    assert short_stage_warning(cfg, 11) is None  # 22 iterations
+    assert short_stage_warning(dataclasses.replace(cfg, stage_length_views=2.5), 9) is None
+    assert short_stage_warning(dataclasses.replace(cfg, bags=False), 3) is None  # nothing restarts
+
+    model, views, extent = tiny_scene(n_views=3)
+    with caplog.at_level(logging.WARNING, logger="cobgs.refine.alternation"):
+        refine(model, views, masks_for(views, "ball"), extent, RefineConfig(mask_stages=2, stage_length_views=2),
+               progress=False, object_name="ball")
+    assert any("stages of 6 iterations" in r.getMessage() and "ball" in r.getMessage() for r in caplog.records)

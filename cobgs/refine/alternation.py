@@ -319,6 +319,33 @@ def _check_refined(model: GaussianModel, label: str, where: str) -> None:
         raise DivergenceError(f"{where}: non-finite label logits; nothing is saved")
 
 
+def steps_to_foreground(label_lr: float) -> int:
+    """Fewest MASK iterations that can carry a label from 0.5 (logit 0, where labels start
+    and split children restart) past the 0.9 foreground threshold: Adam moves a logit by at
+    most about ``label_lr`` per step, so ⌈ln 9 / lr⌉ (22 at the default lr 0.1)."""
+    return int(math.ceil(math.log(FG_THRESHOLD / (1.0 - FG_THRESHOLD)) / label_lr - 1e-9))
+
+
+def short_stage_warning(config: RefineConfig, num_views: int) -> Optional[str]:
+    """Why a splitting schedule cannot finish its labels, or None: with stages of
+    ``stage_length_views × V`` iterations shorter than :func:`steps_to_foreground`, no
+    label passes 0.9 in the first MASK stage and the children of the last split (label 0.5
+    again, one MASK stage left) never become foreground, so the object comes out with
+    holes along its boundary (measured on the 9-view LERF-mask fixture:
+    docs/benchmarks/protocol_workflows.md)."""
+    if not config.bags:  # labels keep training across stages; nothing restarts at 0.5
+        return None
+    length = config.stage_length(num_views)
+    need = steps_to_foreground(config.label_lr)
+    if length >= need:
+        return None
+    views = need / max(num_views, 1)
+    return (f"stages of {length} iterations ({config.stage_length_views:g} x {num_views} views) are "
+            f"shorter than the {need} a label needs to pass 0.9 from 0.5 at label_lr {config.label_lr:g}: "
+            f"boundary Gaussians split in the last stages cannot become foreground; set "
+            f"refine.cobgs.stage_length_views >= {math.ceil(views * 10) / 10:g} (or raise label_lr)")
+
+
 def _label_sets(logits: Tensor) -> tuple[Tensor, Tensor]:
     """(foreground, background) [N] bool of label logits: sigmoid > 0.9 / < 0.1.
 
@@ -378,6 +405,9 @@ def refine(
             log.warning("%s %s: no baseline Adam moments given; the TEXTURE stages start from zero moments "
                         "(pass texture_moments, e.g. TrainResult.adam_moments or read_moments(adam_moments.pt))",
                         method, object_name)
+        short = short_stage_warning(config, len(r.views))
+        if short:
+            log.warning("%s %s: %s", method, object_name, short)
         stats, scores, amb = r.run(progress=progress, desc=f"{method} {object_name}".strip())
         logits = m.data[config.label_name]
         fg, bg = _label_sets(logits)
