@@ -142,7 +142,8 @@ def test_refine_records_how_the_texture_adam_started(baseline, caplog):
     with caplog.at_level(logging.WARNING, logger="cobgs.refine.alternation"):
         warm = refine(model, views, masks_for(views, "ball"), extent, cfg, progress=False, texture_moments=mom,
                       return_moments=True)
-    assert warm.config["texture_adam"] == "baseline" and not caplog.records
+    assert warm.config["texture_adam"] == "baseline"
+    assert not any("Adam" in r.getMessage() for r in caplog.records)  # (this tiny schedule's short-stage warning may remain)
     # The returned moments follow the refined model (splits appended children).
     assert warm.texture_moments["means"]["exp_avg"].shape == warm.model.means.shape
     assert float(warm.texture_moments["means"]["step"]) == 24 + len(views)  # one texture stage of V its
