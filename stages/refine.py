@@ -106,6 +106,12 @@ def _run(ctx, inputs):
             ctx.log.warning("%s not found: the texture stages start from fresh Adam moments", moments_file)
     ctx.log.info("%s on %r: %d Gaussians, %d views (%d with a mask)", p.method, obj, len(model),
                  len(scene.train), sum(m is not None for m in masks))
+    if p.method == "cobgs":
+        from cobgs.refine.alternation import short_stage_warning
+
+        short = short_stage_warning(config, len(scene.train))
+        if short:  # on the task's line and in its manifest, also when reused from the cache
+            ctx.warn(short)
     result = run_method(p.method, model, scene.train, masks, scene.extent, config=config,
                         background=trained["background"], object_name=obj,
                         progress=lambda total, desc: ctx.progress(total=total, desc=desc),

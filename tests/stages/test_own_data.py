@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import io
 import json
+import math
 from pathlib import Path
 
 import pytest
@@ -41,6 +42,28 @@ def own(tmp_path_factory):
     summary = run_workflow(wf, RunOptions(cache_dir=root / "cache", package_version="test"), stream=out)
     assert summary.exit_code == 0, out.getvalue()
     return root, path, wf, {(r.stage, r.item.id): r for r in entries(wf, root / "cache")}
+
+
+def test_stages_too_short_for_a_label_to_reach_the_foreground_warn_on_the_refine_task(own):
+    """Stages shorter than the 22 MASK iterations a split child's label needs to pass 0.9
+    (docs/method.md §2, "Few views") are a warning on the refine task with the setting that
+    suffices; the run as written (2 x 14 views = 28) has none."""
+    root, path, _, recs = own
+    views = json.loads((recs[("refine", "photos/cobgs/ball")].output("refined") / "refine.json").read_text())["train_views"]
+    assert 2 * views >= 22
+    assert not (recs[("refine", "photos/cobgs/ball")].manifest.get("extra") or {}).get("warnings")
+    sets = [s for s in SHORT if not s.startswith("refine.cobgs.stage_length_views")] + \
+        ["refine.cobgs.stage_length_views=1.0"]
+    wf = load_workflow(path, load_registry(), sets)
+    out = io.StringIO()
+    opts = RunOptions(cache_dir=root / "cache", package_version="test", only=("refine",), items="photos/cobgs/*")
+    assert run_workflow(wf, opts, stream=out).exit_code == 0, out.getvalue()
+    rec = {(r.stage, r.item.id): r for r in entries(wf, root / "cache")}[("refine", "photos/cobgs/ball")]
+    warns = (rec.manifest.get("extra") or {}).get("warnings") or []
+    want = f"stages of {views} iterations (1 x {views} views)"
+    assert any(w.startswith(want) and f"stage_length_views >= {math.ceil(220 / views) / 10:g}" in w
+               for w in warns), warns
+    assert "WARNING: " + want in out.getvalue()
 
 
 def test_masks_made_for_the_photos_are_undistorted_like_them(own):
