@@ -106,6 +106,19 @@ def stat_fingerprint(path: Path, max_files: Optional[int] = None, max_depth: Opt
     Symlinked folders are followed once each: a link back into the tree (``-> .``, ``-> ..``)
     is recorded as a link, not walked again, and the walk stops at ``max_files`` files or
     ``max_depth`` levels (a link to ``/``), warning which folder it cut short."""
+    return _fingerprint(path, max_files, max_depth, content=False)[0]
+
+
+def content_fingerprint(path: Path, max_files: Optional[int] = None, max_depth: Optional[int] = None) -> str:
+    """The same walk as :func:`stat_fingerprint` (links followed once, the same bounds), with
+    each file's sha256 in place of its size and time: equal exactly when the bytes are, so a
+    copy, a re-download or a re-mount of the same data keeps it. Reads every byte."""
+    return _fingerprint(path, max_files, max_depth, content=True)[0]
+
+
+def _fingerprint(path: Path, max_files: Optional[int], max_depth: Optional[int],
+                 content: bool) -> tuple[str, bool, int]:
+    """(fingerprint, whether the walk saw everything (no bound, no skipped link), bytes)."""
     import warnings
 
     max_files = FINGERPRINT_MAX_FILES if max_files is None else max_files
@@ -114,9 +127,15 @@ def stat_fingerprint(path: Path, max_files: Optional[int] = None, max_depth: Opt
     try:
         st = path.stat()
     except OSError:
-        return "missing"
+        return "missing", True, 0
     if not path.is_dir():
-        return sha256_text(f"{st.st_size} {st.st_mtime_ns}")
+        if content:
+            try:
+                return sha256_text("content " + file_sha256(path)), True, st.st_size
+            except OSError:
+                return "missing", True, 0
+        return sha256_text(f"{st.st_size} {st.st_mtime_ns}"), True, st.st_size
+    total = 0
     rows: list[str] = []
     seen = {(st.st_dev, st.st_ino)}
     skipped: list[str] = []
@@ -146,20 +165,85 @@ def stat_fingerprint(path: Path, max_files: Optional[int] = None, max_depth: Opt
         for name in sorted(files):
             p = Path(root) / name
             try:
-                s = p.stat()
+                if content:
+                    rows.append(f"{(rel_root / name).as_posix()}\t{file_sha256(p)}")
+                else:
+                    s = p.stat()
+                    rows.append(f"{(rel_root / name).as_posix()}\t{s.st_size}\t{s.st_mtime_ns}")
+                    total += s.st_size
             except OSError:
                 continue
-            rows.append(f"{(rel_root / name).as_posix()}\t{s.st_size}\t{s.st_mtime_ns}")
             if len(rows) >= max_files:
                 truncated = True
                 break
         if truncated:
             rows.append("TRUNCATED")
             break
-    if truncated or skipped:
+    if (truncated or skipped) and not content:  # (the content walk follows a stat walk that warned)
         what = (f"stopped after {max_files} files" if truncated else "") + \
                ("; " if truncated and skipped else "") + \
                (f"did not follow {len(skipped)} linked or too-deep folder(s) such as {skipped[:3]}" if skipped else "")
         warnings.warn(f"fingerprint of {path}: {what} (symlink loops or links to large trees are "
-                      "not walked; the fingerprint covers the rest)", RuntimeWarning, stacklevel=2)
-    return sha256_text("\n".join(rows))
+                      "not walked; the fingerprint covers the rest)", RuntimeWarning, stacklevel=3)
+    return (sha256_text(("content\n" if content else "") + "\n".join(rows)),
+            not (truncated or skipped), total)
+
+
+class FingerprintMemo:
+    """What lets a key survive a copy of the same data: per external path, which content
+    each stat fingerprint had (``by_stat``) and which fingerprint the keys first used for
+    each content (``by_content``), in ``folder`` (the cache's ``fingerprints/``).
+
+    :meth:`key` returns the stat fingerprint unless the same bytes were seen before under
+    another one (the data re-mounted, copied without its times, re-downloaded), in which case
+    it returns the one the cached entries were keyed with. The content is hashed only when
+    a path's stat fingerprint is new to the memo; a read-only memo (status, reports) hashes
+    only where a recorded content could match, and writes nothing. A lost update (two runs
+    at once) costs at most a recomputation, as without the memo."""
+
+    KEEP = 64  # entries per map and path (oldest dropped)
+    #: Data this large (or a walk cut short: a link loop, a link to "/") is keyed by its
+    #: stat fingerprint alone, as without the memo: hashing it would cost minutes.
+    MAX_BYTES = 16 << 30
+
+    def __init__(self, folder: os.PathLike | str, writable: bool):
+        self.folder, self.writable = Path(folder), writable
+
+    def _file(self, path: Path) -> Path:
+        return self.folder / (sha256_text(os.path.abspath(os.fspath(path)))[:32] + ".json")
+
+    def key(self, path: Path) -> str:
+        stat, complete, size = _fingerprint(path, None, None, content=False)
+        if stat == "missing" or not complete or size > self.MAX_BYTES:
+            return stat
+        f = self._file(path)
+        try:
+            rec = json.loads(f.read_text(encoding="utf-8"))
+            by_stat, by_content = dict(rec["by_stat"]), dict(rec["by_content"])
+            if rec.get("path") != os.path.abspath(os.fspath(path)):
+                raise ValueError("another path")
+        except (OSError, ValueError, KeyError, TypeError):
+            by_stat, by_content = {}, {}
+        if not by_content and not self.writable:
+            return stat  # nothing recorded: the plain stat fingerprint, without reading the data
+        content = by_stat.get(stat)
+        changed = False
+        if content is None:
+            content = content_fingerprint(path)
+            by_stat[stat], changed = content, True
+        fp = by_content.get(content)
+        if fp is None:
+            fp = by_content[content] = stat
+            changed = True
+        if changed and self.writable:
+            trim = lambda d: dict(list(d.items())[-self.KEEP:])  # noqa: E731
+            text = json.dumps({"path": os.path.abspath(os.fspath(path)), "by_stat": trim(by_stat),
+                               "by_content": trim(by_content)}, indent=1, sort_keys=True)
+            tmp = f.with_name(f".{f.name}.{os.getpid()}.{id(self)}.tmp")
+            try:  # through a rename: a reader never sees half a memo
+                self.folder.mkdir(parents=True, exist_ok=True)
+                tmp.write_text(text, encoding="utf-8")
+                os.replace(tmp, f)
+            except OSError:  # a memo that cannot be written only costs a recomputation later
+                tmp.unlink(missing_ok=True)
+        return fp

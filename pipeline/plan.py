@@ -225,6 +225,7 @@ class TaskState:
 def inspect(plan: Plan, cache: Cache, with_reasons: bool = True) -> list[TaskState]:
     """The state of every task; reads manifests (and refs when ``with_reasons``)."""
     wf = plan.workflow
+    wf.use_cache(cache.root, writable=False)  # (a run's writable memo is kept)
     table = OutputTable(plan)
     states: list[TaskState] = []
     for task in plan.tasks:

@@ -177,6 +177,7 @@ def run_workflow(workflow: Workflow, options: RunOptions, stream: Optional[TextI
     t0 = time.perf_counter()
     stream = stream if stream is not None else sys.stdout
     cache = Cache(options.cache_dir)
+    workflow.use_cache(cache.root, writable=False)  # (made writable below, once the cache is)
     plan = Plan(workflow)
     sel = select(plan, options)
     if options.dry_run:
@@ -193,6 +194,7 @@ def run_workflow(workflow: Workflow, options: RunOptions, stream: Optional[TextI
         print(f"the cache {cache.root} is read-only; every task is cached, so it is served as it is "
               "(nothing recorded)", file=stream)
     if not read_only:
+        workflow.use_cache(cache.root, writable=True)
         if free_bytes(cache.root) < MIN_FREE_BYTES:
             raise CacheError(disk_full_message(cache.root))
         try:

@@ -49,7 +49,7 @@ from typing import Any, Mapping, Optional, Sequence
 from . import params as P
 from .errors import PipelineError, WorkflowError, unknown_key_hint
 from .graph import Graph
-from .hashing import stat_fingerprint
+from .hashing import FingerprintMemo, stat_fingerprint
 from .items import VALUE_RE, Axes, Axis, Item, ItemFilter, check_value_name
 from .registry import Registry
 from .stage import NAME_RE, Stage
@@ -91,6 +91,8 @@ class Workflow:
         self.registry = registry
         self._params_cache: dict[tuple, ResolvedParams] = {}
         self._fingerprints: dict[str, str] = {}
+        #: set by the run / inspection against a cache (:meth:`use_cache`)
+        self.fingerprint_memo: Optional[FingerprintMemo] = None
 
     @property
     def id(self) -> str:
@@ -144,6 +146,17 @@ class Workflow:
         staged = self._key_attrs.get("__staged__", {}).get((axis, attr))
         return staged is None or stage is None or stage in staged[0]
 
+    def use_cache(self, cache_root: os.PathLike | str, writable: bool) -> None:
+        """Key external data through the cache's fingerprint memo
+        (:class:`~pipeline.hashing.FingerprintMemo`), so that the same bytes under new file
+        times (a copy, a re-mount) keep their keys. Every run and inspection of a cache
+        calls this first; a writable memo (a run) records what it hashes."""
+        root = Path(os.path.abspath(os.fspath(cache_root))) / "fingerprints"
+        memo = self.fingerprint_memo
+        if memo is None or memo.folder != root or (writable and not memo.writable):
+            self.fingerprint_memo = FingerprintMemo(root, writable)
+            self._fingerprints.clear()
+
     def data_fingerprints(self, item: Item, params: Any, stage: Optional[str] = None) -> dict[str, str]:
         """Fingerprints (:func:`~pipeline.hashing.stat_fingerprint`) of the files and folders
         that the item's key attributes and ``params`` name (every ``Path`` value), keyed
@@ -161,7 +174,8 @@ class Workflow:
         for name, path in sorted(found.items()):
             k = os.fspath(path)
             if k not in self._fingerprints:
-                self._fingerprints[k] = stat_fingerprint(Path(k))
+                memo = self.fingerprint_memo
+                self._fingerprints[k] = memo.key(Path(k)) if memo is not None else stat_fingerprint(Path(k))
             out[name] = self._fingerprints[k]
         return out
 

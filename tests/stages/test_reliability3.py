@@ -157,6 +157,51 @@ def test_m4_fingerprint_guards_symlink_loops_and_bounds_the_walk(tmp_path, targe
     assert stat_fingerprint(d, max_files=20_000) != a
 
 
+def test_fingerprint_memo_keys_bytes_not_file_times(tmp_path):
+    """The cache's fingerprint memo: the same bytes under new times keep the key, through
+    a linked folder too; an edit inside the linked folder changes it; the old bytes back
+    find the first key; a read-only memo writes nothing and, with nothing recorded, is the
+    plain stat fingerprint; a walk cut short (a link loop) is never content-hashed."""
+    import os
+
+    from pipeline.hashing import FingerprintMemo, content_fingerprint, stat_fingerprint
+
+    data, shared = tmp_path / "data", tmp_path / "shared"
+    data.mkdir()
+    shared.mkdir()
+    (data / "a.png").write_bytes(b"aaaa")
+    (shared / "b.png").write_bytes(b"bbbb")
+    os.symlink(shared, data / "linked")
+
+    def retime(delta: int) -> None:
+        for f in (data / "a.png", shared / "b.png"):
+            st = f.stat()
+            os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns + delta))
+
+    ro = FingerprintMemo(tmp_path / "memo", writable=False)
+    assert ro.key(data) == stat_fingerprint(data) and not (tmp_path / "memo").exists()
+    memo = FingerprintMemo(tmp_path / "memo", writable=True)
+    k0 = memo.key(data)
+    assert k0 == stat_fingerprint(data) and len(list((tmp_path / "memo").iterdir())) == 1
+    retime(3_000_000_000)
+    assert stat_fingerprint(data) != k0
+    assert memo.key(data) == k0 and ro.key(data) == k0
+    c0 = content_fingerprint(data)
+    (shared / "b.png").write_bytes(b"bbbc")  # same size, another byte, behind the link
+    assert content_fingerprint(data) != c0
+    k1 = memo.key(data)
+    assert k1 not in (k0,) and k1 == stat_fingerprint(data)
+    snapshot = sorted((f.name, f.read_bytes()) for f in (tmp_path / "memo").iterdir())
+    (shared / "b.png").write_bytes(b"bbbb")
+    retime(5_000_000_000)
+    assert ro.key(data) == k0  # read-only: hashes to look up, records nothing
+    assert sorted((f.name, f.read_bytes()) for f in (tmp_path / "memo").iterdir()) == snapshot
+    assert memo.key(data) == k0
+    os.symlink(".", data / "loop")  # a walk that skips a link: stat only, no content read
+    with pytest.warns(RuntimeWarning, match="loop"):
+        assert memo.key(data) == stat_fingerprint(data)
+
+
 def test_m4_status_returns_on_a_data_folder_with_a_loop(tmp_path):
     import os
     import subprocess

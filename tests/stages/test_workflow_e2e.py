@@ -507,7 +507,9 @@ def test_changed_data_on_disk_is_recomputed_not_served_stale(tiny, tmp_path):
     assert _states(again)[("masks", "tiny/mine")] == "cached"
     first = sorted(folder.glob("*.png"))[0]
     m = cv2.imread(str(first), cv2.IMREAD_GRAYSCALE)
-    m[:, : m.shape[1] // 2] = 0  # the user fixes a mask
+    half = m.shape[1] // 2
+    cols = slice(None, half) if m[:, :half].any() else slice(half, None)
+    m[:, cols] = 0  # the user fixes a mask (a half that holds some of it: a real change)
     cv2.imwrite(str(first), m)
     st = first.stat()
     os.utime(first, ns=(st.st_atime_ns, st.st_mtime_ns + 1_000_000))
@@ -517,7 +519,69 @@ def test_changed_data_on_disk_is_recomputed_not_served_stale(tiny, tmp_path):
     wf3, summary, log = _run(wf_path, cache, only=("masks",), items="tiny/mine")
     assert _states(summary)[("masks", "tiny/mine")] == "done", log
     out = _entry(wf3, cache, "masks", "tiny/mine").output("masks")
-    assert (cv2.imread(str(out / first.name), cv2.IMREAD_GRAYSCALE)[:, : m.shape[1] // 2] == 0).all()
+    assert (cv2.imread(str(out / first.name), cv2.IMREAD_GRAYSCALE)[:, cols] == 0).all()
+
+
+def test_same_bytes_under_new_file_times_stay_cached(tiny, tmp_path):
+    """Data re-written with the same bytes (a re-mount, a re-download, a copy without its
+    times) keeps its key: the cache's fingerprint memo maps the new stat fingerprint to the
+    content it had. An edit still re-runs, and putting the old bytes back finds the first
+    entry again; status (read-only) agrees with the run and writes nothing."""
+    import os
+    import shutil
+
+    import cv2
+
+    from pipeline import entries, load_workflow
+    from stages.registry import load_registry
+
+    path, cache, wf, _ = tiny
+    clean = _entry(wf, cache, "masks", "tiny/ball").output("masks")
+    folder = tmp_path / "mine"
+    shutil.copytree(clean, folder, ignore=shutil.ignore_patterns("*.json"))
+    wf_path = tmp_path / "mine.toml"
+    wf_path.write_text(path.read_text() + f'[axes.object.tiny.mine]\nmask = "ball"\nmask_dir = "{folder}"\n')
+    wf1, summary, log = _run(wf_path, cache, only=("masks",), items="tiny/mine")
+    assert summary.exit_code == 0, log
+    key0 = _entry(wf1, cache, "masks", "tiny/mine").key
+
+    def retime(delta_ns: int) -> None:
+        for f in folder.iterdir():
+            st = f.stat()
+            os.utime(f, ns=(st.st_atime_ns, st.st_mtime_ns + delta_ns))
+
+    def status_state() -> str:
+        memo = sorted((cache / "fingerprints").iterdir())
+        before = [(f.name, f.read_bytes()) for f in memo]
+        wf_ = load_workflow(wf_path, load_registry(), [])
+        st = {(r.stage, r.item.id): r.state for r in entries(wf_, cache)}[("masks", "tiny/mine")]
+        assert [(f.name, f.read_bytes()) for f in sorted((cache / "fingerprints").iterdir())] == before
+        return st
+
+    retime(5_000_000_000)  # same bytes, new times
+    assert status_state() == "done"
+    _, again, log = _run(wf_path, cache, only=("masks",), items="tiny/mine")
+    assert _states(again)[("masks", "tiny/mine")] == "cached", log
+
+    first = sorted(folder.glob("*.png"))[0]
+    original = first.read_bytes()
+    m = cv2.imread(str(first), cv2.IMREAD_GRAYSCALE)
+    half = m.shape[1] // 2
+    m[:, slice(None, half) if m[:, :half].any() else slice(half, None)] = 0  # an edit is still an edit
+    cv2.imwrite(str(first), m)
+    assert first.read_bytes() != original
+    retime(7_000_000_000)
+    assert status_state() == "stale"
+    wf2, edited, log = _run(wf_path, cache, only=("masks",), items="tiny/mine")
+    assert _states(edited)[("masks", "tiny/mine")] == "done", log
+    assert _entry(wf2, cache, "masks", "tiny/mine").key != key0
+
+    first.write_bytes(original)  # the old bytes back, under yet other times
+    retime(9_000_000_000)
+    assert status_state() == "done"
+    wf3, back, log = _run(wf_path, cache, only=("masks",), items="tiny/mine")
+    assert _states(back)[("masks", "tiny/mine")] == "cached", log
+    assert _entry(wf3, cache, "masks", "tiny/mine").key == key0
 
 
 def test_masks_saved_as_0_1_get_a_hint(tmp_path):
@@ -617,16 +681,24 @@ def test_a_scene_trained_elsewhere_replaces_training(tiny, tmp_path):
               for t in summary.plan.tasks if t.index in summary.outcomes}
     assert states[("dataset", "tiny")] == states[("sfm", "tiny")] == "cached"
     assert states[("train", "tiny")] == "done"
-    # touching the PLY reruns the import (its fingerprint is the train stage's), nothing before it
+    # another PLY reruns the import (its fingerprint is the train stage's), nothing before it;
+    # a touch alone (same bytes, new time) does not
     import os
 
+    def dry_notes():
+        _, dry, _ = _run(wf_path, cache, only=("dataset", "sfm", "train"), items="tiny/cobgs/ball", dry_run=True)
+        return {(dry.plan.tasks[i].stage.name, dry.plan.tasks[i].item.id): (o.state, o.note)
+                for i, o in dry.outcomes.items()}
+
     ply = out / "point_cloud" / "iteration_500" / "point_cloud.ply"
+    original = ply.read_bytes()
     os.utime(ply, ns=(ply.stat().st_atime_ns, ply.stat().st_mtime_ns + 10**9))
-    _, dry, _ = _run(wf_path, cache, only=("dataset", "sfm", "train"), items="tiny/cobgs/ball", dry_run=True)
-    notes = {(dry.plan.tasks[i].stage.name, dry.plan.tasks[i].item.id): (o.state, o.note)
-             for i, o in dry.outcomes.items()}
+    assert dry_notes()[("train", "tiny")][0] == "cached"
+    ply.write_bytes(original + b"\n")
+    notes = dry_notes()
     assert notes[("dataset", "tiny")][0] == notes[("sfm", "tiny")][0] == "cached"
     assert notes[("train", "tiny")][0] == "would run" and "data on disk changed" in notes[("train", "tiny")][1]
+    ply.write_bytes(original)  # the same bytes back: the import is found again
     imported = _entry(wf2, cache, "train", "tiny").output("scene")
     info = json.loads((imported / "train.json").read_text())
     assert info["imported"]["kind"] == "3dgs_output" and info["imported"]["iteration"] == 500
