@@ -486,14 +486,10 @@ def test_masks_from_a_folder_of_released_masks(tiny, tmp_path):
     assert json.loads((refined / "refine.json").read_text())["mask_route"] == "released masks (files)"
 
 
-def test_changed_data_on_disk_is_recomputed_not_served_stale(tiny, tmp_path):
-    """External data named by a path (here an object's mask_dir) enter the cache key by a
-    stat fingerprint: replacing a mask file re-runs the masks task and what follows, and
-    --dry-run says why; unchanged data stays cached."""
-    import os
+def _own_mask_dir(tiny, tmp_path):
+    """(folder, workflow): the tiny scene's ball masks copied to a folder of the user's,
+    named by a new object's mask_dir."""
     import shutil
-
-    import cv2
 
     path, cache, wf, _ = tiny
     clean = _entry(wf, cache, "masks", "tiny/ball").output("masks")
@@ -501,6 +497,19 @@ def test_changed_data_on_disk_is_recomputed_not_served_stale(tiny, tmp_path):
     shutil.copytree(clean, folder, ignore=shutil.ignore_patterns("*.json"))
     wf_path = tmp_path / "mine.toml"
     wf_path.write_text(path.read_text() + f'[axes.object.tiny.mine]\nmask = "ball"\nmask_dir = "{folder}"\n')
+    return folder, wf_path
+
+
+def test_changed_data_on_disk_is_recomputed_not_served_stale(tiny, tmp_path):
+    """External data named by a path (here an object's mask_dir) enter the cache key by a
+    stat fingerprint: replacing a mask file re-runs the masks task and what follows, and
+    --dry-run says why; unchanged data stays cached."""
+    import os
+
+    import cv2
+
+    cache = tiny[1]
+    folder, wf_path = _own_mask_dir(tiny, tmp_path)
     _, summary, log = _run(wf_path, cache, only=("masks",), items="tiny/mine")
     assert summary.exit_code == 0, log
     _, again, _ = _run(wf_path, cache, only=("masks",), items="tiny/mine")
@@ -528,19 +537,14 @@ def test_same_bytes_under_new_file_times_stay_cached(tiny, tmp_path):
     content it had. An edit still re-runs, and putting the old bytes back finds the first
     entry again; status (read-only) agrees with the run and writes nothing."""
     import os
-    import shutil
 
     import cv2
 
     from pipeline import entries, load_workflow
     from stages.registry import load_registry
 
-    path, cache, wf, _ = tiny
-    clean = _entry(wf, cache, "masks", "tiny/ball").output("masks")
-    folder = tmp_path / "mine"
-    shutil.copytree(clean, folder, ignore=shutil.ignore_patterns("*.json"))
-    wf_path = tmp_path / "mine.toml"
-    wf_path.write_text(path.read_text() + f'[axes.object.tiny.mine]\nmask = "ball"\nmask_dir = "{folder}"\n')
+    cache = tiny[1]
+    folder, wf_path = _own_mask_dir(tiny, tmp_path)
     wf1, summary, log = _run(wf_path, cache, only=("masks",), items="tiny/mine")
     assert summary.exit_code == 0, log
     key0 = _entry(wf1, cache, "masks", "tiny/mine").key
