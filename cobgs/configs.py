@@ -180,6 +180,8 @@ class Schedule:
     opacity_reset_interval: int
 
 
+FOREGROUND_LABEL = 0.9  # docs/method.md §2 segmentation: foreground = label > 0.9
+
 # -- COB-GS refinement (cobgs.refine.alternation); the texture stage's lrs are the baseline's (docs/method.md §2)
 @dataclass(frozen=True)
 class RefineConfig:
@@ -301,6 +303,18 @@ class RefineConfig:
     def stage_length(self, num_views: int) -> int:
         """Iterations per stage: round(stage_length_views × V), at least 1."""
         return max(1, int(round(self.stage_length_views * num_views)))
+
+    def steps_to_foreground(self) -> int:
+        """Fewest MASK iterations that can carry a label from 0.5 (logit 0, where labels start
+        and split children restart) past the 0.9 foreground threshold: Adam moves a logit by
+        at most about ``label_lr`` per step, so ⌈ln 9 / lr⌉ (22 at the default lr 0.1;
+        docs/method.md §2, "Few views")."""
+        return int(math.ceil(math.log(FOREGROUND_LABEL / (1.0 - FOREGROUND_LABEL)) / self.label_lr - 1e-9))
+
+    def min_stage_length_views(self, num_views: int) -> float:
+        """The smallest ``stage_length_views`` in steps of 0.1 with ``stage_length_views × V``
+        (V = ``num_views``) at least :meth:`steps_to_foreground`, before any rounding."""
+        return math.ceil(self.steps_to_foreground() / max(num_views, 1) * 10 - 1e-9) / 10
 
     def plan(self) -> list[str]:
         """Stage kinds in order: "mask" / "texture", starting and ending with "mask"."""

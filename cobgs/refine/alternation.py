@@ -79,7 +79,7 @@ from cobgs.refine.scores import (
 from cobgs.refine.split import boundary_split, raem_prune_mask, split_candidates
 from cobgs.render.image import render
 from cobgs._memory import retain_freed_memory
-from cobgs.configs import RefineConfig  # noqa: F401 (defined there, torch-free; re-exported)
+from cobgs.configs import FOREGROUND_LABEL, RefineConfig  # noqa: F401 (defined there, torch-free; re-exported)
 
 __all__ = [
     "RefineConfig",
@@ -94,7 +94,7 @@ __all__ = [
     "BG_THRESHOLD",
 ]
 
-FG_THRESHOLD = 0.9  # docs/method.md §2 segmentation: foreground = label > 0.9
+FG_THRESHOLD = FOREGROUND_LABEL  # docs/method.md §2 segmentation: foreground = label > 0.9
 BG_THRESHOLD = 0.1  # background = label < 0.1
 OBJECT_LOGITS = "object_logits"
 OBJECT_ID = "object_id"
@@ -320,10 +320,8 @@ def _check_refined(model: GaussianModel, label: str, where: str) -> None:
 
 
 def steps_to_foreground(label_lr: float) -> int:
-    """Fewest MASK iterations that can carry a label from 0.5 (logit 0, where labels start
-    and split children restart) past the 0.9 foreground threshold: Adam moves a logit by at
-    most about ``label_lr`` per step, so ⌈ln 9 / lr⌉ (22 at the default lr 0.1)."""
-    return int(math.ceil(math.log(FG_THRESHOLD / (1.0 - FG_THRESHOLD)) / label_lr - 1e-9))
+    """:meth:`RefineConfig.steps_to_foreground` at ``label_lr`` (22 at the default 0.1)."""
+    return RefineConfig(label_lr=label_lr).steps_to_foreground()
 
 
 def short_stage_warning(config: RefineConfig, num_views: int) -> Optional[str]:
@@ -336,14 +334,13 @@ def short_stage_warning(config: RefineConfig, num_views: int) -> Optional[str]:
     if not config.bags:  # labels keep training across stages; nothing restarts at 0.5
         return None
     length = config.stage_length(num_views)
-    need = steps_to_foreground(config.label_lr)
+    need = config.steps_to_foreground()
     if length >= need:
         return None
-    views = need / max(num_views, 1)
     return (f"stages of {length} iterations ({config.stage_length_views:g} x {num_views} views) are "
             f"shorter than the {need} a label needs to pass 0.9 from 0.5 at label_lr {config.label_lr:g}: "
             f"boundary Gaussians split in the last stages cannot become foreground; set "
-            f"refine.cobgs.stage_length_views >= {math.ceil(views * 10) / 10:g} (or raise label_lr)")
+            f"refine.cobgs.stage_length_views >= {config.min_stage_length_views(num_views):g} (or raise label_lr)")
 
 
 def _label_sets(logits: Tensor) -> tuple[Tensor, Tensor]:

@@ -160,6 +160,17 @@ def workflow_text(folder: Path, info: dict, name: str, prompts: list[str], views
         "iterations = 7000",
         "",
     ]
+    held = -(-info["images"] // views_every) if views_every else 0
+    train_views = info["images"] - held
+    short = _stage_length_for(train_views)
+    if short:
+        lines += [
+            "[params.refine.cobgs]",
+            f"# {train_views} training views: COB-GS's stages of 2 x {train_views} iterations would be shorter than the",
+            f"# {short[1]} a split Gaussian's label needs to become foreground (docs/method.md §2, \"Few views\")",
+            f"stage_length_views = {short[0]:g}",
+            "",
+        ]
     if info["kind"] == "images":
         lines += [
             "[params.sfm.options]",
@@ -190,6 +201,17 @@ def workflow_text(folder: Path, info: dict, name: str, prompts: list[str], views
         elif names[obj] != obj:  # the folder's own name, which the item name could not keep
             lines.append(f"mask = {_toml_str(obj)}                # the folder masks/{_comment(obj)}/")
     return "\n".join(lines) + "\n"
+
+
+def _stage_length_for(train_views: int):
+    """(stage_length_views, iterations needed) where the default stages of 2V iterations are
+    too short for ``train_views`` views, else None."""
+    from cobgs.configs import RefineConfig
+
+    cfg = RefineConfig()
+    if train_views < 1 or cfg.stage_length(train_views) >= cfg.steps_to_foreground():
+        return None
+    return max(cfg.stage_length_views, cfg.min_stage_length_views(train_views)), cfg.steps_to_foreground()
 
 
 def _check_loads(text: str, out: Path) -> str:

@@ -140,3 +140,29 @@ def test_new_and_the_readers_agree_on_the_layout(tmp_path):
     (root / "transforms_train.json").write_text("{}")
     _png(root / "masks" / "m" / "a.png")
     assert detect(root)["kind"] == detect_format(root) == "blender"
+
+
+@pytest.mark.parametrize("images, every, block", [(12, 4, "2.5"), (20, 8, None), (8, 0, "2.8")])
+def test_few_photos_get_stages_long_enough_for_the_labels(tmp_path, images, every, block):
+    """With fewer than 11 training views, stages of 2V iterations are shorter than the 22 a
+    split Gaussian's label needs to reach the foreground (docs/method.md §2, "Few views"):
+    the workflow `cobgs new` writes sets the stage length that suffices, and says why."""
+    from pipeline import load_workflow
+    from stages.registry import load_registry
+
+    root = tmp_path / "cap"
+    for i in range(images):
+        _png(root / "images" / f"{i:03d}.png")
+    _png(root / "masks" / "mug" / "000.png")
+    out = tmp_path / "w.toml"
+    assert main(["new", str(root), "--out", str(out), "--test-every", str(every)]) == 0
+    text = out.read_text()
+    if block is None:
+        assert "stage_length_views" not in text
+        return
+    views = images - (-(-images // every) if every else 0)
+    assert f"# {views} training views" in text and f"stage_length_views = {block}\n" in text
+    wf = load_workflow(out, load_registry())
+    item = next(t for t in __import__("pipeline").Plan(wf).tasks if t.stage.name == "refine")
+    assert item.params.value.cobgs.stage_length_views == float(block)
+    assert float(block) * views >= 22 > (float(block) - 0.1) * views
