@@ -209,21 +209,27 @@ class FingerprintMemo:
     def __init__(self, folder: os.PathLike | str, writable: bool):
         self.folder, self.writable = Path(folder), writable
 
-    def _file(self, path: Path) -> Path:
-        return self.folder / (sha256_text(os.path.abspath(os.fspath(path)))[:32] + ".json")
+    def _read(self, f: Path, where: str) -> tuple[dict, dict]:
+        """(by_stat, by_content) of memo file ``f`` for path ``where``; empty for a missing,
+        foreign or damaged file (anything but str -> str maps), which the next write replaces."""
+        try:
+            rec = json.loads(f.read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            return {}, {}
+        if not isinstance(rec, dict) or rec.get("path") != where:
+            return {}, {}
+        maps = rec.get("by_stat"), rec.get("by_content")
+        if not all(isinstance(m, dict) and all(isinstance(x, str) for kv in m.items() for x in kv) for m in maps):
+            return {}, {}
+        return dict(maps[0]), dict(maps[1])
 
     def key(self, path: Path) -> str:
         stat, complete, size = _fingerprint(path, None, None, content=False)
         if stat == "missing" or not complete or size > self.MAX_BYTES:
             return stat
-        f = self._file(path)
-        try:
-            rec = json.loads(f.read_text(encoding="utf-8"))
-            by_stat, by_content = dict(rec["by_stat"]), dict(rec["by_content"])
-            if rec.get("path") != os.path.abspath(os.fspath(path)):
-                raise ValueError("another path")
-        except (OSError, ValueError, KeyError, TypeError):
-            by_stat, by_content = {}, {}
+        where = os.path.abspath(os.fspath(path))
+        f = self.folder / (sha256_text(where)[:32] + ".json")
+        by_stat, by_content = self._read(f, where)
         if not by_content and not self.writable:
             return stat  # nothing recorded: the plain stat fingerprint, without reading the data
         content = by_stat.get(stat)
@@ -236,9 +242,10 @@ class FingerprintMemo:
             fp = by_content[content] = stat
             changed = True
         if changed and self.writable:
-            trim = lambda d: dict(list(d.items())[-self.KEEP:])  # noqa: E731
-            text = json.dumps({"path": os.path.abspath(os.fspath(path)), "by_stat": trim(by_stat),
-                               "by_content": trim(by_content)}, indent=1, sort_keys=True)
+            def trim(d: dict) -> dict:  # insertion order is age: the file keeps it (no key sorting)
+                return dict(list(d.items())[-self.KEEP:])
+
+            text = json.dumps({"path": where, "by_stat": trim(by_stat), "by_content": trim(by_content)}, indent=1)
             tmp = f.with_name(f".{f.name}.{os.getpid()}.{id(self)}.tmp")
             try:  # through a rename: a reader never sees half a memo
                 self.folder.mkdir(parents=True, exist_ok=True)

@@ -202,6 +202,36 @@ def test_fingerprint_memo_keys_bytes_not_file_times(tmp_path):
         assert memo.key(data) == stat_fingerprint(data)
 
 
+def test_fingerprint_memo_drops_its_oldest_and_survives_a_damaged_file(tmp_path):
+    """The memo keeps the newest KEEP contents per path (the file keeps their age order), and
+    a damaged memo file (not str -> str maps) reads as nothing recorded, then is rewritten."""
+    import json
+    import os
+
+    from pipeline.hashing import FingerprintMemo, stat_fingerprint
+
+    data = tmp_path / "data"
+    data.mkdir()
+    memo = FingerprintMemo(tmp_path / "memo", writable=True)
+    memo.KEEP = 2
+    keys = []
+    for i, payload in enumerate((b"one", b"two", b"six")):  # same size, new bytes and times
+        (data / "a.png").write_bytes(payload)
+        os.utime(data / "a.png", ns=(10**18 + i * 10**9, 10**18 + i * 10**9))
+        keys.append(memo.key(data))
+    (f,) = (tmp_path / "memo").iterdir()
+    rec = json.loads(f.read_text())
+    assert list(rec["by_content"].values()) == keys[1:]  # the oldest content left, in order
+    (data / "a.png").write_bytes(b"one")
+    os.utime(data / "a.png", ns=(10**18 + 9 * 10**9, 10**18 + 9 * 10**9))
+    assert memo.key(data) == stat_fingerprint(data) != keys[0]  # forgotten: a recompute, never a wrong hit
+    f.write_text(json.dumps({"path": rec["path"], "by_stat": {stat_fingerprint(data): {"not": "a str"}},
+                                "by_content": {}}))
+    assert FingerprintMemo(tmp_path / "memo", writable=False).key(data) == stat_fingerprint(data)
+    assert memo.key(data) == stat_fingerprint(data)
+    assert all(isinstance(v, str) for v in json.loads(f.read_text())["by_stat"].values())
+
+
 def test_m4_status_returns_on_a_data_folder_with_a_loop(tmp_path):
     import os
     import subprocess
