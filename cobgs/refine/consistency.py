@@ -28,6 +28,7 @@ import torch
 from torch import Tensor
 
 from cobgs.data.scene import View
+from cobgs.render.image import render
 from cobgs.train.gaussians import GaussianModel
 
 
@@ -35,29 +36,21 @@ def label_votes(model: GaussianModel, views: Sequence[View], pixel_labels: Seque
                 backend: str = "native") -> Tensor:
     """[N, num_labels] Σ α·T per ground-truth label over all views (one forward pass per
     view; pixel labels −1 are ignored)."""
-    from cobgs.render.rasterize import rasterize
-
     m = model
     acc = torch.zeros(len(m), num_labels, dtype=torch.float64, device=m.device)
-    means, quats, scales, opac = (t.detach() for t in (m.means, m.quats, m.scales, m.opacities))
     feats = torch.zeros(len(m), 1, device=m.device)
     with torch.no_grad():
         for v, lab in zip(views, pixel_labels):
-            cam = v.camera
-            out = rasterize(means, quats, scales, opac, feats, cam.viewmat, cam.K, int(cam.width), int(cam.height),
-                            pixel_labels=lab.to(m.device), num_labels=num_labels, backend=backend)
+            out = render(m, v.camera, features=feats, pixel_labels=lab.to(m.device), num_labels=num_labels,
+                         backend=backend)
             acc += out.label_weights.to(torch.float64)
     return acc
 
 
 def _mask_render(model: GaussianModel, values: Tensor, view: View, backend: str) -> Tensor:
-    from cobgs.render.rasterize import rasterize
-
-    cam, m = view.camera, model
     with torch.no_grad():
-        out = rasterize(m.means.detach(), m.quats.detach(), m.scales.detach(), m.opacities.detach(),
-                        values[:, None].to(m.means.dtype).contiguous(), cam.viewmat, cam.K, int(cam.width),
-                        int(cam.height), backend=backend)
+        out = render(model, view.camera, features=values[:, None].to(model.means.dtype).contiguous(),
+                     backend=backend)
     return out.image[..., 0]
 
 
