@@ -311,6 +311,11 @@ class RefineConfig:
         docs/method.md §2, "Few views")."""
         return int(math.ceil(math.log(FOREGROUND_LABEL / (1.0 - FOREGROUND_LABEL)) / self.label_lr - 1e-9))
 
+    def stages_too_short(self, num_views: int) -> bool:
+        """Whether splitting is on and stages of ``num_views`` views are shorter than
+        :meth:`steps_to_foreground` (without splits, labels keep training across stages)."""
+        return self.bags and self.stage_length(num_views) < self.steps_to_foreground()
+
     def min_stage_length_views(self, num_views: int) -> float:
         """The smallest ``stage_length_views`` in steps of 0.1 with ``stage_length_views × V``
         (V = ``num_views``) at least :meth:`steps_to_foreground`, before any rounding."""

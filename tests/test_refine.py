@@ -521,10 +521,10 @@ def test_short_stages_cannot_carry_a_restarted_label_past_foreground_and_say_so(
     (9 views x 2 = 18 iterations, the LERF-mask fixture) is named in a warning."""
     import logging
 
-    from cobgs.refine.alternation import short_stage_warning, steps_to_foreground
+    from cobgs.refine.alternation import short_stage_warning
 
-    need = steps_to_foreground(0.1)
-    assert need == 22 and steps_to_foreground(0.05) == 44
+    need = RefineConfig(label_lr=0.1).steps_to_foreground()
+    assert need == 22 and RefineConfig(label_lr=0.05).steps_to_foreground() == 44
     for steps, passes in ((need - 1, False), (need, True)):
         logit = torch.zeros(1, requires_grad=True)
         opt = torch.optim.Adam([logit], lr=0.1, eps=1e-15)

@@ -319,24 +319,17 @@ def _check_refined(model: GaussianModel, label: str, where: str) -> None:
         raise DivergenceError(f"{where}: non-finite label logits; nothing is saved")
 
 
-def steps_to_foreground(label_lr: float) -> int:
-    """:meth:`RefineConfig.steps_to_foreground` at ``label_lr`` (22 at the default 0.1)."""
-    return RefineConfig(label_lr=label_lr).steps_to_foreground()
-
-
 def short_stage_warning(config: RefineConfig, num_views: int) -> Optional[str]:
     """Why a splitting schedule cannot finish its labels, or None: with stages of
-    ``stage_length_views × V`` iterations shorter than :func:`steps_to_foreground`, no
+    ``stage_length_views × V`` iterations shorter than
+    :meth:`RefineConfig.steps_to_foreground`, no
     label passes 0.9 in the first MASK stage and the children of the last split (label 0.5
     again, one MASK stage left) never become foreground, so the object comes out with
     holes along its boundary (measured on the 9-view LERF-mask fixture:
     docs/benchmarks/protocol_workflows.md)."""
-    if not config.bags:  # labels keep training across stages; nothing restarts at 0.5
+    if not config.stages_too_short(num_views):
         return None
-    length = config.stage_length(num_views)
-    need = config.steps_to_foreground()
-    if length >= need:
-        return None
+    length, need = config.stage_length(num_views), config.steps_to_foreground()
     return (f"stages of {length} iterations ({config.stage_length_views:g} x {num_views} views) are "
             f"shorter than the {need} a label needs to pass 0.9 from 0.5 at label_lr {config.label_lr:g}: "
             f"boundary Gaussians split in the last stages cannot become foreground; set "

@@ -209,7 +209,7 @@ def _stage_length_for(train_views: int):
     from cobgs.configs import RefineConfig
 
     cfg = RefineConfig()
-    if train_views < 1 or cfg.stage_length(train_views) >= cfg.steps_to_foreground():
+    if train_views < 1 or not cfg.stages_too_short(train_views):
         return None
     return max(cfg.stage_length_views, cfg.min_stage_length_views(train_views)), cfg.steps_to_foreground()
 
