@@ -41,7 +41,7 @@ def build_report(workflow_path: os.PathLike | str, out_dir: Optional[os.PathLike
                  cache_dir: Optional[os.PathLike | str] = None, sets: Iterable[str] = (),
                  registry=None, stream=None, turntables: int = 0, viewer: bool = True,
                  viewer_mb: Optional[float] = None, scene_cameras=None,
-                 trajectories: Optional[os.PathLike | str] = None) -> Path:
+                 trajectories: Optional[os.PathLike | str] = None, replace: bool = False) -> Path:
     """Build the report of a workflow from its cache; returns the path of ``index.html``.
 
     Args:
@@ -63,6 +63,9 @@ def build_report(workflow_path: os.PathLike | str, out_dir: Optional[os.PathLike
         trajectories: a folder of ``tests/benchmarks/bm_refine_trajectory.py`` records: the
             refinement section draws, per scene of the run, IoU / boundary IoU after every stage
             (:mod:`reports.trajectory`; records of other scenes are left out).
+        replace: replace an earlier report at ``out_dir`` even where files were added to it.
+            Without it such a folder is refused, naming the files; a folder that is no report
+            of cobgs is always refused (:func:`pipeline.publish.check_destination`).
     """
     from pipeline import load_workflow
     from pipeline.commands import default_cache_dir
@@ -77,7 +80,7 @@ def build_report(workflow_path: os.PathLike | str, out_dir: Optional[os.PathLike
         raise ReportError(f"workflow {wf.name!r}: cache folder {cache} does not exist; run "
                           f"`cobgs run {workflow_path}` first or pass --cache-dir")
     out = Path(out_dir) if out_dir else default_out_dir(wf)
-    _check_destination(out)
+    _check_destination(out, replace)
     t0 = time.perf_counter()
     data = collect(wf, cache)
     data.scene_cameras = scene_cameras
@@ -88,7 +91,7 @@ def build_report(workflow_path: os.PathLike | str, out_dir: Optional[os.PathLike
         records = load_trajectories(trajectories, data.scenes)
     try:
         publish_folder(out, lambda tmp: _write(data, tmp, sets, turntables, viewer, viewer_mb, records), MARKER,
-                       "report")
+                       "report", replace=replace)
     except DestinationError as exc:
         raise ReportError(str(exc)) from None
     if stream is not None:
@@ -97,12 +100,12 @@ def build_report(workflow_path: os.PathLike | str, out_dir: Optional[os.PathLike
     return out / "index.html"
 
 
-def _check_destination(out: Path) -> None:
+def _check_destination(out: Path, replace: bool = False) -> None:
     """Before any work: a destination that is not a cobgs report is refused."""
     try:
-        check_destination(out, MARKER, "report")
+        check_destination(out, MARKER, "report", replace=replace)
     except DestinationError as exc:
-        raise ReportError(f"{exc} (it is not a cobgs report)") from None
+        raise ReportError(str(exc)) from None
 
 
 class _Logs:

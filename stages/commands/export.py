@@ -65,7 +65,8 @@ def export_bytes(plan, objects_with_turntables: int, turntables: int) -> int:
     return files + gifs + 4096 * (len(plan) + 1)
 
 
-def export(workflow, cache_dir, to, stream=None, ply: bool = True, turntables: int = 0) -> dict:
+def export(workflow, cache_dir, to, stream=None, ply: bool = True, turntables: int = 0,
+           replace: bool = False) -> dict:
     """Copy the exports of ``workflow`` (a loaded :class:`pipeline.Workflow`) from
     ``cache_dir`` into ``to``; returns the record written to ``export.json``.
 
@@ -78,7 +79,9 @@ def export(workflow, cache_dir, to, stream=None, ply: bool = True, turntables: i
 
     ``to`` is replaced as a whole (:func:`pipeline.publish.publish_folder`): a kill leaves
     the previous export or the new one, never a mix. It may be absent, empty or an earlier
-    export (it holds ``export.json``); another folder is refused."""
+    export (its ``export.json`` was written by cobgs); another folder is refused, and so is an
+    earlier export that holds files cobgs did not write unless ``replace``. With nothing of
+    the workflow done, nothing is written (PipelineError)."""
     import json
     from pathlib import Path
 
@@ -86,7 +89,7 @@ def export(workflow, cache_dir, to, stream=None, ply: bool = True, turntables: i
     from pipeline.publish import check_destination, publish_folder
 
     to = Path(os.path.abspath(to))
-    check_destination(to, "export.json", "export")
+    check_destination(to, "export.json", "export", replace=replace)
     wanted = {stage: (artifact, files, where) for stage, artifact, files, where in EXPORTS}
     plan, missing = [], []
     scenes: dict = {}
@@ -112,6 +115,12 @@ def export(workflow, cache_dir, to, stream=None, ply: bool = True, turntables: i
                 plan.append((folder / name, Path(*parts, name), rec))
     import shutil
 
+    if not plan:
+        from pipeline.errors import PipelineError
+
+        raise PipelineError(f"nothing to export: no task of workflow {workflow.name!r} is done in the cache "
+                            f"{Path(cache_dir).resolve()} ({len(missing)} not done); run `cobgs run "
+                            f"{workflow.path}` first (with the same --set and --cache-dir). {to} was left as it was")
     need = export_bytes(plan, len(segments) if turntables > 0 else 0, turntables)
     probe = to.parent if not to.exists() else to
     while not probe.exists():
@@ -162,7 +171,7 @@ def export(workflow, cache_dir, to, stream=None, ply: bool = True, turntables: i
 
     record = {"workflow": str(workflow.path), "cache_dir": str(Path(cache_dir).resolve()),
               "copied": copied, "missing": missing}
-    publish_folder(to, write, "export.json", "export")
+    publish_folder(to, write, "export.json", "export", replace=replace)
     return record
 
 
@@ -181,7 +190,7 @@ def _run(args) -> int:
     cache = default_cache_dir(args.cache_dir)
     print(f"cache: {cache}")
     try:
-        rec = export(wf, cache, args.to, ply=not args.no_ply, turntables=args.turntables)
+        rec = export(wf, cache, args.to, ply=not args.no_ply, turntables=args.turntables, replace=args.replace)
     except PipelineError as exc:
         print(f"cobgs export: {exc}", file=sys.stderr)
         return 2
@@ -191,9 +200,6 @@ def _run(args) -> int:
     dest = os.path.abspath(args.to)
     print(f"exported {len(rec['copied'])} files ({len(plys)} PLYs) to {dest}")
     _print_summary(os.path.join(dest, "summary.json"), dest)
-    if not rec["copied"]:
-        print("nothing to export: run the workflow first (`cobgs run ...`)", file=sys.stderr)
-        return 1
     return 1 if rec["missing"] else 0
 
 
@@ -242,7 +248,12 @@ def register(sub) -> None:
                        "metrics and summary of every finished task of WORKFLOW into DIR "
                        "(DIR/<scene>/<method>/<object>/...).")
     p.add_argument("workflow", help="workflow TOML file")
-    p.add_argument("--to", required=True, metavar="DIR", help="destination folder (created)")
+    p.add_argument("--to", required=True, metavar="DIR",
+                   help="destination folder (created). It must be absent, empty or an earlier export of cobgs: "
+                        "that export is replaced as a whole. Any other folder is refused, and so is an earlier "
+                        "export that holds files cobgs did not write, unless --replace is given")
+    p.add_argument("--replace", action="store_true",
+                   help="replace an earlier export of cobgs even where files were added to it (they are deleted)")
     p.add_argument("--set", action="append", metavar="K=V", help="same overrides as `cobgs run`")
     p.add_argument("--cache-dir", default=None, help="cache folder (default: $COBGS_CACHE_DIR or ./runs/cache)")
     p.add_argument("--no-ply", action="store_true",

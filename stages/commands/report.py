@@ -17,7 +17,12 @@ def register(sub) -> None:
                        "manifests and artifacts (nothing is recomputed). Default folder: "
                        "runs/reports/<workflow name>.")
     p.add_argument("workflow", help="workflow TOML file")
-    p.add_argument("--out", help="report folder (replaced if it holds an older report)")
+    p.add_argument("--out", help="report folder (default runs/reports/<workflow name>). It must be absent, "
+                                 "empty or an earlier report of cobgs: that report is replaced as a whole. "
+                                 "Any other folder is refused, and so is an earlier report that holds files "
+                                 "cobgs did not write, unless --replace is given")
+    p.add_argument("--replace", action="store_true",
+                   help="replace an earlier report of cobgs even where files were added to it (they are deleted)")
     p.add_argument("--cache-dir", help="cache folder (default: $COBGS_CACHE_DIR, else ./runs/cache)")
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
                    help="the same overrides the run used (they select its cache entries)")
@@ -65,13 +70,14 @@ def _report(args) -> int:
     import sys
 
     from pipeline import PipelineError
+    from reports.errors import ReportError
 
     try:
         index = build_report(args.workflow, out_dir=args.out, cache_dir=args.cache_dir, sets=args.sets,
                              stream=sys.stdout, turntables=args.turntables,
                              viewer=not args.no_viewer, viewer_mb=args.viewer_mb,
-                             trajectories=args.trajectories)
-    except PipelineError as exc:  # bad workflow or --set: the engine's message names the key
+                             trajectories=args.trajectories, replace=args.replace)
+    except (PipelineError, ReportError) as exc:  # bad workflow, --set or --out: the message names it
         print(f"cobgs report: error: {exc}", file=sys.stderr)
         return 2
     print(f"open file://{index.resolve()}")

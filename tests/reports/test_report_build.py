@@ -230,7 +230,7 @@ def test_refuses_to_replace_a_folder_that_is_not_a_report(recorded, tmp_path):
     out = tmp_path / "precious"
     out.mkdir()
     (out / "thesis.tex").write_text("x")
-    with pytest.raises(ReportError, match="not a cobgs report"):
+    with pytest.raises(ReportError, match="did not write"):
         recorded.build(out)
     assert (out / "thesis.tex").read_text() == "x"
 

@@ -234,6 +234,57 @@ def test_export_copies_the_ply_layout(tiny, tmp_path):
     assert rec["missing"] == [] and len(rec["copied"]) >= 15
 
 
+def test_report_and_export_never_delete_a_folder_they_did_not_write(tiny, tmp_path, capsys):
+    """Issue 44 H1 / M5 / L9, through the command line as a user types it."""
+    from stages.commands.cli import main
+
+    path, cache, _, _ = tiny
+    common = ["--cache-dir", str(cache)]
+    for cmd, flag, marker in (("report", "--out", "report.json"), ("export", "--to", "export.json")):
+        user = tmp_path / cmd
+        (user / "src").mkdir(parents=True)
+        (user / "src" / "a.py").write_text("print(1)")
+        (user / "NOTES.md").write_text("x")
+        (user / "thesis.tex").write_text("y")
+        (user / marker).write_text('{"coverage": 91}')
+        before = sorted(p.relative_to(user).as_posix() for p in user.rglob("*"))
+        for extra in ([], ["--replace"]):
+            assert main([cmd, str(path), flag, str(user), *common, *extra]) == 2
+            err = capsys.readouterr().err
+            assert f"{user / marker} was not written by `cobgs {cmd}`" in err, err
+        assert sorted(p.relative_to(user).as_posix() for p in user.rglob("*")) == before
+        # an earlier output of ours with a file the user added: named, kept; --replace replaces
+        ours = tmp_path / f"{cmd}_ours"
+        assert main([cmd, str(path), flag, str(ours), *common]) == 0
+        (ours / "NOTES.md").write_text("mine")
+        assert main([cmd, str(path), flag, str(ours), *common]) == 2
+        assert "['NOTES.md']" in capsys.readouterr().err and (ours / "NOTES.md").is_file()
+        assert main([cmd, str(path), flag, str(ours), *common, "--replace"]) == 0
+        assert not (ours / "NOTES.md").exists()
+        rec = json.loads((ours / marker).read_text())
+        assert rec["generator"] == f"cobgs {cmd}" and rec["workflow"] and marker in rec["files"]
+        # M5: a destination under a file is one clear line, not a FileExistsError traceback
+        assert main([cmd, str(path), flag, str(user / "NOTES.md" / "sub"), *common]) == 2
+        assert "which is a file" in capsys.readouterr().err
+    assert "--replace" in _help(["export", "--help"]) and "--replace" in _help(["report", "--help"])
+    # L9: nothing done -> nothing published
+    empty = tmp_path / "empty_cache"
+    empty.mkdir()
+    assert main(["export", str(path), "--to", str(tmp_path / "none"), "--cache-dir", str(empty)]) == 2
+    assert "nothing to export" in capsys.readouterr().err and not (tmp_path / "none").exists()
+
+
+def _help(argv) -> str:
+    import contextlib
+
+    from stages.commands.cli import main
+
+    buf = io.StringIO()
+    with contextlib.redirect_stdout(buf), pytest.raises(SystemExit):
+        main(argv)
+    return buf.getvalue()
+
+
 def test_export_without_plys_and_a_disk_too_small(tiny, tmp_path, monkeypatch, capsys):
     """--no-ply: metrics, masks and summary, no PLY; an export the disk cannot hold is
     refused before a byte is written, saying how much it needs and what to do."""
@@ -414,7 +465,7 @@ def test_export_replaces_the_folder_as_a_whole(tiny, tmp_path, monkeypatch):
     other = tmp_path / "mine"
     other.mkdir()
     (other / "notes.txt").write_text("keep me")
-    with pytest.raises(PipelineError, match="did not write .no export.json.; refusing"):
+    with pytest.raises(PipelineError, match="did not write .no export.json; it holds"):
         ex.export(wf, cache, other)
     assert main(["export", str(path), "--to", str(other), "--cache-dir", str(cache)]) == 2
     assert [p.name for p in other.iterdir()] == ["notes.txt"]
