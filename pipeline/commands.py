@@ -77,7 +77,11 @@ def register(sub: Any, registry_factory: RegistryFactory, package_version: Calla
     p.add_argument("--items", metavar="ITEMS", help="only these items: comma list of "
                    "patterns like lego, scene=lego, lego/no_*")
     p.add_argument("--force", metavar="STAGES", help="recompute these stages even if "
-                   "cached (comma list, or 'all')")
+                   "cached (comma list, or 'all'); the external data they read are re-hashed, so an "
+                   "edit that kept a file's size and time reruns every task that reads it")
+    p.add_argument("--verify-data", action="store_true",
+                   help="re-hash every external input (data, mask and model folders) instead of trusting "
+                        "file sizes and times; what changed reruns")
     p.add_argument("--dry-run", action="store_true", help="print what would run and why")
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
                    help=set_help)
@@ -98,6 +102,9 @@ def register(sub: Any, registry_factory: RegistryFactory, package_version: Calla
                    help=set_help)
     p.add_argument("--items", metavar="ITEMS", help="only tasks of these items")
     p.add_argument("--logs", action="store_true", help="print the full log of each failure")
+    p.add_argument("--verify-data", action="store_true",
+                   help="re-hash every external input instead of trusting file sizes and times, and list "
+                        "what would rerun (reads every byte of the data; writes nothing)")
     p.add_argument("--cache-dir", help=cache_help)
     p.set_defaults(func=_guard("status", lambda a: cmd_status(a, registry_factory)))
 
@@ -141,7 +148,7 @@ def cmd_run(args: argparse.Namespace, registry_factory: RegistryFactory,
                          executor=args.executor, jobs=args.jobs, address=args.address,
                          only=_csv(args.only), from_stages=_csv(args.from_),
                          force=_csv(args.force), items=args.items, dry_run=args.dry_run,
-                         quiet=args.quiet)
+                         quiet=args.quiet, verify_data=args.verify_data)
     print(f"workflow {wf.name} ({wf.path}); cache {options.cache_dir.resolve()}; "
           f"device {wf.settings.device}; executor {options.executor}"
           + (f" x{options.jobs}" if options.executor == "local" and options.jobs > 1 else ""),
@@ -163,6 +170,9 @@ def cmd_status(args: argparse.Namespace, registry_factory: RegistryFactory,
 
     wf = load_workflow(args.workflow, registry_factory(), args.sets)
     cache_dir = default_cache_dir(args.cache_dir)
+    verify = getattr(args, "verify_data", False)
+    if verify:
+        wf.verify_data()
     records = entries(wf, cache_dir)
     if args.items:
         filt = ItemFilter.parse(args.items, wf.axes)
@@ -186,6 +196,12 @@ def cmd_status(args: argparse.Namespace, registry_factory: RegistryFactory,
               f"{_fmt_time(m.get('finished')):<16}  {_fmt_bytes(m.get('peak_rss_bytes')):>9}  "
               f"{notes}".rstrip(), file=stream)
     print(", ".join(f"{n} {s}" for s, n in sorted(counts.items())) or "no tasks", file=stream)
+    if verify:
+        changed = [r for r in records if any(x.startswith("data on disk changed") for x in r.reasons)]
+        print(f"--verify-data: every external input re-hashed; {len(changed)} task(s) read data whose content "
+              "changed" + (": " + ", ".join(r.task.id for r in changed[:12]) + (" ..." if len(changed) > 12 else "")
+                           + f"; `cobgs run {args.workflow} --verify-data` reruns them and what depends on them"
+                           if changed else ""), file=stream)
     for r in records:
         if r.state == "failed":
             print(f"FAILED {r.task.id}: {(r.manifest or {}).get('error', {}).get('summary')}\n"

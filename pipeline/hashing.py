@@ -223,23 +223,43 @@ class FingerprintMemo:
             return {}, {}
         return dict(maps[0]), dict(maps[1])
 
-    def key(self, path: Path) -> str:
+    def key(self, path: Path, verify: bool = False, contents: Optional[dict] = None) -> str:
+        """The fingerprint that keys ``path``'s data (see the class docstring).
+
+        Args:
+            verify: re-read the content even where the memo knows the stat fingerprint: an
+                edit that kept size and modification time is then found, and the data get
+                a fingerprint of their own (``--force`` of a stage that reads them,
+                ``--verify-data``). A read-only memo returns what a verifying run would use
+                without writing it.
+            contents: a dict the caller keeps across memos of one command, so that data
+                verified twice (a plan, then its run) are read once.
+        """
         stat, complete, size = _fingerprint(path, None, None, content=False)
         if stat == "missing" or not complete or size > self.MAX_BYTES:
             return stat
         where = os.path.abspath(os.fspath(path))
         f = self.folder / (sha256_text(where)[:32] + ".json")
         by_stat, by_content = self._read(f, where)
-        if not by_content and not self.writable:
+        if not by_content and not self.writable and not verify:
             return stat  # nothing recorded: the plain stat fingerprint, without reading the data
-        content = by_stat.get(stat)
+        content = None if verify else by_stat.get(stat)
         changed = False
         if content is None:
-            content = content_fingerprint(path)
-            by_stat[stat], changed = content, True
+            memo_key = (where, stat)
+            content = contents.get(memo_key) if contents is not None else None
+            if content is None:
+                content = content_fingerprint(path)
+                if contents is not None:
+                    contents[memo_key] = content
+            changed = by_stat.get(stat) != content
+            by_stat[stat] = content
         fp = by_content.get(content)
         if fp is None:
-            fp = by_content[content] = stat
+            # New bytes: keyed by their stat fingerprint, unless other bytes already hold it
+            # (an edit that kept size and time): then by stat and content together.
+            fp = stat if stat not in by_content.values() else sha256_text(f"{stat}\ncontent {content}")
+            by_content[content] = fp
             changed = True
         if changed and self.writable:
             def trim(d: dict) -> dict:  # insertion order is age: the file keeps it (no key sorting)

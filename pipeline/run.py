@@ -8,6 +8,10 @@ Selection (all optional, combined):
               selected task whose upstream is not done is *blocked*.
   ``force``   recompute these stages even when cached (``("all",)``: every stage).
   ``from_stages``  recompute these stages and every stage downstream of them.
+  ``verify_data``  re-read the content of every external input (data folders, mask folders,
+              model folders) instead of trusting size and modification time.
+The external data a forced task reads are re-read too: ``--force dataset`` after an edit that
+kept a file's size and time finds the edit, and every task reading the data reruns.
 A task whose upstream failed is *blocked*; other items carry on. The exit code is 0 when
 everything selected is done, 1 when some task failed or was blocked, 130 on Ctrl-C.
 """
@@ -46,6 +50,7 @@ class RunOptions:
     items: Optional[str] = None
     dry_run: bool = False
     quiet: bool = False  # no line for cached tasks
+    verify_data: bool = False  # re-read every external input's content (not only the forced tasks')
     local_gpus: int = 1  # GPU tasks that may run at once with --jobs N
 
     def __post_init__(self) -> None:
@@ -180,6 +185,11 @@ def run_workflow(workflow: Workflow, options: RunOptions, stream: Optional[TextI
     workflow.use_cache(cache.root, writable=False)  # (made writable below, once the cache is)
     plan = Plan(workflow)
     sel = select(plan, options)
+    if options.verify_data:
+        workflow.verify_data()
+    elif sel.forced:
+        workflow.verify_data({p for i in sel.forced for p in workflow.data_paths(
+            plan.tasks[i].item, plan.tasks[i].params.value, plan.tasks[i].stage.name).values()})
     if options.dry_run:
         check_params(plan, sel, cache)
         return dry_run(plan, sel, cache, stream, t0)

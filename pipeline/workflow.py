@@ -44,7 +44,7 @@ import re
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Mapping, Optional, Sequence
+from typing import Any, Iterable, Mapping, Optional, Sequence
 
 from . import params as P
 from .errors import PipelineError, WorkflowError, unknown_key_hint
@@ -91,6 +91,9 @@ class Workflow:
         self.registry = registry
         self._params_cache: dict[tuple, ResolvedParams] = {}
         self._fingerprints: dict[str, str] = {}
+        self._verify: set[str] = set()  # external paths whose content is re-read (verify_data)
+        self._verify_all = False
+        self._contents: dict = {}  # content fingerprints read by this command (FingerprintMemo.key)
         #: set by the run / inspection against a cache (:meth:`use_cache`)
         self.fingerprint_memo: Optional[FingerprintMemo] = None
 
@@ -157,12 +160,9 @@ class Workflow:
             self.fingerprint_memo = FingerprintMemo(root, writable)
             self._fingerprints.clear()
 
-    def data_fingerprints(self, item: Item, params: Any, stage: Optional[str] = None) -> dict[str, str]:
-        """Fingerprints (:func:`~pipeline.hashing.stat_fingerprint`) of the files and folders
-        that the item's key attributes and ``params`` name (every ``Path`` value), keyed
-        by where the path is set: external data read by a task enter its cache key, so a
-        changed dataset, mask folder or model folder is recomputed, not served stale.
-        Memoised per loaded workflow (one walk per folder per command)."""
+    def data_paths(self, item: Item, params: Any, stage: Optional[str] = None) -> dict[str, Path]:
+        """The external files and folders a task reads: every ``Path`` value of the item's key
+        attributes (those that enter ``stage``'s key) and of ``params``, by where it is set."""
         found: dict[str, Path] = {}
         for axis, attrs in item.attrs.items():
             keep = self._key_attrs.get(axis)
@@ -170,14 +170,41 @@ class Workflow:
                 if (keep is None or name.split(".")[1] in keep) and self._applies(axis, name.split(".")[1], stage):
                     found[name] = value
         found.update(_paths(params, "params"))
+        return dict(sorted(found.items()))
+
+    def data_fingerprints(self, item: Item, params: Any, stage: Optional[str] = None) -> dict[str, str]:
+        """Fingerprints (:func:`~pipeline.hashing.stat_fingerprint`) of the files and folders
+        that the item's key attributes and ``params`` name (every ``Path`` value), keyed
+        by where the path is set: external data read by a task enter its cache key, so a
+        changed dataset, mask folder or model folder is recomputed, not served stale.
+        Memoised per loaded workflow (one walk per folder per command); paths given to
+        :meth:`verify_data` are keyed by their content as read now."""
         out = {}
-        for name, path in sorted(found.items()):
+        for name, path in self.data_paths(item, params, stage).items():
             k = os.fspath(path)
             if k not in self._fingerprints:
                 memo = self.fingerprint_memo
-                self._fingerprints[k] = memo.key(Path(k)) if memo is not None else stat_fingerprint(Path(k))
+                verify = self._verify_all or k in self._verify
+                self._fingerprints[k] = (memo.key(Path(k), verify=verify, contents=self._contents)
+                                         if memo is not None else stat_fingerprint(Path(k)))
             out[name] = self._fingerprints[k]
         return out
+
+    def verify_data(self, paths: Optional[Iterable[os.PathLike | str]] = None) -> None:
+        """Re-read the content of these external paths (None: of every one) instead of
+        trusting their size and modification time (``cobgs run --force STAGE``,
+        ``--verify-data``, ``cobgs status --verify-data``): an edit that kept both then
+        changes the keys of every task that reads the data. Takes effect for fingerprints
+        computed after the call. Data over ``FingerprintMemo.MAX_BYTES`` stay keyed by their
+        stat fingerprint."""
+        if paths is None:
+            self._verify_all = True
+            self._fingerprints.clear()
+            return
+        for p in paths:
+            k = os.fspath(p)
+            self._verify.add(k)
+            self._fingerprints.pop(k, None)
 
     def key_attrs(self, item: Item, stage: Optional[str] = None) -> dict[str, Any]:
         """The attributes of ``item`` that enter the cache keys of ``stage``, as JSON. An

@@ -956,3 +956,54 @@ refine = { method = "flashsplat", flashsplat = { background_bias = -0.3 } }
     html = Path(index).read_text(encoding="utf-8")
     assert "flashsplat_oracle" in html and "an oracle in its favour" in html and "mBIoU released" in html
     assert 'id="t-diff"' in html  # the reference minus each peer, with view-bootstrap intervals
+
+
+def test_an_edit_that_keeps_size_and_time_is_found_by_force_and_verify_data(tmp_path, capsys):
+    """Issue 44 H2: a mask PNG of an external transforms scene rewritten with other pixels,
+    same size and mtime, was served as done, and `--force dataset` (which recomputes a
+    byte-identical dataset.json) did not help. Now the forced stage's data are re-hashed,
+    so every task that reads them reruns; `cobgs status --verify-data` lists them first."""
+    import os
+
+    import cv2
+    import numpy as np
+
+    from cobgs.data.synthetic import generate_scene
+    from stages.commands.cli import main
+
+    scene = generate_scene(tmp_path / "scene", "demo", seed=2, num_views=8, workers=1, progress=False)
+    wf_path = tmp_path / "ext.toml"
+    wf_path.write_text('[workflow]\nnested = { object = "scene" }\n[params.sfm]\ntriangulate = false\n'
+                       f'[axes.scene.s]\nkind = "transforms"\npath = "{scene}"\n'
+                       '[axes.method.cobgs]\n[axes.object.s.ball]\n')
+    cache = tmp_path / "cache"
+    only = ("dataset", "sfm", "masks")
+    wf, summary, log = _run(wf_path, cache, only=only)
+    assert summary.exit_code == 0, log
+    masks = _entry(wf, cache, "masks", "s/ball").output("masks")
+    view = max(masks.glob("*.png"), key=lambda f: int((cv2.imread(str(f), 0) >= 128).sum()))
+    assert int((cv2.imread(str(view), 0) >= 128).sum()) > 0
+    src = scene / "masks" / "ball" / view.name
+    st = src.stat()
+    blank = cv2.imencode(".png", np.zeros_like(cv2.imread(str(src), cv2.IMREAD_UNCHANGED)))[1].tobytes()
+    assert len(blank) < st.st_size
+    src.write_bytes(blank + b"\0" * (st.st_size - len(blank)))  # PNG readers stop at IEND
+    os.utime(src, ns=(st.st_atime_ns, st.st_mtime_ns))
+    assert src.stat().st_size == st.st_size and src.stat().st_mtime_ns == st.st_mtime_ns
+    common = ["--cache-dir", str(cache)]
+    assert main(["status", str(wf_path), *common]) == 0
+    assert "stale" not in capsys.readouterr().out  # size and time alone cannot see it
+    assert main(["status", str(wf_path), *common, "--verify-data"]) == 0
+    out = capsys.readouterr().out
+    assert "data on disk changed (scene.path)" in out and "read data whose content changed" in out, out
+    assert "masks[s/ball]" in out.split("--verify-data:")[1]
+    wf, summary, log = _run(wf_path, cache, only=only, force=("dataset",))
+    assert summary.exit_code == 0, log
+    states = _states(summary)
+    assert states[("masks", "s/ball")] == "done", states
+    fresh = _entry(wf, cache, "masks", "s/ball").output("masks") / view.name
+    assert int((cv2.imread(str(fresh), 0) >= 128).sum()) == 0
+    _, summary, log = _run(wf_path, cache, only=only)  # and it stays found
+    assert set(_states(summary).values()) == {"cached"}, log
+    assert main(["status", str(wf_path), *common, "--verify-data"]) == 0
+    assert "0 task(s) read data whose content changed" in capsys.readouterr().out
