@@ -70,11 +70,22 @@ def check_params(obj) -> None:
         for x in (v if isinstance(v, (tuple, list)) else (v,)):
             if isinstance(x, bool) or not isinstance(x, (int, float)):
                 continue
+            try:
+                fx = float(x)
+            except OverflowError:  # an int past any float: outside every range
+                fx = math.inf if x > 0 else -math.inf
             if spec is not None:
-                if not in_interval(float(x), spec):
-                    raise InputError(f"{cls.__name__}.{f.name} must be in {spec}, got {x!r}")
-            elif isinstance(x, float) and not math.isfinite(x):
-                raise InputError(f"{cls.__name__}.{f.name} must be a finite number, got {x!r}")
+                if not in_interval(fx, spec):
+                    raise InputError(f"{cls.__name__}.{f.name} must be in {spec}, got {_short(x)}")
+            elif not math.isfinite(fx):
+                raise InputError(f"{cls.__name__}.{f.name} must be a finite number, got {_short(x)}")
+
+
+def _short(x) -> str:
+    """A value for a message: a huge integer by its digit count, not its digits."""
+    if isinstance(x, int) and abs(x) >= 10 ** 60:
+        return f"an integer of {len(str(abs(x)))} digits"
+    return repr(x)
 
 
 # -- baseline training (cobgs.train.optimize) ---------------------------------------------------------
@@ -388,6 +399,8 @@ class SA3DConfig:
     adam_eps: float = 1e-15
     backend: str = "native"
 
+    # gate / label / render_threshold compare raw (unbounded) labels or their composited
+    # render: no range but finiteness (check_params' rule for a float without one)
     RANGES: ClassVar[dict] = {"lr": "(0, 100]", "neg_weight": "[0, 100]", "passes": "[1, 100]",
                               "skip_iou": "[0, 1]", "adam_eps": "(0, 0.001]", "seed": "[0, 2147483647]"}
     CHOICES: ClassVar[dict] = {"backend": ("native", "reference"), "order": ("fixed", "random"),
@@ -401,11 +414,6 @@ class SA3DConfig:
             raise InputError(f"SA3DConfig.order must be 'fixed' or 'random', got {self.order!r}")
         if self.render_values not in ("label", "one"):
             raise InputError(f"SA3DConfig.render_values must be 'label' or 'one', got {self.render_values!r}")
-        if not 0.0 <= self.skip_iou <= 1.0:
-            raise InputError(f"SA3DConfig.skip_iou must be in [0, 1], got {self.skip_iou}")
-        for k in ("gate_threshold", "label_threshold", "render_threshold", "neg_weight"):
-            if not math.isfinite(getattr(self, k)):
-                raise InputError(f"SA3DConfig.{k} must be a finite number, got {getattr(self, k)}")
 
     @classmethod
     def strict(cls, **kw) -> "SA3DConfig":

@@ -71,12 +71,19 @@ def type_name(tp: Any) -> str:
     return str(tp).replace("typing.", "")
 
 
+#: The longest ``--set`` value read as a TOML literal; a longer one is a string (a path).
+#: (A number of thousands of digits is past Python's digit limit and no param's range.)
+MAX_LITERAL_CHARS = 1000
+
+
 def parse_cli_value(raw: str) -> Any:
     """A ``--set`` value: a TOML literal when it parses as one (``3``, ``true``, ``[1, 2]``),
     else the bare string (``cuda``, ``some/path``)."""
+    if len(raw) > MAX_LITERAL_CHARS:
+        return raw
     try:
         return tomllib.loads(f"v = {raw}")["v"]
-    except tomllib.TOMLDecodeError:
+    except (ValueError, RecursionError):  # TOMLDecodeError is a ValueError
         return raw
 
 
@@ -86,15 +93,26 @@ def coerce(value: Any, tp: Any, *, key: str, layer: Layer) -> Any:
         parsed = parse_cli_value(value)
         try:
             return _coerce(parsed, tp, key, layer)
-        except WorkflowError:
+        except WorkflowError as first:
             if parsed is value:
                 raise
-            return _coerce(value, tp, key, layer)  # e.g. a str field typed as "3"
+            try:
+                return _coerce(value, tp, key, layer)  # e.g. a str field typed as "3"
+            except WorkflowError:
+                raise first from None  # what was wrong with the value as typed
     return _coerce(value, tp, key, layer)
 
 
+def short_repr(value: Any, limit: int = 80) -> str:
+    """``repr(value)``, cut to ``limit`` characters (a 400-digit integer stays readable)."""
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) >= 10 ** 60:
+        return f"an integer of {len(str(abs(value)))} digits"
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[:limit - 20]}... ({len(text)} characters)"
+
+
 def _fail(what: str, value: Any, key: str, layer: Layer) -> WorkflowError:
-    return WorkflowError(f"expected {what}, got {value!r} ({type(value).__name__})",
+    return WorkflowError(f"expected {what}, got {short_repr(value)} ({type(value).__name__})",
                          layer.source, key)
 
 
@@ -131,7 +149,10 @@ def _coerce(value: Any, tp: Any, key: str, layer: Layer) -> Any:
         raise _fail("an integer", value, key, layer)
     if tp is float:
         if isinstance(value, (int, float)) and not isinstance(value, bool):
-            return float(value)
+            try:
+                return float(value)
+            except OverflowError:
+                raise _fail("a number within the range of a float (about 1.8e308)", value, key, layer) from None
         raise _fail("a number", value, key, layer)
     if tp is str:
         if isinstance(value, str):

@@ -349,6 +349,9 @@ def load_workflow(path: os.PathLike | str, registry: Registry, sets: Sequence[st
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise WorkflowError(f"invalid TOML: {exc}", source) from None
+    except ValueError as exc:  # an integer past Python's digit limit (no param's range holds it)
+        raise WorkflowError(f"invalid value: {str(exc).split(';')[0]} (an integer no param can hold)",
+                            source) from None
     except RecursionError:
         raise WorkflowError("invalid TOML: arrays or tables nested too deep to read", source) from None
     _check_keys(raw, TOP_KEYS, source, "")

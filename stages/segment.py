@@ -43,15 +43,11 @@ class SegmentParams:
     views: str = "test"
     backend: str = "native"
 
+    RANGES: ClassVar[dict] = {"mask_threshold": "(0, 1)"}  # the rendered mask is in [0, 1]
     CHOICES: ClassVar[dict] = {"backend": ("native", "reference"), "views": ("test", "all")}
 
     def __post_init__(self) -> None:
         check_params(self)
-        if self.views not in ("test", "all"):
-            raise ValueError(f"views must be 'test' or 'all', got {self.views!r}")
-        if self.mask_threshold is not None and not 0.0 < self.mask_threshold < 1.0:  # COB-GS masks: [0, 1]
-            raise ValueError(f"mask_threshold must be in (0, 1) (the rendered mask is in [0, 1]), "
-                             f"got {self.mask_threshold}")
 
 
 def _run(ctx, inputs):

@@ -143,3 +143,51 @@ def test_masks_cache_key_holds_only_what_the_route_reads():
     assert key(noisy) == key(replace(noisy, two_stage=TwoStageConfig(empty_rule="union")))
     assert key(files)["source"] == "files" and "two_stage" not in key(files)
     assert set(key(noisy)) == {"source", "files_threshold", "files_root", "noise"}
+
+
+DEMO_WORKFLOW = __import__("pathlib").Path(__file__).resolve().parents[2] / "workflows" / "demo.toml"
+
+
+@pytest.mark.parametrize("key", ["train.iterations", "train.position_lr_init"])
+@pytest.mark.parametrize("digits", [401, 5000])
+def test_huge_numbers_are_refused_like_any_out_of_range_value(key, digits):
+    """Issue 44 M1: an integer too large for a float (OverflowError in check_params /
+    coerce) or past Python's digit limit (ValueError in the TOML reader) crashed the plan."""
+    from pipeline import Plan, WorkflowError, load_workflow
+    from stages.registry import load_registry
+
+    value = "1" + "0" * (digits - 1)
+    with pytest.raises(WorkflowError) as err:
+        Plan(load_workflow(DEMO_WORKFLOW, load_registry(), [f"{key}={value}"]))
+    text = str(err.value)
+    assert "--set" in text and key in text and len(text) < 400, text
+
+
+def test_a_huge_number_in_a_workflow_file_names_the_file(tmp_path):
+    from pipeline import WorkflowError, load_workflow
+    from stages.registry import load_registry
+
+    for digits, what in ((401, "TrainConfig.iterations must be in"), (5000, "invalid value")):
+        f = tmp_path / f"big{digits}.toml"
+        f.write_text(f'[workflow]\nname = "big"\nnested = {{ object = "scene" }}\n[params.train]\niterations = 1{"0" * (digits - 1)}\n'
+                     '[axes.scene.s]\nkind = "synthetic"\n[axes.method.cobgs]\n[axes.object.s.ball]\n')
+        with pytest.raises(WorkflowError) as err:
+            from pipeline import Plan
+
+            Plan(load_workflow(f, load_registry(), []))
+        assert str(f) in str(err.value) and what in str(err.value) and len(str(err.value)) < 400, str(err.value)
+
+
+def test_segment_mask_threshold_range_is_stated_once_and_documented():
+    """Issue 44: SegmentParams.mask_threshold was checked by hand in __post_init__ with no
+    RANGES entry, so docs/pipeline.md listed no range for it."""
+    from pathlib import Path
+
+    from stages.segment import SegmentParams
+
+    assert SegmentParams.RANGES["mask_threshold"] == "(0, 1)"
+    for bad in (0.0, 1.0, float("nan")):
+        with pytest.raises(ValueError, match=r"SegmentParams.mask_threshold must be in \(0, 1\)"):
+            SegmentParams(mask_threshold=bad)
+    docs = (Path(__file__).resolve().parents[2] / "docs" / "pipeline.md").read_text()
+    assert "# mask_threshold = ...  # default: none (Optional[float]); in (0, 1)" in docs
