@@ -100,8 +100,28 @@ def test_load_moments_names_the_mismatch(baseline):
     other.keep(torch.arange(len(other)) < 500)
     with pytest.raises(InputError, match=r"means.exp_avg has shape \[600, 3\].*\[500, 3\]"):
         load_moments(other.make_adam({"means": 1e-3}), mom, "adam_moments.pt")
-    with pytest.raises(InputError, match="no Adam moments for tensor 'quats'"):
-        load_moments(model.make_adam({"quats": 1e-3}), {k: v for k, v in mom.items() if k != "quats"})
+
+
+def test_a_tensor_training_never_stepped_starts_from_zero_moments(baseline):
+    """Issue 44 M6: below the first SH-degree step (1000 iterations) training never steps
+    ``shN``, so its moments are not exported, and loading them failed every COB-GS refinement
+    (`cobgs run workflows/demo.toml --set train.iterations=60`). A missing moment is a zero
+    moment: the tensor's next step is Adam's first, the others continue."""
+    model, views, extent, opt = baseline
+    mom = {k: v for k, v in export_moments(opt).items() if k != "shN"}
+    twin = model.clone()
+    opt2 = twin.make_adam(_texture_lrs(RefineConfig(), extent))
+    assert sorted(load_moments(opt2, mom)) == sorted(k for k in TEXTURE if k != "shN")
+    assert not opt2.state.get(twin.data["shN"])
+    fresh = model.clone()
+    opt3 = fresh.make_adam(_texture_lrs(RefineConfig(), extent))
+    _photometric_steps(twin, views, opt2, 1)
+    _photometric_steps(fresh, views, opt3, 1)
+    assert torch.equal(twin.data["shN"], fresh.data["shN"])  # shN: exactly a fresh Adam's step
+    assert float(opt2.state[twin.data["means"]]["step"]) == 25  # the rest continues
+    r = refine(model.clone(), views, masks_for(views, "ball"), extent,
+               RefineConfig(mask_stages=1, stage_length_views=1), texture_moments=mom, progress=False)
+    assert r.config["texture_adam"] == "baseline"
 
 
 def test_texture_stage_continues_the_baseline_optimizer(baseline):

@@ -68,8 +68,10 @@ def export_moments(optimizer: torch.optim.Optimizer) -> dict[str, dict[str, Tens
 def load_moments(optimizer: torch.optim.Optimizer, moments: Moments, source: str = "moments") -> list[str]:
     """Seed ``optimizer``'s state with ``moments`` (copies), group by group name.
 
-    Every named group of the optimizer must have an entry whose moments have its
-    parameter's shape; entries for other tensors are ignored.
+    An entry's moments must have its parameter's shape; entries for other tensors are
+    ignored. A named group without an entry starts from zero moments, as Adam starts any
+    tensor: training leaves out the tensors it never stepped (``shN`` below the first
+    SH-degree step, 1000 iterations), and their first step is then Adam's first.
 
     Args:
         optimizer: an Adam whose groups carry a ``"name"`` (``make_adam``).
@@ -81,7 +83,7 @@ def load_moments(optimizer: torch.optim.Optimizer, moments: Moments, source: str
         the names of the groups seeded.
 
     Raises:
-        InputError: a group has no entry, or an entry's shape, dtype or keys do not match.
+        InputError: an entry's shape, dtype or keys do not match its group.
     """
     names = []
     for g in optimizer.param_groups:
@@ -90,7 +92,8 @@ def load_moments(optimizer: torch.optim.Optimizer, moments: Moments, source: str
             continue
         p = g["params"][0]
         if name not in moments:
-            raise InputError(f"{source}: no Adam moments for tensor {name!r} (have {sorted(moments)})")
+            optimizer.state.pop(p, None)  # zero moments, step 0: Adam's own start
+            continue
         entry = moments[name]
         missing = [k for k in _KEYS if k not in entry]
         if missing:
