@@ -281,11 +281,23 @@ class Cache:
         if folder.exists():
             self._move_aside(folder)
 
+    #: What a failure record keeps of the task's outputs: the small JSON records it wrote at
+    #: the top of its output folder (what it tried and found: a diagnosis), nothing else.
+    FAILURE_KEEPS_BYTES = 1 << 20
+
     def record_failure(self, tmp: Path, stage: str, key: str, manifest: dict) -> Path:
-        """Keep the log and a failure manifest of ``tmp`` in ``failed/``; drop outputs."""
+        """Keep the log, a failure manifest and the task's small JSON records (its
+        ``out/*.json`` up to :data:`FAILURE_KEEPS_BYTES` each) of ``tmp`` in ``failed/``;
+        drop the other outputs."""
         keep = self.new_tmp(stage, key)
         if (tmp / LOG).exists():
             os.replace(tmp / LOG, keep / LOG)
+        out = tmp / OUT
+        if out.is_dir():
+            for f in sorted(out.glob("*.json")):
+                if f.is_file() and not f.is_symlink() and f.stat().st_size <= self.FAILURE_KEEPS_BYTES:
+                    (keep / OUT).mkdir(exist_ok=True)
+                    os.replace(f, keep / OUT / f.name)
         write_json_atomic(keep / MANIFEST, manifest)
         final = self.failed_dir(stage, key)
         final.parent.mkdir(parents=True, exist_ok=True)

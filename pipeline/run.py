@@ -193,7 +193,7 @@ def run_workflow(workflow: Workflow, options: RunOptions, stream: Optional[TextI
     if options.dry_run:
         check_params(plan, sel, cache)
         return dry_run(plan, sel, cache, stream, t0)
-    check_params(plan, sel, cache)
+    prechecks = check_params(plan, sel, cache)
     read_only = False
     try:
         cache.ensure()
@@ -215,7 +215,7 @@ def run_workflow(workflow: Workflow, options: RunOptions, stream: Optional[TextI
         print(note, file=stream)
     executor = executor or _make_executor(options)
     try:
-        return _Scheduler(plan, sel, cache, options, executor, stream, read_only).run(t0)
+        return _Scheduler(plan, sel, cache, options, executor, stream, read_only, prechecks).run(t0)
     finally:
         executor.close()
 
@@ -248,34 +248,69 @@ def disk_full_message(root: Path) -> str:
             "(`cobgs cache gc WORKFLOW` removes entries no workflow uses) or pass --cache-dir on another disk")
 
 
-def check_params(plan: Plan, sel: Selection, cache: Cache) -> None:
+def check_params(plan: Plan, sel: Selection, cache: Cache) -> dict[int, dict[str, int]]:
     """Run each stage's ``check`` on the params of the tasks this run will execute (not
     done in the cache, or forced), once per distinct params, before anything runs; a
-    refused value raises :class:`WorkflowError` naming the file and key that set it."""
-    todo = [i for i in sel.relevant if plan.tasks[i].stage.check is not None]
+    refused value raises :class:`WorkflowError` naming the file and key that set it. Then
+    each such task's ``precheck`` with its precheck inputs that are done; returns, per task
+    whose precheck still waits on inputs, ``{input: producing task}`` (the scheduler calls it
+    again once they are done)."""
+    todo = [i for i in sel.relevant if plan.tasks[i].stage.check is not None
+            or plan.tasks[i].stage.precheck is not None]
     if not todo:
-        return
-    states = {st.task.index: st.state for st in inspect(plan, cache, with_reasons=False)}
+        return {}
+    by_index = {st.task.index: st for st in inspect(plan, cache, with_reasons=False)}
     seen: set[tuple[str, str]] = set()
+    waiting: dict[int, dict[str, int]] = {}
     for i in todo:
         task = plan.tasks[i]
-        if states.get(i) == "done" and i not in sel.forced:
+        if by_index[i].state == "done" and i not in sel.forced:
             continue
         sig = (task.stage.name, canonical_json(task.params.json))
-        if sig in seen:
+        if task.stage.check is not None and sig not in seen:
+            seen.add(sig)
+            try:
+                task.stage.check(task.params.value)
+            except (ValueError, TypeError) as exc:
+                source, key = plan.workflow.locate(task.stage.name, task.item, str(exc))
+                raise WorkflowError(f"stage {task.stage.name!r} ({task.id}): {exc}", source, key) from None
+        if task.stage.precheck is None:
             continue
-        seen.add(sig)
-        try:
-            task.stage.check(task.params.value)
-        except (ValueError, TypeError) as exc:
-            source, key = plan.workflow.locate(task.stage.name, task.item, str(exc))
-            raise WorkflowError(f"stage {task.stage.name!r} ({task.id}): {exc}", source, key) from None
+        ready, missing = {}, {}
+        for b in task.bindings:
+            if b.name not in task.stage.precheck_inputs or b.fan_in:
+                continue
+            st = by_index.get(b.sources[0])
+            if st is not None and st.state == "done" and st.manifest and st.entry_dir is not None:
+                ready[b.name] = st.entry_dir / st.manifest["outputs"][b.name]["path"]
+            else:
+                missing[b.name] = b.sources[0]
+        message = run_precheck(task, ready)
+        if message:
+            source, key = plan.workflow.locate(task.stage.name, task.item, message)
+            raise WorkflowError(message, source, key)
+        if missing:
+            waiting[i] = missing
+    return waiting
+
+
+def run_precheck(task: Task, inputs: dict[str, Path]) -> str:
+    """"" when ``task``'s precheck passes with ``inputs``, else what it refused."""
+    try:
+        task.stage.precheck(task.params.value, task.item, inputs)
+    except (ValueError, TypeError, OSError) as exc:
+        return f"stage {task.stage.name!r} ({task.id}): {exc}"
+    except Exception as exc:  # noqa: BLE001 - a library error (the stage's own types): still one line
+        return f"stage {task.stage.name!r} ({task.id}): {type(exc).__name__}: {exc}"
+    return ""
 
 
 class _Scheduler:
     def __init__(self, plan: Plan, sel: Selection, cache: Cache, options: RunOptions,
-                 executor: Any, stream: TextIO, read_only: bool = False):
+                 executor: Any, stream: TextIO, read_only: bool = False,
+                 prechecks: Optional[dict[int, dict[str, int]]] = None):
         self.plan, self.sel, self.cache, self.options = plan, sel, cache, options
+        self.prechecks = dict(prechecks or {})  # task -> {precheck input: producing task} not yet done
         self.read_only = read_only
         self.executor, self.stream = executor, stream
         self.wf = plan.workflow
@@ -355,6 +390,7 @@ class _Scheduler:
             warn = warnings_note((check.manifest or {}).get("extra"))
             self.progress.line(task, "cached", note=warn)
             self._settle(index, Outcome("cached", note=warn, key=key))
+            self._prechecks_after(index)
             return True
         resources = task.stage.resources_for(self.wf.settings)
         if self.executor.capacity() is not None and resources.gpus > 0:
@@ -411,6 +447,7 @@ class _Scheduler:
         if result.status in ("ok", "cached"):
             self.table.set(result.index, result.outputs, Path(result.entry_dir))  # type: ignore
             self._write_ref(task, result.key, "ok", hashes)
+            self._prechecks_after(result.index)
             state = "done" if result.status == "ok" else "cached"
             self.progress.line(task, state, result.wall_s if state == "done" else None,
                                result.note)
@@ -428,6 +465,28 @@ class _Scheduler:
         else:
             self.summary.interrupted = True
             self._settle(result.index, Outcome("interrupted", result.wall_s, key=result.key))
+
+    def _prechecks_after(self, index: int) -> None:
+        """Prechecks whose last input ``index`` just made: a refusal stops new tasks."""
+        for i, waits in list(self.prechecks.items()):
+            if index not in waits.values():
+                continue
+            if any(self.table.entry_dirs[s] is None for s in waits.values()):
+                continue
+            del self.prechecks[i]
+            task = self.plan.tasks[i]
+            inputs = {name: self.table.entry_dirs[s] / self.table.outputs[s][name]["path"]  # type: ignore
+                      for name, s in waits.items()}
+            for b in task.bindings:  # the inputs that were done when the run was planned
+                if b.name in task.stage.precheck_inputs and not b.fan_in and b.name not in inputs \
+                        and self.table.entry_dirs[b.sources[0]] is not None:
+                    s = b.sources[0]
+                    inputs[b.name] = self.table.entry_dirs[s] / self.table.outputs[s][b.name]["path"]  # type: ignore
+            message = run_precheck(task, inputs)
+            if message and not self.summary.stopped:
+                self.summary.stopped = message
+                print(f"cobgs run: {message}; no new task is started", file=sys.stderr)
+                print(f"refused   {task.id}: {message}", file=self.stream, flush=True)
 
     def run(self, t0: float) -> RunSummary:
         try:

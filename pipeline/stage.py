@@ -95,6 +95,15 @@ class Stage:
             that only some of its modes read (e.g. the thresholds of one mask route): a
             change to a section the task does not read then recomputes nothing. It must
             keep everything the task's outputs depend on; the manifest still records all.
+        precheck: optional ``precheck(params, item, inputs)`` raising ``ValueError`` for a task
+            that cannot succeed, judged from its item and cheap inputs (a click file naming
+            views the dataset does not have). Called in the driver for each task a run will
+            execute: when the run is planned, with those of ``precheck_inputs`` that are
+            already done, and again as soon as the rest are, before the run starts anything
+            else. A refusal at plan time stops the run before any task; later, no new task
+            starts (hours of SfM and training are not spent on a task that must fail).
+            ``inputs`` maps each available precheck input to its path.
+        precheck_inputs: the inputs (a subset of ``inputs``, not fan-in) ``precheck`` reads.
     """
 
     name: str
@@ -109,6 +118,8 @@ class Stage:
     description: str = ""
     check: Optional[Callable[[Any], None]] = None
     key_params: Optional[Callable[[Any, Mapping[str, Any]], Mapping[str, Any]]] = None
+    precheck: Optional[Callable[[Any, Any, Mapping[str, Any]], None]] = None
+    precheck_inputs: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         where = f"stage {self.name!r}"
@@ -125,6 +136,12 @@ class Stage:
             raise StageSpecError(f"{where}: run must be callable, got {type(self.run).__name__}")
         if self.key_params is not None and not callable(self.key_params):
             raise StageSpecError(f"{where}: key_params must be callable or None")
+        if self.precheck is not None and not callable(self.precheck):
+            raise StageSpecError(f"{where}: precheck must be callable or None")
+        object.__setattr__(self, "precheck_inputs", tuple(self.precheck_inputs))
+        stray = [n for n in self.precheck_inputs if n not in tuple(self.inputs)]
+        if stray:
+            raise StageSpecError(f"{where}: precheck_inputs {stray} are not among its inputs {list(self.inputs)}")
         for attr in ("inputs", "outputs", "level"):
             value = getattr(self, attr)
             if isinstance(value, str) or not isinstance(value, (tuple, list)):

@@ -180,15 +180,20 @@ def _run(ctx, inputs):
     info.update(views=len(areas), train_views=len(views), area_px=areas,
                 empty=sorted(k for k, a in areas.items() if a == 0),
                 without_mask=sorted(v.name for v in views if v.name not in areas))
+    write_json(ctx.out_dir / "masks.json", info)  # (kept in the failure record below)
     if not areas or all(a == 0 for a in areas.values()):
         hint = ""
         if p.source in ("files", "noisy") and mask_dir is None:
             hint = (f" (the dataset's mask files of {obj!r} are read as 8-bit images whose "
                     "foreground is >= 128: masks holding 0/1 read as empty; save them as 0/255, "
                     "or give the object a mask_dir, where any non-zero pixel counts)")
+        if p.source == "points" and info.get("clicks"):
+            landed = "; ".join(f"{f['frame']} ({f['image']}, {f['image_size'][0]}x{f['image_size'][1]} px): "
+                               f"{f['positive']} positive at {f['points_px'][:3]}" for f in info["clicks"]["frames"][:4])
+            hint = (f"; the clicks landed at {landed} (image pixels, x right, y down; see masks.json beside the "
+                    "log): are they on the object, in the frame image_size names?")
         raise StageInputError(f"object {obj!r}: no training view got a non-empty mask "
                               f"(source {p.source!r}); nothing to segment{hint}")
-    write_json(ctx.out_dir / "masks.json", info)
     ctx.log.info("masks of %r (%s): %d views, %d empty", obj, p.source, len(areas), len(info["empty"]))
     ctx.note(source=p.source, object=obj, views=len(areas), empty=len(info["empty"]),
              seconds=round(time.perf_counter() - t0, 3))
@@ -229,12 +234,6 @@ def mask_route(source: str, from_folder: bool) -> str:
     return "scribbles -> SAM2"
 
 
-def same_aspect(w1: int, h1: int, w2: int, h2: int, tol: float = 0.01) -> bool:
-    """Whether two image sizes have the same aspect ratio, up to ``tol`` (relative; a
-    downscale's rounding, 1008x756 vs 4032x3024 or 510x382 vs 512x384, passes)."""
-    return abs(w1 * h2 - w2 * h1) <= tol * w2 * h1
-
-
 _MASK_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff")
 
 
@@ -244,6 +243,7 @@ def _folder_masks(views, folder: Path, threshold: int) -> tuple[dict, dict]:
     import numpy as np
     from PIL import Image
 
+    from cobgs.data.images import same_aspect
     from cobgs.evaluate.protocols import resize_nearest
 
     by_stem: dict = {}
@@ -354,57 +354,102 @@ def _generate(ctx, p: MasksParams, spec: dict, obj: str, views, info: dict) -> N
             write_png(ctx.out_dir / f"{v.name}.png", read_mask_png(f, v.width, v.height).numpy())
 
 
+def _click_names(item, obj: str, scene_task=None) -> list[str]:
+    """The names a click file's entry of this object is looked up by: the object value, the
+    dataset object it stands for, the scene's NVOS task(s), the scene."""
+    attrs = item.attrs.get("scene")
+    tasks = scene_task if scene_task is not None else getattr(attrs, "task", None) if attrs is not None else None
+    tasks = [tasks] if isinstance(tasks, str) else list(tasks or [])
+    return [item["object"], obj, *tasks, item["scene"]]
+
+
+def _precheck(p: "MasksParams", item, inputs) -> None:
+    """Click files, before the hours of SfM and training the masks task waits for: the
+    object's entry when the run is planned, its frames and their sizes once the dataset
+    task has listed the scene's views (Stage.precheck)."""
+    if p.source != "points" or p.points_file is None:
+        return
+    from cobgs.masks.clicks import OWN, check_frame_size, match_frames, read_clicks
+
+    attrs = item.attrs.get("object")
+    obj = (getattr(attrs, "mask", "") if attrs is not None else "") or item["object"]
+    clicks = read_clicks(p.points_file)
+    entry = clicks.lookup(_click_names(item, obj))
+    if "dataset" not in inputs or entry.layout != OWN:
+        return  # (SAGA-v2: the NVOS reference view, checked when the masks task runs)
+    from cobgs.data.images import probe
+
+    spec = read_spec(inputs["dataset"])
+    files = _view_files(inputs["dataset"], spec)
+    held = set(spec.test_views)
+    train = [(v, files.get(v, "")) for v in spec.views if v not in held]
+    idx = match_frames(clicks, entry, [(n, Path(f).name if f else "") for n, f in train],
+                       [(v, Path(files[v]).name if v in files else "") for v in spec.views if v in held])
+    for fc, i in zip(entry.frames, idx):
+        name, f = train[i]
+        if f and entry.image_size is not None:
+            w, h, _ = probe(f)
+            check_frame_size(clicks, entry, fc.frame, entry.image_size, (w, h), f)
+
+
+def _view_files(dataset_dir: Path, spec) -> dict:
+    """view name -> its image file in the folder SfM reads, where the dataset names one."""
+    from ._common import spec_path
+
+    images = spec.images
+    if not images:
+        return {}
+    folder = spec_path(dataset_dir, images.get("dir"))
+    stems = {Path(n).stem: n for n in images.get("names") or []}
+    return {v: folder / stems[v] for v in spec.views if v in stems}
+
+
 def _click_prompts(ctx, p: MasksParams, spec: dict, obj: str, views) -> tuple[list, dict]:
     """The SAM2 prompts of this object from ``masks.points_file``, in each view image's own
     pixels, and what was used (for masks.json)."""
     import numpy as np
 
     from cobgs.masks import FramePrompt
-    from cobgs.masks.clicks import SAGA, read_clicks, to_image_pixels
+    from cobgs.masks.clicks import SAGA, check_frame_size, locate, match_frames, read_clicks, to_image_pixels
     from cobgs.masks.images import image_size
 
     clicks = read_clicks(p.points_file)
     nvos = nvos_task(spec, ctx.item["object"], obj) if spec.protocol == "nvos" else None
-    names = [ctx.item["object"], obj] + ([nvos["task"]] if nvos else []) + [spec.scene]
     try:
-        entry = clicks.lookup(names)
+        entry = clicks.lookup(_click_names(ctx.item, obj, [nvos["task"]] if nvos else None))
     except ValueError as exc:
         raise StageInputError(str(exc)) from exc
-    by_name = {v.name: i for i, v in enumerate(views)}
-    by_stem = {Path(v.path).stem: i for i, v in enumerate(views)}
-    held_out = set(spec.test_views or [])
-    where = f"click file {p.points_file}, object {entry.key!r}"
     prompts, used = [], []
-    for fc in entry.frames:
-        if entry.layout == SAGA:
-            if nvos is None:
-                raise StageInputError(f"{where}: SAGA-v2 clicks belong on an NVOS task's reference view, "
-                                      f"but scene {spec['scene']!r} is not an NVOS scene (kind 'nvos'); "
-                                      "use the per-object layout (docs/data_formats.md)")
-            frame = nvos["reference"]
-            # The clicks are in the reference image's full resolution: its size from the
-            # labels' copy, else the GT mask's (the same camera at full size).
-            full_src = nvos.get("reference_image") or nvos["gt_mask"]
-            fh, fw = image_size(full_src)
-            frame_size = (fw, fh)
-        else:
-            frame = fc.frame
-            frame_size = entry.image_size
-        if frame in by_name:
-            i = by_name[frame]
-        elif frame in by_stem:
-            i = by_stem[frame]
-        elif frame in held_out:
-            raise StageInputError(f"{where}, frame {frame!r}: a held-out view; clicks must be on training views")
-        else:
-            raise StageInputError(f"{where}, frame {frame!r}: no training view of that name "
-                                  f"(views like {list(by_name)[:4]})")
+    if entry.layout == SAGA:
+        if nvos is None:
+            raise StageInputError(f"{locate(clicks, entry)}: SAGA-v2 clicks belong on an NVOS task's reference view, "
+                                  f"but scene {spec['scene']!r} is not an NVOS scene (kind 'nvos'); "
+                                  "use the per-object layout (docs/data_formats.md)")
+        names = [v.name for v in views]
+        if nvos["reference"] not in names:
+            raise StageInputError(f"{locate(clicks, entry)}: NVOS reference view {nvos['reference']!r} is not a "
+                                  "training view")
+        # The clicks are in the reference image's full resolution: its size from the
+        # labels' copy, else the GT mask's (the same camera at full size).
+        full_src = nvos.get("reference_image") or nvos["gt_mask"]
+        fh, fw = image_size(full_src)
+        frames = [(entry.frames[0], names.index(nvos["reference"]), (fw, fh))]
+    else:
+        idx = match_frames(clicks, entry, [(v.name, Path(v.path).name) for v in views],
+                           [(v, "") for v in spec.test_views or []])
+        frames = [(fc, i, entry.image_size) for fc, i in zip(entry.frames, idx)]
+    for fc, i, frame_size in frames:
+        frame = views[i].name if entry.layout == SAGA else fc.frame
         ih, iw = image_size(views[i].path)
+        try:
+            check_frame_size(clicks, entry, frame, frame_size, (iw, ih), views[i].path)
+        except ValueError as exc:
+            raise StageInputError(str(exc)) from None
         pts = to_image_pixels(fc.points, frame_size, (iw, ih))
-        outside = [pt for pt in pts.tolist() if not (0 <= pt[0] <= iw and 0 <= pt[1] <= ih)]
+        outside = [pt for pt in pts.tolist() if not (0 <= pt[0] < iw and 0 <= pt[1] < ih)]
         if outside:
-            raise StageInputError(f"{where}, frame {frame!r}: click {[round(c, 1) for c in outside[0]]} lies outside "
-                                  f"the image ({iw}x{ih} px, {views[i].path}); clicks are in "
+            raise StageInputError(f"{locate(clicks, entry, frame)}: click {[round(c, 1) for c in outside[0]]} lies "
+                                  f"outside the image ({iw}x{ih} px, {views[i].path}); clicks are in "
                                   + ("the reference image's full resolution" if entry.layout == SAGA else
                                      f"the pixels of {'image_size ' + str(list(frame_size)) if frame_size else 'the view image'}"))
         prompts.append(FramePrompt(i, pts.astype(np.float32), fc.labels.astype(np.float32)))
@@ -440,7 +485,7 @@ def _key_params(params: "MasksParams", full: dict) -> dict:
 
 STAGE = Stage(
     name="masks", version=3, run=_run, inputs=("dataset", "poses"), outputs=("masks",), params=MasksParams,
-    key_params=_key_params,
+    key_params=_key_params, precheck=_precheck, precheck_inputs=("dataset",),
     level=("scene", "object"), uses_device=True, resources=Resources(cpus=2),
     description="an object's training-view masks: dataset files, noisy copies, ONNX text, NVOS scribbles or clicks",
 )

@@ -12,8 +12,9 @@ Two layouts are read; :func:`read_clicks` tells them apart and checks every numb
 Keys starting with ``_`` are metadata; every other key is a scene or NVOS task holding
 positive clicks ``[x, y]`` on that task's **reference view**. A click's pixel is
 ``value x _scale`` (default 1) in the reference image's full resolution (the labels'
-``reference_image/<task>/<ref>.JPG``, 4032x3024 on LLFF): the published file stores
-quarter-resolution values with ``_scale = 4``. A key is looked up as the community's
+``reference_image/<task>/<ref>.JPG``, 4032x3024 on LLFF): for the NVOS keys the published
+file stores quarter-resolution values (1008x756 frames) with ``_scale = 4``; its other keys
+are in their own scenes' frames. A key is looked up as the community's
 evaluation does: exactly, then without an ``_undistort`` suffix, then by the name before
 the first ``_`` (``horns_center`` -> ``horns``).
 
@@ -29,7 +30,15 @@ the first ``_`` (``horns_center`` -> ``horns``).
 
 A frame is a view name (or its image file's stem); clicks are pixel coordinates ``x`` right,
 ``y`` down, in the frame ``image_size`` names (default: the view's image file as the
-dataset reads it). Every prompted frame becomes a SAM2 conditioning frame.
+dataset reads it). Every prompted frame becomes a SAM2 conditioning frame. An ``image_size``
+of another aspect ratio than the view's image is refused (clicks are never stretched axis by
+axis: a portrait size for a landscape photo is a mistake, typically an EXIF rotation).
+
+Checks, all naming the file, the object (or SAGA-v2 entry) and the frame: the file is a
+regular file of at most :data:`MAX_FILE_BYTES`, valid JSON without duplicate keys or deep
+nesting; every coordinate a finite number in ``[0, MAX_SIDE)`` and inside ``image_size``
+(``0 <= x < width``); :func:`match_frames` names a held-out view, a frame given with its file
+extension, or a misspelt one (with the closest view names).
 """
 
 from __future__ import annotations
@@ -43,10 +52,15 @@ from typing import Optional, Sequence
 
 import numpy as np
 
+from cobgs.data.images import same_aspect
 from cobgs.errors import InputError
 
 SAGA = "saga_v2"
 OWN = "objects"
+#: Largest click file read (a click file is a few KiB; a 55 MB one took 37 s to parse).
+MAX_FILE_BYTES = 16 << 20
+#: Largest image side and click coordinate accepted, in pixels.
+MAX_SIDE = 1 << 20
 
 
 @dataclass(frozen=True)
@@ -114,12 +128,23 @@ class ClickFile:
                 for cand in (n.replace("_undistort", ""), n.split("_")[0]):
                     if cand in self.objects:
                         return self.objects[cand]
-        raise InputError(f"click file {self.path}: no entry for {' / '.join(repr(n) for n in names)} "
-                         f"(entries: {sorted(self.objects)[:12]})")
+        what = "entry" if self.layout == SAGA else "object"
+        raise InputError(f"click file {self.path}: no {what} for {' / '.join(repr(n) for n in names)} "
+                         f"({what} keys in the file: {sorted(self.objects)[:12]})")
 
 
 def _bad(path: Path, where: str, what: str) -> InputError:
     return InputError(f"click file {path}: {where}: {what}")
+
+
+def _coordinate(c) -> bool:
+    """A pixel coordinate: a finite number in [0, MAX_SIDE) (an int is compared before any
+    conversion: 10**400 has no float)."""
+    if isinstance(c, bool) or not isinstance(c, (int, float)):
+        return False
+    if isinstance(c, int):
+        return 0 <= c < MAX_SIDE
+    return math.isfinite(c) and 0 <= c < MAX_SIDE
 
 
 def _points(path: Path, where: str, value, kind: str) -> np.ndarray:
@@ -129,26 +154,36 @@ def _points(path: Path, where: str, value, kind: str) -> np.ndarray:
     for i, p in enumerate(value):
         if (not isinstance(p, list) or len(p) != 2
                 or not all(isinstance(c, (int, float)) and not isinstance(c, bool) for c in p)):
-            raise _bad(path, where, f"{kind} point {i} must be [x, y] (two numbers), got {p!r}")
-        if not all(math.isfinite(c) and c >= 0 for c in p):
-            raise _bad(path, where, f"{kind} point {i} must be finite and >= 0 (pixels), got {p!r}")
+            raise _bad(path, where, f"{kind} point {i} must be [x, y] (two numbers), got {_short(p)}")
+        if not all(_coordinate(c) for c in p):
+            raise _bad(path, where, f"{kind} point {i} must be two finite pixel coordinates in [0, {MAX_SIDE}), "
+                                    f"got {_short(p)}")
         out.append([float(p[0]), float(p[1])])
     return np.asarray(out, np.float64).reshape(-1, 2)
+
+
+def _short(value, limit: int = 60) -> str:
+    text = repr(value) if not (isinstance(value, int) and abs(value) >= 10 ** 30) else f"<{len(str(value))}-digit integer>"
+    if isinstance(value, list):
+        text = "[" + ", ".join(_short(v, limit) for v in value[:4]) + (", ..." if len(value) > 4 else "") + "]"
+    return text if len(text) <= limit else text[:limit - 4] + " ..."
 
 
 def _size(path: Path, where: str, value) -> Optional[tuple[int, int]]:
     if value is None:
         return None
     if (not isinstance(value, list) or len(value) != 2
-            or not all(isinstance(c, int) and not isinstance(c, bool) and c > 0 for c in value)):
-        raise _bad(path, where, f"image_size must be [width, height] (two positive integers), got {value!r}")
+            or not all(isinstance(c, int) and not isinstance(c, bool) and 0 < c <= MAX_SIDE for c in value)):
+        raise _bad(path, where, f"image_size must be [width, height] (two integers in 1..{MAX_SIDE}), "
+                                f"got {_short(value)}")
     return int(value[0]), int(value[1])
 
 
 def _read_saga(path: Path, data: dict) -> ClickFile:
     scale = data.get("_scale", 1)
-    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not (math.isfinite(scale) and scale > 0):
-        raise _bad(path, "_scale", f"must be a positive number, got {scale!r}")
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not (0 < scale <= 1024) \
+            or (isinstance(scale, float) and not math.isfinite(scale)):
+        raise _bad(path, "_scale", f"must be a number in (0, 1024], got {_short(scale)}")
     objects = {}
     for key, value in data.items():
         if key.startswith("_"):
@@ -198,28 +233,55 @@ def _read_own(path: Path, data: dict) -> ClickFile:
                 raise _bad(path, fwhere, "needs at least one positive click (SAM2 would find nothing)")
             if size is not None:
                 for kind, pts in (("positive", pos), ("negative", neg)):
-                    out = [p for p in pts.tolist() if p[0] > size[0] or p[1] > size[1]]
+                    out = [p for p in pts.tolist() if p[0] >= size[0] or p[1] >= size[1]]
                     if out:
                         raise _bad(path, fwhere, f"{kind} click {out[0]} lies outside image_size "
-                                                 f"{list(size)}")
+                                                 f"{list(size)} (pixels 0 <= x < width, 0 <= y < height)")
             frames.append(FrameClicks(str(frame), np.concatenate([pos, neg]),
                                       np.concatenate([np.ones(len(pos), np.int64), np.zeros(len(neg), np.int64)])))
         objects[str(name)] = ObjectClicks(str(name), tuple(frames), size, OWN)
     return ClickFile(path, OWN, objects)
 
 
+class _Duplicate(ValueError):
+    pass
+
+
+def _no_duplicates(pairs: list) -> dict:
+    seen: dict = {}
+    for k, v in pairs:
+        if k in seen:
+            raise _Duplicate(k)
+        seen[k] = v
+    return seen
+
+
 def read_clicks(path: os.PathLike | str) -> ClickFile:
     """Read and check a click file (module docstring: both layouts).
 
     Raises:
-        InputError: the file is missing, is not JSON, or a value is malformed: the
+        InputError: the file is missing, is no regular file, is larger than
+            :data:`MAX_FILE_BYTES`, is not JSON, repeats a key, or a value is malformed: the
             message names the file, the object (or entry) and the frame.
     """
     p = Path(path)
-    if not p.is_file():
+    if not p.exists():
         raise InputError(f"click file {p} does not exist")
+    if p.is_dir():
+        raise InputError(f"click file {p} is a folder; masks.points_file names the JSON file itself")
+    if not p.is_file():
+        raise InputError(f"click file {p} is not a regular file (a pipe or a device?); give a JSON file")
+    size = p.stat().st_size
+    if size > MAX_FILE_BYTES:
+        raise InputError(f"click file {p} is {size / 2**20:.1f} MiB, more than the {MAX_FILE_BYTES >> 20} MiB a "
+                         "click file may have (it holds a few clicks per object and frame)")
     try:
-        data = json.loads(p.read_text(encoding="utf-8-sig"))
+        data = json.loads(p.read_text(encoding="utf-8-sig"), object_pairs_hook=_no_duplicates)
+    except _Duplicate as exc:
+        raise InputError(f"click file {p}: key {exc.args[0]!r} appears twice in one JSON object (JSON keeps only "
+                         "the last: merge the two)") from None
+    except RecursionError:
+        raise InputError(f"click file {p}: not a click file (JSON nested too deep to read)") from None
     except (UnicodeDecodeError, ValueError) as exc:
         raise InputError(f"click file {p}: not valid JSON ({exc})") from exc
     if not isinstance(data, dict):
@@ -232,7 +294,7 @@ def read_clicks(path: os.PathLike | str) -> ClickFile:
 def to_image_pixels(points: np.ndarray, frame_size: Optional[tuple[int, int]],
                     image_size: tuple[int, int]) -> np.ndarray:
     """Clicks from their pixel frame ``frame_size`` (w, h; None = already the image's) to
-    an image of ``image_size`` (w, h): each axis scaled by the ratio of the sizes."""
+    an image of ``image_size`` (w, h) of the same aspect (:func:`check_frame_size`)."""
     if frame_size is None:
         return np.asarray(points, np.float64)
     sx = image_size[0] / frame_size[0]
@@ -240,4 +302,73 @@ def to_image_pixels(points: np.ndarray, frame_size: Optional[tuple[int, int]],
     return np.asarray(points, np.float64) * np.array([sx, sy])
 
 
-__all__ = ["ClickFile", "FrameClicks", "ObjectClicks", "OWN", "SAGA", "read_clicks", "to_image_pixels"]
+def locate(file: ClickFile | Path, entry: ObjectClicks, frame: Optional[str] = None) -> str:
+    """"click file F, object 'mug', frame 'IMG_1'" (SAGA-v2: "entry 'fern'") for messages."""
+    path = file.path if isinstance(file, ClickFile) else file
+    text = f"click file {path}, {'entry' if entry.layout == SAGA else 'object'} {entry.key!r}"
+    return text + (f", frame {frame!r}" if frame is not None else "")
+
+
+def check_frame_size(file: ClickFile | Path, entry: ObjectClicks, frame: str, frame_size: Optional[tuple[int, int]],
+                     image_size: tuple[int, int], image: os.PathLike | str) -> None:
+    """Refuse clicks whose pixel frame has another aspect than the image they are for:
+    scaling them axis by axis would move them (a portrait ``image_size`` for a landscape
+    view, typically a photo whose EXIF orientation one tool applied and another did not).
+
+    Raises:
+        InputError: naming file, object, frame and both sizes.
+    """
+    if frame_size is None or same_aspect(frame_size[0], frame_size[1], image_size[0], image_size[1]):
+        return
+    raise InputError(f"{locate(file, entry, frame)}: the clicks are in a {frame_size[0]}x{frame_size[1]} frame, but "
+                     f"the view's image {image} is {image_size[0]}x{image_size[1]}: another aspect ratio (rotated, "
+                     "cropped or another view's size?); clicks are scaled to the image only when the aspect "
+                     "matches: give image_size as the image's own size")
+
+
+def match_frames(file: ClickFile, entry: ObjectClicks, views: Sequence[tuple[str, str]],
+                 held_out: Sequence[tuple[str, str]] = ()) -> list[int]:
+    """The training view each frame of a per-object entry names, as indices into ``views``.
+
+    Args:
+        file: the click file (for messages).
+        entry: its entry for one object.
+        views: the training views as ``(name, image file name)``.
+        held_out: the held-out views, the same way.
+
+    Raises:
+        InputError: a frame names a held-out view (by name or image stem), names a view with
+            its file extension, or names none (the closest view names are given).
+    """
+    import difflib
+
+    by_name = {n: i for i, (n, _) in enumerate(views)}
+    by_stem = {Path(f).stem: i for i, (_, f) in enumerate(views) if f}
+    held = {n for n, _ in held_out} | {Path(f).stem for _, f in held_out if f}
+    out = []
+    for fc in entry.frames:
+        frame = fc.frame
+        if frame in by_name:
+            out.append(by_name[frame])
+            continue
+        if frame in by_stem:
+            out.append(by_stem[frame])
+            continue
+        w = locate(file, entry, frame)
+        if frame in held:
+            raise InputError(f"{w}: a held-out view; clicks must be on training views (held-out views are "
+                             "kept for the evaluation)")
+        stem = Path(frame).stem
+        if stem != frame and (stem in by_name or stem in by_stem):
+            raise InputError(f"{w}: frames are named without the file extension: {stem!r}")
+        if stem != frame and stem in held:
+            raise InputError(f"{w}: a held-out view (and frames are named without the file extension)")
+        close = difflib.get_close_matches(frame, list(by_name), n=3, cutoff=0.6)
+        hint = f"; did you mean {' or '.join(repr(c) for c in close)}?" if close else \
+            f" (training views like {list(by_name)[:4]})"
+        raise InputError(f"{w}: no training view of that name{hint}")
+    return out
+
+
+__all__ = ["ClickFile", "FrameClicks", "MAX_FILE_BYTES", "MAX_SIDE", "ObjectClicks", "OWN", "SAGA",
+           "check_frame_size", "match_frames", "locate", "read_clicks", "same_aspect", "to_image_pixels"]

@@ -59,7 +59,7 @@ def test_per_object_layout(tmp_path):
     assert sq.frames[0].labels.tolist() == [1, 1, 0] and sq.frames[0].num_positive == 2
     assert f.lookup(["other"]).image_size == (128, 96)  # the object's own wins
     # own-layout keys match exactly only (no SAGA-style fallbacks)
-    with pytest.raises(InputError, match="no entry"):
+    with pytest.raises(InputError, match=r"no object for 'square_noisy' \(object keys in the file"):
         f.lookup(["square_noisy"])
     np.testing.assert_allclose(to_image_pixels(np.array([[100.0, 90.0]]), (128, 96), (64, 48)), [[50.0, 45.0]])
 
@@ -68,17 +68,29 @@ def test_per_object_layout(tmp_path):
     ("{not json", r"bad\.json: not valid JSON"),
     ([1, 2], "expected a JSON object"),
     ({"_scale": 4}, "no entry"),
-    ({"_scale": -1, "fern": [[1, 2]]}, r"_scale: must be a positive number"),
+    ({"_scale": -1, "fern": [[1, 2]]}, r"_scale: must be a number in \(0, 1024\]"),
     ({"fern": [[1, 2, 3]]}, r"entry 'fern': clicks point 0 must be \[x, y\]"),
     ({"fern": [[1, "a"]]}, r"entry 'fern': clicks point 0"),
-    ({"fern": [[-1, 2]]}, r"entry 'fern': clicks point 0 must be finite and >= 0"),
+    ({"fern": [[-1, 2]]}, r"entry 'fern': clicks point 0 must be two finite pixel coordinates in \[0, 1048576\)"),
     ({"fern": []}, r"entry 'fern': no click"),
     ({"objects": {"mug": {"frames": {"IMG_1": {"positive": [[1, 2]], "negativ": []}}}}},
      r"object 'mug', frame 'IMG_1': unknown key\(s\) \['negativ'\]"),
     ({"objects": {"mug": {"frames": {"IMG_1": {"negative": [[1, 2]]}}}}},
      r"object 'mug', frame 'IMG_1': needs at least one positive click"),
     ({"objects": {"mug": {"frames": {"IMG_1": {"positive": [[1e400, 2]]}}}}},
-     r"object 'mug', frame 'IMG_1': positive point 0 must be finite"),
+     r"object 'mug', frame 'IMG_1': positive point 0 must be two finite pixel coordinates"),
+    # Issue 44 M2: a huge integer (OverflowError in math.isfinite) and a huge image_size
+    ({"objects": {"mug": {"frames": {"IMG_1": {"positive": [[10 ** 400, 2]]}}}}},
+     r"object 'mug', frame 'IMG_1': positive point 0 must be two finite pixel coordinates .*<401-digit integer>"),
+    ({"fern": [[10 ** 400, 2]]}, r"entry 'fern': clicks point 0 must be two finite pixel coordinates"),
+    ({"objects": {"mug": {"image_size": [10 ** 400, 5], "frames": {"a": {"positive": [[1, 1]]}}}}},
+     r"object 'mug': image_size must be \[width, height\] \(two integers in 1..1048576\), got \[<401-digit"),
+    ({"_scale": 10 ** 400, "fern": [[1, 2]]}, r"_scale: must be a number in \(0, 1024\]"),
+    # L3: x == width / y == height lie outside (pixels are 0 <= x < width)
+    ({"objects": {"mug": {"image_size": [10, 10], "frames": {"IMG_7": {"positive": [[10, 2]]}}}}},
+     r"frame 'IMG_7': positive click \[10.0, 2.0\] lies outside image_size \[10, 10\]"),
+    ({"objects": {"mug": {"image_size": [10, 10], "frames": {"IMG_7": {"negative": [[2, 10]], "positive": [[1, 1]]}}}}},
+     r"frame 'IMG_7': negative click \[2.0, 10.0\] lies outside image_size"),
     ({"objects": {"mug": {"image_size": [10, 10], "frames": {"IMG_7": {"positive": [[11, 2]]}}}}},
      r"object 'mug', frame 'IMG_7': positive click \[11.0, 2.0\] lies outside image_size \[10, 10\]"),
     ({"objects": {"mug": {"frames": {}}}}, r"object 'mug': frames must map frame names"),
@@ -97,6 +109,76 @@ def test_bad_click_files_name_file_object_and_frame(tmp_path, data, match):
 def test_missing_click_file(tmp_path):
     with pytest.raises(InputError, match="does not exist"):
         read_clicks(tmp_path / "nope.json")
+
+
+def test_a_folder_a_fifo_a_huge_file_deep_nesting_and_duplicate_keys_are_named(tmp_path):
+    """Issue 44 L4 (a folder or a FIFO read as "does not exist"), L5 (no size cap: a 55 MB
+    file took 37 s on every plan), M2 (deep nesting: RecursionError), L2 (a repeated key
+    silently kept the last)."""
+    import os
+
+    with pytest.raises(InputError, match="is a folder; masks.points_file names the JSON file itself"):
+        read_clicks(tmp_path)
+    os.mkfifo(tmp_path / "fifo.json")
+    with pytest.raises(InputError, match="is not a regular file"):
+        read_clicks(tmp_path / "fifo.json")
+    big = tmp_path / "big.json"
+    with open(big, "wb") as f:
+        f.truncate(17 << 20)
+    with pytest.raises(InputError, match=r"big.json is 17.0 MiB, more than the 16 MiB"):
+        read_clicks(big)
+    deep = _write(tmp_path, '{"fern": ' + "[" * 100_000 + "]" * 100_000 + "}", "deep.json")
+    with pytest.raises(InputError, match="deep.json: not a click file .JSON nested too deep"):
+        read_clicks(deep)
+    dup = _write(tmp_path, '{"objects": {"mug": {"frames": {"a": {"positive": [[1, 1]]}}}, '
+                           '"mug": {"frames": {"b": {"positive": [[2, 2]]}}}}}', "dup.json")
+    with pytest.raises(InputError, match=r"dup.json: key 'mug' appears twice"):
+        read_clicks(dup)
+    dup2 = _write(tmp_path, '{"fern": [[1, 2]], "fern": [[3, 4]]}', "dup2.json")
+    with pytest.raises(InputError, match=r"key 'fern' appears twice"):
+        read_clicks(dup2)
+
+
+def test_frames_are_matched_naming_held_out_extensions_and_misspellings(tmp_path):
+    """Issue 44 M3 / click-route messages: the frame checks the masks task and the early
+    check share (cobgs.masks.clicks.match_frames)."""
+    from cobgs.masks.clicks import match_frames
+
+    views = [("IMG_0001", "IMG_0001.JPG"), ("IMG_0002", "IMG_0002.JPG"), ("IMG_0003", "IMG_0003.JPG")]
+    held = [("IMG_0004", "IMG_0004.JPG")]
+
+    def frames(*names):
+        data = {"objects": {"mug": {"frames": {n: {"positive": [[1, 1]]} for n in names}}}}
+        f = read_clicks(_write(tmp_path, data, "m.json"))
+        return f, f.lookup(["mug"])
+
+    assert match_frames(*frames("IMG_0003", "IMG_0001"), views, held) == [2, 0]
+    for names, msg in ((("IMG_0004",), r"frame 'IMG_0004': a held-out view"),
+                       (("IMG_0001.JPG",), r"frame 'IMG_0001.JPG': frames are named without the file extension: "
+                                           r"'IMG_0001'"),
+                       (("IMG_0004.JPG",), r"frame 'IMG_0004.JPG': a held-out view"),
+                       (("IMG_0010",), r"frame 'IMG_0010': no training view of that name; did you mean .*'IMG_0001'"),
+                       (("garbage",), r"frame 'garbage': no training view of that name \(training views like")):
+        with pytest.raises(InputError, match=r"m\.json, object 'mug', " + msg):
+            match_frames(*frames(*names), views, held)
+    # a held-out view named by its image stem (the views are named otherwise)
+    named = [("image000", "IMG_4026.JPG")]
+    with pytest.raises(InputError, match="frame 'IMG_4027': a held-out view"):
+        match_frames(*frames("IMG_4027"), named, [("image001", "IMG_4027.JPG")])
+
+
+def test_clicks_of_another_aspect_are_refused_not_stretched(tmp_path):
+    """Issue 44 H3: a portrait image_size for a landscape view was scaled axis by axis."""
+    from cobgs.masks.clicks import check_frame_size
+
+    f = read_clicks(_write(tmp_path, {"objects": {"mug": {"image_size": [3024, 4032],
+                                                          "frames": {"IMG_1": {"positive": [[10, 10]]}}}}}))
+    entry = f.lookup(["mug"])
+    with pytest.raises(InputError, match=r"clicks.json, object 'mug', frame 'IMG_1': the clicks are in a 3024x4032 "
+                                         r"frame, but the view's image v.jpg is 1008x756: another aspect ratio"):
+        check_frame_size(f, entry, "IMG_1", entry.image_size, (1008, 756), "v.jpg")
+    check_frame_size(f, entry, "IMG_1", entry.image_size, (756, 1008), "v.jpg")  # same aspect: scaled
+    check_frame_size(f, entry, "IMG_1", None, (1008, 756), "v.jpg")
 
 
 # -- propagation ------------------------------------------------------------------------

@@ -190,3 +190,70 @@ def test_click_file_checked_against_the_scene_before_sam2_runs(models_dir, tmp_p
     import re
 
     assert re.search(match, out.getvalue()), out.getvalue()[-2000:]
+
+
+def test_click_mistakes_stop_the_run_after_the_dataset_before_sfm(models_dir, tmp_path):
+    """Issue 44 M3 / H3: a wrong object key is refused when the run is planned (no task runs);
+    a misspelt, extension-carrying or held-out frame, or clicks of another aspect, once the
+    dataset task has listed the views: before SfM and training (hours on a real scene)."""
+    scene, _ = _square_scene(tmp_path / "scene")
+    cf = tmp_path / "clicks.json"
+    path = tmp_path / "clicks.toml"
+    path.write_text(OWN.format(models=models_dir, clicks=cf, scene=scene))
+
+    def run(data, cache):
+        cf.write_text(json.dumps(data))
+        out = io.StringIO()
+        summary = run_workflow(load_workflow(path, load_registry(), ["train.iterations=1"]),
+                               RunOptions(cache_dir=tmp_path / cache, only=("dataset", "sfm", "train", "masks")),
+                               stream=out)
+        return summary, out.getvalue()
+
+    cf.write_text(json.dumps({"objects": {"squar": {"frames": {"0001": {"positive": [[10, 10]]}}}}}))
+    with pytest.raises(WorkflowError, match=r"masks\[sq/square\]\): click file .*clicks.json: no object for "
+                                            r"'square' .*\['squar'\]"):
+        run({"objects": {"squar": {"frames": {"0001": {"positive": [[10, 10]]}}}}}, "c0")
+    assert not (tmp_path / "c0" / "entries").exists()  # nothing ran
+    for i, (frames, size, match) in enumerate((
+            ({"0010": {"positive": [[10, 10]]}}, None, r"frame '0010': no training view of that name; did you mean"),
+            ({"0001.png": {"positive": [[10, 10]]}}, None, r"frame '0001.png': frames are named without the file "
+                                                           r"extension: '0001'"),
+            ({"0004": {"positive": [[10, 10]]}}, None, r"frame '0004': a held-out view"),
+            ({"0001": {"positive": [[10, 10]]}}, [48, 64], r"frame '0001': the clicks are in a 48x64 frame, but the "
+                                                           r"view's image .*0001.png is 64x48"))):
+        obj = {"frames": frames, **({"image_size": size} if size else {})}
+        summary, log = run({"objects": {"square": obj}}, f"c{i + 1}")
+        states = {summary.plan.tasks[j].stage.name: o.state for j, o in summary.outcomes.items()}
+        assert summary.exit_code == 1 and states == {"dataset": "done"}, (states, log)  # no SfM, no training
+        import re
+
+        assert re.search(match, summary.stopped) and "run stopped" in log, log
+    # with the dataset already cached, the same mistake is refused when the run is planned
+    with pytest.raises(WorkflowError, match=r"frame '0001': the clicks are in a 48x64 frame"):
+        run({"objects": {"square": {"image_size": [48, 64], "frames": {"0001": {"positive": [[10, 10]]}}}}}, "c4")
+    # the same clicks at a size of the same aspect are scaled and used
+    summary, log = run({"objects": {"square": {"image_size": [128, 96], "frames": {"0001": {"positive": [[36, 30]]}}}}},
+                       "c9")
+    states = {summary.plan.tasks[j].stage.name: o.state for j, o in summary.outcomes.items()}
+    assert states.get("masks") == "done", log
+
+
+def test_clicks_that_find_nothing_say_where_they_landed_and_keep_masks_json(models_dir, tmp_path):
+    """Issue 44 (click-route messages): when every mask comes out empty the failure names
+    the frames and the pixels the clicks landed on, and masks.json is kept beside the log."""
+    scene, _ = _square_scene(tmp_path / "scene")
+    cf = tmp_path / "clicks.json"
+    cf.write_text(json.dumps({"objects": {"square": {"frames": {"0002": {"positive": [[62, 46]]}}}}}))
+    path = tmp_path / "clicks.toml"
+    path.write_text(OWN.format(models=models_dir, clicks=cf, scene=scene))
+    out = io.StringIO()
+    summary = run_workflow(load_workflow(path, load_registry()),
+                           RunOptions(cache_dir=tmp_path / "cache", only=("dataset", "sfm", "masks")), stream=out)
+    assert summary.exit_code == 1
+    failed = next(o for o in summary.outcomes.values() if o.state == "failed")
+    assert "no training view got a non-empty mask" in failed.note
+    assert "the clicks landed at 0002 (0002.png, 64x48 px): 1 positive at [[62.0, 46.0]]" in failed.note, failed.note
+    kept = Path(failed.log_path).parent / "out" / "masks.json"
+    info = json.loads(kept.read_text())
+    assert info["clicks"]["frames"][0]["points_px"] == [[62.0, 46.0]] and info["empty"]
+    assert sorted(p.name for p in kept.parent.iterdir()) == ["masks.json"]  # no mask PNG kept

@@ -116,7 +116,8 @@ def test_m2_mask_of_another_aspect_refused(tmp_path):
     import cv2
     import numpy as np
 
-    from stages.masks import _folder_masks, same_aspect
+    from cobgs.data.images import same_aspect
+    from stages.masks import _folder_masks
 
     class V:
         def __init__(self, name, w, h):
