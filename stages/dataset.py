@@ -27,7 +27,7 @@ from typing import ClassVar, Optional, Union
 from cobgs.configs import check_params
 from pipeline import Resources, Stage
 
-from ._common import SPEC_FORMAT, SPEC_VERSION, StageInputError, write_json
+from ._common import SPEC_FORMAT, SPEC_VERSION, StageInputError, spec_path, write_json
 
 KINDS = ("synthetic", "transforms", "blender", "llff", "colmap", "images", "nvos", "lerf_mask")
 _POSED_FORMATS = {"transforms": "transforms", "blender": "blender", "llff": "llff", "colmap": "colmap",
@@ -166,6 +166,9 @@ class DatasetParams:
         check_params(self)
         if self.view_stride < 1 or self.max_views < 0 or self.test_every < 0:
             raise ValueError("view_stride must be >= 1, max_views and test_every >= 0")
+        if self.test_every == 1:
+            raise ValueError("test_every = 1 holds out every view, leaving nothing to train on: 0 holds out "
+                             "none, k >= 2 every k-th view")
         if not self.downscale > 0:
             raise ValueError(f"downscale must be > 0, got {self.downscale}")
 
@@ -236,6 +239,12 @@ def _run(ctx, inputs):
         spec["source"] = os.fspath(root)
         reader["path"] = os.fspath(root)
     _BUILDERS.get(attrs.kind, _build_posed)(ctx, p, attrs, spec, reader)
+    if spec.get("images") and attrs.kind != "synthetic":
+        # one reading of "up" for SfM, masks and clicks: rotated photos are refused (cobgs.data.images)
+        from cobgs.data.images import check_upright
+
+        folder = spec_path(ctx.out_dir, spec["images"]["dir"])
+        check_upright([folder / n for n in spec["images"]["names"]], "photo")
     spec["reader"] = reader
     write_json(ctx.out_dir / "dataset.json", spec)
     ctx.log.info("dataset %s (%s): %d views, %d held out, objects %s, protocol %s", spec["scene"], attrs.kind,

@@ -243,7 +243,7 @@ def _folder_masks(views, folder: Path, threshold: int) -> tuple[dict, dict]:
     import numpy as np
     from PIL import Image
 
-    from cobgs.data.images import same_aspect
+    from cobgs.data.images import check_upright, same_aspect
     from cobgs.evaluate.protocols import resize_nearest
 
     by_stem: dict = {}
@@ -264,6 +264,7 @@ def _folder_masks(views, folder: Path, threshold: int) -> tuple[dict, dict]:
                 a = np.asarray(im.convert("RGB"))
         except (OSError, ValueError, Image.DecompressionBombError) as exc:  # (a bomb: > 179 Mpx)
             raise StageInputError(f"mask file {f}: cannot read it as an image ({exc})") from exc
+        check_upright([f], "mask file")  # a rotated mask of an upright photo
         m = (a > threshold).any(axis=-1).astype(np.uint8) * 255
         sizes[v.name] = [int(m.shape[1]), int(m.shape[0])]
         if not same_aspect(m.shape[1], m.shape[0], v.width, v.height):

@@ -3,7 +3,10 @@
 It looks at the folder (which layout it is: photos in ``images/``, a COLMAP model, LLFF
 ``poses_bounds.npy``, a ``transforms.json``; which ``masks/<object>/`` folders it has),
 then writes a workflow TOML with every choice it made written beside it as a comment, so
-the next steps are ``cobgs run`` and ``cobgs report``. Only the standard library is used.
+the next steps are ``cobgs run`` and ``cobgs report``. It opens every image's header (PIL):
+unreadable and empty files are named and not counted, mixed sizes are reported, and photos
+whose EXIF orientation asks for a rotation are refused with the fix
+(:mod:`cobgs.data.images`). Nothing heavier (no torch) is imported.
 """
 
 from __future__ import annotations
@@ -20,26 +23,6 @@ def _images(folder: Path) -> list[Path]:
     if not folder.is_dir():
         return []
     return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in _IMAGE_SUFFIXES)
-
-
-def _image_size(path: Path) -> str:
-    """``WxH`` of an image from its header (PNG / JPEG), without an imaging library."""
-    try:
-        with open(path, "rb") as f:
-            head = f.read(64 * 1024)
-    except OSError:
-        return "?"
-    if head[:8] == b"\x89PNG\r\n\x1a\n" and len(head) >= 24:
-        return f"{int.from_bytes(head[16:20], 'big')}x{int.from_bytes(head[20:24], 'big')}"
-    i = 2
-    while head[:2] == b"\xff\xd8" and i + 9 < len(head):
-        if head[i] != 0xFF:
-            break
-        marker, length = head[i + 1], int.from_bytes(head[i + 2:i + 4], "big")
-        if marker in (0xC0, 0xC1, 0xC2):
-            return f"{int.from_bytes(head[i + 7:i + 9], 'big')}x{int.from_bytes(head[i + 5:i + 7], 'big')}"
-        i += 2 + length
-    return "?"
 
 
 def detect(folder: Path) -> dict:
@@ -63,11 +46,40 @@ def detect(folder: Path) -> dict:
     else:
         raise SystemExit(f"cobgs new: {folder} has no images/ folder, transforms.json, COLMAP model "
                          "or poses_bounds.npy: nothing to build a scene from")
-    imgs = _images(folder / "images")
+    imgs, bad, sizes = _survey(_images(folder / "images"))
     objects = sorted(p.name for p in (folder / "masks").iterdir()
                      if p.is_dir() and _images(p)) if (folder / "masks").is_dir() else []
-    return {"kind": kind, "why": why, "images": len(imgs), "size": _image_size(imgs[0]) if imgs else "?",
-            "objects": objects}
+    size = max(sizes, key=lambda k: len(sizes[k])) if sizes else "?"
+    return {"kind": kind, "why": why, "images": len(imgs), "size": size, "objects": objects,
+            "unreadable": bad, "sizes": {k: len(v) for k, v in sizes.items()}}
+
+
+def _survey(paths: list[Path]) -> tuple[list[Path], dict[str, str], dict[str, list[str]]]:
+    """(readable images, {unreadable or empty file: why}, {"WxH": files}) from the headers.
+
+    Raises:
+        SystemExit: an image whose EXIF orientation asks for a rotation (the fix named).
+    """
+    from cobgs.data.images import check_upright, probe
+    from cobgs.errors import DataError
+
+    ok, bad, sizes = [], {}, {}
+    for p in paths:
+        try:
+            if p.stat().st_size == 0:
+                bad[p.name] = "empty file"
+                continue
+            w, h, _ = probe(p)
+        except (OSError, DataError) as exc:
+            bad[p.name] = str(exc).split(": ", 1)[-1][:120]
+            continue
+        ok.append(p)
+        sizes.setdefault(f"{w}x{h}", []).append(p.name)
+    try:
+        check_upright(ok, "photo")
+    except DataError as exc:
+        raise SystemExit(f"cobgs new: {exc}") from None
+    return ok, bad, sizes
 
 
 def _name(text: str) -> str:
@@ -122,8 +134,16 @@ def workflow_text(folder: Path, info: dict, name: str, prompts: list[str], views
         "any of them.",
         f"#   data: {_comment(os.fspath(folder))}",
         f"#   kind = {info['kind']!r}: {info['why']}",
-        f"#   {info['images']} images" + (f", {info['size']} (first image)" if info["size"] != "?" else ""),
+        f"#   {info['images']} images" + (f", {info['size']}" if info["size"] != "?" else ""),
     ]
+    if len(info.get("sizes") or {}) > 1:
+        lines.append(f"#   mixed sizes: {_comment(', '.join(f'{n} x {k}' for k, n in info['sizes'].items()))} (SfM "
+                     "takes each photo as it is; a mask must have its photo's aspect)")
+    if info.get("unreadable"):
+        shown = "; ".join(f"{k} ({v})" for k, v in list(info["unreadable"].items())[:5])
+        lines.append(f"#   not counted, unreadable: {_comment(shown)}"
+                     + (f" and {len(info['unreadable']) - 5} more" if len(info["unreadable"]) > 5 else "")
+                     + " (SfM fails on them: remove them from images/)")
     if prompts:
         source = "onnx"
         objects = prompts
@@ -277,8 +297,28 @@ def _new(args) -> int:
         return 2
     print(f"wrote {out}: kind {info['kind']!r}, {info['images']} images, "
           f"objects {list(args.prompt or info['objects'])}")
+    if len(info["sizes"]) > 1:
+        print(f"note: the photos have {len(info['sizes'])} sizes ("
+              + ", ".join(f"{n} x {k}" for k, n in info["sizes"].items()) + ")")
+    if info["unreadable"]:
+        print(f"warning: {len(info['unreadable'])} file(s) in images/ are unreadable or empty and were not counted: "
+              + "; ".join(f"{k} ({v})" for k, v in list(info["unreadable"].items())[:5])
+              + ": remove them before `cobgs run` (SfM fails on them)", file=sys.stderr)
     print(f"next: cobgs run {out} && cobgs report {out}")
     return 0
+
+
+def _every(text: str) -> int:
+    import argparse
+
+    try:
+        k = int(text)
+    except ValueError:
+        k = -1
+    if k < 0 or k == 1 or k > 1_000_000:
+        raise argparse.ArgumentTypeError(f"expected 0 (hold out nothing) or an integer k >= 2 (every k-th image), "
+                                         f"got {text!r}" + (": 1 would hold out every image" if k == 1 else ""))
+    return k
 
 
 def register(sub) -> None:
@@ -292,6 +332,7 @@ def register(sub) -> None:
                    "masks/<object>/ files")
     p.add_argument("--name", help="workflow name (default: the folder's name)")
     p.add_argument("--out", help="TOML file to write (default: NAME.toml here)")
-    p.add_argument("--test-every", type=int, default=8, help="hold out every k-th image (default 8)")
+    p.add_argument("--test-every", type=_every, default=8,
+                   help="hold out every k-th image (default 8; 0 = none; 1 would hold out every image)")
     p.add_argument("--force", action="store_true", help="replace an existing TOML file")
     p.set_defaults(func=_new)

@@ -166,3 +166,86 @@ def test_few_photos_get_stages_long_enough_for_the_labels(tmp_path, images, ever
     item = next(t for t in __import__("pipeline").Plan(wf).tasks if t.stage.name == "refine")
     assert item.params.value.cobgs.stage_length_views == float(block)
     assert float(block) * views >= 22 > (float(block) - 0.1) * views
+
+
+def _jpeg(path, w=32, h=24, orientation=None):
+    from PIL import Image
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    im = Image.fromarray(np.full((h, w, 3), 128, np.uint8))
+    exif = Image.Exif()
+    if orientation is not None:
+        exif[0x0112] = orientation
+    im.save(path, exif=exif)
+
+
+def test_test_every_that_cannot_work_is_refused_before_writing(tmp_path, capsys):
+    """Issue 44 L1: --test-every -1 wrote a workflow `cobgs run` refuses; 1 held out every image."""
+    root = tmp_path / "cap"
+    for n in ("a", "b", "c"):
+        _png(root / "images" / f"{n}.png")
+    _png(root / "masks" / "cup" / "a.png")
+    for bad in ("-1", "1", "x"):
+        with pytest.raises(SystemExit):
+            main(["new", str(root), "--out", str(tmp_path / "w.toml"), "--test-every", bad])
+        assert "--test-every" in capsys.readouterr().err and not (tmp_path / "w.toml").exists()
+    assert main(["new", str(root), "--out", str(tmp_path / "w.toml"), "--test-every", "0"]) == 0
+    from stages.dataset import DatasetParams
+
+    with pytest.raises(ValueError, match="test_every = 1 holds out every view"):
+        DatasetParams(test_every=1)
+
+
+def test_unreadable_empty_mixed_and_rotated_photos_are_said(tmp_path, capsys):
+    """Issue 44 L6 (unreadable and empty files were counted, mixed sizes unmentioned) and H3
+    (EXIF orientation: refused with the fix, where every reader would otherwise disagree)."""
+    root = tmp_path / "cap"
+    _png(root / "images" / "a.png")
+    _png(root / "images" / "b.png")
+    _png(root / "images" / "c.png", 24, 32)
+    (root / "images" / "empty.jpg").write_bytes(b"")
+    (root / "images" / "junk.png").write_bytes(b"not a png at all")
+    _png(root / "masks" / "cup" / "a.png")
+    out = tmp_path / "w.toml"
+    assert main(["new", str(root), "--out", str(out)]) == 0
+    cap = capsys.readouterr()
+    assert "3 images" in cap.out and "2 x 32x24, 1 x 24x32" in cap.out
+    assert "empty.jpg (empty file)" in cap.err and "junk.png" in cap.err and "not counted" in cap.err
+    text = out.read_text()
+    assert "#   3 images, 32x24" in text and "mixed sizes" in text and "not counted, unreadable" in text
+    _jpeg(root / "images" / "d.jpg", orientation=6)
+    assert main(["new", str(root), "--out", str(tmp_path / "x.toml")]) == 2
+    err = capsys.readouterr().err
+    assert "d.jpg (6: rotated 90 degrees clockwise)" in err and "exiftran" in err and not (tmp_path / "x.toml").exists()
+
+
+def test_the_dataset_and_mask_folders_refuse_rotated_images(tmp_path):
+    """H3 through a run: the dataset task refuses a photo with an EXIF rotation (before SfM),
+    the masks task a mask file with one; orientation 1 passes."""
+    import io
+
+    from pipeline import RunOptions, load_workflow, run_workflow
+    from stages.registry import load_registry
+
+    root = tmp_path / "cap"
+    for i in range(4):
+        _jpeg(root / "images" / f"IMG_{i}.jpg", orientation=1)
+    _jpeg(root / "images" / "IMG_9.jpg", orientation=8)
+    wf = tmp_path / "w.toml"
+    wf.write_text('[workflow]\nnested = { object = "scene" }\n'
+                  f'[axes.scene.s]\nkind = "images"\npath = "{root}"\n[axes.method.cobgs]\n[axes.object.s.cup]\n')
+    out = io.StringIO()
+    summary = run_workflow(load_workflow(wf, load_registry()), RunOptions(cache_dir=tmp_path / "c", only=("dataset",)),
+                           stream=out)
+    note = next(o.note for o in summary.outcomes.values() if o.state == "failed")
+    assert "IMG_9.jpg (8: rotated 90 degrees counter-clockwise)" in note and "mogrify -auto-orient" in note, note
+
+    from stages.masks import _folder_masks
+    from types import SimpleNamespace
+
+    from stages._common import StageInputError
+    from cobgs.errors import DataError
+
+    _jpeg(tmp_path / "m" / "v.jpg", orientation=3)
+    with pytest.raises((DataError, StageInputError), match=r"v.jpg \(3: rotated 180 degrees\)"):
+        _folder_masks([SimpleNamespace(name="v", width=32, height=24)], tmp_path / "m", 0)
