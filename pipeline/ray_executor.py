@@ -50,9 +50,96 @@ def import_ray() -> Any:
     return ray
 
 
+#: How long reaching a cluster may take (``$COBGS_RAY_CONNECT_TIMEOUT`` seconds): Ray's own
+#: client retries an unreachable address for many minutes, deaf to SIGTERM.
+CONNECT_TIMEOUT_S = 60.0
+#: The TCP probe of ``host:port`` before Ray is asked to connect.
+PROBE_TIMEOUT_S = 10.0
+
+
+def _host_port(address: str) -> Optional[tuple[str, int]]:
+    """(host, port) of ``host:port`` / ``ray://host:port``; None for ``auto`` and the like."""
+    text = address[len("ray://"):] if address.startswith("ray://") else address
+    host, sep, port = text.rpartition(":")
+    if not sep or not port.isdigit() or not host:
+        return None
+    return host.strip("[]"), int(port)
+
+
+def probe_address(address: str, timeout: float = PROBE_TIMEOUT_S) -> None:
+    """Refuse an address nothing listens on, in seconds rather than Ray's minutes.
+
+    Raises:
+        ExecutorError: naming the address and what the connection attempt said.
+    """
+    import socket
+
+    hp = _host_port(address)
+    if hp is None:
+        return
+    try:
+        with socket.create_connection(hp, timeout=timeout):
+            pass
+    except OSError as exc:
+        why = "timed out" if isinstance(exc, TimeoutError) else (exc.strerror or str(exc))
+        raise ExecutorError(f"cannot reach the Ray cluster at {address}: {why} (after {timeout:g} s); is the head "
+                            "node up (`ray start --head`) and the address its GCS port (6379 by default) or its "
+                            "client port (ray://HOST:10001)?") from None
+
+
+def _connect(ray: Any, address: Optional[str]) -> None:
+    """``ray.init`` with a deadline, and Ctrl-C / SIGTERM that end the process while it blocks.
+
+    While Ray connects, the main thread sits in native code where no Python signal handler
+    runs (Ray's own SIGTERM handler included), so a watcher thread takes SIGINT / SIGTERM
+    with ``sigtimedwait`` (the main thread blocks them meanwhile) and ends the process with
+    one line; nothing of the run has started yet. The same wait gives up at the deadline.
+    """
+    import os
+    import signal
+    import threading
+
+    timeout = float(os.environ.get("COBGS_RAY_CONNECT_TIMEOUT", CONNECT_TIMEOUT_S))
+    where = f"the Ray cluster at {address}" if address else "a local Ray instance"
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "sigtimedwait"):
+        try:
+            ray.init(address=address, include_dashboard=False, log_to_driver=True)
+        except Exception as exc:  # noqa: BLE001 - Ray raises many types here
+            raise ExecutorError(f"cannot start or reach {where}: {exc}") from exc
+        return
+    done = signal.SIGUSR2  # sent by this function to its own watcher when ray.init returned
+    watched = {signal.SIGINT, signal.SIGTERM, done}
+
+    def watch() -> None:
+        info = signal.sigtimedwait(watched, timeout)
+        if info is not None and info.si_signo == done:
+            return
+        if info is None:
+            print(f"cobgs run: error: cannot start or reach {where} within {timeout:g} s "
+                  "(COBGS_RAY_CONNECT_TIMEOUT); nothing was run", file=sys.stderr, flush=True)
+            os._exit(2)
+        name = signal.Signals(info.si_signo).name
+        print(f"cobgs run: {name} while connecting to {where}; nothing was run", file=sys.stderr, flush=True)
+        os._exit(128 + info.si_signo)
+
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, watched)  # the watcher inherits the mask
+    watcher = threading.Thread(target=watch, name="cobgs-ray-connect", daemon=True)
+    watcher.start()
+    try:
+        ray.init(address=address, include_dashboard=False, log_to_driver=True)
+    except Exception as exc:  # noqa: BLE001 - Ray raises many types here
+        raise ExecutorError(f"cannot start or reach {where}: {exc}") from exc
+    finally:
+        signal.pthread_kill(watcher.ident, done)
+        watcher.join()
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
 class RayExecutor:
     """Submits jobs as Ray tasks; starts a local Ray instance unless one is running or an
-    ``address`` (``auto``, ``ray://host:10001``, ``host:6379``) is given."""
+    ``address`` (``auto``, ``ray://host:10001``, ``host:6379``) is given. An address that
+    nothing listens on is refused within :data:`PROBE_TIMEOUT_S`, and connecting may take at
+    most :data:`CONNECT_TIMEOUT_S`."""
 
     name = "ray"
     submitted_state = "queued"  # Ray starts it when a node has room
@@ -62,11 +149,9 @@ class RayExecutor:
         self._ray = ray
         self._owned = False
         if not ray.is_initialized():
-            try:
-                ray.init(address=address, include_dashboard=False, log_to_driver=True)
-            except Exception as exc:  # noqa: BLE001 - Ray raises many types here
-                where = f"the Ray cluster at {address}" if address else "a local Ray instance"
-                raise ExecutorError(f"cannot start or reach {where}: {exc}") from exc
+            if address:
+                probe_address(address)
+            _connect(ray, address)
             self._owned = True
         self._remote = ray.remote(max_retries=0)(_ray_execute)
         self._running: dict[Any, Job] = {}

@@ -167,10 +167,43 @@ class Progress:
 
 def _make_executor(options: RunOptions) -> Any:
     if options.executor == "ray":
-        from .ray_executor import RayExecutor
-
-        return RayExecutor(options.address)
+        return _LazyRay(options.address)
     return InlineExecutor() if options.jobs == 1 else ForkExecutor(options.jobs)
+
+
+class _LazyRay:
+    """The Ray executor, connected when the first task is submitted: a run with nothing to
+    compute (every task cached) never reaches for the cluster."""
+
+    name = "ray"
+    submitted_state = "queued"
+
+    def __init__(self, address: Optional[str]):
+        self.address = address
+        self._ex: Any = None
+
+    def capacity(self) -> Optional[int]:
+        return None
+
+    def submit(self, job: Job, resources: Any) -> None:
+        if self._ex is None:
+            from .ray_executor import RayExecutor
+
+            self._ex = RayExecutor(self.address)
+        self._ex.submit(job, resources)
+
+    def running(self) -> int:
+        return self._ex.running() if self._ex is not None else 0
+
+    def wait(self) -> list[JobResult]:
+        return self._ex.wait() if self._ex is not None else []
+
+    def interrupt(self) -> list[JobResult]:
+        return self._ex.interrupt() if self._ex is not None else []
+
+    def close(self) -> None:
+        if self._ex is not None:
+            self._ex.close()
 
 
 def run_workflow(workflow: Workflow, options: RunOptions, stream: Optional[TextIO] = None,

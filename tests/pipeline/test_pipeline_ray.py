@@ -109,3 +109,72 @@ def test_ctrl_c_cancels_ray_tasks_and_discards_their_entries(toy, executions, lo
     assert not (toy.cache / "failed" / "refine" / key).exists()
     assert recs[("train", "alpha")].state == "done"
     assert toy.run(executor="ray").exit_code == 0
+
+
+# -- issue 44 M4: an unreachable address ------------------------------------------------------
+def _cobgs(args, env, timeout=120):
+    import subprocess
+    import sys
+
+    return subprocess.run([sys.executable, "-m", "stages.commands.cli", *args], env=env, capture_output=True,
+                          text=True, timeout=timeout)
+
+
+def test_an_unreachable_address_is_refused_quickly_and_a_cached_run_never_connects(toy, executions):
+    """Issue 44 M4: `--executor ray --address HOST:PORT` with nothing there hung for more than
+    10 minutes, even with every task cached. Now: nothing to run -> no connection at all;
+    something to run -> refused in seconds, naming the address, exit 2."""
+    import socket
+    import subprocess
+    import sys
+
+    from pipeline_testutil import cli_env
+
+    s = socket.socket()
+    s.bind(("127.0.0.1", 0))
+    port = s.getsockname()[1]
+    s.close()  # a port nothing listens on
+    env = cli_env(PIPELINE_TOYS_LOG=str(executions.path))
+    common = [str(toy.path), "--cache-dir", str(toy.cache), "--executor", "ray", "--address", f"127.0.0.1:{port}"]
+    t0 = time.monotonic()
+    r = _cobgs(["run", *common], env)
+    assert r.returncode == 2 and f"cannot reach the Ray cluster at 127.0.0.1:{port}" in r.stderr, r.stderr[-2000:]
+    assert time.monotonic() - t0 < 60
+    assert toy.run().exit_code == 0  # now everything is cached (local executor)
+    t0 = time.monotonic()
+    r = _cobgs(["run", *common], env)
+    assert r.returncode == 0 and "run finished" in r.stdout, r.stderr[-2000:]
+    assert time.monotonic() - t0 < 60
+
+
+def test_a_cluster_that_never_answers_gives_up_at_the_deadline_and_sigterm_ends_it(toy, executions, tmp_path):
+    """A port that accepts and then says nothing: Ray's connect would wait; the deadline
+    ($COBGS_RAY_CONNECT_TIMEOUT) ends it with exit 2, and SIGTERM ends it at once."""
+    import signal
+    import socket
+    import subprocess
+    import sys
+
+    from pipeline_testutil import cli_env
+
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(16)
+    port = server.getsockname()[1]
+    try:
+        env = cli_env(PIPELINE_TOYS_LOG=str(executions.path), COBGS_RAY_CONNECT_TIMEOUT="5")
+        args = [sys.executable, "-m", "stages.commands.cli", "run", str(toy.path), "--cache-dir", str(toy.cache),
+                "--executor", "ray", "--address", f"127.0.0.1:{port}"]
+        t0 = time.monotonic()
+        r = subprocess.run(args, env=env, capture_output=True, text=True, timeout=120)
+        assert r.returncode == 2 and "cannot start or reach the Ray cluster" in r.stderr, r.stderr[-2000:]
+        assert time.monotonic() - t0 < 90
+        env["COBGS_RAY_CONNECT_TIMEOUT"] = "120"
+        p = subprocess.Popen(args, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+        time.sleep(8)  # well inside the connection attempt
+        t0 = time.monotonic()
+        p.send_signal(signal.SIGTERM)
+        p.wait(timeout=30)
+        assert time.monotonic() - t0 < 30 and p.returncode != 0
+    finally:
+        server.close()
