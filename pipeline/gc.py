@@ -77,6 +77,22 @@ def collect(cache_dir: Path, keep: set[tuple[str, str]], dry_run: bool = False,
                 report.bytes += size
                 if not dry_run:
                     shutil.rmtree(folder, ignore_errors=True)
+    memo = cache.root / "fingerprints"
+    if memo.is_dir():  # a memo write killed between its temporary file and the rename
+        for f in sorted(memo.glob(".*.tmp")):
+            parts = f.name.split(".")
+            pid = int(parts[-3]) if len(parts) >= 4 and parts[-3].isdigit() else 0
+            try:
+                old = time.time() - f.stat().st_mtime > TRASH_AGE_S
+            except OSError:
+                continue
+            if old or not _alive(pid):
+                size = f.stat().st_size if f.exists() else 0
+                report.lines.append(f"fingerprints/{f.name} ({size} bytes, left by a killed run)")
+                report.removed += 1
+                report.bytes += size
+                if not dry_run:
+                    f.unlink(missing_ok=True)
     locks_root = cache.root / "locks"
     if locks_root.is_dir() and not dry_run:
         for path in sorted(locks_root.glob("*/*")):
@@ -84,3 +100,17 @@ def collect(cache_dir: Path, keep: set[tuple[str, str]], dry_run: bool = False,
             if lock.acquire(blocking=False):
                 lock.release(unlink=True)
     return report
+
+
+def _alive(pid: int) -> bool:
+    import os
+
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True

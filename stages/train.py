@@ -101,6 +101,8 @@ def _import_trained(ctx, cfg, scene, dev, path: Path):
     attrs = ctx.item.attrs["scene"]
     imp = read_trained(path, attrs.trained_iteration)
     checks = check_against_scene(imp, scene)
+    if checks.get("warning"):
+        ctx.warn(f"trained scene {path}: {checks['warning']}")
     model = imp.model
     save_ply(ctx.out_dir / "scene.ply", model)
     if imp.moments is not None:

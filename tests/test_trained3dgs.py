@@ -212,3 +212,30 @@ def test_a_checkpoint_with_damaged_adam_state_is_refused(tmp_path, scene_and_mod
     with pytest.raises(DataError, match=what) as info:
         read_trained(tmp_path)
     assert "chkpnt7000.pth" in str(info.value)
+
+
+@pytest.mark.parametrize("damage, words", [
+    ("scales", "100.0% have a scale over 100 scene extents"),
+    ("quats", "100.0% have a zero rotation"),
+    ("half_quats", "50.0% have a zero rotation"),
+])
+def test_degenerate_gaussians_are_named_with_their_fraction(tmp_path, scene_and_model, damage, words):
+    """Issue 44 L7: a PLY with every scale exp(80) or every rotation zero imported and ran to
+    "done" with IoU 0, silently. The check warns, naming the fraction (the stage's task warning)."""
+    scene, model = scene_and_model
+    ls, q = model.log_scales.detach().clone(), model.quats.detach().clone()
+    if damage == "scales":
+        ls[:] = 80.0
+    elif damage == "quats":
+        q[:] = 0.0
+    else:
+        q[: len(q) // 2] = 0.0
+    bad = GaussianModel(model.means.detach(), ls, q, model.opacity_logits.detach(), model.data["sh0"].detach(),
+                        model.data["shN"].detach())
+    save_ply(tmp_path / "bad.ply", bad)
+    checks = check_against_scene(read_trained(tmp_path / "bad.ply"), scene)
+    assert words in checks["warning"] and f"of its {len(model)} Gaussians" in checks["warning"], checks
+    save_ply(tmp_path / "good.ply", model)
+    good = check_against_scene(read_trained(tmp_path / "good.ply"), scene)
+    assert good["warning"] == "" and good["degenerate"] == {"zero_rotation": 0.0, "huge_scale": 0.0,
+                                                            "non_finite": 0.0}

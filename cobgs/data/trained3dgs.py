@@ -27,6 +27,7 @@ decided is returned for the manifest.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
@@ -241,4 +242,38 @@ def check_against_scene(imported: ImportedScene, scene, min_visible: float = 0.5
                             f"{worst:.2%} of the scene extent: trained on other poses or "
                             f"another world frame", imported.source["cameras_json"])
         out.update(cameras_matched=matched, camera_offset_of_extent=worst)
+    out.update(degenerate_gaussians(imported.model, float(scene.extent)))
     return out
+
+
+#: A Gaussian whose largest scale exceeds this many scene extents covers the whole scene.
+HUGE_SCALE_OF_EXTENT = 100.0
+
+
+def degenerate_gaussians(model: GaussianModel, extent: float) -> dict:
+    """Fractions of Gaussians that cannot render as the scene trained them: a rotation of
+    (near) zero norm (no orientation: normalising it gives NaN), a largest scale over
+    :data:`HUGE_SCALE_OF_EXTENT` scene extents (``exp(80)``: a Gaussian over everything), or
+    a non-finite value. ``warning`` says it in words when any is found ("" otherwise): a PLY
+    of such Gaussians imports and runs to the end with an IoU of 0."""
+    n = len(model)
+    if n == 0:
+        return {"degenerate": {}, "warning": ""}
+    q = model.quats.detach().double().cpu()
+    ls = model.log_scales.detach().double().cpu()
+    zero_rot = q.norm(dim=1) < 1e-8
+    huge = ls.max(dim=1).values > math.log(HUGE_SCALE_OF_EXTENT * max(extent, 1e-9))
+    bad = ~torch.isfinite(torch.cat([model.data[k].detach().reshape(n, -1).double().cpu() for k in
+                                     ("means", "log_scales", "quats", "opacity_logits", "sh0")], 1)).all(1)
+    fr = {"zero_rotation": float(zero_rot.double().mean()), "huge_scale": float(huge.double().mean()),
+          "non_finite": float(bad.double().mean())}
+    words = {"zero_rotation": "a zero rotation (quaternion of norm 0)",
+             "huge_scale": f"a scale over {HUGE_SCALE_OF_EXTENT:g} scene extents",
+             "non_finite": "a non-finite value (nan / inf)"}
+    found = [f"{v:.1%} have {words[k]}" for k, v in fr.items() if v > 0]
+    warning = ""
+    if found:
+        warning = (f"{'; '.join(found)} of its {n} Gaussians: they render as nothing or as everything, so "
+                   "the segmentation will be wrong (was the PLY written with another convention: "
+                   "activated scales, another quaternion order?)")
+    return {"degenerate": fr, "warning": warning}

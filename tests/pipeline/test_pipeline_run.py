@@ -576,3 +576,23 @@ def test_a_fully_cached_run_is_served_from_a_read_only_cache(toy, monkeypatch):
     assert [p.stat().st_mtime_ns for p in refs] == stamps  # nothing written
     with pytest.raises(CacheError, match="not writable"):
         toy.run(["train.iterations=11"])
+
+
+def test_gc_removes_memo_temporaries_of_killed_runs(toy, executions):
+    """Issue 44 L8: a memo write killed between its temporary file and the rename left
+    ``fingerprints/.<hash>.json.<pid>.<id>.tmp``, which gc never removed. A live run's
+    temporary (its pid alive, recent) is kept."""
+    import os
+
+    toy.run()
+    memo = toy.cache / "fingerprints"
+    memo.mkdir(exist_ok=True)
+    dead = memo / f".{'a' * 32}.json.{2 ** 22 + 1}.140000.tmp"  # above pid_max: no such process
+    live = memo / f".{'b' * 32}.json.{os.getpid()}.140001.tmp"
+    dead.write_text("{")
+    live.write_text("{")
+    keep = referenced_keys([str(toy.path)], toys.registry(), [], toy.cache)
+    report = collect(toy.cache, keep, dry_run=True)
+    assert any(dead.name in line for line in report.lines) and dead.exists()
+    collect(toy.cache, keep)
+    assert not dead.exists() and live.exists()
