@@ -9,7 +9,21 @@
 // kernels always check (on the host, at no synchronisation cost).
 #include <torch/library.h>
 
+#include <cstdint>
+
+namespace {
+// The build's error probe (cobgs/render/_build.py): called with bad input after every build,
+// in a child process, it must come back to Python as a RuntimeError that still holds its
+// numbers. A library carrying its own copy of libstdc++ (a compiler that links it statically)
+// crashes or drops the numbers here instead.
+int64_t error_probe(int64_t n) {
+  TORCH_CHECK(n == 0, "cobgs error probe: ", n, " ", 2.5, " ", -7);
+  return n;
+}
+}  // namespace
+
 TORCH_LIBRARY(cobgs, m) {
+  m.def("error_probe(int n) -> int", &error_probe);
   // csrc/project/project.h
   m.def(
       "project(Tensor means, Tensor quats, Tensor scales, Tensor viewmat, Tensor K, "

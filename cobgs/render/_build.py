@@ -7,7 +7,9 @@ first use and loads the library, which registers the ``torch.ops.cobgs.*`` ops.
   ``~/.cache/cobgs/ext``). One sub-folder per build key.
 * **Build key:** sha256 of every source and header under ``csrc/`` (path and content),
   the compiler flags, the torch version, the Python version, the machine architecture,
-  ``$CXX`` and the CUDA plan (below; with ``$CC``, nvcc's host compiler). Any source change therefore builds afresh. No
+  the compiler's identity (``$CXX`` or ``c++``: resolved path and ``--version`` line; and
+  ``$COBGS_CXX``'s) and the CUDA plan (below; with ``$CC``, nvcc's host compiler). Any source
+  or compiler change therefore builds afresh. No
   ``-march=native`` is used, so a cached build runs on any CPU of the same architecture
   (which is why the CPU model is not part of the key).
 * **CUDA:** the ``*_cuda.cu`` kernels are compiled into the same library only when torch
@@ -24,6 +26,15 @@ first use and loads the library, which registers the ``torch.ops.cobgs.*`` ops.
 * **Failures:** the compiler runs in a child process; its complete output is attached to
   the :class:`~cobgs.errors.BuildError`. ``import cobgs`` never needs the extension;
   ``cobgs.rasterize(..., backend="reference")`` works without one.
+* **A C++ error must be a Python error** (:mod:`cobgs.render._toolchain`). After linking,
+  the library's dynamic section is read: a compiler that linked libstdc++ statically (the
+  library would crash or lose the numbers of its messages on its first error) is replaced
+  once by one that links it dynamically (``$COBGS_CXX``, else ``c++`` / ``g++`` on the PATH),
+  saying so in one line; with none, the build fails naming ``$CXX``, its version and the fix.
+  Then the library is loaded in a child process and its ``error_probe`` op called: it must
+  raise a ``RuntimeError`` holding its numbers, or the build fails. The result is kept as
+  ``probe.json`` beside the library; a cached library without one (built before these
+  checks) is probed once on first load and rebuilt if it fails.
 """
 
 from __future__ import annotations
@@ -39,6 +50,7 @@ import sys
 import tempfile
 import threading
 from contextlib import contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import List, Optional
 
@@ -198,12 +210,23 @@ def build_key() -> str:
     h.update(json.dumps({
         "cflags": _cflags(), "ldflags": LDFLAGS, "torch": torch.__version__,
         "python": list(sys.version_info[:2]), "machine": platform.machine(),
-        "cxx": os.environ.get("CXX", ""),
+        "cxx": _compiler_key(),
         # $CC is nvcc's host compiler (torch passes it as -ccbin).
         "cuda": dict({k: plan[k] for k in ("nvcc_version", "arch", "flags")},
                      host_cc=os.environ.get("CC", "")) if plan["enabled"] else None,
     }, sort_keys=True).encode())
     return h.hexdigest()
+
+
+def _compiler_key() -> dict:
+    from ._toolchain import compiler_identity
+
+    cxx = compiler_identity()
+    key = {"name": cxx.name, "path": cxx.path, "version": cxx.version}
+    if os.environ.get("COBGS_CXX"):
+        alt = compiler_identity(os.environ["COBGS_CXX"])
+        key["cobgs_cxx"] = {"path": alt.path, "version": alt.version}
+    return key
 
 
 def extension_name() -> str:
@@ -225,8 +248,8 @@ def _file_lock(path: Path, verbose: bool):
             fcntl.flock(fh, fcntl.LOCK_UN)
 
 
-def _check_toolchain() -> None:
-    cxx = os.environ.get("CXX") or "c++"
+def _check_toolchain(cxx: Optional[str] = None) -> None:
+    cxx = cxx or os.environ.get("CXX") or "c++"
     if shutil.which(cxx) is None:
         raise BuildError(f"no C++ compiler found (looked for {cxx!r}; set $CXX or install "
                          f"g++) — needed to build the native rasterizer; "
@@ -250,19 +273,42 @@ load(name=a["name"], sources=a["sources"], build_directory=a["build_dir"],
 """
 
 
-def _compile(name: str, root: Path, final: Path, verbose: bool) -> None:
-    _check_toolchain()
+@dataclass(frozen=True)
+class BuildSpec:
+    """What one library is built from: sources, flags, CUDA plan, and the namespace of its
+    ``error_probe`` op. :func:`load_extension` builds the rasterizer's; tests build small ones
+    through the same checks."""
+
+    sources: tuple[str, ...]
+    cflags: tuple[str, ...]
+    ldflags: tuple[str, ...]
+    cuda: dict = field(default_factory=lambda: {"enabled": False, "reason": "not asked for"})
+    namespace: str = "cobgs"
+
+
+def _rasterizer_spec() -> BuildSpec:
+    plan = cuda_plan()
+    suffixes = (".cpp", ".cu") if plan["enabled"] else (".cpp",)
+    return BuildSpec(tuple(str(p) for p in _source_files() if p.suffix in suffixes), tuple(_cflags()),
+                     tuple(LDFLAGS), plan)
+
+
+def _compile(name: str, root: Path, final: Path, verbose: bool, spec: BuildSpec,
+             cxx: Optional[str] = None) -> None:
+    """Compile ``spec`` into ``final/<name>.so`` (a private folder renamed into place), with
+    ``cxx`` as the compiler where given (else ``$CXX``, as torch's build does)."""
+    _check_toolchain(cxx)
     for stale in root.glob(f"{name}.build-*"):  # left by a crashed build (we hold the lock)
         shutil.rmtree(stale, ignore_errors=True)
     tmp = Path(tempfile.mkdtemp(prefix=f"{name}.build-", dir=root))
-    plan = cuda_plan()
-    suffixes = (".cpp", ".cu") if plan["enabled"] else (".cpp",)
-    sources = [str(p) for p in _source_files() if p.suffix in suffixes]
-    args = json.dumps({"name": name, "sources": sources, "build_dir": str(tmp),
-                       "cflags": _cflags(), "ldflags": LDFLAGS,
+    plan = spec.cuda
+    args = json.dumps({"name": name, "sources": list(spec.sources), "build_dir": str(tmp),
+                       "cflags": list(spec.cflags), "ldflags": list(spec.ldflags),
                        "cuda_cflags": plan.get("flags", [])})
     env = dict(os.environ)
     env["PATH"] = str(Path(sys.executable).parent) + os.pathsep + env.get("PATH", "")
+    if cxx:
+        env["CXX"] = cxx
     if plan["enabled"]:
         env["CUDA_HOME"] = plan["cuda_home"]
         env["TORCH_CUDA_ARCH_LIST"] = plan["arch"]
@@ -286,6 +332,86 @@ def _compile(name: str, root: Path, final: Path, verbose: bool) -> None:
     os.replace(tmp, final)
 
 
+PROBE_FILE = "probe.json"
+
+
+def _build_checked(name: str, root: Path, final: Path, verbose: bool, spec: BuildSpec) -> None:
+    """:func:`_compile`, then the two checks of the module docstring: a statically linked
+    libstdc++ is rebuilt once with a compiler that links it dynamically; the error probe
+    must pass. Writes ``probe.json`` (what was built with what, and the probe) beside the
+    library; a library failing either check is removed and :class:`BuildError` raised."""
+    from ._toolchain import compiler_identity, dynamic_compiler, links_libstdcxx_statically, probe_library, \
+        static_message
+
+    so = final / f"{name}.so"
+    cxx = compiler_identity()
+    _compile(name, root, final, verbose, spec)
+    used, switched = cxx, None
+    if links_libstdcxx_statically(so):
+        alt = dynamic_compiler(cxx)
+        if alt is None:
+            shutil.rmtree(final, ignore_errors=True)
+            raise BuildError(static_message(cxx, "its library does not need libstdc++.so.6"))
+        print(f"cobgs: {cxx} links libstdc++ statically, which breaks C++ errors in a torch extension; "
+              f"building again with {alt}", file=sys.stderr, flush=True)
+        _compile(name, root, final, verbose, spec, cxx=alt.path)
+        if links_libstdcxx_statically(so):
+            shutil.rmtree(final, ignore_errors=True)
+            raise BuildError(static_message(cxx, f"and so does {alt}"))
+        used, switched = alt, str(cxx)
+    probe = probe_library(so, spec.namespace)
+    if not probe.ok:
+        shutil.rmtree(final, ignore_errors=True)
+        raise BuildError(f"the native extension built with {used} fails the error probe: {probe.detail}. "
+                         f"A C++ error of this library would not reach Python intact. Fix: build with "
+                         f"another compiler, e.g. `CXX=g++ cobgs build` (or set COBGS_CXX)")
+    _write_probe(final, {"compiler": str(used), "compiler_path": used.path, "compiler_version": used.version,
+                         "switched_from": switched, "libstdcxx": "dynamic", "probe": probe.to_json()})
+
+
+def _write_probe(final: Path, record: dict) -> None:
+    tmp = final / f".{PROBE_FILE}.tmp"
+    tmp.write_text(json.dumps(record, indent=1) + "\n", encoding="utf-8")
+    os.replace(tmp, final / PROBE_FILE)
+
+
+def read_probe(final: Path) -> Optional[dict]:
+    """The ``probe.json`` a checked build left beside its library, or None."""
+    try:
+        rec = json.loads((Path(final) / PROBE_FILE).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    return rec if isinstance(rec, dict) else None
+
+
+def ensure_library(name: str, root: Path, spec: BuildSpec, verbose: bool = False, force: bool = False) -> Path:
+    """The checked library ``root/name/name.so``: built (and checked) if missing or
+    ``force``; a cached one never checked is probed once and rebuilt if it fails. Runs
+    under the build's file lock."""
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise BuildError(f"cannot create the extension cache folder {root}: {exc} "
+                         f"(set COBGS_EXT_DIR to a writable folder)") from exc
+    final = root / name
+    so = final / f"{name}.so"
+    with _file_lock(root / f"{name}.lock", verbose):
+        if force or not so.is_file():
+            _build_checked(name, root, final, verbose, spec)
+        elif read_probe(final) is None:
+            from ._toolchain import probe_library
+
+            probe = probe_library(so, spec.namespace)
+            if probe.ok:
+                _write_probe(final, {"compiler": None, "libstdcxx": "not checked (built before the checks)",
+                                     "probe": probe.to_json()})
+            else:
+                print(f"cobgs: the cached native extension {so} fails the error probe ({probe.detail}); "
+                      "rebuilding it", file=sys.stderr, flush=True)
+                _build_checked(name, root, final, verbose, spec)
+    return so
+
+
 def has_cuda_kernels() -> bool:
     """Whether the loaded extension registered CUDA kernels (loads it if needed)."""
     load_extension()
@@ -303,24 +429,15 @@ def load_extension(verbose: bool = False, force: bool = False) -> str:
             process stays loaded; the rebuilt one is used by new processes.)
 
     Raises:
-        BuildError: no compiler/ninja, or compilation failed (message holds the full log).
+        BuildError: no compiler/ninja, compilation failed (message holds the full log), or
+            the library fails the checks of the module docstring.
     """
     global _loaded
     with _lock:
         if _loaded is not None and not force:
             return _loaded
         name = extension_name()
-        root = cache_root()
-        try:
-            root.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:
-            raise BuildError(f"cannot create the extension cache folder {root}: {exc} "
-                             f"(set COBGS_EXT_DIR to a writable folder)") from exc
-        final = root / name
-        so = final / f"{name}.so"
-        with _file_lock(root / f"{name}.lock", verbose):
-            if force or not so.is_file():
-                _compile(name, root, final, verbose)
+        so = ensure_library(name, cache_root(), _rasterizer_spec(), verbose, force)
         if _loaded is None:
             import torch
 
@@ -328,6 +445,6 @@ def load_extension(verbose: bool = False, force: bool = False) -> str:
                 torch.ops.load_library(str(so))
             except OSError as exc:
                 raise BuildError(f"the cached native extension {so} could not be loaded: "
-                                 f"{exc}; delete {final} to rebuild it") from exc
+                                 f"{exc}; delete {so.parent} to rebuild it") from exc
             _loaded = str(so)
         return str(so)

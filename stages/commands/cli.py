@@ -16,6 +16,7 @@ from typing import Optional, Sequence
 # Order here is the order of `cobgs --help`.
 PROVIDERS = (
     "stages.commands.build",
+    "stages.commands.doctor",
     "stages.commands.new",
     "stages.commands.synth",
     "stages.commands.workflow",
