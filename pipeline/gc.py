@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from .cache import Cache, dir_size
+from .locks import pid_alive
 
 TRASH_AGE_S = 600  # a trash folder older than this was left by a killed process
 
@@ -86,7 +87,7 @@ def collect(cache_dir: Path, keep: set[tuple[str, str]], dry_run: bool = False,
                 old = time.time() - f.stat().st_mtime > TRASH_AGE_S
             except OSError:
                 continue
-            if old or not _alive(pid):
+            if old or not pid_alive(pid):
                 size = f.stat().st_size if f.exists() else 0
                 report.lines.append(f"fingerprints/{f.name} ({size} bytes, left by a killed run)")
                 report.removed += 1
@@ -101,16 +102,3 @@ def collect(cache_dir: Path, keep: set[tuple[str, str]], dry_run: bool = False,
                 lock.release(unlink=True)
     return report
 
-
-def _alive(pid: int) -> bool:
-    import os
-
-    if pid <= 0:
-        return False
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True

@@ -90,3 +90,17 @@ class EntryLock:
 
     def __exit__(self, *exc) -> None:
         self.release()
+
+
+def pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` exists (what a leftover named after its writer's pid needs:
+    a dead writer's temporary files may go)."""
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True

@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Callable, Optional
 
 from .errors import PipelineError
+from .locks import pid_alive
 
 _AT_FDCWD = -100
 _RENAME_EXCHANGE = 2
@@ -35,16 +36,6 @@ _RENAME_EXCHANGE = 2
 
 class DestinationError(PipelineError):
     """The destination cannot be replaced (not a folder, or a folder this tool did not write)."""
-
-
-def _alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def exchange_paths(a: Path, b: Path) -> bool:
@@ -71,7 +62,7 @@ def clean_leftovers(dest: Path) -> None:
         return
     for p in sorted(dest.parent.iterdir()):
         m = pat.match(p.name)
-        if not m or _alive(int(m.group(2))):
+        if not m or pid_alive(int(m.group(2))):
             continue
         if m.group(1) == "old" and not dest.exists():
             os.rename(p, dest)
