@@ -51,12 +51,15 @@ def _peak_rss() -> int:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
 
 
-def _scene(out: Path, images: Path | None):
+def _scene(out: Path, images: Path | None, test_every: int = 0, sfm_dir: Path | None = None):
+    """The SfM'd scene (``out/fern_sfm``, or a shared ``sfm_dir`` so that two recipes train on
+    the same reconstruction); ``test_every`` = k holds out every k-th view (0: none, as the
+    first faithful run of issue 26)."""
     from cobgs.data.colmap import read_colmap
     from cobgs.data.sfm import SfmOptions, run_sfm
 
-    sfm_dir = out / "fern_sfm"
-    rec_path = out / "sfm.json"
+    sfm_dir = sfm_dir or out / "fern_sfm"
+    rec_path = sfm_dir.parent / "sfm.json" if sfm_dir != out / "fern_sfm" else out / "sfm.json"
     if not (sfm_dir / "sparse" / "0").is_dir():
         if images is None:
             raise SystemExit(f"{sfm_dir}: no SfM yet; pass --images")
@@ -66,13 +69,24 @@ def _scene(out: Path, images: Path | None):
                "registered": len(res.registered), "points": res.num_points3d, "peak_rss": _peak_rss()}
         rec_path.write_text(json.dumps(rec, indent=1))
         print(f"SfM: {rec['registered']} registered, {rec['points']} points, {rec['wall_s']:.1f} s", flush=True)
-    return read_colmap(sfm_dir, test_every=0)
+    return read_colmap(sfm_dir, test_every=test_every)
 
 
-def _config(iterations: int):
+def _config(iterations: int, recipe: str = "3dgs", sets: tuple = ()):
     from cobgs.train.optimize import TrainConfig
 
-    return TrainConfig(iterations=iterations, log_interval_its=1000, checkpoint_interval_its=1000)
+    kw = {"iterations": iterations, "log_interval_its": 1000, "checkpoint_interval_its": 1000}
+    if recipe != "3dgs":
+        kw["recipe"] = recipe
+    for item in sets:  # --set field=value (a TrainConfig field; value as a Python literal)
+        import ast
+
+        k, v = item.split("=", 1)
+        try:
+            kw[k] = ast.literal_eval(v)
+        except (ValueError, SyntaxError):
+            kw[k] = v
+    return TrainConfig(**kw)
 
 
 def cmd_scene(args) -> int:
@@ -83,7 +97,7 @@ def cmd_scene(args) -> int:
     torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
-    scene = _scene(out, args.images)
+    scene = _scene(out, args.images, args.test_every, args.sfm_dir)
     ckpt_dir = out / "ckpt"
     ckpt_dir.mkdir(exist_ok=True)
     done = sorted((int(p.stem.split("_")[1]) for p in ckpt_dir.glob("ckpt_*.pt") if p.stem.split("_")[1].isdigit()))
@@ -92,7 +106,10 @@ def cmd_scene(args) -> int:
     run_id = time.strftime("%Y-%m-%dT%H:%M:%S")
     print(f"fern: {len(scene.train)} views at {w}x{h}; resuming from {resume.name if resume else 'the start'}",
           flush=True)
-    cfg = _config(args.iterations)
+    cfg = _config(args.iterations, args.recipe, tuple(args.set or ()))
+    (out / "config.json").write_text(json.dumps({"recipe": args.recipe, "sets": args.set or [],
+                                                 "test_every": args.test_every,
+                                                 "test_views": [v.name for v in scene.test]}, indent=1))
     log = (out / "train_log.jsonl").open("a")
     t_start = time.perf_counter()
     mark = [time.perf_counter(), time.process_time()]
@@ -104,7 +121,9 @@ def cmd_scene(args) -> int:
         now, cpu = time.perf_counter(), time.process_time()
         rec = {"it": it, "wall_s": now - mark[0], "cpu_s": cpu - mark[1], "gaussians": len(trainer.model),
                "loss": info["loss"], "psnr": info["psnr"], "load": os.getloadavg()[0], "run": run_id,
-               "width": w, "height": h}
+               "width": w, "height": h, "peak_rss": _peak_rss()}
+        if info.get("resolution"):
+            rec["resolution"] = info["resolution"]
         mark[0], mark[1] = now, cpu
         log.write(json.dumps(rec) + "\n")
         log.flush()
@@ -118,13 +137,18 @@ def cmd_scene(args) -> int:
             raise _Budget(it)
 
     try:
-        train(scene, cfg, checkpoint_dir=ckpt_dir, resume=resume, progress=False, evaluate_test=False,
-              callback=callback)
+        res = train(scene, cfg, checkpoint_dir=ckpt_dir, resume=resume, progress=False,
+                    evaluate_test=bool(scene.test), callback=callback)
     except _Budget as b:
         print(f"stopped after iteration {b.args[0]} (time budget / --stop-at); run again to continue", flush=True)
         return 0
     finally:
         log.close()
+    if res.eval:
+        ev = {"psnr": res.eval["psnr"], "ssim": res.eval["ssim"], "per_view": res.eval["per_view"],
+              "gaussians": len(res.model), "iterations": res.iterations, "peak_rss": _peak_rss()}
+        (out / "eval.json").write_text(json.dumps(ev, indent=1))
+        print(f"held-out ({len(scene.test)} views): PSNR {ev['psnr']:.3f} dB, SSIM {ev['ssim']:.4f}", flush=True)
     print("training complete", flush=True)
     return 0
 
@@ -390,6 +414,11 @@ def main(argv=None) -> int:
     s.add_argument("--iterations", type=int, default=30_000)
     s.add_argument("--budget-s", type=float, default=0.0, help="stop at the first checkpoint after this long")
     s.add_argument("--stop-at", type=int, default=0, help="stop (resumably) at this iteration")
+    s.add_argument("--test-every", type=int, default=0,
+                   help="hold out every k-th view (0: none, as issue 26's run); held-out PSNR goes to eval.json")
+    s.add_argument("--sfm-dir", type=Path, default=None, help="a shared SfM folder (default OUT/fern_sfm)")
+    s.add_argument("--recipe", default="3dgs", help="TrainConfig.recipe")
+    s.add_argument("--set", action="append", metavar="FIELD=VALUE", help="a TrainConfig field (repeatable)")
     t = sub.add_parser("table6")
     t.add_argument("--out", type=Path, required=True)
     t.add_argument("--checkpoint", default="ckpt_final.pt")
