@@ -142,6 +142,30 @@ class TrainConfig:
     backend: str = "native"
     log_interval_its: int = 10
     checkpoint_interval_its: int = 0  # 0 = only at the end (when a folder is given)
+    # -- the recipe and the switches of the fast one (docs/method.md §1, "Recipes") --------------
+    # Fields added after the first cache entries were written carry metadata "before": the
+    # value every run had before the field existed; the train stage's key leaves a field out
+    # while it holds that value (cobgs.configs.key_without_later), so earlier entries stay valid.
+    recipe: str = field(default="3dgs", metadata={"before": "3dgs", "help": (
+        '"3dgs": the paper\'s schedule as written; "fast": the switches below set to FAST_RECIPE '
+        "(a field the workflow sets to anything but its 3dgs default keeps the workflow's value)")})
+    # DashGaussian-style resolution schedule: render at 1/d of the image size, d chosen so that
+    # the share of the images' spectral energy below the rendered Nyquist grows linearly from
+    # what 1/resolution_max_downscale holds to all of it at resolution_full_at x iterations.
+    resolution_schedule: bool = field(default=False, metadata={"before": False})
+    resolution_max_downscale: float = field(default=4.0, metadata={"before": 4.0})
+    resolution_full_at: float = field(default=0.5, metadata={"before": 0.5})
+    # Taming-3DGS-style budget: densification follows a count that grows linearly from the
+    # initial points to the budget at budget_full_at of the densification window, densifying
+    # the Gaussians of highest score (the averaged view-space gradient) instead of those above
+    # the gradient threshold; the budget is never exceeded. Absolute, or per pixel of a
+    # training image (the larger of the two that is set; 0 = no budget).
+    gaussian_budget: int = field(default=0, metadata={"before": 0})
+    gaussian_budget_per_pixel: float = field(default=0.0, metadata={"before": 0.0})
+    budget_full_at: float = field(default=0.7, metadata={"before": 0.7})
+    # Adam steps only the Gaussians the view touches (radius > 0): the others keep their
+    # parameters and moments, as gsplat's selective Adam.
+    sparse_adam: bool = field(default=False, metadata={"before": False})
 
     RANGES: ClassVar[dict] = {
         "iterations": "[1, 1e7]", "seed": "[0, 2147483647]", "reference_iterations": "[1, 1e7]",
@@ -156,11 +180,22 @@ class TrainConfig:
         "max_gaussians": "[0, 1e9]", "opacity_reset_interval_its": "[1, 1e7]", "opacity_reset_value": "(0, 1)",
         "random_init_points": "[1, 1e8]", "init_opacity": "(0, 1)", "background": "[0, 1]",
         "log_interval_its": "[1, 1e7]", "checkpoint_interval_its": "[0, 1e7]",
+        "resolution_max_downscale": "[1, 64]", "resolution_full_at": "(0, 1]", "gaussian_budget": "[0, 1e9]",
+        "gaussian_budget_per_pixel": "[0, 100]", "budget_full_at": "(0, 1]",
     }
-    CHOICES: ClassVar[dict] = {"backend": ("native", "reference")}
+    CHOICES: ClassVar[dict] = {"backend": ("native", "reference"), "recipe": ("3dgs", "fast")}
 
     def __post_init__(self):
         check_params(self)
+        if self.recipe == "fast":
+            defaults = {f.name: f.default for f in dataclasses.fields(self)}
+            for name, value in FAST_RECIPE.items():
+                if getattr(self, name) == defaults[name]:
+                    object.__setattr__(self, name, value)
+
+    def budget_for(self, width: int, height: int) -> int:
+        """The Gaussian budget for training images of ``width`` x ``height`` (0: none)."""
+        return max(int(self.gaussian_budget), int(round(self.gaussian_budget_per_pixel * width * height)))
 
     def schedule(self) -> "Schedule":
         """Iteration-valued fields after scaling to ``iterations`` (see module docstring)."""
@@ -177,6 +212,29 @@ class TrainConfig:
             densify_interval=s(self.densify_interval_its) if self.scale_densify_interval else self.densify_interval_its,
             opacity_reset_interval=s(self.opacity_reset_interval_its),
         )
+
+
+#: What ``TrainConfig(recipe="fast")`` changes from the 3dgs defaults (docs/method.md §1,
+#: "Recipes"; measured in docs/benchmarks/cost_cpu.md). A field the caller set to anything but
+#: its 3dgs default keeps the caller's value.
+FAST_RECIPE = {
+    "iterations": 12_000,
+    "resolution_schedule": True,
+    "gaussian_budget_per_pixel": 0.3,
+}
+
+
+def key_without_later(cls, full: dict) -> dict:
+    """``full`` (a params object as JSON) without the fields of ``cls`` that were added
+    later and hold the value every run had before they existed (field metadata "before"):
+    a cache key made this way is the key the same run had before the field was added."""
+    out = dict(full)
+    for f in dataclasses.fields(cls):
+        if "before" in f.metadata and f.name in out:
+            before = f.metadata["before"]
+            if out[f.name] == (list(before) if isinstance(before, tuple) else before):
+                del out[f.name]
+    return out
 
 
 @dataclass(frozen=True)

@@ -20,7 +20,7 @@ import dataclasses
 import time
 from pathlib import Path
 
-from cobgs.configs import TrainConfig
+from cobgs.configs import TrainConfig, key_without_later
 from pipeline import Resources, Stage
 
 from ._common import load_scene, to_device, torch_device, write_json, write_png
@@ -50,7 +50,12 @@ def _run(ctx, inputs):
         if trainer.iteration % max(1, cfg.log_interval_its) == 0:
             last["n"] = len(trainer.model)
             if hasattr(bar, "set_postfix"):
-                bar.set_postfix(loss=f"{info['loss']:.4f}", psnr=f"{info['psnr']:.2f}", gaussians=last["n"])
+                extra = {}
+                if cfg.resolution_schedule:  # the rendered size this iteration
+                    extra["res"] = "x".join(str(v) for v in info["resolution"])
+                if trainer.budget:
+                    extra["budget"] = trainer.budget
+                bar.set_postfix(loss=f"{info['loss']:.4f}", psnr=f"{info['psnr']:.2f}", gaussians=last["n"], **extra)
 
     t0 = time.perf_counter()
     res = train(scene, cfg, progress=False, callback=callback)
@@ -66,7 +71,8 @@ def _run(ctx, inputs):
                   render_image(model, v.camera, bg, backend=cfg.backend).clamp(0, 1).cpu().numpy())
     ev = res.eval or {}
     write_json(ctx.out_dir / "train.json", {
-        "config": dataclasses.asdict(cfg),
+        # (the later switches left out at their earlier values: a 3dgs run writes the same bytes as before them)
+        "config": key_without_later(TrainConfig, dataclasses.asdict(cfg)),
         "schedule": dataclasses.asdict(cfg.schedule()),
         "iterations": res.iterations,
         "num_gaussians": len(model),
@@ -131,8 +137,15 @@ def _import_trained(ctx, cfg, scene, dev, path: Path):
     return {"scene": ctx.out_dir}
 
 
+def _key_params(params: TrainConfig, full: dict) -> dict:
+    """Every param, except those added later while they hold their earlier value (the 3dgs
+    recipe's switches): a cache written before they existed is reused."""
+    return key_without_later(TrainConfig, full)
+
+
 STAGE = Stage(
     name="train", version=4, run=_run, inputs=("dataset", "poses"), outputs=("scene",), params=TrainConfig,
+    key_params=_key_params,
     level=("scene",), uses_device=True, resources=Resources(cpus=2),
     description="baseline 3DGS optimisation (scene.ply, held-out renders and PSNR)",
 )

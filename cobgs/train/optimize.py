@@ -95,6 +95,38 @@ class TrainResult:
 _COMPOSITED_KINDS = ("blender",)
 
 
+def spectral_energy_kept(images: Sequence[Tensor], downscales: Sequence[float]) -> list[float]:
+    """For each downscale d, the share of the images' spectral energy (luminance, mean
+    removed) at frequencies a 1/d render can hold: ``|f_x|, |f_y| <= 0.5 / d`` cycles per pixel
+    (the rendered image's Nyquist band). DashGaussian's measure of how much of the images a
+    resolution can fit."""
+    import numpy as np
+
+    total = np.zeros(len(downscales))
+    whole = 0.0
+    for img in images:
+        g = img.detach().float().cpu().mean(-1).numpy()
+        g = g - g.mean()
+        p = np.abs(np.fft.rfft2(g)) ** 2
+        fy = np.abs(np.fft.fftfreq(g.shape[0]))[:, None]
+        fx = np.fft.rfftfreq(g.shape[1])[None, :]
+        whole += float(p.sum())
+        for k, d in enumerate(downscales):
+            total[k] += float(p[(fy <= 0.5 / d) & (fx <= 0.5 / d)].sum())
+    return [float(t / whole) if whole > 0 else 1.0 for t in total]
+
+
+def resolution_levels(images: Sequence[Tensor], max_downscale: float) -> list[tuple[float, float]]:
+    """``(downscale, energy kept)`` for downscales from ``max_downscale`` to 1 in steps of 0.25
+    (largest first), from :func:`spectral_energy_kept` of up to 8 of the images."""
+    steps = max(0, int(math.floor((max_downscale - 1.0) / 0.25)))
+    ds = [1.0 + 0.25 * k for k in range(steps, -1, -1)]
+    sample = list(images)[:: max(1, len(images) // 8)][:8]
+    kept = spectral_energy_kept(sample, ds)
+    # monotone in d by construction; clamp the rounding of the last level
+    return [(d, min(1.0, e)) for d, e in zip(ds, kept)]
+
+
 def expon_lr(step: int, lr_init: float, lr_final: float, max_steps: int) -> float:
     """Log-linear interpolation from ``lr_init`` (step 0) to ``lr_final`` (``max_steps``)."""
     t = min(max(step / max_steps, 0.0), 1.0)
@@ -161,11 +193,67 @@ class Trainer:
         self.iteration = 0
         self.view_queue: list[int] = []
         self._reset_stats()
+        cam0 = scene.train[0].camera
+        #: the Gaussian budget (0: none; TrainConfig.budget_for)
+        self.budget = config.budget_for(int(cam0.width), int(cam0.height))
+        self._n_init = len(self.model)
+        self._levels: Optional[list[tuple[float, float]]] = None  # (downscale, energy kept), resolution schedule
+        self._targets: dict = {}  # (view index, w, h) -> the downsampled image
 
     # -- pieces -----------------------------------------------------------------------------
-    def _make_optimizer(self) -> torch.optim.Adam:
+    def _make_optimizer(self) -> torch.optim.Optimizer:
         c = self.config
-        return self.model.make_adam(gaussian_lrs(c, c.position_lr_init, self.extent), eps=c.adam_eps)
+        lrs = gaussian_lrs(c, c.position_lr_init, self.extent)
+        if c.sparse_adam:
+            from cobgs.train.visible_adam import VisibleAdam
+
+            return VisibleAdam.for_model(self.model, lrs, eps=c.adam_eps)
+        return self.model.make_adam(lrs, eps=c.adam_eps)
+
+    # -- the fast recipe's schedules ----------------------------------------------------------
+    def downscale(self, iteration: Optional[int] = None) -> float:
+        """The image downscale of an iteration under the resolution schedule (1: full size).
+
+        The share of the training images' spectral energy that a render at 1/d keeps
+        (:func:`spectral_energy_kept`) grows linearly with the iteration, from the share at
+        ``resolution_max_downscale`` to all of it at ``resolution_full_at`` x ``iterations``;
+        d is the largest level (steps of 0.25) that keeps at least that share.
+        """
+        c = self.config
+        if not c.resolution_schedule:
+            return 1.0
+        it = self.iteration if iteration is None else iteration
+        end = max(1.0, c.resolution_full_at * c.iterations)
+        if it >= end:
+            return 1.0
+        if self._levels is None:
+            self._levels = resolution_levels([v.image for v in self.scene.train], c.resolution_max_downscale)
+        lo = self._levels[0][1]
+        want = lo + (1.0 - lo) * (it / end)
+        for d, kept in self._levels:  # largest downscale first
+            if kept >= want:
+                return d
+        return 1.0
+
+    def _target(self, index: int, view: View, width: int, height: int) -> Tensor:
+        """The view's image at ``width`` x ``height`` (area-averaged; cached per size)."""
+        if (width, height) == (view.camera.width, view.camera.height):
+            return view.image
+        key = (index, width, height)
+        t = self._targets.get(key)
+        if t is None:
+            img = view.image.permute(2, 0, 1)[None]
+            t = torch.nn.functional.interpolate(img, size=(height, width), mode="area")[0].permute(1, 2, 0).contiguous()
+            self._targets[key] = t
+        return t
+
+    def budget_now(self) -> int:
+        """The count the budget allows at this iteration: a line from the initial count to
+        the budget at ``budget_full_at`` of the densification window."""
+        s, c = self.sched, self.config
+        span = max(1.0, c.budget_full_at * (s.densify_until - s.densify_from))
+        t = min(1.0, max(0.0, (self.iteration - s.densify_from) / span))
+        return int(round(self._n_init + (self.budget - self._n_init) * t)) if self.budget > self._n_init else self.budget
 
     def _reset_stats(self) -> None:
         n, dev = len(self.model), self.model.device
@@ -173,10 +261,11 @@ class Trainer:
         self.grad_count = torch.zeros(n, device=dev)
         self.max_radii = torch.zeros(n, device=dev)
 
-    def _next_view(self) -> View:
+    def _next_view(self) -> tuple[int, View]:
         if not self.view_queue:
             self.view_queue = torch.randperm(len(self.scene.train), generator=self.view_rng).tolist()
-        return self.scene.train[self.view_queue.pop()]
+        i = self.view_queue.pop()
+        return i, self.scene.train[i]
 
     def _update_lr(self) -> None:
         c = self.config
@@ -194,30 +283,39 @@ class Trainer:
         self._update_lr()
         if it % s.sh_degree_interval == 0 and self.model.active_sh_degree < self.model.sh_degree:
             self.model.active_sh_degree += 1
-        view = self._next_view()
+        index, view = self._next_view()
+        camera, target = view.camera, view.image
+        d = self.downscale(it)
+        if d != 1.0:
+            camera = camera.scaled(d)
+            target = self._target(index, view, int(camera.width), int(camera.height))
         bg = torch.rand(3, generator=self.bg_rng) if c.random_background else self.background
-        out = render(self.model, view.camera, bg, backend=c.backend)
+        out = render(self.model, camera, bg, backend=c.backend)
         if it < s.densify_until:  # the densification statistics read its gradient
             out.means2d.retain_grad()
         img = out.image
-        loss = photometric_loss(img, view.image, c.ssim_weight)
+        loss = photometric_loss(img, target, c.ssim_weight)
         loss.backward()
 
         with torch.no_grad():
             if it < s.densify_until:
-                self._accumulate(out.radii, out.means2d.grad, view.camera.width, view.camera.height)
-            self.optimizer.step()
+                self._accumulate(out.radii, out.means2d.grad, camera.width, camera.height)
+            if c.sparse_adam:
+                self.optimizer.step(visible=out.radii > 0)
+            else:
+                self.optimizer.step()
             self.optimizer.zero_grad(set_to_none=True)
             if it < s.densify_until:
                 if it > s.densify_from and it % s.densify_interval == 0:
                     self.densify_and_prune()
                 if it % s.opacity_reset_interval == 0 or (self.white_background and it == s.densify_from):
                     self.reset_opacity()
-            mse = torch.mean((img.detach().clamp(0, 1) - view.image) ** 2).item()
+            mse = torch.mean((img.detach().clamp(0, 1) - target) ** 2).item()
         return {
             "loss": float(loss.detach()),
             "psnr": 10.0 * math.log10(1.0 / max(mse, 1e-12)),
             "image": img.detach(),
+            "resolution": (int(camera.width), int(camera.height)),
         }
 
     def _accumulate(self, radii: Tensor, grad2d: Optional[Tensor], width: int, height: int) -> None:
@@ -243,7 +341,10 @@ class Trainer:
         grads = self.grad_accum / self.grad_count.clamp_min(1)
         grads[self.grad_count == 0] = 0.0
         big = m.scales.max(dim=1).values > c.dense_scale_fraction * self.extent
-        hot = grads >= c.densify_grad_threshold_ndc
+        if self.budget:
+            hot = self._budget_pick(grads, big, n0)
+        else:
+            hot = grads >= c.densify_grad_threshold_ndc
         clone = hot & ~big
         split = hot & big
         if c.max_gaussians > 0:
@@ -277,6 +378,22 @@ class Trainer:
             m.keep(~prune, opts)
         self._reset_stats()
         return {"cloned": n_clone, "split": n_split, "pruned": n_prune}
+
+    def _budget_pick(self, grads: Tensor, big: Tensor, n0: int) -> Tensor:
+        """The Gaussians to densify under the budget: highest averaged gradient first, as many
+        as fit below :meth:`budget_now` (a clone adds one, a split ``split_children - 1``);
+        never-seen Gaussians (no gradient) are not candidates."""
+        room = self.budget_now() - n0
+        pick = torch.zeros_like(big)
+        if room <= 0:
+            return pick
+        seen = self.grad_count > 0
+        order = torch.argsort(torch.where(seen, grads, grads.new_full((), -1.0)), descending=True)
+        order = order[seen[order]]
+        cost = torch.where(big[order], self.config.split_children - 1, 1).to(torch.int64)
+        take = order[torch.cumsum(cost, 0) <= room]
+        pick[take] = True
+        return pick
 
     def reset_opacity(self) -> None:
         """Clamp every opacity to at most ``opacity_reset_value`` and zero its Adam moments."""

@@ -205,7 +205,7 @@ def main(argv=None) -> int:
 
     model, opt = trainer.model, trainer.optimizer
     parts = {k: [] for k in ("sh colour", "rasterize fwd", "loss fwd", "backward", "adam")}
-    for view in seen:
+    for _, view in seen:
         cam = view.camera
         with Clock() as c_sh:
             if hasattr(_ops, "sh_colors"):  # as render() does
