@@ -2,9 +2,22 @@
 
 Importing the package is cheap and never compiles anything; the native rasterizer is
 built on first use of :func:`cobgs.rasterize` (or ahead of time with ``cobgs build``).
+
+OpenMP: the rasterizer's parallel loops run on the OpenMP runtime torch loads, whose threads
+by default spin after every loop, burning the cores other work needs; on a busy machine that
+made renders 2-4x slower. Importing cobgs therefore sets ``OMP_WAIT_POLICY=PASSIVE`` (idle
+threads sleep) when the variable is unset and torch is not imported yet: the runtime reads it
+once, when torch loads it. Import cobgs before torch (or set the variable yourself) to get it;
+``tests/benchmarks/bm_omp_wait.py`` measures both ways.
 """
 
 from __future__ import annotations
+
+import os as _os
+import sys as _sys
+
+if "OMP_WAIT_POLICY" not in _os.environ and "torch" not in _sys.modules:
+    _os.environ["OMP_WAIT_POLICY"] = "PASSIVE"
 
 __version__ = "0.1.0"
 

@@ -158,8 +158,8 @@ class TrainConfig:
     # Taming-3DGS-style budget: densification follows a count that grows linearly from the
     # initial points to the budget at budget_full_at of the densification window, densifying
     # the Gaussians of highest score (the averaged view-space gradient) instead of those above
-    # the gradient threshold; the budget is never exceeded. Absolute, or per pixel of a
-    # training image (the larger of the two that is set; 0 = no budget).
+    # the gradient threshold; the budget is never exceeded. Absolute (wins where set), or per
+    # pixel of a training image (0 and 0: no budget).
     gaussian_budget: int = field(default=0, metadata={"before": 0})
     gaussian_budget_per_pixel: float = field(default=0.0, metadata={"before": 0.0})
     budget_full_at: float = field(default=0.7, metadata={"before": 0.7})
@@ -194,8 +194,11 @@ class TrainConfig:
                     object.__setattr__(self, name, value)
 
     def budget_for(self, width: int, height: int) -> int:
-        """The Gaussian budget for training images of ``width`` x ``height`` (0: none)."""
-        return max(int(self.gaussian_budget), int(round(self.gaussian_budget_per_pixel * width * height)))
+        """The Gaussian budget for training images of ``width`` x ``height`` (0: none):
+        ``gaussian_budget`` where set, else ``gaussian_budget_per_pixel`` x the pixels."""
+        if self.gaussian_budget:
+            return int(self.gaussian_budget)
+        return int(round(self.gaussian_budget_per_pixel * width * height))
 
     def schedule(self) -> "Schedule":
         """Iteration-valued fields after scaling to ``iterations`` (see module docstring)."""

@@ -25,6 +25,13 @@ iteration's gradients when it rebuilds its tensors); the screen-space size pruni
 by default (in the released code it never fires because its radii statistic is zeroed by
 the clone step just before; gsplat disables it too).
 
+**Recipes** (``TrainConfig.recipe``, docs/method.md §1 "Recipes"): ``"3dgs"`` is the above
+as the paper runs it; ``"fast"`` turns on a DashGaussian-style resolution schedule
+(:meth:`Trainer.downscale`), a Taming-3DGS-style Gaussian budget with score-ranked
+densification (:meth:`Trainer.budget_now`) and a shorter schedule (:data:`cobgs.configs.FAST_RECIPE`);
+selective Adam (:mod:`cobgs.train.visible_adam`) is a further switch. The 3dgs path is
+unchanged by them: its runs are bit-identical to those before the switches existed.
+
 Determinism: one seed drives the initialisation, the view order and the split samples
 through private ``torch.Generator`` s; a checkpoint stores them with the model, the Adam
 state and the densification statistics, so a resumed run continues bit-identically.
@@ -555,7 +562,8 @@ def train(
             ``checkpoint_interval_its`` and ``ckpt_final.pt`` at the end.
         resume: checkpoint to continue from (its config must match ``config`` except
             ``iterations``); training continues up to ``config.iterations``.
-        progress: show a tqdm bar (iteration, loss, training-view PSNR, Gaussian count).
+        progress: show a tqdm bar (iteration, loss, training-view PSNR, Gaussian count, and
+            under the fast recipe the rendered size and the Gaussian budget).
         evaluate_test: compute held-out PSNR / SSIM at the end.
         callback: called after every iteration with (trainer, step info).
 
@@ -589,7 +597,10 @@ def train(
             rec = {"it": it, "loss": info["loss"], "psnr": info["psnr"], "num_gaussians": len(trainer.model)}
             history.append(rec)
             if bar is not None:
-                bar.set_postfix(loss=f"{ema_loss:.4f}", psnr=f"{info['psnr']:.2f}", n=str(len(trainer.model)))
+                extra = {"res": "x".join(map(str, info["resolution"]))} if config.resolution_schedule else {}
+                if trainer.budget:
+                    extra["budget"] = str(trainer.budget)
+                bar.set_postfix(loss=f"{ema_loss:.4f}", psnr=f"{info['psnr']:.2f}", n=str(len(trainer.model)), **extra)
         if bar is not None:
             bar.update(1)
         if checkpoint_dir is not None and config.checkpoint_interval_its > 0 and it % config.checkpoint_interval_its == 0:

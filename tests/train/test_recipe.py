@@ -1,0 +1,172 @@
+"""The training recipes (issue 45): ``recipe = "fast"`` and each of its switches, against the
+faithful ``"3dgs"`` recipe, whose behaviour and cache keys must not change."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import pytest
+import torch
+
+from cobgs.configs import FAST_RECIPE, TrainConfig, key_without_later
+from cobgs.render.camera import Camera
+from cobgs.data.scene import View, make_scene
+from cobgs.render.image import render
+from cobgs.train.gaussians import GaussianModel
+from cobgs.train.optimize import Trainer, resolution_levels, spectral_energy_kept, train
+from cobgs.train.visible_adam import VisibleAdam
+
+# TrainConfig's fields at 93c1d91, before the recipe existed: the train stage's key (and
+# train.json's config) of a 3dgs run must hold exactly these, so earlier cache entries are reused.
+FIELDS_BEFORE_RECIPES = {
+    "iterations", "seed", "scale_schedule", "scale_densify_interval", "reference_iterations", "sh_degree",
+    "sh_degree_interval_its", "position_lr_init", "position_lr_final", "position_lr_decay_its", "sh0_lr",
+    "shN_lr", "opacity_lr", "scaling_lr", "rotation_lr", "adam_eps", "ssim_weight", "densify_from_its",
+    "densify_until_its", "densify_interval_its", "densify_grad_threshold_ndc", "dense_scale_fraction",
+    "split_children", "split_scale_divisor", "prune_min_opacity", "prune_max_world_scale_fraction",
+    "prune_max_screen_radius_px", "max_gaussians", "opacity_reset_interval_its", "opacity_reset_value",
+    "random_init_points", "init_opacity", "background", "random_background", "backend", "log_interval_its",
+    "checkpoint_interval_its"}
+
+
+def _camera(i, n, w, h, radius=3.0):
+    a = 2 * math.pi * i / n
+    eye = torch.tensor([radius * math.cos(a), 0.6 * math.sin(2 * a), radius * math.sin(a)])
+    fwd = -eye / eye.norm()
+    right = torch.linalg.cross(torch.tensor([0.0, -1.0, 0.0]), fwd)
+    right = right / right.norm()
+    c2w = torch.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, torch.linalg.cross(fwd, right), fwd, eye
+    return Camera.from_c2w(c2w, 0.9 * w, 0.9 * w, w / 2, h / 2, w, h, f"v{i:02d}")
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """10 views (every 5th held out) at 64x48 of 60 coloured Gaussians."""
+    g = torch.Generator().manual_seed(3)
+    n = 60
+    gt = GaussianModel(torch.randn(n, 3, generator=g) * 0.45, torch.log(torch.rand(n, 3, generator=g) * 0.1 + 0.04),
+                       torch.randn(n, 4, generator=g), torch.full((n,), 2.5),
+                       (torch.rand(n, 1, 3, generator=g) - 0.5) * 3.0, torch.zeros(n, 0, 3))
+    views = []
+    for i in range(10):
+        cam = _camera(i, 10, 64, 48)
+        with torch.no_grad():
+            views.append(View(cam, render(gt, cam, torch.zeros(3)).image.clamp(0, 1), cam.name))
+    s = make_scene(views, test_every=5, kind="test")
+    s.init_bounds = ([-1.2] * 3, [1.2] * 3)
+    return s
+
+
+def _cfg(**kw):
+    base = dict(iterations=60, scale_schedule=False, random_init_points=200, sh_degree=1, sh_degree_interval_its=20,
+                position_lr_decay_its=60, densify_from_its=5, densify_interval_its=10, densify_until_its=50,
+                opacity_reset_interval_its=45, densify_grad_threshold_ndc=5e-5, log_interval_its=5)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def test_the_3dgs_recipe_keeps_its_key_and_its_path():
+    """The faithful recipe's key and train.json hold only the fields it had before the recipes
+    existed (a cache written before is reused); its trainer uses torch's Adam, no downscale,
+    no budget."""
+    full = dataclasses.asdict(TrainConfig())
+    assert set(key_without_later(TrainConfig, full)) == FIELDS_BEFORE_RECIPES
+    from stages.registry import load_registry
+
+    stage = load_registry().stages["train"]
+    from pipeline.params import to_json
+
+    assert set(stage.key_params(TrainConfig(), to_json(TrainConfig()))) == FIELDS_BEFORE_RECIPES
+    fast = key_without_later(TrainConfig, dataclasses.asdict(TrainConfig(recipe="fast")))
+    assert fast["recipe"] == "fast" and fast["resolution_schedule"] is True  # another key
+
+
+def test_fast_sets_its_switches_and_keeps_what_the_caller_set():
+    c = TrainConfig(recipe="fast")
+    for k, v in FAST_RECIPE.items():
+        assert getattr(c, k) == v, k
+    own = TrainConfig(recipe="fast", iterations=7000, gaussian_budget_per_pixel=0.5)
+    assert own.iterations == 7000 and own.gaussian_budget_per_pixel == 0.5 and own.resolution_schedule
+    assert dataclasses.replace(c, seed=3).iterations == FAST_RECIPE["iterations"]  # idempotent
+    with pytest.raises(ValueError, match="recipe must be one of"):
+        TrainConfig(recipe="quick")
+
+
+def test_faithful_trainer_is_the_plain_one(scene):
+    tr = Trainer(scene, _cfg())
+    assert type(tr.optimizer) is torch.optim.Adam and tr.budget == 0
+    assert all(tr.downscale(i) == 1.0 for i in (1, 30, 60))
+
+
+def test_resolution_schedule_climbs_to_full_size(scene):
+    """Spectral energy kept grows as the downscale falls; the schedule starts at most at
+    resolution_max_downscale, never rises again, and renders full size from
+    resolution_full_at x iterations on (the progress line shows the size)."""
+    kept = spectral_energy_kept([v.image for v in scene.train], [4.0, 2.0, 1.0])
+    assert kept[0] < kept[1] < kept[2] == pytest.approx(1.0)
+    levels = resolution_levels([v.image for v in scene.train], 3.0)
+    assert [d for d, _ in levels] == [3.0, 2.75, 2.5, 2.25, 2.0, 1.75, 1.5, 1.25, 1.0]
+    cfg = _cfg(resolution_schedule=True, resolution_max_downscale=3.0, resolution_full_at=0.5)
+    tr = Trainer(scene, cfg)
+    ds = [tr.downscale(i) for i in range(1, 61)]
+    assert ds[0] <= 3.0 and ds[0] > 1.0
+    assert all(a >= b for a, b in zip(ds, ds[1:]))
+    assert all(d == 1.0 for d in ds[29:])
+    sizes = []
+    for _ in range(60):
+        sizes.append(tr.step()["resolution"])
+    assert sizes[0][0] < 64 and sizes[0][1] < 48 and sizes[-1] == (64, 48)
+    assert sizes[0] == (round(64 / ds[0]), round(48 / ds[0]))
+
+
+def test_the_budget_is_never_exceeded_and_densification_follows_it(scene):
+    budget = 400
+    cfg = _cfg(gaussian_budget=budget, densify_grad_threshold_ndc=1.0)  # no Gaussian passes 3DGS's threshold
+    counts = []
+    res = train(scene, cfg, progress=False, evaluate_test=False,
+                callback=lambda tr, info: counts.append((tr.iteration, len(tr.model), tr.budget_now())))
+    assert max(n for _, n, _ in counts) <= budget
+    assert max(n for _, n, _ in counts) > 300  # it grew (the threshold alone would add nothing)
+    for it, n, allowed in counts:
+        if it % 10 == 0 and 5 < it < 50:  # right after a densification step: at most the line
+            assert n <= allowed
+    plain = train(scene, _cfg(densify_grad_threshold_ndc=1.0), progress=False, evaluate_test=False)
+    assert len(plain.model) <= 200 < len(res.model)
+    per_pixel = TrainConfig(gaussian_budget_per_pixel=0.5)
+    assert per_pixel.budget_for(64, 48) == 1536 and TrainConfig(gaussian_budget=99).budget_for(64, 48) == 99
+
+
+def test_selective_adam_leaves_unseen_gaussians_alone():
+    """Rows not visible keep parameters and moments; visible rows take Adam's step (the
+    same numbers as torch's Adam when every row is visible)."""
+    g = torch.Generator().manual_seed(0)
+    p0 = torch.randn(6, 3, generator=g)
+    grad = torch.randn(6, 3, generator=g)
+    a, b = p0.clone().requires_grad_(True), p0.clone().requires_grad_(True)
+    opt_a = VisibleAdam([{"params": [a], "lr": 0.01, "name": "x"}])
+    opt_b = torch.optim.Adam([{"params": [b], "lr": 0.01, "name": "x"}], eps=1e-15)
+    for _ in range(3):
+        a.grad, b.grad = grad.clone(), grad.clone()
+        opt_a.step()
+        opt_b.step()
+    torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-7)
+    vis = torch.tensor([True, False, True, False, False, True])
+    before = a.detach().clone()
+    m_before = opt_a.state[a]["exp_avg"].clone()
+    a.grad = grad.clone()
+    opt_a.step(visible=vis)
+    assert torch.equal(a.detach()[~vis], before[~vis]) and torch.equal(opt_a.state[a]["exp_avg"][~vis], m_before[~vis])
+    assert not torch.equal(a.detach()[vis], before[vis])
+
+
+def test_a_fast_training_runs_end_to_end_and_resumes_identically(scene, tmp_path):
+    cfg = _cfg(recipe="fast", iterations=60, gaussian_budget=350, sparse_adam=True, resolution_full_at=0.5,
+               checkpoint_interval_its=30)
+    whole = train(scene, cfg, progress=False, checkpoint_dir=tmp_path / "a")
+    assert len(whole.model) <= 350 and math.isfinite(whole.eval["psnr"])
+    resumed = train(scene, cfg, progress=False, resume=tmp_path / "a" / "ckpt_30.pt", evaluate_test=False)
+    assert resumed.iterations == 60
+    for k in ("means", "sh0", "opacity_logits"):
+        assert torch.equal(resumed.model.data[k], whole.model.data[k]), k
