@@ -89,13 +89,14 @@ def _short(x) -> str:
 
 
 # -- baseline training (cobgs.train.optimize) ---------------------------------------------------------
+RECIPES_NAMES = ("3dgs", "fast")  # (the recipes' values: RECIPES, below the class)
 @dataclass(frozen=True)
 class TrainConfig:
     """Every knob of the baseline optimisation (defaults: the 3DGS paper's)."""
 
-    iterations: int = field(default=30_000, metadata={"help": (
-        "the paper's 30 000; the shipped workflows and `cobgs new` use 7000, the 3DGS short "
-        "schedule (compressed by scale_schedule): 7000 to segment, 30 000 for the finest texture")})
+    iterations: Optional[int] = field(default=None, metadata={"help": (
+        "unset: the recipe's (3dgs: the paper's 30 000; fast: 12 000); the shipped workflows "
+        "and `cobgs new` set 7000, the 3DGS short schedule (compressed by scale_schedule)")})
     seed: int = 0
     # Schedule scaling (see the module docstring).
     scale_schedule: bool = True
@@ -147,12 +148,13 @@ class TrainConfig:
     # value every run had before the field existed; the train stage's key leaves a field out
     # while it holds that value (cobgs.configs.key_without_later), so earlier entries stay valid.
     recipe: str = field(default="3dgs", metadata={"before": "3dgs", "help": (
-        '"3dgs": the paper\'s schedule as written; "fast": the switches below set to FAST_RECIPE '
-        "(a field the workflow sets to anything but its 3dgs default keeps the workflow's value)")})
+        '"3dgs": the paper\'s schedule as written; "fast": RECIPES["fast"] for the fields left '
+        "unset (iterations, resolution_schedule, gaussian_budget_per_pixel)")})
     # DashGaussian-style resolution schedule: render at 1/d of the image size, d chosen so that
     # the share of the images' spectral energy below the rendered Nyquist grows linearly from
     # what 1/resolution_max_downscale holds to all of it at resolution_full_at x iterations.
-    resolution_schedule: bool = field(default=False, metadata={"before": False})
+    resolution_schedule: Optional[bool] = field(default=None, metadata={"before": False, "help": (
+        "unset: the recipe's (3dgs: false, fast: true)")})
     resolution_max_downscale: float = field(default=4.0, metadata={"before": 4.0})
     resolution_full_at: float = field(default=0.5, metadata={"before": 0.5})
     # Taming-3DGS-style budget: densification follows a count that grows linearly from the
@@ -161,7 +163,8 @@ class TrainConfig:
     # the gradient threshold; the budget is never exceeded. Absolute (wins where set), or per
     # pixel of a training image (0 and 0: no budget).
     gaussian_budget: int = field(default=0, metadata={"before": 0})
-    gaussian_budget_per_pixel: float = field(default=0.0, metadata={"before": 0.0})
+    gaussian_budget_per_pixel: Optional[float] = field(default=None, metadata={"before": 0.0, "help": (
+        "unset: the recipe's (3dgs: 0 = no budget, fast: 0.3)")})
     budget_full_at: float = field(default=0.7, metadata={"before": 0.7})
     # Adam steps only the Gaussians the view touches (radius > 0): the others keep their
     # parameters and moments, as gsplat's selective Adam.
@@ -183,15 +186,13 @@ class TrainConfig:
         "resolution_max_downscale": "[1, 64]", "resolution_full_at": "(0, 1]", "gaussian_budget": "[0, 1e9]",
         "gaussian_budget_per_pixel": "[0, 100]", "budget_full_at": "(0, 1]",
     }
-    CHOICES: ClassVar[dict] = {"backend": ("native", "reference"), "recipe": ("3dgs", "fast")}
+    CHOICES: ClassVar[dict] = {"backend": ("native", "reference"), "recipe": tuple(RECIPES_NAMES)}
 
     def __post_init__(self):
         check_params(self)
-        if self.recipe == "fast":
-            defaults = {f.name: f.default for f in dataclasses.fields(self)}
-            for name, value in FAST_RECIPE.items():
-                if getattr(self, name) == defaults[name]:
-                    object.__setattr__(self, name, value)
+        for name, value in RECIPES[self.recipe].items():  # what the caller left unset: the recipe's
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, value)
 
     def budget_for(self, width: int, height: int) -> int:
         """The Gaussian budget for training images of ``width`` x ``height`` (0: none):
@@ -217,14 +218,14 @@ class TrainConfig:
         )
 
 
-#: What ``TrainConfig(recipe="fast")`` changes from the 3dgs defaults (docs/method.md §1,
-#: "Recipes"; measured in docs/benchmarks/cost_cpu.md). A field the caller set to anything but
-#: its 3dgs default keeps the caller's value.
-FAST_RECIPE = {
-    "iterations": 12_000,
-    "resolution_schedule": True,
-    "gaussian_budget_per_pixel": 0.3,
+#: The values a recipe gives the :class:`TrainConfig` fields the caller leaves unset (None)
+#: (docs/method.md §1, "Recipes"; measured in docs/benchmarks/cost_cpu.md). A value the caller
+#: sets, whatever it is, stays.
+RECIPES = {
+    "3dgs": {"iterations": 30_000, "resolution_schedule": False, "gaussian_budget_per_pixel": 0.0},
+    "fast": {"iterations": 12_000, "resolution_schedule": True, "gaussian_budget_per_pixel": 0.3},
 }
+FAST_RECIPE = RECIPES["fast"]
 
 
 def key_without_later(cls, full: dict) -> dict:

@@ -347,7 +347,8 @@ def defaults_toml(cls: type, table: str) -> str:
         if is_dataclass_type(tp):
             nested.append(defaults_toml(tp, f"{table}.{f.name}"))
         elif default is None:
-            lines.append(f"# {f.name} = ...  # default: none ({type_name(tp)})" + (f"; {valid}" if valid else ""))
+            note = "; ".join(x for x in (valid, f.metadata.get("help") if f.metadata else None) if x)
+            lines.append(f"# {f.name} = ...  # default: none ({type_name(tp)})" + (f"; {note}" if note else ""))
         else:
             note = "; ".join(x for x in (valid, f.metadata.get("help") if f.metadata else None) if x)
             lines.append(f"{f.name} = {_toml_value(to_json(default))}" + (f"  # {note}" if note else ""))

@@ -89,6 +89,9 @@ def test_fast_sets_its_switches_and_keeps_what_the_caller_set():
         assert getattr(c, k) == v, k
     own = TrainConfig(recipe="fast", iterations=7000, gaussian_budget_per_pixel=0.5)
     assert own.iterations == 7000 and own.gaussian_budget_per_pixel == 0.5 and own.resolution_schedule
+    off = TrainConfig(recipe="fast", resolution_schedule=False, iterations=30_000)  # set to the 3dgs values: kept
+    assert off.resolution_schedule is False and off.iterations == 30_000 and off.gaussian_budget_per_pixel == 0.3
+    assert TrainConfig().iterations == 30_000 and TrainConfig().resolution_schedule is False
     assert dataclasses.replace(c, seed=3).iterations == FAST_RECIPE["iterations"]  # idempotent
     with pytest.raises(ValueError, match="recipe must be one of"):
         TrainConfig(recipe="quick")
