@@ -24,25 +24,29 @@ __version__ = "0.1.0"
 from cobgs.errors import BuildError, CobgsError, DataError, InputError, ModelError  # noqa: F401
 
 
-#: The main entry points, importable from ``cobgs`` itself (lazily: ``import cobgs`` stays light).
-_PUBLIC = {
-    "rasterize": "cobgs.render.rasterize", "RasterOutput": "cobgs.render.rasterize",
-    "GaussianModel": "cobgs.train.gaussians", "load_ply": "cobgs.train.ply", "save_ply": "cobgs.train.ply",
-    "TrainConfig": "cobgs.configs", "RefineConfig": "cobgs.configs",
+#: The public names of the library, each with its one home (loaded on first use, PEP 562:
+#: ``import cobgs`` stays light and never imports torch). Everything else is imported from its
+#: module (``from cobgs.render.camera import Camera``); the subpackages re-export nothing.
+_HOME = {
+    "rasterize": "cobgs.render.rasterize", "RasterOutput": "cobgs.render.reference",
+    "GaussianModel": "cobgs.gaussians.model", "load_ply": "cobgs.gaussians.ply", "save_ply": "cobgs.gaussians.ply",
+    "TrainConfig": "cobgs.configs", "RefineConfig": "cobgs.configs", "SA3DConfig": "cobgs.configs",
+    "FlashSplatConfig": "cobgs.configs",
     "refine_objects": "cobgs.refine.alternation", "run_method": "cobgs.refine.peers",
     "read_scene": "cobgs.data.readers",
 }
+__all__ = sorted(_HOME) + ["BuildError", "CobgsError", "DataError", "InputError", "ModelError", "__version__"]
 # (``cobgs.train`` and ``cobgs.refine`` are the subpackages: their functions are
-# ``from cobgs.train import train`` and ``from cobgs.refine import refine``.)
+# ``from cobgs.train.optimize import train`` and ``from cobgs.refine.alternation import refine``.)
 
 
 def __getattr__(name):
     # (importlib, not `from . import x`: that looks the name up on this package first and
     # would re-enter __getattr__.)
-    if name not in _PUBLIC:
+    if name not in _HOME:
         raise AttributeError(f"module 'cobgs' has no attribute {name!r}")
     import importlib
 
-    value = getattr(importlib.import_module(_PUBLIC[name]), name)
+    value = getattr(importlib.import_module(_HOME[name]), name)
     globals()[name] = value
     return value

@@ -1,8 +1,8 @@
 """Every configuration of the library, in one module that imports nothing heavy.
 
-The dataclasses and their validation only: the algorithm modules import them from here
-(and re-export them under their old names), and the pipeline's stages declare them as
-their params directly, so ``cobgs --help`` and a fully cached ``cobgs run`` never import
+The dataclasses and their validation only, each with this one import path: the algorithm
+modules and the pipeline's stages import them from here (the stages declare them as their
+params directly), so ``cobgs --help`` and a fully cached ``cobgs run`` never import
 torch (or numpy) to read a workflow, and every value is checked where it is set.
 """
 

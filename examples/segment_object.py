@@ -11,8 +11,9 @@ from pathlib import Path
 import cv2
 
 from cobgs.data.readers import read_scene
-from cobgs.train.ply import load_ply, save_ply
-from cobgs.refine.alternation import RefineConfig, masks_for, refine
+from cobgs.gaussians.ply import load_ply, save_ply
+from cobgs.refine.alternation import masks_for, refine
+from cobgs.configs import RefineConfig
 from cobgs.refine.segment import extract, render_object_mask
 
 ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])

@@ -3,27 +3,11 @@
     from stages.commands.report import build_report   # the program's registry and scene reader
     index = build_report("workflows/demo.toml", out_dir="runs/reports/demo")
 
-(``reports.build_report`` itself takes them as arguments: ``reports/`` imports nothing of
-``stages/``.)
+(:func:`reports.builder.build_report` itself takes them as arguments: ``reports/`` imports
+nothing of ``stages/``.)
 
 Modules: :mod:`~reports.collect` reads the cache, :mod:`~reports.results` turns it into
 records, :mod:`~reports.tables`, :mod:`~reports.pictures` and :mod:`~reports.plots` render
 them, :mod:`~reports.paper` holds the quoted paper numbers, :mod:`~reports.builder` writes
-the folder. Imports are lazy so that ``import reports`` stays cheap.
+the folder. The package itself re-exports nothing.
 """
-
-from __future__ import annotations
-
-__all__ = ["build_report", "ReportError"]
-
-
-def __getattr__(name):
-    if name == "build_report":
-        from .builder import build_report
-
-        return build_report
-    if name == "ReportError":
-        from .errors import ReportError
-
-        return ReportError
-    raise AttributeError(f"module 'reports' has no attribute {name!r}")

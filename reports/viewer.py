@@ -60,8 +60,8 @@ def _load(seg_dir: Path):
     import numpy as np
     import torch
 
-    from cobgs.train.gaussians import CORE, GaussianModel
-    from cobgs.train.ply import load_ply
+    from cobgs.gaussians.model import CORE, GaussianModel
+    from cobgs.gaussians.ply import load_ply
 
     obj_p, bg_p = seg_dir / "object.ply", seg_dir / "background.ply"
     if not (obj_p.is_file() and bg_p.is_file()):

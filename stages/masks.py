@@ -308,8 +308,9 @@ def _need_models(p: MasksParams) -> Path:
 
 
 def _generate(ctx, p: MasksParams, spec: dict, obj: str, views, info: dict) -> None:
-    from cobgs.masks import RunOptions, load_manifest
-    from cobgs.masks import generate_masks, generate_masks_from_scribbles
+    from cobgs.masks.api import generate_masks, generate_masks_from_scribbles
+    from cobgs.masks.manifest import load_manifest
+    from cobgs.masks.session import RunOptions
 
     models = _need_models(p)
     load_manifest(models)  # fails here, naming the folder, before any image is read
@@ -328,7 +329,7 @@ def _generate(ctx, p: MasksParams, spec: dict, obj: str, views, info: dict) -> N
                              log_path=ctx.scratch_dir / "generated.json", options=options)
         info["prompt"] = prompt
     elif p.source == "points":
-        from cobgs.masks import generate_masks_from_clicks
+        from cobgs.masks.api import generate_masks_from_clicks
 
         prompts, info["clicks"] = _click_prompts(ctx, p, spec, obj, views)
         res = generate_masks_from_clicks(paths, prompts, models, out, names=names,
@@ -410,7 +411,7 @@ def _click_prompts(ctx, p: MasksParams, spec: dict, obj: str, views) -> tuple[li
     pixels, and what was used (for masks.json)."""
     import numpy as np
 
-    from cobgs.masks import FramePrompt
+    from cobgs.masks.api import FramePrompt
     from cobgs.masks.clicks import SAGA, check_frame_size, locate, match_frames, read_clicks, to_image_pixels
     from cobgs.masks.images import image_size
 

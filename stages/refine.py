@@ -83,7 +83,7 @@ def _run(ctx, inputs):
 
     from cobgs.train.adam_moments import MOMENTS_FILE, read_moments
     from cobgs.refine.peers import run_method
-    from cobgs.train.ply import load_ply, save_ply
+    from cobgs.gaussians.ply import load_ply, save_ply
 
     p: RefineParams = ctx.params
     spec = read_spec(inputs["dataset"])

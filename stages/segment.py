@@ -54,7 +54,7 @@ def _run(ctx, inputs):
     import numpy as np
     import torch
 
-    from cobgs.train.ply import load_ply, save_ply
+    from cobgs.gaussians.ply import load_ply, save_ply
     from cobgs.refine.result import RefineResult
     from cobgs.refine.segment import (extract, method_threshold, render_object_mask, render_object_rgb, render_removed_rgb,
                                visible_object_mask)

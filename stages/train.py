@@ -30,7 +30,7 @@ def _run(ctx, inputs):
     import torch
 
     from cobgs.train.adam_moments import MOMENTS_FILE, save_moments
-    from cobgs.train.ply import save_ply
+    from cobgs.gaussians.ply import save_ply
     from cobgs.render.image import render_image
     from cobgs.train.optimize import train
 
@@ -98,7 +98,7 @@ def _import_trained(ctx, cfg, scene, dev, path: Path):
     written as this stage's artifacts (scene.ply, its Adam moments when a checkpoint holds
     them, train.json saying where it came from, the held-out renders)."""
     from cobgs.train.adam_moments import MOMENTS_FILE, save_moments
-    from cobgs.train.ply import save_ply
+    from cobgs.gaussians.ply import save_ply
     from cobgs.render.image import render_image
     from cobgs.train.optimize import evaluate
     from cobgs.data.trained3dgs import check_against_scene, read_trained

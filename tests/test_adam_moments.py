@@ -11,7 +11,8 @@ import torch
 from cobgs.train.adam_moments import MOMENTS_FILE, export_moments, load_moments, read_moments, save_moments
 from cobgs.errors import DataError, InputError
 from cobgs.train.losses import photometric_loss
-from cobgs.refine.alternation import Refiner, RefineConfig, masks_for, refine, refine_objects
+from cobgs.refine.alternation import Refiner, masks_for, refine, refine_objects
+from cobgs.configs import RefineConfig
 from cobgs.render.image import render
 from test_refine_fixtures import tiny_scene
 

@@ -1,5 +1,5 @@
 """The native ``cobgs::gauss_blur`` (the SSIM blur on the CPU) against the grouped 1D
-``conv2d`` of :func:`cobgs.train.losses._blur` it replaces.
+``conv2d`` of :func:`cobgs.evaluate.ssim._blur` it replaces.
 
 Tolerances: each output is a sum of n² = 121 products of a kernel weight and an input
 value, in a different order than oneDNN's; float64 agrees to 1e-12 of the largest value,
@@ -13,7 +13,7 @@ import torch
 import torch.nn.functional as F
 
 from cobgs.render import _ops
-from cobgs.train.losses import _gauss_1d
+from cobgs.evaluate.ssim import _gauss_1d
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -53,7 +53,7 @@ def test_opcheck_and_errors():
 
 
 def test_ssim_loss_uses_it_and_agrees():
-    from cobgs.train.losses import ssim, ssim_map
+    from cobgs.evaluate.ssim import ssim, ssim_map
 
     g = torch.Generator().manual_seed(3)
     img = torch.rand(40, 50, 3, generator=g, requires_grad=True)
@@ -70,7 +70,7 @@ def test_ssim_loss_uses_it_and_agrees():
 
 @pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-12), (torch.float32, 2e-6)])
 def test_fused_ssim_op_matches_the_python_analytic_path(dtype, tol):
-    from cobgs.train.losses import SSIM_SIGMA, SSIM_WINDOW, _MeanSSIM
+    from cobgs.evaluate.ssim import SSIM_SIGMA, SSIM_WINDOW, _MeanSSIM
 
     g = torch.Generator().manual_seed(4)
     x = torch.rand(2, 3, 23, 31, generator=g, dtype=torch.float64).to(dtype)  # batch of 2
@@ -119,8 +119,9 @@ def test_fused_ssim_opcheck_and_errors():
 
 
 def _photometric_reference(img, ref, lam):
-    """The loss on plain autograd: L1 and SSIM through conv2d (cobgs.train.losses.ssim_map)."""
-    from cobgs.train.losses import l1_loss, ssim_map
+    """The loss on plain autograd: L1 and SSIM through conv2d (cobgs.evaluate.ssim.ssim_map)."""
+    from cobgs.evaluate.ssim import ssim_map
+    from cobgs.train.losses import l1_loss
 
     x = img.detach().clone().requires_grad_()
     loss = (1 - lam) * l1_loss(x, ref) + lam * (1 - ssim_map(x, ref).mean())
@@ -135,7 +136,7 @@ def test_fused_photometric_loss_matches_autograd(dtype, tol, shape, lam):
     """cobgs::photometric_loss_grad on channel-last images (widths with and without a lane
     tail, one or several channels, a batch) against L1 + SSIM on autograd; pixels where
     img == ref exactly get the L1 subgradient 0, as autograd's."""
-    from cobgs.train.losses import SSIM_SIGMA, SSIM_WINDOW
+    from cobgs.evaluate.ssim import SSIM_SIGMA, SSIM_WINDOW
 
     g = torch.Generator().manual_seed(6)
     img = torch.rand(shape, generator=g, dtype=torch.float64).to(dtype)
@@ -182,7 +183,8 @@ def test_fused_photometric_does_not_depend_on_the_thread_count():
 
 
 def test_photometric_loss_takes_the_fused_path_and_agrees():
-    from cobgs.train.losses import l1_loss, photometric_loss, ssim
+    from cobgs.evaluate.ssim import ssim
+    from cobgs.train.losses import l1_loss, photometric_loss
 
     g = torch.Generator().manual_seed(9)
     img = torch.rand(30, 41, 3, generator=g, requires_grad=True)

@@ -92,7 +92,7 @@ def _orbit_views(model, n, w, h, device):
 
 
 def _ground_truth(device):
-    from cobgs.train.gaussians import GaussianModel
+    from cobgs.gaussians.model import GaussianModel
 
     g = torch.Generator().manual_seed(0)
     n = 600
@@ -104,7 +104,7 @@ def _ground_truth(device):
 
 
 def _train_config(iterations):
-    from cobgs.train.optimize import TrainConfig
+    from cobgs.configs import TrainConfig
 
     return TrainConfig(iterations=iterations, scale_schedule=False, random_init_points=2000,
                        sh_degree=1, sh_degree_interval_its=100, position_lr_decay_its=iterations,
@@ -126,7 +126,7 @@ def trained_scene():
     path = os.environ.get("COBGS_TRAINED_PLY")
     w, h = 160, 120
     if path:
-        from cobgs.train.ply import load_ply
+        from cobgs.gaussians.ply import load_ply
 
         import json
 
@@ -377,7 +377,7 @@ def test_device_camera_checks_are_remembered_until_the_camera_changes():
 # -- blur / SSIM / photometric loss ---------------------------------------------------------
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_blur_ssim_and_photometric_loss_match_the_cpu_ops(dtype):
-    from cobgs.train.losses import _gauss_1d
+    from cobgs.evaluate.ssim import _gauss_1d
 
     g = torch.Generator().manual_seed(7)
     x = torch.rand(2, 3, 45, 61, generator=g, dtype=dtype)

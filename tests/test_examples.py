@@ -16,9 +16,10 @@ REPO = Path(__file__).resolve().parents[1]
 def test_segment_object_example(tmp_path):
     from cobgs.data.readers import read_scene
     from cobgs.data.synthetic import generate_scene
-    from cobgs.train.gaussians import GaussianModel
-    from cobgs.train.ply import load_ply, save_ply
-    from cobgs.train.optimize import TrainConfig, train
+    from cobgs.gaussians.model import GaussianModel
+    from cobgs.gaussians.ply import load_ply, save_ply
+    from cobgs.train.optimize import train
+    from cobgs.configs import TrainConfig
     from test_refine_fixtures import synthetic_surface_points  # tests/ is on sys.path
 
     size = dict(width_px=128, height_px=96, num_views=24)

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from cobgs.errors import InputError
-from cobgs.train.gaussians import GaussianModel, knn_mean_sq_dist, quat_to_rotmat
+from cobgs.gaussians.model import GaussianModel, knn_mean_sq_dist, quat_to_rotmat
 
 
 def _model(n=20, seed=0):

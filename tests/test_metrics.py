@@ -9,7 +9,8 @@ import torch.nn.functional as F
 
 from cobgs.evaluate import metrics
 from cobgs.errors import InputError
-from cobgs.train.losses import photometric_loss, ssim
+from cobgs.evaluate.ssim import ssim
+from cobgs.train.losses import photometric_loss
 
 
 def _ssim_2d(x, y):

@@ -253,7 +253,7 @@ col = torch.ops.cobgs.sh_colors(pm, torch.randn(len(pm), 1, 3, generator=g), shN
                                 torch.zeros(3), 3)
 shg = torch.ops.cobgs.sh_colors_bwd(pm, torch.randn(len(pm), 1, 3, generator=g), shN,
                                     torch.zeros(3), 3, torch.randn(col.shape, generator=g))
-from cobgs.train.losses import _gauss_1d
+from cobgs.evaluate.ssim import _gauss_1d
 blurs = []
 for dt in (torch.float32, torch.float64):  # widths: lane blocks plus a tail, and under 8
     for shape in ((2, 3, 29, 37), (1, 2, 13, 5)):

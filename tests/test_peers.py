@@ -16,7 +16,8 @@ from cobgs.refine.peers import (
     run_method,
     run_sa3d,
 )
-from cobgs.refine.alternation import RefineConfig, masks_for
+from cobgs.refine.alternation import masks_for
+from cobgs.configs import RefineConfig
 from cobgs.refine.scores import pixel_labels_from_mask
 from test_refine_fixtures import three_gaussians, tiny_scene
 

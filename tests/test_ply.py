@@ -6,8 +6,8 @@ import torch
 from plyfile import PlyData, PlyElement
 
 from cobgs.errors import DataError
-from cobgs.train.gaussians import GaussianModel
-from cobgs.train.ply import load_ply, save_ply
+from cobgs.gaussians.model import GaussianModel
+from cobgs.gaussians.ply import load_ply, save_ply
 
 
 def _model(n=30, degree=3, seed=0):

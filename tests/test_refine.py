@@ -9,8 +9,9 @@ import pytest
 import torch
 
 from cobgs.errors import InputError
-from cobgs.train.gaussians import GaussianModel, quat_to_rotmat
-from cobgs.refine.alternation import RefineConfig, Refiner, masks_for, refine
+from cobgs.gaussians.model import GaussianModel, quat_to_rotmat
+from cobgs.refine.alternation import Refiner, masks_for, refine
+from cobgs.configs import RefineConfig
 from cobgs.refine.scores import (
     LABEL,
     ScoreAccumulator,
@@ -451,7 +452,7 @@ def _check_scene():
 
     from cobgs.data.scene import View
     from cobgs.render.camera import Camera
-    from cobgs.train.gaussians import GaussianModel
+    from cobgs.gaussians.model import GaussianModel
 
     cam = Camera(K=torch.tensor([[50.0, 0, 16.0], [0, 50.0, 16.0], [0, 0, 1]]), viewmat=torch.eye(4),
                  width=32, height=32, name="cam")

@@ -13,11 +13,13 @@ import torch
 
 from cobgs.data.readers import read_scene
 from cobgs.data.synthetic import generate_scene
-from cobgs.train.gaussians import GaussianModel
+from cobgs.gaussians.model import GaussianModel
 from cobgs.refine.peers import run_method
-from cobgs.refine.alternation import RefineConfig, masks_for
+from cobgs.refine.alternation import masks_for
+from cobgs.configs import RefineConfig
 from cobgs.refine.segment import evaluate_masks
-from cobgs.train.optimize import TrainConfig, evaluate, train
+from cobgs.train.optimize import evaluate, train
+from cobgs.configs import TrainConfig
 from test_refine_fixtures import synthetic_surface_points
 
 pytestmark = pytest.mark.slow

@@ -15,7 +15,7 @@ import torch
 
 from cobgs.render.camera import Camera
 from cobgs.data.scene import View
-from cobgs.train.gaussians import GaussianModel
+from cobgs.gaussians.model import GaussianModel
 from cobgs.render.image import render_image
 
 SPHERES = {"ball": ((-0.35, 0.0, 0.0), 0.45), "cube": ((0.45, 0.1, 0.1), 0.3)}

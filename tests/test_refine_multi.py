@@ -8,8 +8,9 @@ import pytest
 import torch
 
 from cobgs.errors import InputError
-from cobgs.train.ply import load_ply
-from cobgs.refine.alternation import OBJECT_ID, OBJECT_LOGITS, RefineConfig, assign_object_ids, masks_for, refine_objects
+from cobgs.gaussians.ply import load_ply
+from cobgs.refine.alternation import OBJECT_ID, OBJECT_LOGITS, assign_object_ids, masks_for, refine_objects
+from cobgs.configs import RefineConfig
 from cobgs.refine.scores import LABEL
 from cobgs.refine.segment import export_objects, object_index
 from test_refine_fixtures import tiny_scene

@@ -8,8 +8,9 @@ import pytest
 import torch
 
 from cobgs.errors import InputError
-from cobgs.train.ply import load_ply
-from cobgs.refine.alternation import RefineConfig, masks_for, refine
+from cobgs.gaussians.ply import load_ply
+from cobgs.refine.alternation import masks_for, refine
+from cobgs.configs import RefineConfig
 from cobgs.refine.result import RefineResult
 from cobgs.render.image import render_image
 from cobgs.refine.segment import (
@@ -130,7 +131,7 @@ def test_evaluate_masks_visible_mode_lets_occluders_hide_the_object():
     positives; ``visible=True`` renders the occluder (with mask value 0) in front."""
     from cobgs.render.camera import Camera
     from cobgs.data.scene import View
-    from cobgs.train.gaussians import GaussianModel
+    from cobgs.gaussians.model import GaussianModel
 
     W = H = 32
     cam = Camera(K=torch.tensor([[50.0, 0, 16.0], [0, 50.0, 16.0], [0, 0, 1]]), viewmat=torch.eye(4),

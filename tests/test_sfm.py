@@ -12,7 +12,8 @@ import pytest
 
 from cobgs.data.synthetic import generate_scene
 from cobgs.errors import DataError, InputError
-from cobgs.data.sfm import SfmOptions, SfmResult, run_sfm
+from cobgs.data.sfm import SfmResult, run_sfm
+from cobgs.configs import SfmOptions
 
 pycolmap = pytest.importorskip("pycolmap")
 

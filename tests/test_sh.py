@@ -8,7 +8,7 @@ import torch
 from scipy.special import lpmv
 
 from cobgs.errors import InputError
-from cobgs.render.sh import eval_sh, num_coeffs, rgb_to_sh0, sh0_to_rgb, sh_basis, sh_to_color
+from cobgs.gaussians.sh import eval_sh, num_coeffs, rgb_to_sh0, sh0_to_rgb, sh_basis, sh_to_color
 
 
 def real_sh_closed_form(l: int, m: int, dirs: np.ndarray) -> np.ndarray:

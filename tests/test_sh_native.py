@@ -1,5 +1,5 @@
 """The native ``cobgs::sh_colors`` op (render's colour on the CPU) against the pure-PyTorch
-SH colour of :meth:`cobgs.train.gaussians.GaussianModel.colors` / :func:`cobgs.render.sh.sh_to_color`.
+SH colour of :meth:`cobgs.gaussians.model.GaussianModel.colors` / :func:`cobgs.gaussians.sh.sh_to_color`.
 
 Float64 comparisons use rtol 1e-12: both sides evaluate the same polynomials with a few
 dozen roundings each (the sums run in a different order). Float32 uses 1e-5 relative to
@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from cobgs.render import _ops
-from cobgs.render.sh import num_coeffs, sh_to_color
+from cobgs.gaussians.sh import num_coeffs, sh_to_color
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -95,7 +95,7 @@ def test_bad_inputs_name_the_tensor():
 
 def test_render_uses_the_same_colours_as_the_model():
     from cobgs.render.camera import Camera  # noqa: F401  (render's camera type)
-    from cobgs.train.gaussians import GaussianModel
+    from cobgs.gaussians.model import GaussianModel
     from cobgs.render.image import render
 
     means, sh0, shN, _ = sh_inputs(n=50, dtype=torch.float32)

@@ -8,7 +8,7 @@ import torch
 
 from cobgs.render import splat_pack
 from cobgs.errors import InputError
-from cobgs.train.gaussians import GaussianModel
+from cobgs.gaussians.model import GaussianModel
 
 
 def _model(n=500, seed=0, sh_degree=1):

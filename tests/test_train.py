@@ -8,9 +8,10 @@ import torch
 from cobgs.render.camera import Camera
 from cobgs.data.scene import View, make_scene
 from cobgs.errors import DataError, InputError
-from cobgs.train.gaussians import GaussianModel
+from cobgs.gaussians.model import GaussianModel
 from cobgs.render.image import render
-from cobgs.train.optimize import Trainer, TrainConfig, evaluate, expon_lr, load_model, train
+from cobgs.train.optimize import Trainer, evaluate, expon_lr, load_model, train
+from cobgs.configs import TrainConfig
 
 
 def _orbit_camera(i, n, w, h, radius=3.0):

@@ -13,8 +13,8 @@ import torch
 from cobgs.render.camera import Camera
 from cobgs.data.scene import View, make_scene
 from cobgs.errors import DataError
-from cobgs.train.gaussians import GaussianModel
-from cobgs.train.ply import save_ply
+from cobgs.gaussians.model import GaussianModel
+from cobgs.gaussians.ply import save_ply
 from cobgs.data.trained3dgs import check_against_scene, read_trained
 
 

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
 
-from cobgs.configs import MATCHERS, SfmOptions  # noqa: F401 (defined there, torch-free; re-exported)
+from cobgs.configs import SfmOptions
 from cobgs.errors import DataError, InputError
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")

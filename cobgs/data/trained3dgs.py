@@ -37,7 +37,7 @@ import torch
 
 from cobgs.data.trained_layout import find_trained_ply, read_cameras_json, read_cfg_args, saved_iterations
 from cobgs.errors import DataError
-from cobgs.train.gaussians import GaussianModel
+from cobgs.gaussians.model import GaussianModel
 
 __all__ = ["ImportedScene", "read_trained", "read_3dgs_output", "read_trained_ply",
            "read_3dgs_checkpoint_moments", "check_against_scene"]
@@ -76,7 +76,7 @@ def read_trained(path: Path, iteration: int = 0) -> ImportedScene:
 
 
 def read_trained_ply(path: Path) -> ImportedScene:
-    from cobgs.train.ply import load_ply
+    from cobgs.gaussians.ply import load_ply
 
     model = load_ply(path)
     return ImportedScene(model, source={"kind": "ply", "ply": str(path), "num_gaussians": len(model),
@@ -85,7 +85,7 @@ def read_trained_ply(path: Path) -> ImportedScene:
 
 def read_3dgs_output(folder: Path, iteration: int = 0) -> ImportedScene:
     """The original 3DGS code's output folder (see the module docstring)."""
-    from cobgs.train.ply import load_ply
+    from cobgs.gaussians.ply import load_ply
 
     folder = Path(folder)
     ply, it = find_trained_ply(folder, iteration)

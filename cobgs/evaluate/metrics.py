@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 from cobgs.errors import InputError
-from cobgs.train.losses import ssim as _ssim
+from cobgs.evaluate.ssim import ssim as _ssim
 
 
 def psnr(img: Tensor, ref: Tensor, max_value: float = 1.0) -> float:

@@ -22,7 +22,7 @@ stage renders the predictions, the evaluate stage hands them over with the proto
 hidden part is predicted too. NVOS and LERF-mask are run that way (their targets are
 rarely occluded, and it keeps the paper's numbers comparable). Exact GT masks are the
 *visible* pixels of an object, so the exact protocol compares them with
-:func:`visible_object_mask`, which renders every Gaussian (the object's with their mask
+:func:`cobgs.refine.segment.visible_object_mask`, which renders every Gaussian (the object's with their mask
 value, all others with 0) so that occluders block the object as they do in the image.
 
 Aggregation over objects / scenes / methods is :func:`aggregate`: first the mean over a
@@ -58,7 +58,6 @@ __all__ = [
     "bootstrap_mean_diff",
     "ORACLE_METHOD",
     "nanmean",
-    "visible_object_mask",
 ]
 
 THRESHOLD_U8 = 128  # "> 128" of 255, as the NVOS and LERF-mask scripts binarise
@@ -442,12 +441,3 @@ def bootstrap_mean_diff(pairs: Mapping[str, Sequence[tuple]], reps: int = 2000, 
     return {"diff": stat(by_obj), "lo": lo, "hi": hi, "objects": len(by_obj),
             "views": sum(len(v) for v in by_obj.values())}
 
-
-def __getattr__(name):
-    # visible_object_mask is a renderer and lives in cobgs.refine.segment; still importable from
-    # here, lazily (this module stays free of torch: the summary stage imports it).
-    if name == "visible_object_mask":
-        from cobgs.refine.segment import visible_object_mask
-
-        return visible_object_mask
-    raise AttributeError(f"module 'cobgs.evaluate.protocols' has no attribute {name!r}")

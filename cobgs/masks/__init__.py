@@ -1,40 +1,13 @@
 """Mask generation through ONNX exports of SAM2 (video) and Grounding DINO.
 
-Public entry points (imported lazily so ``import cobgs.masks`` stays light):
+* :mod:`~cobgs.masks.api`: ``generate_masks`` (text, two-stage: paper Alg. 1),
+  ``generate_masks_from_scribbles`` (NVOS), ``generate_masks_from_points``,
+  ``generate_masks_from_clicks``, ``FramePrompt``;
+* :mod:`~cobgs.masks.clicks`: click files (SAGA-v2's NVOS points, the per-object layout);
+* :mod:`~cobgs.masks.manifest`: the model folder's manifests (``load_manifest``);
+  :mod:`~cobgs.masks.session`: onnxruntime sessions (``RunOptions``);
+* :mod:`~cobgs.masks.two_stage`, :mod:`~cobgs.masks.video`, :mod:`~cobgs.masks.gdino`,
+  :mod:`~cobgs.masks.scribbles`: the pieces; :mod:`~cobgs.masks.export`: the ONNX export.
 
-* :func:`generate_masks` — text prompt, two-stage (paper Alg. 1);
-* :func:`generate_masks_from_scribbles` — NVOS scribbles -> points -> SAM2;
-* :func:`generate_masks_from_points` — points / box on one frame -> SAM2;
-* :func:`generate_masks_from_clicks` — clicks on several frames -> SAM2 (:func:`read_clicks`
-  reads click files: SAGA-v2's NVOS points or the per-object layout);
-* :class:`ModelsNotConfiguredError`, :class:`NoDetectionError`, :class:`TwoStageConfig`,
-  :class:`ScribbleConfig`, :class:`RunOptions`, :func:`load_manifest`.
+Import names from their module; the package itself re-exports nothing.
 """
-
-from __future__ import annotations
-
-_LAZY = {
-    "generate_masks": "api",
-    "generate_masks_from_points": "api",
-    "generate_masks_from_clicks": "api",
-    "FramePrompt": "api",
-    "read_clicks": "clicks",
-    "generate_masks_from_scribbles": "api",
-    "MaskGenerationResult": "api",
-    "ModelsNotConfiguredError": "manifest",
-    "load_manifest": "manifest",
-    "NoDetectionError": "two_stage",
-    "TwoStageConfig": "two_stage",
-    "ScribbleConfig": "scribbles",
-    "RunOptions": "session",
-}
-
-__all__ = sorted(_LAZY)
-
-
-def __getattr__(name):
-    if name in _LAZY:
-        import importlib
-
-        return getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
-    raise AttributeError(f"module 'cobgs.masks' has no attribute {name!r}")

@@ -25,9 +25,10 @@ from cobgs.errors import InputError, ModelError
 
 from cobgs.masks.encoder_cache import EncoderCache
 from cobgs.masks.manifest import ModelsNotConfiguredError, load_manifest
-from cobgs.masks.scribbles import ScribbleConfig, scribble_points
+from cobgs.configs import ScribbleConfig, TwoStageConfig
+from cobgs.masks.scribbles import scribble_points
 from cobgs.masks.session import RunOptions
-from cobgs.masks.two_stage import TwoStageConfig, run_two_stage
+from cobgs.masks.two_stage import run_two_stage
 from cobgs.masks.video import VideoPredictor
 from cobgs.masks.writer import write_json, write_mask_png
 

@@ -16,7 +16,7 @@ from typing import Sequence, Tuple, Union
 
 import numpy as np
 
-from cobgs.configs import ScribbleConfig  # noqa: F401 (defined there)
+from cobgs.configs import ScribbleConfig
 from cobgs.errors import DataError, InputError
 
 PathLike = Union[str, os.PathLike]

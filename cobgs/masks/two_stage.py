@@ -30,7 +30,7 @@ from typing import Dict, List, Optional
 
 import numpy as np
 
-from cobgs.configs import TwoStageConfig  # noqa: F401 (defined there)
+from cobgs.configs import TwoStageConfig
 from cobgs.errors import CobgsError, InputError
 
 from cobgs.masks.gdino import Detection, GroundingDino

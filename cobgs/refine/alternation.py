@@ -64,7 +64,7 @@ from cobgs.progress import Progress
 from cobgs.train.adam_moments import Moments, export_moments, load_moments
 from cobgs.data.scene import Scene, View
 from cobgs.errors import InputError
-from cobgs.train.gaussians import GaussianModel, gaussian_lrs
+from cobgs.gaussians.model import GaussianModel, gaussian_lrs
 from cobgs.train.losses import photometric_loss
 from cobgs.refine.result import PeakMemory, RefineResult, StageStats
 from cobgs.refine.consistency import object_render_check
@@ -79,10 +79,9 @@ from cobgs.refine.scores import (
 from cobgs.refine.split import boundary_split, raem_prune_mask, split_candidates
 from cobgs.render.image import render
 from cobgs._memory import retain_freed_memory
-from cobgs.configs import FOREGROUND_LABEL, RefineConfig  # noqa: F401 (defined there, torch-free; re-exported)
+from cobgs.configs import FOREGROUND_LABEL, RefineConfig
 
 __all__ = [
-    "RefineConfig",
     "Refiner",
     "refine",
     "refine_scene",

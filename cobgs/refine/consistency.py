@@ -29,7 +29,7 @@ from torch import Tensor
 
 from cobgs.data.scene import View
 from cobgs.render.image import render
-from cobgs.train.gaussians import GaussianModel
+from cobgs.gaussians.model import GaussianModel
 
 
 def label_votes(model: GaussianModel, views: Sequence[View], pixel_labels: Sequence[Tensor], num_labels: int,

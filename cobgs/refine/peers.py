@@ -44,17 +44,15 @@ from torch import Tensor
 
 from cobgs.data.scene import View
 from cobgs.progress import Progress
-from cobgs.configs import FlashSplatConfig, SA3DConfig  # noqa: F401 (defined there)
+from cobgs.configs import FlashSplatConfig, RefineConfig, SA3DConfig
 from cobgs.errors import InputError
-from cobgs.train.gaussians import GaussianModel
-from cobgs.refine.alternation import RefineConfig, refine
+from cobgs.gaussians.model import GaussianModel
+from cobgs.refine.alternation import refine
 from cobgs.refine.consistency import label_votes
 from cobgs.refine.result import PeakMemory, RefineResult, StageStats
 from cobgs.refine.scores import mask_loss, pixel_labels_from_mask, render_label_mask
 
 __all__ = [
-    "SA3DConfig",
-    "FlashSplatConfig",
     "METHODS",
     "nosplit_config",
     "run_nosplit",

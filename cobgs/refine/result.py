@@ -19,7 +19,7 @@ from torch import Tensor
 
 from cobgs._memory import release_free_memory
 from cobgs.errors import InputError
-from cobgs.train.gaussians import GaussianModel
+from cobgs.gaussians.model import GaussianModel
 
 
 @dataclass

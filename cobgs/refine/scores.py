@@ -31,7 +31,7 @@ from torch import Tensor
 
 from cobgs.render.camera import Camera
 from cobgs.errors import InputError
-from cobgs.train.gaussians import GaussianModel
+from cobgs.gaussians.model import GaussianModel
 
 from cobgs.configs import LABEL  # noqa: E402  (name of the per-Gaussian label-logit extra)
 SCORE_EPS = 1e-6  # ε of Eq. 6, as in the released code

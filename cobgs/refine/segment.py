@@ -4,7 +4,7 @@ docs/method.md §2 "Segmentation" / "Evaluation render":
 
 * foreground = label > 0.9, background = label < 0.1 (the complement used for object
   removal; Gaussians in between belong to neither);
-* either part is exported as a standard 3DGS PLY (:func:`cobgs.train.ply.save_ply`);
+* either part is exported as a standard 3DGS PLY (:func:`cobgs.gaussians.ply.save_ply`);
 * the evaluation mask of a view keeps only the foreground Gaussians, renders their mask
   channel ``Σ mᵢ αᵢ Tᵢ`` (mᵢ = the method's ``mask_values``) and thresholds it at 0.5;
 * RGB renders of the object alone and of the scene with the object removed.
@@ -28,7 +28,7 @@ from torch import Tensor
 from cobgs.render.camera import Camera
 from cobgs.data.scene import View
 from cobgs.errors import InputError
-from cobgs.train.gaussians import CORE, GaussianModel
+from cobgs.gaussians.model import CORE, GaussianModel
 from cobgs.evaluate.metrics import accuracy, boundary_iou, iou
 from cobgs.refine.alternation import BG_THRESHOLD, FG_THRESHOLD, OBJECT_ID, OBJECT_LOGITS, MultiObjectResult
 from cobgs.refine.result import RefineResult
@@ -118,7 +118,7 @@ def export_ply(
     Returns:
         {"object": path, "background": path}.
     """
-    from cobgs.train.ply import save_ply
+    from cobgs.gaussians.ply import save_ply
 
     out = Path(out_dir)
     stem = stem or result.object_name or "object"
@@ -143,7 +143,7 @@ def export_objects(multi: MultiObjectResult, out_dir: os.PathLike | str,
     Returns:
         {object name: path, "_background": path}.
     """
-    from cobgs.train.ply import save_ply
+    from cobgs.gaussians.ply import save_ply
 
     out = Path(out_dir)
     paths = {}

@@ -28,7 +28,7 @@ from torch import Tensor
 
 from cobgs.render.camera import Camera
 from cobgs.errors import InputError
-from cobgs.train.gaussians import GaussianModel
+from cobgs.gaussians.model import GaussianModel
 from cobgs.render.reference import NEAR_PLANE
 
 from cobgs.configs import RAEM_VARIANTS  # noqa: E402,F401

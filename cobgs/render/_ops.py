@@ -256,8 +256,8 @@ def blend(means2d, conics, opacities, features, background, tile_offsets, flat_i
 def sh_colors(means, sh0, shN, center, degree: int) -> Tensor:
     """Native ``cobgs::sh_colors``: 3DGS view-dependent colour max(SH(d) + 0.5, 0).
 
-    The same numbers as :meth:`cobgs.train.gaussians.GaussianModel.colors` (oracle: the
-    pure-PyTorch :func:`cobgs.render.sh.sh_to_color`), up to float rounding; gradients flow to
+    The same numbers as :meth:`cobgs.gaussians.model.GaussianModel.colors` (oracle: the
+    pure-PyTorch :func:`cobgs.gaussians.sh.sh_to_color`), up to float rounding; gradients flow to
     means (through the direction), sh0 and shN.
 
     Args:
@@ -316,7 +316,7 @@ def check_serves(device: torch.device) -> None:
 
 def ssim_mean_grad(x: Tensor, y: Tensor, g: Tensor) -> Tuple[Tensor, Tensor]:
     """Native ``cobgs::ssim_mean_grad`` (no autograd): mean SSIM of x [B, C, H, W] against
-    a fixed y and d mean / dx, with the window g — :class:`cobgs.train.losses._MeanSSIM`'s
+    a fixed y and d mean / dx, with the window g — :class:`cobgs.evaluate.ssim._MeanSSIM`'s
     forward and backward fused (the loss of every training iteration)."""
     ensure_loaded()
     dt = x.dtype
@@ -336,7 +336,7 @@ def photometric_loss_grad(img: Tensor, ref: Tensor, g: Tensor,
 
 def gauss_blur(x: Tensor, g: Tensor) -> Tensor:
     """Native ``cobgs::gauss_blur`` (no autograd): the separable zero-padded blur of
-    :func:`cobgs.train.losses._blur`, vertical then horizontal, for x [B, K, H, W] and an
+    :func:`cobgs.evaluate.ssim._blur`, vertical then horizontal, for x [B, K, H, W] and an
     odd-length kernel g [n]."""
     ensure_loaded()
     return torch.ops.cobgs.gauss_blur(x.contiguous(), g.to(x.dtype).contiguous())

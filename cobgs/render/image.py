@@ -1,4 +1,4 @@
-"""Render a :class:`~cobgs.train.gaussians.GaussianModel` at a :class:`~cobgs.render.camera.Camera`."""
+"""Render a :class:`~cobgs.gaussians.model.GaussianModel` at a :class:`~cobgs.render.camera.Camera`."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 
 from cobgs.render.camera import Camera
-from cobgs.train.gaussians import GaussianModel
+from cobgs.gaussians.model import GaussianModel
 
 
 def render(

@@ -7,8 +7,6 @@ on first use) computes the same numbers.
 
 from __future__ import annotations
 
-import sys
-import types
 from typing import Optional
 
 import torch
@@ -18,7 +16,7 @@ from torch.utils.weak import WeakIdKeyDictionary
 from cobgs.errors import InputError, check_shape
 from cobgs.render.reference import RasterOutput, rasterize_reference
 
-__all__ = ["rasterize", "RasterOutput"]
+__all__ = ["rasterize"]
 
 _FLOATS = (torch.float32, torch.float64)
 
@@ -77,6 +75,20 @@ def rasterize(
     NDC coordinates (its 2e-4 threshold is in those units); since ``x_pix = ((x_ndc + 1)
     W - 1) / 2``, the conversion is ``grad_ndc = grad_pix * (W / 2, H / 2)``, i.e.
     ``(out.means2d.grad * torch.tensor([W / 2, H / 2])).norm(dim=-1)``.
+
+    Example: one Gaussian 2 units in front of a 32x24 pinhole camera (fx = fy = 40 px), 1 px
+    wide on screen; the pixel next to its centre gets ``α = 0.9 · exp(-0.5 · 0.5 / 1.3)``
+    (0.25 px² each way; 1 px² plus the 0.3 px² low-pass):
+
+    >>> import torch, cobgs
+    >>> K = torch.tensor([[40.0, 0.0, 16.0], [0.0, 40.0, 12.0], [0.0, 0.0, 1.0]])
+    >>> out = cobgs.rasterize(torch.tensor([[0.0, 0.0, 2.0]]), torch.tensor([[1.0, 0.0, 0.0, 0.0]]),
+    ...                       torch.full((1, 3), 0.05), torch.tensor([0.9]), torch.tensor([[1.0, 0.5, 0.0]]),
+    ...                       torch.eye(4), K, 32, 24)
+    >>> out.image.shape, out.radii.tolist()
+    (torch.Size([24, 32, 3]), [4])
+    >>> round(float(out.alpha[12, 16]), 4), [round(float(c), 4) for c in out.image[12, 16]]
+    (0.7425, [0.7425, 0.3713, 0.0])
     """
     _validate(means, quats, scales, opacities, features, viewmat, K, width, height,
               background, pixel_labels, num_labels, backend)
@@ -205,16 +217,3 @@ def _check_camera(viewmat: Tensor, K: Tensor) -> None:
         raise InputError(f"K must have positive focal lengths, got fx = {k[0, 0].item()}, "
                          f"fy = {k[1, 1].item()}")
 
-
-class _CallableModule(types.ModuleType):
-    """Lets ``cobgs.render.rasterize(...)`` work even when ``import cobgs.render.rasterize`` ran first.
-
-    Importing the submodule binds the package attribute ``cobgs.render.rasterize`` to the module,
-    shadowing the function of the same name that the package exposes lazily.
-    """
-
-    def __call__(self, *args, **kwargs):
-        return rasterize(*args, **kwargs)
-
-
-sys.modules[__name__].__class__ = _CallableModule

@@ -68,7 +68,7 @@ def pack(model, labels: Optional[np.ndarray] = None, keep: Optional[np.ndarray] 
     """(header, payload) of ``model`` (its ``keep`` indices, default all).
 
     Args:
-        model: :class:`cobgs.train.gaussians.GaussianModel` (higher SH bands are dropped).
+        model: :class:`cobgs.gaussians.model.GaussianModel` (higher SH bands are dropped).
         labels: [N] small non-negative integers (default zeros).
         keep: indices to pack, in the order to store them.
     """
@@ -131,11 +131,11 @@ def unpack(header: dict, payload: bytes) -> dict:
 
 
 def unpacked_model(header: dict, payload: bytes):
-    """The decoded Gaussians as a degree-0 :class:`~cobgs.train.gaussians.GaussianModel` whose
+    """The decoded Gaussians as a degree-0 :class:`~cobgs.gaussians.model.GaussianModel` whose
     colour (max(0.5 + C0·sh0, 0)) is the decoded colour: what the viewer draws."""
     import torch
 
-    from cobgs.train.gaussians import GaussianModel
+    from cobgs.gaussians.model import GaussianModel
 
     d = unpack(header, payload)
     op = np.clip(d["opacity"].astype(np.float64), 1e-7, 1 - 1e-7)

@@ -23,7 +23,7 @@ from torch import Tensor
 
 from cobgs.render.camera import Camera
 from cobgs.errors import InputError
-from cobgs.train.gaussians import GaussianModel
+from cobgs.gaussians.model import GaussianModel
 
 
 def object_center(model: GaussianModel) -> Tensor:
@@ -122,7 +122,7 @@ def object_turntables(object_ply: Path, background_ply: Path, cameras: Sequence[
     (``background_ply``), around the object's centre, with cameras like ``cameras``. ``dst``
     maps "object" / "removed" to the GIF paths; returns the kinds written (none when the
     object PLY is missing or empty)."""
-    from cobgs.train.ply import load_ply
+    from cobgs.gaussians.ply import load_ply
 
     if not Path(object_ply).is_file():
         return []

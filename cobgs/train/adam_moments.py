@@ -48,7 +48,7 @@ Moments = Mapping[str, Mapping[str, Tensor]]
 def export_moments(optimizer: torch.optim.Optimizer) -> dict[str, dict[str, Tensor]]:
     """The Adam state of every named parameter group: ``{name: {exp_avg, exp_avg_sq, step}}``.
 
-    Groups need a ``"name"`` key (:meth:`cobgs.train.gaussians.GaussianModel.make_adam` sets it)
+    Groups need a ``"name"`` key (:meth:`cobgs.gaussians.model.GaussianModel.make_adam` sets it)
     and one parameter each. Parameters without state (never stepped) are left out. The
     tensors are detached references, not copies (:func:`load_moments` copies).
     """

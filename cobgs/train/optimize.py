@@ -57,9 +57,9 @@ from cobgs._atomic import write_bytes_atomic
 from cobgs._memory import retain_freed_memory
 from cobgs.train.adam_moments import export_moments
 from cobgs.data.scene import Scene, View
-from cobgs.configs import Schedule, TrainConfig  # noqa: F401 (defined there, torch-free; re-exported)
+from cobgs.configs import TrainConfig
 from cobgs.errors import DataError, DivergenceError, InputError
-from cobgs.train.gaussians import GaussianModel, gaussian_lrs, inverse_sigmoid
+from cobgs.gaussians.model import GaussianModel, gaussian_lrs, inverse_sigmoid
 from cobgs.train.losses import photometric_loss
 from cobgs.evaluate.metrics import psnr as psnr_metric
 from cobgs.evaluate.metrics import ssim as ssim_metric
@@ -464,7 +464,7 @@ def load_model(path: os.PathLike | str) -> GaussianModel:
     """The Gaussians of a training checkpoint (``.pt``) or of a PLY file."""
     path = Path(path)
     if path.suffix.lower() == ".ply":
-        from cobgs.train.ply import load_ply
+        from cobgs.gaussians.ply import load_ply
 
         return load_ply(path)
     if not path.is_file():

@@ -7,7 +7,7 @@ keep their parameters and moments until a view sees them. The bias correction us
 group's global step, as gsplat's does.
 
 The state has Adam's layout (``step``, ``exp_avg``, ``exp_avg_sq`` per parameter), so the
-model's structural edits (clone / split / prune, :mod:`cobgs.train.gaussians`), checkpoints
+model's structural edits (clone / split / prune, :mod:`cobgs.gaussians.model`), checkpoints
 and the exported moments (:mod:`cobgs.train.adam_moments`) work unchanged.
 """
 

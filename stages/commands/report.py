@@ -57,7 +57,7 @@ def build_report(workflow_path, **kw):
     """:func:`reports.build_report` with the program's stage registry and the stages' scene
     reader (for turntables and 3D viewers): the command layer hands ``reports/`` what it needs,
     so that ``reports/`` imports nothing of ``stages/``. Keywords as there."""
-    from reports import build_report as build
+    from reports.builder import build_report as build
     from stages._common import scene_cameras
     from stages.registry import load_registry
 

@@ -54,7 +54,8 @@ def _synth(args) -> int:
 def _synth_noise(args) -> int:
     from pathlib import Path
 
-    from cobgs.data.mask_noise import MaskNoiseParams, noise_mask_folder
+    from cobgs.data.mask_noise import noise_mask_folder
+    from cobgs.configs import MaskNoiseParams
 
     src = Path(args.masks)
     if (src / "masks").is_dir() and (src / "transforms.json").is_file():

@@ -60,7 +60,8 @@ def child(args) -> int:
     # The variant's cobgs first: bm_train_iter puts this checkout's root on sys.path.
     import cobgs
     from cobgs.render import _ops
-    from cobgs.train.optimize import Trainer, TrainConfig, load_model
+    from cobgs.train.optimize import Trainer, load_model
+    from cobgs.configs import TrainConfig
 
     sys.path.insert(1, str(HERE))
     from bm_train_iter import MachineProbe, load_scene

@@ -56,7 +56,8 @@ def _scene(out: Path, images: Path | None, test_every: int = 0, sfm_dir: Path | 
     the same reconstruction); ``test_every`` = k holds out every k-th view (0: none, as the
     first faithful run of issue 26)."""
     from cobgs.data.colmap import read_colmap
-    from cobgs.data.sfm import SfmOptions, run_sfm
+    from cobgs.data.sfm import run_sfm
+    from cobgs.configs import SfmOptions
 
     sfm_dir = sfm_dir or out / "fern_sfm"
     rec_path = sfm_dir.parent / "sfm.json" if sfm_dir != out / "fern_sfm" else out / "sfm.json"
@@ -73,7 +74,7 @@ def _scene(out: Path, images: Path | None, test_every: int = 0, sfm_dir: Path | 
 
 
 def _config(iterations: int, recipe: str = "3dgs", sets: tuple = ()):
-    from cobgs.train.optimize import TrainConfig
+    from cobgs.configs import TrainConfig
 
     kw = {"iterations": iterations, "log_interval_its": 1000, "checkpoint_interval_its": 1000}
     if recipe != "3dgs":

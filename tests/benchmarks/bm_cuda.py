@@ -210,10 +210,13 @@ def object_masks(model, views, radius_frac: float = 0.25):
 
 def bench_fern(args) -> None:
     from cobgs.data.colmap import read_colmap
-    from cobgs.train.ply import save_ply
-    from cobgs.refine.alternation import RefineConfig, refine
-    from cobgs.data.sfm import SfmOptions, run_sfm
-    from cobgs.train.optimize import TrainConfig, train
+    from cobgs.gaussians.ply import save_ply
+    from cobgs.refine.alternation import refine
+    from cobgs.configs import RefineConfig
+    from cobgs.data.sfm import run_sfm
+    from cobgs.configs import SfmOptions
+    from cobgs.train.optimize import train
+    from cobgs.configs import TrainConfig
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -24,7 +24,7 @@ import time  # noqa: E402
 
 import torch  # noqa: E402
 
-from cobgs.train.gaussians import GaussianModel  # noqa: E402
+from cobgs.gaussians.model import GaussianModel  # noqa: E402
 from cobgs.refine.segment import label_sets, subset  # noqa: E402
 
 

@@ -53,7 +53,8 @@ def view_tensors(args):
         (means, quats, scales, op, feat, vm, K), _, gi, ga = R.make_scene(100_000, 0)
         return means, quats, scales, op, feat, vm, K, R.W, R.H, gi, ga, None
     import bm_train_iter as B
-    from cobgs.train.optimize import Trainer, TrainConfig, load_model
+    from cobgs.train.optimize import Trainer, load_model
+    from cobgs.configs import TrainConfig
 
     scene = B.load_scene(args.scene, args.sfm_dir)
     model = load_model(args.ply)

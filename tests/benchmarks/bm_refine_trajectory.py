@@ -91,7 +91,7 @@ def trajectory(wf, cache, scene_name, method, obj, sets_note=""):
     from stages._common import load_scene, masks_for_views, read_json, read_spec
     from stages.evaluate import _amodal_gts
     from stages.refine import method_config
-    from cobgs.train.ply import load_ply
+    from cobgs.gaussians.ply import load_ply
     from cobgs.train.adam_moments import MOMENTS_FILE, read_moments
 
     recs = {(r.stage, r.item.id): r for r in entries(wf, cache)}

@@ -25,7 +25,8 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
 from cobgs.data.synthetic import PRESETS, generate_scene  # noqa: E402
-from cobgs.data.sfm import SfmOptions, run_sfm  # noqa: E402
+from cobgs.data.sfm import run_sfm  # noqa: E402
+from cobgs.configs import SfmOptions
 
 
 def _pose_errors(scene: Path, model: Path):

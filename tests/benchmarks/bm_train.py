@@ -49,7 +49,8 @@ def _load(kind: str, out: Path):
 
         sfm_dir = out / "fern_sfm"
         if not (sfm_dir / "sparse" / "0").is_dir():
-            from cobgs.data.sfm import SfmOptions, run_sfm
+            from cobgs.data.sfm import run_sfm
+            from cobgs.configs import SfmOptions
 
             t = time.perf_counter()
             res = run_sfm(SHARED / "llff_fern" / "images_8", sfm_dir, SfmOptions(matcher="exhaustive"))
@@ -63,8 +64,9 @@ def _load(kind: str, out: Path):
 
 def run(kind: str, iterations: int, out: Path, init_points: int, scale_schedule: bool, seed: int,
         random_background: bool = False) -> dict:
-    from cobgs.train.ply import save_ply
-    from cobgs.train.optimize import TrainConfig, peak_rss_bytes, train
+    from cobgs.gaussians.ply import save_ply
+    from cobgs.train.optimize import peak_rss_bytes, train
+    from cobgs.configs import TrainConfig
 
     scene = _load(kind, out)
     img = scene.train[0].image

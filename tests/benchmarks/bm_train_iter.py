@@ -69,7 +69,8 @@ def load_scene(kind: str, sfm_dir: Path):
     from cobgs.data.colmap import read_colmap
 
     if not (sfm_dir / "sparse" / "0").is_dir():
-        from cobgs.data.sfm import SfmOptions, run_sfm
+        from cobgs.data.sfm import run_sfm
+        from cobgs.configs import SfmOptions
 
         run_sfm(SHARED / "llff_fern" / "images_8", sfm_dir, SfmOptions(matcher="exhaustive"))
     return read_colmap(sfm_dir, test_every=8)
@@ -101,7 +102,7 @@ def scene_cost(model, camera, background) -> str:
 
 def proxy_model(init, n: int, seed: int = 0):
     """A trained-size stand-in: ``init``'s Gaussians split into ``n`` children."""
-    from cobgs.train.gaussians import GaussianModel, inverse_sigmoid
+    from cobgs.gaussians.model import GaussianModel, inverse_sigmoid
 
     g = torch.Generator().manual_seed(seed)
     d = {k: v.detach() for k, v in init.data.items()}
@@ -110,7 +111,7 @@ def proxy_model(init, n: int, seed: int = 0):
     k = n / m
     scales = torch.exp(d["log_scales"][parent])
     rot = init.rotations.detach()[parent]
-    from cobgs.train.gaussians import quat_to_rotmat
+    from cobgs.gaussians.model import quat_to_rotmat
 
     offs = torch.einsum("nij,nj->ni", quat_to_rotmat(rot), scales * torch.randn(n, 3, generator=g))
     means = d["means"][parent] + offs
@@ -155,8 +156,10 @@ def main(argv=None) -> int:
     torch.set_num_threads(args.threads)
 
     from cobgs.train import losses
-    from cobgs.train.losses import l1_loss, ssim
-    from cobgs.train.optimize import Trainer, TrainConfig, load_model
+    from cobgs.evaluate.ssim import ssim
+    from cobgs.train.losses import l1_loss
+    from cobgs.train.optimize import Trainer, load_model
+    from cobgs.configs import TrainConfig
 
     scene = load_scene(args.scene, args.sfm_dir)
     ply = args.ply if args.ply is not None else BM_OUT / f"{args.scene}.ply"

@@ -352,7 +352,7 @@ def _cli(argv) -> int:
 
 
 def test_cli_matches_library(tmp_path):
-    from cobgs.data.mask_noise import MaskNoiseParams
+    from cobgs.configs import MaskNoiseParams
     from stages.commands import synth as synth_cmd
 
     assert set(synth_cmd.PRESET_NAMES) == set(synthetic.PRESETS)

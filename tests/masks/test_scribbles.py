@@ -10,7 +10,8 @@ from PIL import Image
 
 from cobgs.errors import DataError, InputError
 from cobgs.masks.api import generate_masks_from_scribbles
-from cobgs.masks.scribbles import ScribbleConfig, scribble_points, skeleton_points
+from cobgs.masks.scribbles import scribble_points, skeleton_points
+from cobgs.configs import ScribbleConfig
 
 from . import scenes
 

@@ -10,7 +10,8 @@ from PIL import Image
 
 from cobgs.errors import InputError
 from cobgs.masks.api import generate_masks
-from cobgs.masks.two_stage import NoDetectionError, TwoStageConfig
+from cobgs.masks.two_stage import NoDetectionError
+from cobgs.configs import TwoStageConfig
 
 from . import scenes
 
@@ -96,7 +97,7 @@ def test_nothing_on_prompt_frame_is_a_clear_error(models_dir, red_green, tmp_pat
 
 
 def test_text_path_needs_grounding_dino(models_v20, red_green, tmp_path):
-    from cobgs.masks import ModelsNotConfiguredError
+    from cobgs.masks.manifest import ModelsNotConfiguredError
 
     with pytest.raises(ModelsNotConfiguredError, match="no 'groundingdino' model"):
         generate_masks(red_green[0], "square", models_v20, tmp_path / "o")

@@ -116,3 +116,38 @@ def test_arrows_between_packages_point_one_way():
                 if top in PACKAGES and top != package and top not in allowed[package]:
                     bad.append(f"{rel} imports {imp}")
     assert not bad, "\n".join(bad)
+
+
+#: The subpackages of cobgs/, lowest first: a module may import modules of its own subpackage
+#: and of those listed before it, and the package's top-level modules (configs, errors, ...),
+#: which import no subpackage. (ARCHITECTURE.md; issue 47.)
+COBGS_LAYERS = ("gaussians", "render", "data", "evaluate", "masks", "train", "refine")
+
+
+def _layer_violations() -> list[str]:
+    graph = _module_graph("cobgs")
+    layer = {name: i for i, name in enumerate(COBGS_LAYERS)}
+    bad = []
+    for mod, deps in sorted(graph.items()):
+        parts = mod.split(".")
+        here = parts[1] if len(parts) > 2 or (len(parts) == 2 and parts[1] in layer) else None
+        for dep in sorted(deps):
+            dp = dep.split(".")
+            there = dp[1] if len(dp) > 1 and dp[1] in layer else None
+            if there is None or there == here:
+                continue
+            if here is None:  # a top-level module of cobgs/ (configs, errors, ...) imports a subpackage
+                bad.append(f"{mod} (top level) imports {dep}")
+            elif layer[there] > layer[here]:
+                bad.append(f"{mod} ({here}) imports {dep} ({there}, a layer above)")
+    return bad
+
+
+def test_cobgs_subpackages_form_layers():
+    """Inside cobgs/ the subpackages import only those below them (COBGS_LAYERS): render and
+    train, train and evaluate, train and data, refine and evaluate no longer import each
+    other both ways (the model and its PLY I/O live in gaussians/, SSIM in evaluate/ssim)."""
+    bad = _layer_violations()
+    assert not bad, "\n".join(bad)
+    assert set(COBGS_LAYERS) == {p.name for p in (REPO / "cobgs").iterdir()
+                                 if p.is_dir() and (p / "__init__.py").is_file()}

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from reports import ReportError
+from reports.errors import ReportError
 from reports.builder import MARKER
 
 

@@ -318,7 +318,7 @@ def write_3dgs_output(train_artifact: Path, scene, out: Path, iteration: int,
     import torch
 
     from cobgs.train.adam_moments import read_moments
-    from cobgs.train.ply import load_ply
+    from cobgs.gaussians.ply import load_ply
 
     d = out / "point_cloud" / f"iteration_{iteration}"
     d.mkdir(parents=True)

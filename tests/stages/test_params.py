@@ -40,8 +40,8 @@ def test_stage_params_are_the_library_configs():
     assert hints[MasksParams]["scribbles"] is configs.ScribbleConfig
     assert hints[MasksParams]["noise"] is configs.MaskNoiseParams
     assert hints[SfmParams]["options"] is configs.SfmOptions
-    from cobgs.refine.alternation import RefineConfig
-    from cobgs.train.optimize import TrainConfig
+    from cobgs.configs import RefineConfig
+    from cobgs.configs import TrainConfig
 
     assert RefineConfig is configs.RefineConfig and TrainConfig is configs.TrainConfig  # re-exported
 

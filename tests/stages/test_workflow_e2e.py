@@ -73,7 +73,7 @@ def _entry(wf, cache, stage, item):
 
 
 def test_artifacts_and_metrics(tiny):
-    from cobgs.train.ply import load_ply
+    from cobgs.gaussians.ply import load_ply
 
     path, cache, wf, _ = tiny
     spec = json.loads((_entry(wf, cache, "dataset", "tiny").output("dataset") / "dataset.json").read_text())
@@ -374,7 +374,7 @@ def test_report_viewer_data_cap_and_opt_out(tiny, tmp_path):
     import numpy as np
 
     from cobgs.render import splat_pack
-    from cobgs.train.ply import load_ply
+    from cobgs.gaussians.ply import load_ply
     from reports.viewer import configs, embedded
     from stages.commands.cli import main
 

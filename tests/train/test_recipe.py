@@ -13,7 +13,7 @@ from cobgs.configs import FAST_RECIPE, TrainConfig, key_without_later
 from cobgs.render.camera import Camera
 from cobgs.data.scene import View, make_scene
 from cobgs.render.image import render
-from cobgs.train.gaussians import GaussianModel
+from cobgs.gaussians.model import GaussianModel
 from cobgs.train.optimize import Trainer, resolution_levels, spectral_energy_kept, train
 from cobgs.train.visible_adam import VisibleAdam
 

@@ -31,7 +31,7 @@ import torch
 from torch import Tensor, nn
 
 from cobgs.errors import InputError, check_shape
-from cobgs.render.sh import C0, MAX_DEGREE, num_coeffs, rgb_to_sh0, sh0_to_rgb, sh_to_color
+from cobgs.gaussians.sh import C0, MAX_DEGREE, num_coeffs, rgb_to_sh0, sh0_to_rgb, sh_to_color
 
 CORE = ("means", "log_scales", "quats", "opacity_logits", "sh0", "shN")
 _EXTRA_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")

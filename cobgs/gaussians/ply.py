@@ -27,7 +27,7 @@ import torch
 
 from cobgs._atomic import write_atomic
 from cobgs.errors import DataError, InputError
-from cobgs.train.gaussians import GaussianModel, check_extra_name
+from cobgs.gaussians.model import GaussianModel, check_extra_name
 
 log = logging.getLogger(__name__)
 
