@@ -17,15 +17,57 @@ from typing import ClassVar, Optional, Tuple
 
 from cobgs.errors import InputError
 
-__all__ = ["check_params", "parse_interval", "in_interval", "TrainConfig", "Schedule", "RefineConfig",
+__all__ = ["Files", "METHODS", "NOSPLIT_SWITCHES", "key_without_later", "with_later_values", "check_params", "parse_interval", "in_interval", "TrainConfig", "Schedule", "RefineConfig",
            "SA3DConfig", "FlashSplatConfig", "TwoStageConfig", "ScribbleConfig", "MaskNoiseParams", "SfmOptions", "LABEL",
            "RAEM_VARIANTS", "TEXTURE_ADAM", "SCENE_DEFAULTS", "MATCHERS"]
 
 LABEL = "mask_logit"  # name of the per-Gaussian label-logit extra
+METHODS = ("cobgs", "nosplit", "sa3d", "flashsplat")  # the refinement methods (cobgs.refine.peers.run_method)
+#: What the no-split peer forces on COB-GS's config (paper Table 5, first row; with the
+#: stage count, cobgs.refine.peers.nosplit_config): these switches say nothing of a no-split row.
+NOSPLIT_SWITCHES = {"bags": False, "bgtr": False, "raem": "off", "object_check": "off"}
 RAEM_VARIANTS = ("off", "released", "paper")
 SCENE_DEFAULTS = {"forward": (0.5, 6), "360": (0.8, 4)}  # δ, mask stages (docs/method.md §2)
 TEXTURE_ADAM = ("baseline", "fresh")
 MATCHERS = ("auto", "exhaustive", "sequential")
+
+
+# -- the artifact catalog ------------------------------------------------------------------
+class Files:
+    """The file names inside each stage's artifact, named once: the stages write them, and
+    the library, ``cobgs export`` and the report read them from here (kedro's catalog idea:
+    each artifact named in one place)."""
+
+    DATASET = "dataset.json"  # dataset: the scene's typed record (cobgs.data.spec)
+    SFM = "sfm.json"  # sfm: what SfM or triangulation did
+    SFM_IMAGES = "images"  # sfm: the (undistorted) images
+    SFM_MODEL = "sparse/0"  # sfm: the COLMAP model
+    SFM_POINTS = "points.npz"  # sfm: points triangulated with known poses
+    TRAIN = "train.json"  # train: config, schedule, views, held-out metrics, history
+    SCENE_PLY = "scene.ply"  # train: the trained scene (standard 3DGS layout)
+    MOMENTS = "adam_moments.pt"  # train: the Adam state (cobgs.train.adam_moments)
+    RENDERS = "renders"  # train: held-out renders, <view>.png
+    MASKS = "masks.json"  # masks: how the masks were made (<view>.png beside it)
+    HELDOUT = "heldout.json"  # heldout: the ground-truth pictures written
+    REFINE = "refine.json"  # refine: what the method did
+    REFINED_PLY = "refined.ply"  # refine: the scene after the method, labels as extras
+    SEGMENTATION = "segmentation.npz"  # refine: labels / foreground per Gaussian
+    STAGE_SCORES = "stage_scores.npz"  # refine: per-stage scores
+    RAEM_REMOVED = "raem_removed.ply"  # refine: what RAEM removed (restored for the scene render)
+    SEGMENT = "segment.json"  # segment: counts, timings, views
+    OBJECT_PLY = "object.ply"  # segment: the object alone
+    BACKGROUND_PLY = "background.ply"  # segment: the scene without it
+    PRED_MASKS = "pred_masks"  # segment: predicted masks, <view>.png
+    METRICS = "metrics.json"  # evaluate: the row and its details
+    PER_VIEW = "per_view.csv"  # evaluate: one line per view
+    SUMMARY = "summary.json"  # summary: every table
+    SUMMARY_CSV = "summary.csv"  # summary: the rows
+    BY_METHOD = "by_method.csv"
+    BY_SCENE_METHOD = "by_scene_method.csv"
+    TIMINGS = "timings.csv"
+    SCENES = "scenes.csv"
+    EXPORT_MARKER = "export.json"  # cobgs export: what was copied (pipeline.publish's marker)
+    REPORT_MARKER = "report.json"  # cobgs report: the report's record (the same)
 
 
 # -- valid ranges ------------------------------------------------------------------------
@@ -228,6 +270,18 @@ RECIPES = {
 FAST_RECIPE = RECIPES["fast"]
 
 
+def with_later_values(cls, params: dict) -> dict:
+    """``params`` (a params object as JSON, as a manifest recorded it) with each field of
+    ``cls`` added later and absent there filled in with the value runs had before it existed
+    (field metadata "before"): an entry written before a switch reads as what it ran."""
+    out = dict(params)
+    for f in dataclasses.fields(cls):
+        if "before" in f.metadata and f.name not in out:
+            before = f.metadata["before"]
+            out[f.name] = list(before) if isinstance(before, tuple) else before
+    return out
+
+
 def key_without_later(cls, full: dict) -> dict:
     """``full`` (a params object as JSON) without the fields of ``cls`` that were added
     later and hold the value every run had before they existed (field metadata "before"):
@@ -325,7 +379,7 @@ class RefineConfig:
     backend: str = "native"
     label_name: str = LABEL
     record_scores: bool = True
-    object_check: str = "visible"
+    object_check: str = field(default="visible", metadata={"before": "off"})  # entries before it: no check
 
     RANGES: ClassVar[dict] = {
         "delta": "[0, 1]", "mask_stages": "[1, 100]", "stage_length_views": "(0, 100]",

@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 from typing import Iterable, Optional, Sequence
 
+from cobgs.configs import Files
 from pipeline.publish import DestinationError, check_destination, publish_folder
 
 from . import fmt, results as R
@@ -27,7 +28,7 @@ from .pictures import KIND_LABELS, slug
 from .sections import detail_tables, result_tables
 from .tables import to_markdown
 
-MARKER = "report.json"
+MARKER = Files.REPORT_MARKER
 REPORT_FORMAT = "cobgs-report"
 LOG_TAIL_BYTES = 1 << 20  # logs above this keep their last MiB (the end holds the traceback)
 PACKAGE_DIR = Path(__file__).resolve().parent

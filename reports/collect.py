@@ -12,6 +12,7 @@ failed (or that never ran) and its log, so the report can show the gap instead o
 
 from __future__ import annotations
 
+from cobgs.configs import Files
 import json
 import os
 from dataclasses import dataclass, field
@@ -24,8 +25,8 @@ from cobgs.evaluate.protocols import ORACLE_METHOD, oracle_choice
 from .errors import ReportError
 
 #: artifact -> the JSON file that describes it
-DESCRIPTORS = {"metrics": "metrics.json", "refined": "refine.json", "segmentation": "segment.json",
-               "scene": "train.json", "dataset": "dataset.json", "heldout": "heldout.json"}
+DESCRIPTORS = {"metrics": Files.METRICS, "refined": Files.REFINE, "segmentation": Files.SEGMENT,
+               "scene": Files.TRAIN, "dataset": Files.DATASET, "heldout": Files.HELDOUT}
 
 
 def read_artifact_json(folder: Path, name: str, owner: str) -> dict:
@@ -194,20 +195,20 @@ def _axis_names(workflow, axis: str, parent_value: Optional[str] = None) -> list
     return workflow.axes[axis].names(parent_value)
 
 
-# Refine params added after cache entries were written, with the value those entries ran with:
-# the refine stage leaves such a param out of its key at that value (stages/refine.py
-# _key_params), so an old entry is served for it; filled in here so that a method's old and
-# new entries read alike (otherwise its options "vary by scene").
-LATER_PARAMS = {("cobgs", "object_check"): "off"}
-
-
 def _with_later_params(params: dict, defaults: dict) -> dict:
-    """``params`` with each of :data:`LATER_PARAMS` that the stage's own defaults know of
-    (a stage registry without it — another program's refine stage — is left alone)."""
-    for (section, key), value in LATER_PARAMS.items():
-        sec = params.get(section)
-        if isinstance(sec, dict) and key not in sec and key in ((defaults.get(section) or {})):
-            params[section] = dict(sec, **{key: value})
+    """``params`` with the COB-GS fields added after cache entries were written filled in with
+    the value those entries ran with (:func:`cobgs.configs.with_later_values`, the one owner of
+    that rule; the refine stage's key leaves them out at that value, so an old entry is served
+    for them): a method's old and new entries then read alike (otherwise its options "vary by
+    scene"). Only where the stage's own defaults know the section (another program's refine
+    stage is left alone)."""
+    from cobgs.configs import RefineConfig, with_later_values
+
+    sec = params.get("cobgs")
+    known = defaults.get("cobgs") or {}
+    if isinstance(sec, dict) and known:
+        filled = with_later_values(RefineConfig, sec)
+        params["cobgs"] = {k: v for k, v in filled.items() if k in sec or k in known}
     return params
 
 

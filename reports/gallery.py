@@ -7,6 +7,7 @@ from ``segment``, per-view numbers from ``evaluate``) and hands the arrays to
 
 from __future__ import annotations
 
+from cobgs.configs import Files
 from pathlib import Path
 from typing import Optional
 
@@ -21,7 +22,7 @@ MASK_FOLDERS = {"visible": "pred_visible", "object_only": "pred_masks"}
 
 
 def scored_mask_folder(row: Optional[dict]) -> str:
-    return MASK_FOLDERS.get(str((row or {}).get("mask_render", "object_only")), "pred_masks")
+    return MASK_FOLDERS.get(str((row or {}).get("mask_render", "object_only")), Files.PRED_MASKS)
 
 
 def _turntables(data: RunData, ps: PictureSet, rs: dict, scene, root: Path, base: str, frames: int,
@@ -40,7 +41,7 @@ def _turntables(data: RunData, ps: PictureSet, rs: dict, scene, root: Path, base
             continue
         urls = {k: f"{base}/{slug(mp.method)}_turn_{k}.gif" for k in ("object", "removed")}
         seg = Path(r.segment_dir)
-        for kind in object_turntables(seg / "object.ply", seg / "background.ply", refs, bg, frames,
+        for kind in object_turntables(seg / Files.OBJECT_PLY, seg / Files.BACKGROUND_PLY, refs, bg, frames,
                                       {k: root / u for k, u in urls.items()}):
             mp.files[f"turn_{kind}"] = urls[kind]
 

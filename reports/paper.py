@@ -53,10 +53,17 @@ _LERF = {
 }
 
 # COB-GS params that change what is measured; any other value than the released default
-# (a δ sweep item, the weighted score, a shorter schedule, ...) is not the paper's method.
-_PAPER_DEFAULTS = {"delta": None, "mask_stages": None, "stage_length_views": 2.0, "score": "count",
-                   "split_size_fraction": 0.01, "split_children": 2, "split_scale_divisor": 1.6,
-                   "mask_lambda": 1.0, "label_lr": 0.1}
+# (RefineConfig's: a δ sweep item, the weighted score, a shorter schedule, ...) is not the
+# paper's method.
+_MEASURED = ("delta", "mask_stages", "stage_length_views", "score", "split_size_fraction", "split_children",
+             "split_scale_divisor", "mask_lambda", "label_lr")
+
+
+def _paper_defaults() -> dict:
+    from cobgs.configs import RefineConfig
+
+    c = RefineConfig()
+    return {k: getattr(c, k) for k in _MEASURED}
 
 
 def cobgs_switches(kind: str, refine_params: Optional[Mapping]) -> Optional[tuple]:
@@ -67,7 +74,7 @@ def cobgs_switches(kind: str, refine_params: Optional[Mapping]) -> Optional[tupl
     if kind != "cobgs" or not refine_params:
         return None
     c = refine_params.get("cobgs") or {}
-    for k, v in _PAPER_DEFAULTS.items():
+    for k, v in _paper_defaults().items():
         if k in c and c[k] != v:
             return None
     return (bool(c.get("bags", True)), bool(c.get("bgtr", True)), c.get("raem", "released") != "off",

@@ -14,6 +14,7 @@ from . import paper
 from .collect import Result, RunData, Task
 from .fmt import finite
 
+from cobgs.configs import NOSPLIT_SWITCHES, Files
 from cobgs.data.spec import DatasetSpec
 from cobgs.evaluate.protocols import ORACLE_METHOD
 
@@ -85,8 +86,8 @@ def refine_defaults(workflow) -> dict:
     return to_json(workflow.stages[stage].params())
 
 
-# The no-split row forces COB-GS's switches off whatever the params say (cobgs.refine.peers.run_method)
-_FORCED = {"nosplit": ("cobgs.bags", "cobgs.bgtr", "cobgs.raem", "cobgs.object_check")}
+# The no-split row forces COB-GS's switches off whatever the params say (cobgs.configs.NOSPLIT_SWITCHES)
+_FORCED = {"nosplit": tuple(f"cobgs.{k}" for k in NOSPLIT_SWITCHES)}
 
 
 def options_of(kind: str, params: Optional[dict], defaults: dict) -> list[str]:
@@ -460,7 +461,7 @@ def delta_groups(data: RunData, infos: dict) -> list[tuple[str, list[tuple]]]:
         if amb is None or total is None:
             continue
         fixed = None
-        f = Path(r.refine_dir) / "stage_scores.npz" if r.refine_dir else None
+        f = Path(r.refine_dir) / Files.STAGE_SCORES if r.refine_dir else None
         if f is not None and f.is_file():
             with np.load(f) as z:
                 last = max(z.files, key=lambda k: int(k.rsplit("_", 1)[-1]), default=None)
@@ -483,7 +484,7 @@ def score_panels(data: RunData, method: Optional[str], limit: int = 4):
     for r in data.results:
         if r.method != method or not r.ok or r.refine_dir is None:
             continue
-        f = Path(r.refine_dir) / "stage_scores.npz"
+        f = Path(r.refine_dir) / Files.STAGE_SCORES
         if not f.is_file():
             continue
         if len(panels) >= limit:

@@ -16,6 +16,7 @@ page says so.
 
 from __future__ import annotations
 
+from cobgs.configs import Files
 import base64
 import json
 from dataclasses import dataclass, field
@@ -63,7 +64,7 @@ def _load(seg_dir: Path):
     from cobgs.gaussians.model import CORE, GaussianModel
     from cobgs.gaussians.ply import load_ply
 
-    obj_p, bg_p = seg_dir / "object.ply", seg_dir / "background.ply"
+    obj_p, bg_p = seg_dir / Files.OBJECT_PLY, seg_dir / Files.BACKGROUND_PLY
     if not (obj_p.is_file() and bg_p.is_file()):
         return None
     parts = [load_ply(obj_p), load_ply(bg_p)]

@@ -24,6 +24,7 @@ the held-out names, the objects with ground truth and the evaluation protocol.
 
 from __future__ import annotations
 
+from cobgs.configs import Files
 import json
 import os
 from pathlib import Path
@@ -31,7 +32,7 @@ from typing import Any, Mapping, Optional
 
 from pipeline import PipelineError
 
-SPEC_FILE = "dataset.json"
+SPEC_FILE = Files.DATASET
 from cobgs.data.spec import FORMAT as SPEC_FORMAT, VERSION as SPEC_VERSION, DatasetSpec  # noqa: E402
 
 
@@ -104,7 +105,7 @@ def spec_path(dataset_dir: Path, value: Optional[str]) -> Optional[Path]:
 
 
 def sfm_ran(poses_dir: Path) -> bool:
-    return (Path(poses_dir) / "sparse" / "0").is_dir()
+    return (Path(poses_dir) / Files.SFM_MODEL).is_dir()
 
 
 def load_scene(dataset_dir: Path, poses_dir: Optional[Path]):
@@ -132,7 +133,7 @@ def load_scene(dataset_dir: Path, poses_dir: Optional[Path]):
         poses_dir = Path(poses_dir)
         # masks undistorted by the SfM stage (a distorted camera) replace the dataset's
         mask_root = poses_dir if (poses_dir / "masks").is_dir() or root is None else root
-        scene = read_colmap(mask_root, images_dir=poses_dir / "images", model_dir=poses_dir / "sparse" / "0",
+        scene = read_colmap(mask_root, images_dir=poses_dir / Files.SFM_IMAGES, model_dir=poses_dir / Files.SFM_MODEL,
                             downscale=float(spec.sfm_downscale), test_names=test or None,
                             test_every=0)
     else:
@@ -148,7 +149,7 @@ def load_scene(dataset_dir: Path, poses_dir: Optional[Path]):
         if rd.get("distortion"):
             kw["distortion"] = rd["distortion"]
         scene = read_scene(root, format=rd["format"], downscale=float(rd.get("downscale", 1.0)), **kw)
-        pts = Path(poses_dir) / "points.npz" if poses_dir is not None else None
+        pts = Path(poses_dir) / Files.SFM_POINTS if poses_dir is not None else None
         if (scene.points is None or len(scene.points) == 0) and pts is not None and pts.is_file():
             import numpy as np
             import torch

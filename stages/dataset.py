@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar, Optional, Union
 
-from cobgs.configs import check_params
+from cobgs.configs import Files, check_params
 from pipeline import Resources, Stage
 
 from ._common import SPEC_FORMAT, SPEC_VERSION, StageInputError, spec_path, write_json
@@ -246,7 +246,7 @@ def _run(ctx, inputs):
         folder = spec_path(ctx.out_dir, spec["images"]["dir"])
         check_upright([folder / n for n in spec["images"]["names"]], "photo")
     spec["reader"] = reader
-    write_json(ctx.out_dir / "dataset.json", spec)
+    write_json(ctx.out_dir / Files.DATASET, spec)
     ctx.log.info("dataset %s (%s): %d views, %d held out, objects %s, protocol %s", spec["scene"], attrs.kind,
                  len(spec["views"]), len(spec["test_views"]), spec["objects"], spec["protocol"])
     ctx.note(kind=attrs.kind, views=len(spec["views"]), test_views=len(spec["test_views"]),

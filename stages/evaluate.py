@@ -39,7 +39,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
 
-from cobgs.configs import check_params
+from cobgs.configs import Files, check_params
 from pipeline import Resources, Stage
 
 from ._common import StageInputError, load_scene, nvos_task, object_name, read_json, read_spec, write_json
@@ -115,16 +115,16 @@ def _run(ctx, inputs):
     spec = read_spec(inputs["dataset"])
     obj = object_name(ctx)
     seg_dir = Path(inputs["segmentation"])
-    seg = read_json(seg_dir / "segment.json")
-    ref = read_json(Path(inputs["refined"]) / "refine.json")
-    train = read_json(Path(inputs["scene"]) / "train.json")
+    seg = read_json(seg_dir / Files.SEGMENT)
+    ref = read_json(Path(inputs["refined"]) / Files.REFINE)
+    train = read_json(Path(inputs["scene"]) / Files.TRAIN)
     scene = load_scene(inputs["dataset"], inputs["poses"])
     test = {v.name: v for v in scene.test}
     missing = sorted(set(test) - set(seg["views"]))
     if missing:
         raise StageInputError(f"segment did not render held-out view(s) {missing[:5]}")
     protocol = spec.protocol
-    preds = _read_preds(seg_dir / "pred_masks", list(test))
+    preds = _read_preds(seg_dir / Files.PRED_MASKS, list(test))
     row: dict = {"protocol": protocol, "scene": spec.scene, "method": ctx.item["method"],
                  "object": ctx.item["object"], "dataset_object": obj, "method_kind": ref["method"]}
     details: dict = {}
@@ -170,7 +170,7 @@ def _run(ctx, inputs):
 
     refs = {n: v.image.cpu().numpy() for n, v in test.items()}
     refined = {n: E.read_rgb_u8(seg_dir / "render" / f"{n}.png") for n in test}
-    vanilla = {n: E.read_rgb_u8(Path(inputs["scene"]) / "renders" / f"{n}.png") for n in test}
+    vanilla = {n: E.read_rgb_u8(Path(inputs["scene"]) / Files.RENDERS / f"{n}.png") for n in test}
     pr = E.psnr_scores(refined, refs) if refs else {"psnr": float("nan"), "per_view": {}}
     pv = E.psnr_scores(vanilla, refs) if refs else {"psnr": float("nan"), "per_view": {}}
     pre_dir = seg_dir / "render_before_raem"
@@ -195,11 +195,11 @@ def _run(ctx, inputs):
                "(a rough mask spreading onto the background marks background Gaussians as object)")
         row["warnings"] = [msg]
         ctx.warn(msg)
-    write_json(ctx.out_dir / "metrics.json", {"row": row, "details": details,
+    write_json(ctx.out_dir / Files.METRICS, {"row": row, "details": details,
                                               "psnr_per_view": {"refined": pr["per_view"],
                                                                 "vanilla": pv["per_view"],
                                               "before_raem": pb["per_view"]}})
-    with open(ctx.out_dir / "per_view.csv", "w", newline="", encoding="utf-8") as f:
+    with open(ctx.out_dir / Files.PER_VIEW, "w", newline="", encoding="utf-8") as f:
         w = csv.writer(f)
         w.writerow(["view", "iou", "acc", "biou", "biou_released", "biou_occlusion", "psnr", "psnr_before_raem",
                     "psnr_vanilla", "skipped"])

@@ -18,7 +18,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import ClassVar
 
-from cobgs.configs import check_params
+from cobgs.configs import Files, check_params
 from pipeline import Resources, Stage
 
 from ._common import load_scene, nvos_task, object_name, read_spec, write_json, write_png
@@ -110,7 +110,7 @@ def _run(ctx, inputs):
             row.update(gt=f"gt/{v.name}.png", gt_size=[int(g.shape[0]), int(g.shape[1])],
                        gt_area_px=int(np.count_nonzero(g)))
         rows.append(row)
-    write_json(ctx.out_dir / "heldout.json", {
+    write_json(ctx.out_dir / Files.HELDOUT, {
         "format": FORMAT, "version": 1, "scene": spec.scene, "object": obj, "object_item": ctx.item["object"],
         "protocol": spec.protocol, "held_out": len(views), "views": rows,
         "skipped": {k: v for k, v in sorted(skipped.items()) if k not in chosen}})

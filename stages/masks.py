@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar, Optional
 
-from cobgs.configs import MaskNoiseParams, ScribbleConfig, TwoStageConfig, check_params
+from cobgs.configs import Files, MaskNoiseParams, ScribbleConfig, TwoStageConfig, check_params
 from pipeline import Resources, Stage
 
 from ._common import StageInputError, load_scene, nvos_task, object_name, read_json, read_spec, write_json, write_png
@@ -180,7 +180,7 @@ def _run(ctx, inputs):
     info.update(views=len(areas), train_views=len(views), area_px=areas,
                 empty=sorted(k for k, a in areas.items() if a == 0),
                 without_mask=sorted(v.name for v in views if v.name not in areas))
-    write_json(ctx.out_dir / "masks.json", info)  # (kept in the failure record below)
+    write_json(ctx.out_dir / Files.MASKS, info)  # (kept in the failure record below)
     if not areas or all(a == 0 for a in areas.values()):
         hint = ""
         if p.source in ("files", "noisy") and mask_dir is None:

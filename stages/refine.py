@@ -27,13 +27,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
 
-from cobgs.configs import FlashSplatConfig, RefineConfig, SA3DConfig, check_params
+from cobgs.configs import (METHODS, Files, FlashSplatConfig, RefineConfig, SA3DConfig, check_params,
+                           key_without_later)
 from pipeline import Resources, Stage
 
 from ._common import (StageInputError, load_scene, masks_for_views, object_name, read_json, read_spec,
                       to_device, torch_device, write_json)
-
-METHODS = ("cobgs", "nosplit", "sa3d", "flashsplat")
 
 
 @dataclass(frozen=True)
@@ -90,8 +89,8 @@ def _run(ctx, inputs):
     obj = object_name(ctx)
     dev = torch_device(ctx.device)
     scene = to_device(load_scene(inputs["dataset"], inputs["poses"]), ctx.device)
-    trained = read_json(Path(inputs["scene"]) / "train.json")
-    model = load_ply(Path(inputs["scene"]) / "scene.ply", device=dev)
+    trained = read_json(Path(inputs["scene"]) / Files.TRAIN)
+    model = load_ply(Path(inputs["scene"]) / Files.SCENE_PLY, device=dev)
     masks = masks_for_views(Path(inputs["masks"]), scene.train)
     if all(m is None for m in masks):
         raise StageInputError(f"no mask of object {obj!r} matches a training view of {spec['scene']!r}")
@@ -117,16 +116,16 @@ def _run(ctx, inputs):
                         progress=lambda total, desc: ctx.progress(total=total, desc=desc),
                         texture_moments=moments)
     out_model = result.model.to(torch.device("cpu")) if dev.type != "cpu" else result.model
-    save_ply(ctx.out_dir / "refined.ply", out_model)
+    save_ply(ctx.out_dir / Files.REFINED_PLY, out_model)
     raem = {}
     if result.raem_keep is not None and result.raem_removed is not None:
-        save_ply(ctx.out_dir / "raem_removed.ply", result.raem_removed.to(torch.device("cpu")))
+        save_ply(ctx.out_dir / Files.RAEM_REMOVED, result.raem_removed.to(torch.device("cpu")))
         raem = {"raem_keep": result.raem_keep.cpu().numpy().astype(bool)}
-    np.savez_compressed(ctx.out_dir / "segmentation.npz",
+    np.savez_compressed(ctx.out_dir / Files.SEGMENTATION,
                         foreground=result.foreground.cpu().numpy().astype(bool),
                         background=result.background.cpu().numpy().astype(bool),
                         mask_values=result.mask_values.detach().cpu().numpy().astype(np.float32), **raem)
-    np.savez_compressed(ctx.out_dir / "stage_scores.npz",
+    np.savez_compressed(ctx.out_dir / Files.STAGE_SCORES,
                         **{f"stage_{i}": s.cpu().numpy().astype(np.float32)
                            for i, s in enumerate(result.stage_scores)})
     summary = result.summary()
@@ -134,7 +133,7 @@ def _run(ctx, inputs):
     # the same result then gives the same bytes, and nothing downstream re-runs.
     timing = {"refine_s": summary.pop("wall_s"), "peak_mem_bytes": summary.pop("peak_mem_bytes"),
               "stage_wall_s": [s.pop("wall_s", None) for s in summary["stages"]]}
-    masks_info = read_json(Path(inputs["masks"]) / "masks.json")
+    masks_info = read_json(Path(inputs["masks"]) / Files.MASKS)
     summary.update(mask_route=masks_info.get("route"), mask_source=masks_info.get("source"))
     summary.update(method_param=p.method, method_item=ctx.item["method"], object=obj,
                    scene=spec.scene, train_views=len(scene.train),
@@ -145,7 +144,7 @@ def _run(ctx, inputs):
         eff = nosplit_config(config) if p.method == "nosplit" else config
         summary.update(delta=eff.threshold, scene_type=eff.scene_type, mask_stages=eff.num_mask_stages,
                        plan=eff.plan(), texture_adam=result.config.get("texture_adam"))
-    write_json(ctx.out_dir / "refine.json", summary)
+    write_json(ctx.out_dir / Files.REFINE, summary)
     ctx.log.info("%s: %d -> %d Gaussians, %d foreground, %.1f s", p.method, summary["num_gaussians_start"],
                  summary["num_gaussians_end"], summary["foreground"], timing["refine_s"])
     ctx.note(method=p.method, object=obj, num_gaussians_start=summary["num_gaussians_start"],
@@ -156,11 +155,12 @@ def _run(ctx, inputs):
 
 
 def _key_params(params: RefineParams, full: dict) -> dict:
-    """The params that enter the key: all of them, except ``cobgs.object_check`` where it does
-    not apply (peers, the no-split row) or is "off" (the segmentation every entry before the
-    switch existed made), so that adding the switch kept every earlier entry valid."""
-    cob = dict(full.get("cobgs") or {})
-    if params.method != "cobgs" or cob.get("object_check") == "off":
+    """The params that enter the key: all of them, except COB-GS fields added later while they
+    hold their earlier value (:func:`cobgs.configs.key_without_later`: ``object_check`` "off",
+    the segmentation every entry before the switch made) and ``object_check`` where it does
+    not apply (peers, the no-split row), so that adding a switch keeps every earlier entry valid."""
+    cob = key_without_later(RefineConfig, dict(full.get("cobgs") or {}))
+    if params.method != "cobgs":
         cob.pop("object_check", None)
     return dict(full, cobgs=cob)
 

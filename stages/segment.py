@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar, Optional
 
-from cobgs.configs import check_params
+from cobgs.configs import Files, check_params
 from pipeline import Resources, Stage
 
 from ._common import load_scene, read_json, read_spec, to_device, torch_device, write_json, write_png
@@ -64,10 +64,10 @@ def _run(ctx, inputs):
     dev = torch_device(ctx.device)
     spec = read_spec(inputs["dataset"])
     rdir = Path(inputs["refined"])
-    info = read_json(rdir / "refine.json")
-    bg = read_json(Path(inputs["scene"]) / "train.json")["background"]
-    model = load_ply(rdir / "refined.ply", device=dev)
-    seg = np.load(rdir / "segmentation.npz")
+    info = read_json(rdir / Files.REFINE)
+    bg = read_json(Path(inputs["scene"]) / Files.TRAIN)["background"]
+    model = load_ply(rdir / Files.REFINED_PLY, device=dev)
+    seg = np.load(rdir / Files.SEGMENTATION)
     fg = torch.from_numpy(seg["foreground"]).to(dev)
     result = RefineResult(method=info["method"], object_name=info["object"], model=model, foreground=fg,
                           background=torch.from_numpy(seg["background"]).to(dev),
@@ -78,22 +78,22 @@ def _run(ctx, inputs):
         from cobgs.refine.result import restore_pruned
 
         before_raem = restore_pruned(model, torch.from_numpy(seg["raem_keep"]).to(dev),
-                                     load_ply(rdir / "raem_removed.ply", device=dev))
+                                     load_ply(rdir / Files.RAEM_REMOVED, device=dev))
 
     t0 = time.perf_counter()
     obj_model = extract(result, "foreground", extras=[])
     rest_model = extract(result, "background", extras=[])
     extract_ms = 1000.0 * (time.perf_counter() - t0)
     cpu = torch.device("cpu")
-    save_ply(ctx.out_dir / "object.ply", obj_model.to(cpu), extras=[])
-    save_ply(ctx.out_dir / "background.ply", rest_model.to(cpu), extras=[])
+    save_ply(ctx.out_dir / Files.OBJECT_PLY, obj_model.to(cpu), extras=[])
+    save_ply(ctx.out_dir / Files.BACKGROUND_PLY, rest_model.to(cpu), extras=[])
 
     scene = to_device(load_scene(inputs["dataset"], inputs["poses"]), ctx.device)
     views = scene.test if p.views == "test" else scene.views
     t0 = time.perf_counter()
     for v in ctx.progress(views, desc=f"segment[{ctx.item.label}]", unit="view"):
         mask = render_object_mask(result, v.camera, threshold=p.mask_threshold, backend=p.backend)
-        write_png(ctx.out_dir / "pred_masks" / f"{v.name}.png", mask.cpu().numpy())
+        write_png(ctx.out_dir / Files.PRED_MASKS / f"{v.name}.png", mask.cpu().numpy())
         visible = visible_object_mask(result, v.camera, threshold=p.mask_threshold, backend=p.backend)
         write_png(ctx.out_dir / "pred_visible" / f"{v.name}.png", visible.cpu().numpy())
         write_png(ctx.out_dir / "render" / f"{v.name}.png",
@@ -111,11 +111,11 @@ def _run(ctx, inputs):
            "num_gaussians_before_raem": len(before_raem) if before_raem is not None else len(model),
            "mask_threshold": method_threshold(result, p.mask_threshold),
            "background_gaussians": len(rest_model), "views": [v.name for v in views],
-           "files": {"object": "object.ply", "background": "background.ply", "pred_masks": "pred_masks",
+           "files": {"object": Files.OBJECT_PLY, "background": Files.BACKGROUND_PLY, Files.PRED_MASKS: Files.PRED_MASKS,
                      "pred_visible": "pred_visible",
                      "render": "render", "object_renders": "object", "removed_renders": "removed",
                      **({"render_before_raem": "render_before_raem"} if before_raem is not None else {})}}
-    write_json(ctx.out_dir / "segment.json", out)
+    write_json(ctx.out_dir / Files.SEGMENT, out)
     # (timings in the manifest only: the artifact is the same bytes on a recompute)
     ctx.note(object_gaussians=len(obj_model), background_gaussians=len(rest_model), extract_ms=extract_ms,
              render_s=render_s, views=len(views))

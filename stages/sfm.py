@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
 
-from cobgs.configs import SfmOptions, check_params
+from cobgs.configs import Files, SfmOptions, check_params
 from pipeline import Resources, Stage
 
 from ._common import StageInputError, load_scene, read_json, read_spec, spec_path, write_json
@@ -64,7 +64,7 @@ def _run(ctx, inputs):
         info = {"ran": False, "reason": reason}
         if p.triangulate:
             info["initial_points"] = _triangulate(ctx, p, spec, inputs)
-        write_json(ctx.out_dir / "sfm.json", info)
+        write_json(ctx.out_dir / Files.SFM, info)
         ctx.log.info("SfM skipped: %s", reason)
         ctx.note(ran=False, reason=reason, initial_points=(info.get("initial_points") or {}).get("source"))
         return {"poses": ctx.out_dir}
@@ -100,16 +100,16 @@ def _run(ctx, inputs):
             ctx.log.info("undistorted %d masks of %s like the images%s", mask_info["masks"],
                          mask_info["objects"], f" (resized first: {len(mask_info['resized'])})"
                          if mask_info["resized"] else "")
-    for part in ("images", "sparse", "sfm.json"):
+    for part in (Files.SFM_IMAGES, Files.SFM_MODEL.split("/")[0], Files.SFM):
         (res.root / part).rename(ctx.out_dir / part)
-    summary = read_json(ctx.out_dir / "sfm.json")
+    summary = read_json(ctx.out_dir / Files.SFM)
     # Paths inside the artifact, relative (the scratch folder SfM ran in is gone).
-    summary.update(root=".", model_dir="sparse/0", image_dir="images")
+    summary.update(root=".", model_dir=Files.SFM_MODEL, image_dir=Files.SFM_IMAGES)
     summary.update(ran=True, reason=f"mode {p.mode!r}" + ("" if has_poses else ", the dataset has no poses"))
     summary.pop("timings_s", None)  # in the manifest (ctx.note below): same bytes on a recompute
     if mask_info is not None:
         summary["undistorted_masks"] = mask_info
-    write_json(ctx.out_dir / "sfm.json", summary)
+    write_json(ctx.out_dir / Files.SFM, summary)
     ctx.note(ran=True, registered=len(res.registered), unregistered=len(res.unregistered),
              points3d=res.num_points3d, reprojection_error_px=res.mean_reprojection_error_px,
              matcher=res.matcher, timings_s=res.timings_s)
@@ -164,7 +164,7 @@ def _triangulate(ctx, p: SfmParams, spec: dict, inputs) -> dict:
         ctx.log.warning("triangulation found no point: training starts from a random box")
         return {"source": "random box", "why": "triangulation with the known poses found no point",
                 "images": res["images"]}
-    np.savez_compressed(ctx.out_dir / "points.npz", xyz=res["xyz"].astype(np.float32), rgb=res["rgb"])
+    np.savez_compressed(ctx.out_dir / Files.SFM_POINTS, xyz=res["xyz"].astype(np.float32), rgb=res["rgb"])
     ctx.log.info("triangulated %d points (reprojection error %.2f px)", res["points"], res["reprojection_error_px"])
     return {"source": "triangulated with the known poses", "points": res["points"], "images": res["images"],
             "reprojection_error_px": round(res["reprojection_error_px"], 4),

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import ClassVar
 
-from cobgs.configs import check_params
+from cobgs.configs import Files, check_params
 from pipeline import Resources, Stage
 
 from ._common import read_json, write_json
@@ -95,7 +95,7 @@ def _run(ctx, inputs):
     p: SummaryParams = ctx.params
     scenes, seen = [], {}
     for item, path in sorted(inputs["scene"].items(), key=lambda kv: kv[0].id):
-        t = read_json(Path(path) / "train.json")
+        t = read_json(Path(path) / Files.TRAIN)
         entry = entry_of(path)
         _walk(entry, seen)
         ev = t.get("eval") or {}
@@ -107,7 +107,7 @@ def _run(ctx, inputs):
                        "entries": _chain(entry, entry.parents[2])})
     rows, heads = [], []
     for item, path in sorted(inputs["metrics"].items(), key=lambda kv: kv[0].id):
-        row = dict(read_json(Path(path) / "metrics.json")["row"])
+        row = dict(read_json(Path(path) / Files.METRICS)["row"])
         row["item"] = item.id
         entry = entry_of(path)
         _walk(entry, seen)
@@ -154,12 +154,12 @@ def _run(ctx, inputs):
            "oracle_choice": oracle, "stage_totals": per_stage, "timings": timings, "cache_root": str(root) if root else None,
            "overall": {"miou": nanmean(r["iou"] for r in by_method), "target_miou": p.target_miou or None},
            "warnings": warnings}
-    write_json(ctx.out_dir / "summary.json", out)
-    _write_csv(ctx.out_dir / "summary.csv", rows)
-    _write_csv(ctx.out_dir / "by_method.csv", by_method)
-    _write_csv(ctx.out_dir / "by_scene_method.csv", by_scene_method)
-    _write_csv(ctx.out_dir / "timings.csv", timings)
-    _write_csv(ctx.out_dir / "scenes.csv", scenes)
+    write_json(ctx.out_dir / Files.SUMMARY, out)
+    _write_csv(ctx.out_dir / Files.SUMMARY_CSV, rows)
+    _write_csv(ctx.out_dir / Files.BY_METHOD, by_method)
+    _write_csv(ctx.out_dir / Files.BY_SCENE_METHOD, by_scene_method)
+    _write_csv(ctx.out_dir / Files.TIMINGS, timings)
+    _write_csv(ctx.out_dir / Files.SCENES, scenes)
     for r in by_method:
         ctx.log.info("%-14s mIoU %.4f  mBIoU %.4f  mAcc %.4f  PSNR %.2f (vanilla %.2f) dB  [%d scenes, %d objects]",
                      r["method"], r["iou"], r["biou"], r["acc"], r["psnr"], r["psnr_vanilla"], r["scenes"],

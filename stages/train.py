@@ -20,7 +20,7 @@ import dataclasses
 import time
 from pathlib import Path
 
-from cobgs.configs import TrainConfig, key_without_later
+from cobgs.configs import Files, TrainConfig, key_without_later
 from pipeline import Resources, Stage
 
 from ._common import load_scene, to_device, torch_device, write_json, write_png
@@ -63,14 +63,14 @@ def _run(ctx, inputs):
         bar.close()
     wall = time.perf_counter() - t0
     model = res.model
-    save_ply(ctx.out_dir / "scene.ply", model.to(torch.device("cpu")) if dev.type != "cpu" else model)
+    save_ply(ctx.out_dir / Files.SCENE_PLY, model.to(torch.device("cpu")) if dev.type != "cpu" else model)
     save_moments(ctx.out_dir / MOMENTS_FILE, res.adam_moments, len(model))
     bg = cfg.background if cfg.background is not None else scene.background
     for v in scene.test:
-        write_png(ctx.out_dir / "renders" / f"{v.name}.png",
+        write_png(ctx.out_dir / Files.RENDERS / f"{v.name}.png",
                   render_image(model, v.camera, bg, backend=cfg.backend).clamp(0, 1).cpu().numpy())
     ev = res.eval or {}
-    write_json(ctx.out_dir / "train.json", {
+    write_json(ctx.out_dir / Files.TRAIN, {
         # (the later switches left out at their earlier values: a 3dgs run writes the same bytes as before them)
         "config": key_without_later(TrainConfig, dataclasses.asdict(cfg)),
         "schedule": dataclasses.asdict(cfg.schedule()),
@@ -110,17 +110,17 @@ def _import_trained(ctx, cfg, scene, dev, path: Path):
     if checks.get("warning"):
         ctx.warn(f"trained scene {path}: {checks['warning']}")
     model = imp.model
-    save_ply(ctx.out_dir / "scene.ply", model)
+    save_ply(ctx.out_dir / Files.SCENE_PLY, model)
     if imp.moments is not None:
         save_moments(ctx.out_dir / MOMENTS_FILE, imp.moments, len(model))
     bg = cfg.background if cfg.background is not None else scene.background
     model = model.to(dev) if dev.type != "cpu" else model
     for v in scene.test:
-        write_png(ctx.out_dir / "renders" / f"{v.name}.png",
+        write_png(ctx.out_dir / Files.RENDERS / f"{v.name}.png",
                   render_image(model, v.camera, bg, backend=cfg.backend).clamp(0, 1).cpu().numpy())
     ev = evaluate(model, scene.test, bg, backend=cfg.backend) if scene.test else {}
     wall = time.perf_counter() - t0
-    write_json(ctx.out_dir / "train.json", {
+    write_json(ctx.out_dir / Files.TRAIN, {
         "imported": imp.source, "checks": checks, "notes": imp.notes,
         "config": dataclasses.asdict(cfg), "iterations": int(imp.source.get("iteration", 0)),
         "num_gaussians": len(model),

@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
 
-from cobgs.configs import SfmOptions
+from cobgs.configs import Files, SfmOptions
 from cobgs.errors import DataError, InputError
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
@@ -279,7 +279,7 @@ def run_sfm(image_dir: os.PathLike | str, out_dir: os.PathLike | str,
         summary["options"] = dataclasses.asdict(options)
         summary["num_threads_used"] = threads
         summary["pycolmap_version"] = pycolmap.__version__
-        with open(tmp / "sfm.json", "w", encoding="utf-8") as f:
+        with open(tmp / Files.SFM, "w", encoding="utf-8") as f:
             json.dump(summary, f, indent=1)
         if out.exists():
             out.rmdir()  # empty, checked by _prepare_out

@@ -44,7 +44,7 @@ from torch import Tensor
 
 from cobgs.data.scene import View
 from cobgs.progress import Progress
-from cobgs.configs import FlashSplatConfig, RefineConfig, SA3DConfig
+from cobgs.configs import METHODS, NOSPLIT_SWITCHES, FlashSplatConfig, RefineConfig, SA3DConfig
 from cobgs.errors import InputError
 from cobgs.gaussians.model import GaussianModel
 from cobgs.refine.alternation import refine
@@ -53,7 +53,6 @@ from cobgs.refine.result import PeakMemory, RefineResult, StageStats
 from cobgs.refine.scores import mask_loss, pixel_labels_from_mask, render_label_mask
 
 __all__ = [
-    "METHODS",
     "nosplit_config",
     "run_nosplit",
     "run_sa3d",
@@ -64,7 +63,6 @@ __all__ = [
     "make_config",
 ]
 
-METHODS = ("cobgs", "nosplit", "sa3d", "flashsplat")
 
 
 def nosplit_config(base: RefineConfig = RefineConfig()) -> RefineConfig:
@@ -72,8 +70,7 @@ def nosplit_config(base: RefineConfig = RefineConfig()) -> RefineConfig:
     long as the released labels-only run does: every stage of ``base``'s alternation becomes
     a mask stage (forward: 6 mask + 5 texture stages -> 11 mask stages = 22·V iterations;
     360°: 4 + 3 -> 7 = 14·V), not only the mask stages' share (docs/method.md §3)."""
-    return dataclasses.replace(base, bags=False, bgtr=False, raem="off", mask_stages=len(base.plan()),
-                               object_check="off")
+    return dataclasses.replace(base, mask_stages=len(base.plan()), **NOSPLIT_SWITCHES)
 
 
 def _check(views: Sequence[View], masks: Sequence) -> None:
@@ -321,7 +318,7 @@ def make_config(method: str, params: Optional[Mapping] = None):
     """The config dataclass of ``method`` from plain parameters (e.g. a workflow's TOML).
 
     Args:
-        method: one of :data:`METHODS`.
+        method: one of :data:`cobgs.configs.METHODS`.
         params: field name → value; unknown names raise :class:`InputError`.
     """
     if method not in _CONFIGS:

@@ -33,13 +33,14 @@ import torch
 from torch import Tensor
 
 from cobgs._atomic import write_bytes_atomic
+from cobgs.configs import Files
 from cobgs.errors import DataError, InputError
 
 __all__ = ["MOMENTS_FILE", "export_moments", "load_moments", "save_moments", "read_moments"]
 
 MOMENTS_FORMAT = "cobgs-adam-moments"
 MOMENTS_VERSION = 1
-MOMENTS_FILE = "adam_moments.pt"  # the name the pipeline's train stage writes
+MOMENTS_FILE = Files.MOMENTS  # the name the pipeline's train stage writes (the artifact catalog)
 _KEYS = ("exp_avg", "exp_avg_sq", "step")
 
 Moments = Mapping[str, Mapping[str, Tensor]]

@@ -19,16 +19,17 @@ and swapped into place as a whole: a kill leaves the previous export or the new 
 
 from __future__ import annotations
 
+from cobgs.configs import Files
 import os
 
 # (stage, artifact, files inside it, destination relative to <scene>[/<method>/<object>])
 EXPORTS = (
-    ("train", "scene", ("scene.ply", "train.json"), "scene"),
-    ("refine", "refined", ("refined.ply",), "object"),
-    ("segment", "segmentation", ("object.ply", "background.ply", "pred_masks"), "object"),
-    ("evaluate", "metrics", ("metrics.json",), "object"),
-    ("summary", "summary", ("summary.json", "summary.csv", "by_method.csv", "by_scene_method.csv",
-                            "timings.csv", "scenes.csv"), "root"),
+    ("train", "scene", (Files.SCENE_PLY, Files.TRAIN), "scene"),
+    ("refine", "refined", (Files.REFINED_PLY,), "object"),
+    ("segment", "segmentation", (Files.OBJECT_PLY, Files.BACKGROUND_PLY, Files.PRED_MASKS), "object"),
+    ("evaluate", "metrics", (Files.METRICS,), "object"),
+    ("summary", "summary", (Files.SUMMARY, Files.SUMMARY_CSV, Files.BY_METHOD, Files.BY_SCENE_METHOD,
+                            Files.TIMINGS, Files.SCENES), "root"),
 )
 
 
@@ -89,7 +90,7 @@ def export(workflow, cache_dir, to, stream=None, ply: bool = True, turntables: i
     from pipeline.publish import check_destination, publish_folder
 
     to = Path(os.path.abspath(to))
-    check_destination(to, "export.json", "export", replace=replace)
+    check_destination(to, Files.EXPORT_MARKER, "export", replace=replace)
     wanted = {stage: (artifact, files, where) for stage, artifact, files, where in EXPORTS}
     plan, missing = [], []
     scenes: dict = {}
@@ -162,16 +163,16 @@ def export(workflow, cache_dir, to, stream=None, ply: bool = True, turntables: i
             rel = Path(v.get("scene"), v.get("method"), v.get("object"))
             names = {k: f"turntable_{k}.gif" for k in ("object", "removed")}
             seg = rec.output("segmentation")
-            for kind in object_turntables(seg / "object.ply", seg / "background.ply", refs, bg, turntables,
+            for kind in object_turntables(seg / Files.OBJECT_PLY, seg / Files.BACKGROUND_PLY, refs, bg, turntables,
                                           {k: tmp / rel / n for k, n in names.items()}):
                 copied.append({"file": (rel / names[kind]).as_posix(), "stage": "segment", "item": rec.item.id,
                                "entry": "rendered by cobgs.render.turntable"})
         record.update(copied=copied)
-        (tmp / "export.json").write_text(json.dumps(record, indent=1))
+        (tmp / Files.EXPORT_MARKER).write_text(json.dumps(record, indent=1))
 
     record = {"workflow": str(workflow.path), "cache_dir": str(Path(cache_dir).resolve()),
               "copied": copied, "missing": missing}
-    publish_folder(to, write, "export.json", "export", replace=replace)
+    publish_folder(to, write, Files.EXPORT_MARKER, "export", replace=replace)
     return record
 
 
@@ -199,7 +200,7 @@ def _run(args) -> int:
     plys = [c["file"] for c in rec["copied"] if c["file"].endswith(".ply")]
     dest = os.path.abspath(args.to)
     print(f"exported {len(rec['copied'])} files ({len(plys)} PLYs) to {dest}")
-    _print_summary(os.path.join(dest, "summary.json"), dest)
+    _print_summary(os.path.join(dest, Files.SUMMARY), dest)
     return 1 if rec["missing"] else 0
 
 

@@ -13,20 +13,7 @@ if str(HERE) not in sys.path:  # the fixture stages must import the same way eve
     sys.path.insert(0, str(HERE))
 
 import report_fixture_run as fixture_run  # noqa: E402
-
-
-class Recorded:
-    """A finished fixture run: its workflow file, cache and stage registry."""
-
-    def __init__(self, folder: Path, **workflow_kw):
-        self.folder = folder
-        self.workflow, self.cache = fixture_run.run(folder, **workflow_kw)
-        self.registry = fixture_run.registry()
-
-    def build(self, out: Path, **kw) -> Path:
-        from stages.commands.report import build_report
-
-        return build_report(self.workflow, out_dir=out, cache_dir=self.cache, registry=self.registry, **kw)
+from report_fixture_run import Recorded  # noqa: E402
 
 
 @pytest.fixture(scope="session")

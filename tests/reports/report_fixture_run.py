@@ -306,3 +306,17 @@ def run(folder: Path, **workflow_kw) -> tuple[Path, Path]:
     run_workflow(wf, RunOptions(cache_dir=cache, package_version="fixture"), stream=io.StringIO())
     assert time.perf_counter() - t0 < 60
     return wf_path, cache
+
+
+class Recorded:
+    """A finished fixture run: its workflow file, cache and stage registry."""
+
+    def __init__(self, folder: Path, **workflow_kw):
+        self.folder = folder
+        self.workflow, self.cache = run(folder, **workflow_kw)
+        self.registry = registry()
+
+    def build(self, out: Path, **kw) -> Path:
+        from stages.commands.report import build_report
+
+        return build_report(self.workflow, out_dir=out, cache_dir=self.cache, registry=self.registry, **kw)

@@ -175,7 +175,7 @@ def test_overlay_counts_agree_with_the_evaluate_stage(recorded, report):
 
 
 def test_paper_numbers_appear_only_where_the_protocol_and_method_match(tmp_path_factory):
-    from conftest import Recorded
+    from report_fixture_run import Recorded
 
     rec = Recorded(tmp_path_factory.mktemp("nvos"), protocol="nvos", fail_on="", scenes=("fern", "trex"))
     index = rec.build(tmp_path_factory.mktemp("nvos_report") / "r")
