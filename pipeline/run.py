@@ -224,9 +224,9 @@ def run_workflow(workflow: Workflow, options: RunOptions, stream: Optional[TextI
         workflow.verify_data({p for i in sel.forced for p in workflow.data_paths(
             plan.tasks[i].item, plan.tasks[i].params.value, plan.tasks[i].stage.name).values()})
     if options.dry_run:
-        check_params(plan, sel, cache)
+        check_tasks(plan, sel, cache)
         return dry_run(plan, sel, cache, stream, t0)
-    prechecks = check_params(plan, sel, cache)
+    prechecks = check_tasks(plan, sel, cache)
     read_only = False
     try:
         cache.ensure()
@@ -281,7 +281,7 @@ def disk_full_message(root: Path) -> str:
             "(`cobgs cache gc WORKFLOW` removes entries no workflow uses) or pass --cache-dir on another disk")
 
 
-def check_params(plan: Plan, sel: Selection, cache: Cache) -> dict[int, dict[str, int]]:
+def check_tasks(plan: Plan, sel: Selection, cache: Cache) -> dict[int, dict[str, int]]:
     """Run each stage's ``check`` on the params of the tasks this run will execute (not
     done in the cache, or forced), once per distinct params, before anything runs; a
     refused value raises :class:`WorkflowError` naming the file and key that set it. Then

@@ -21,7 +21,7 @@ from cobgs.configs import Files
 from pipeline.publish import DestinationError, check_destination, publish_folder
 
 from . import fmt, results as R
-from .collect import RunData, Task, collect
+from .collect import RunData, TaskRecord, collect
 from .errors import ReportError
 from .gallery import picture_sets
 from .pictures import KIND_LABELS, slug
@@ -116,7 +116,7 @@ class _Logs:
         self.root = root
         self.done: dict[Path, str] = {}
 
-    def __call__(self, task: Optional[Task]) -> Optional[str]:
+    def __call__(self, task: Optional[TaskRecord]) -> Optional[str]:
         if task is None or task.log_path is None or not Path(task.log_path).is_file():
             return None
         src = Path(task.log_path)

@@ -46,7 +46,7 @@ def read_artifact_json(folder: Path, name: str, owner: str) -> dict:
 
 
 @dataclass
-class Task:
+class TaskRecord:
     """One stage x item of the workflow as the cache knows it."""
 
     stage: str
@@ -108,7 +108,7 @@ class Result:
     refine_dir: Optional[Path] = None
     segment: Optional[dict] = None  # segment.json
     segment_dir: Optional[Path] = None
-    tasks: dict = field(default_factory=dict)  # stage -> Task of this item's chain
+    tasks: dict = field(default_factory=dict)  # stage -> TaskRecord of this item's chain
     problem: Optional[Problem] = None
 
     @property
@@ -130,12 +130,12 @@ class Heldout:
 
 
 @dataclass
-class Scene:
+class SceneRecord:
     name: str
     dataset: Optional[dict] = None  # dataset.json
     train: Optional[dict] = None  # train.json
     train_dir: Optional[Path] = None
-    train_task: Optional[Task] = None
+    train_task: Optional[TaskRecord] = None
     heldout: dict = field(default_factory=dict)  # object -> Heldout
     dataset_dir: Optional[Path] = None  # the dataset artifact (cameras, for turntables)
     poses_dir: Optional[Path] = None  # the SfM artifact, where the scene has one
@@ -149,15 +149,15 @@ class Scene:
 class RunData:
     workflow: Any  # pipeline.Workflow
     cache_dir: Path
-    tasks: list[Task]
+    tasks: list[TaskRecord]
     results: list[Result]
-    scenes: dict[str, Scene]
+    scenes: dict[str, SceneRecord]
     methods: list[str]  # in workflow order
     # (dataset dir, poses dir or None) -> (training cameras, background): the command layer
     # hands it in (reports read no artifact layout of the stages; turntables, 3D viewers)
     scene_cameras: Optional[Any] = None
 
-    def cameras(self, scene: "Scene") -> tuple[list, tuple]:
+    def cameras(self, scene: "SceneRecord") -> tuple[list, tuple]:
         """(training cameras, background) of a scene, through :attr:`scene_cameras`."""
         if self.scene_cameras is None:
             raise ReportError("turntables and 3D viewers need the scenes' cameras: build the report through "
@@ -165,11 +165,11 @@ class RunData:
         return self.scene_cameras(scene.dataset_dir, scene.poses_dir)
 
     @property
-    def failed(self) -> list[Task]:
+    def failed(self) -> list[TaskRecord]:
         return [t for t in self.tasks if t.state in ("failed", "corrupt")]
 
     @property
-    def not_done(self) -> list[Task]:
+    def not_done(self) -> list[TaskRecord]:
         return [t for t in self.tasks if t.state != "done"]
 
     def counts(self) -> dict[str, int]:
@@ -179,12 +179,12 @@ class RunData:
         return out
 
 
-def _tasks(workflow, cache_dir: Path) -> list[Task]:
+def _tasks(workflow, cache_dir: Path) -> list[TaskRecord]:
     from pipeline import entries
 
     out = []
     for rec in entries(workflow, cache_dir):
-        out.append(Task(stage=rec.stage, item=rec.item, state=rec.state, key=rec.key, reasons=list(rec.reasons),
+        out.append(TaskRecord(stage=rec.stage, item=rec.item, state=rec.state, key=rec.key, reasons=list(rec.reasons),
                         manifest=rec.manifest, entry_dir=rec.entry_dir, log_path=rec.log_path))
     return out
 
@@ -226,25 +226,25 @@ def collect(workflow, cache_dir: os.PathLike | str) -> RunData:
     tasks = _tasks(workflow, cache_dir)
     producer = workflow.graph.producer
     refine_defaults = _refine_defaults(workflow)
-    by_stage: dict[str, dict[Any, Task]] = {}
+    by_stage: dict[str, dict[Any, TaskRecord]] = {}
     for t in tasks:
         by_stage.setdefault(t.stage, {})[t.item] = t
 
-    def task_for(artifact: str, item) -> Optional[Task]:
+    def task_for(artifact: str, item) -> Optional[TaskRecord]:
         stage = producer.get(artifact)
         if stage is None:
             return None
         return by_stage.get(stage, {}).get(item.project(workflow.levels[stage]))
 
-    def load(task: Optional[Task], artifact: str) -> tuple[Optional[dict], Optional[Path]]:
+    def load(task: Optional[TaskRecord], artifact: str) -> tuple[Optional[dict], Optional[Path]]:
         folder = task.out(artifact) if task is not None else None
         if folder is None:
             return None, None
         return read_artifact_json(folder, DESCRIPTORS[artifact], f"{task.stage}[{task.item_id}]"), folder
 
-    scenes: dict[str, Scene] = {}
+    scenes: dict[str, SceneRecord] = {}
     for name in _axis_names(workflow, "scene"):
-        sc = Scene(name)
+        sc = SceneRecord(name)
         for t in by_stage.get(producer.get("dataset", ""), {}).values():
             if t.values.get("scene") == name:
                 raw, sc.dataset_dir = load(t, "dataset")

@@ -65,14 +65,13 @@ def read_mask(path: Path) -> np.ndarray:
         raise ReportError(f"{path}: unreadable mask: {exc}") from None
 
 
-def resize_nearest(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """Bool mask resized NEAREST with Pillow's pixel-centre sampling (the protocols')."""
-    from PIL import Image
+def fit_mask(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """A bool mask at ``shape`` by the protocols' own resize (cobgs.evaluate.protocols)."""
+    from cobgs.evaluate.protocols import resize_nearest as protocol_resize
 
     if mask.shape == tuple(shape):
         return mask
-    im = Image.fromarray(mask.astype(np.uint8) * 255).resize((shape[1], shape[0]), resample=Image.NEAREST)
-    return np.asarray(im) > THRESHOLD_U8
+    return protocol_resize(mask.astype(np.uint8) * 255, int(shape[0]), int(shape[1])) > THRESHOLD_U8
 
 
 def resize_rgb(img: np.ndarray, shape: tuple[int, int], nearest: bool = False) -> np.ndarray:
@@ -261,11 +260,11 @@ def compose(ps: PictureSet, image: Optional[np.ndarray], gt: Optional[np.ndarray
         ps.files["image"] = put("image.jpg", resize_rgb(image, display_shape(image.shape)))
     if gt is not None:
         ps.gt_size = gt.shape
-        ps.files["gt"] = put("gt.png", resize_nearest(gt, display_shape(gt.shape)))
+        ps.files["gt"] = put("gt.png", fit_mask(gt, display_shape(gt.shape)))
     back = None
     if gt is not None:
         back = resize_rgb(image, gt.shape) if image is not None else np.full(gt.shape + (3,), 128, np.uint8)
-    fitted = {m: resize_nearest(p, gt.shape) for m, p in preds.items()} if gt is not None else {}
+    fitted = {m: fit_mask(p, gt.shape) for m, p in preds.items()} if gt is not None else {}
     if gt is not None and fitted:
         ps.crop = crop_window(gt, [(p ^ gt) for p in fitted.values()])
     if gt is not None:
@@ -277,7 +276,7 @@ def compose(ps: PictureSet, image: Optional[np.ndarray], gt: Optional[np.ndarray
         if mp.method in preds:
             p = preds[mp.method]
             shape = ref_shape or p.shape
-            mp.files["pred"] = put(f"{d}/pred.png", resize_nearest(resize_nearest(p, shape), display_shape(shape)))
+            mp.files["pred"] = put(f"{d}/pred.png", fit_mask(fit_mask(p, shape), display_shape(shape)))
         if mp.method in fitted:
             p = fitted[mp.method]
             tp, fp, fn = gt & p, p & ~gt, gt & ~p
@@ -288,7 +287,7 @@ def compose(ps: PictureSet, image: Optional[np.ndarray], gt: Optional[np.ndarray
                                                                  0, 0, size))
             # The page-size overlay is painted at page size from error maps shrunk with
             # "any", so that thin boundary errors do not average away.
-            disp = paint(back_d, resize_nearest(tp, dshape), shrink_any(fp, dshape), shrink_any(fn, dshape))
+            disp = paint(back_d, fit_mask(tp, dshape), shrink_any(fp, dshape), shrink_any(fn, dshape))
             disp = draw_box(disp, round(top * scale), round(left * scale), max(2, round(size * scale)),
                             max(1, round(disp.shape[1] / 240)))
             mp.files["overlay"] = put(f"{d}/overlay.png", disp)

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Callable, Optional
 
 from . import paper
-from .collect import Result, RunData, Task
+from .collect import Result, RunData, TaskRecord
 from .fmt import finite
 
 from cobgs.configs import NOSPLIT_SWITCHES, Files
@@ -25,7 +25,7 @@ METRICS = ("iou", "acc", "biou", "iou_released", "biou_released", "iou_occlusion
 # The params section of the refine stage each method kind reads.
 _SECTIONS = {"cobgs": "cobgs", "nosplit": "cobgs", "sa3d": "sa3d", "flashsplat": "flashsplat"}
 
-LogHref = Callable[[Optional[Task]], Optional[str]]
+LogHref = Callable[[Optional[TaskRecord]], Optional[str]]
 
 
 @dataclass

@@ -1,7 +1,7 @@
 """What the stages share: the artifact layouts they exchange, and reading them back.
 
-Artifacts (each a folder inside a cache entry; the file names below are stable and
-documented in README "Workflows"):
+Artifacts (each a folder inside a cache entry; the file names below are stable, named once in
+:class:`cobgs.configs.Files` and documented in docs/usage.md "What the cache holds"):
 
 * ``dataset`` — ``dataset.json`` (the spec below) and, for synthetic scenes, the generated
   scene in ``scene/``. External data stays where it is and is referenced by absolute path

@@ -310,13 +310,13 @@ def _need_models(p: MasksParams) -> Path:
 def _generate(ctx, p: MasksParams, spec: dict, obj: str, views, info: dict) -> None:
     from cobgs.masks.api import generate_masks, generate_masks_from_scribbles
     from cobgs.masks.manifest import load_manifest
-    from cobgs.masks.session import RunOptions
+    from cobgs.masks.session import SessionOptions
 
     models = _need_models(p)
     load_manifest(models)  # fails here, naming the folder, before any image is read
     providers = ["CUDAExecutionProvider", "CPUExecutionProvider"] if ctx.device.startswith("cuda") \
         else ["CPUExecutionProvider"]
-    options = RunOptions(providers=providers, intra_op_threads=p.intra_op_threads)
+    options = SessionOptions(providers=providers, intra_op_threads=p.intra_op_threads)
     paths = [v.path for v in views]
     if any(pth is None for pth in paths):
         raise StageInputError("the training views have no image files to prompt SAM2 with")

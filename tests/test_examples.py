@@ -20,7 +20,7 @@ def test_segment_object_example(tmp_path):
     from cobgs.gaussians.ply import load_ply, save_ply
     from cobgs.train.optimize import train
     from cobgs.configs import TrainConfig
-    from test_refine_fixtures import synthetic_surface_points  # tests/ is on sys.path
+    from refine_fixtures import synthetic_surface_points  # tests/ is on sys.path
 
     size = dict(width_px=128, height_px=96, num_views=24)
     folder = generate_scene(tmp_path / "scene", "demo", seed=0, workers=1, progress=False, **size)

@@ -18,12 +18,12 @@ import torch
 
 from cobgs.render.camera import Camera
 from cobgs.errors import DataError
+from cobgs.data.images import list_images
 from cobgs.data.scene import (
     Scene,
     View,
     find_object_files,
     finish_rgb,
-    list_images,
     make_scene,
     read_image_array,
     read_mask_array,

@@ -26,6 +26,22 @@ _ORIENTATION_TAG = 0x0112
 _NAMED = 5
 
 
+#: The image files the scene readers take.
+IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".exr", ".webp")
+
+
+def list_images(folder: os.PathLike | str, extensions: tuple[str, ...] = IMAGE_EXTENSIONS) -> list[Path]:
+    """Image files directly inside ``folder`` (by extension, case-insensitive), sorted by name.
+
+    Raises:
+        DataError: the folder does not exist.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DataError("image folder not found", folder)
+    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in extensions)
+
+
 def same_aspect(w1: int, h1: int, w2: int, h2: int, tol: float = 0.01) -> bool:
     """Whether two image sizes have the same aspect ratio, up to ``tol`` (relative; a
     downscale's rounding, 1008x756 vs 4032x3024 or 510x382 vs 512x384, passes)."""

@@ -25,11 +25,11 @@ import numpy as np
 
 from cobgs.render.camera import Camera
 from cobgs.errors import DataError
+from cobgs.data.images import list_images
 from cobgs.data.scene import (
     Scene,
     View,
     finish_rgb,
-    list_images,
     load_object_masks,
     make_scene,
     read_image_array,

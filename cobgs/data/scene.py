@@ -18,9 +18,9 @@ import torch
 from torch import Tensor
 
 from cobgs.render.camera import Camera, scene_extent
+from cobgs.data.images import IMAGE_EXTENSIONS
 from cobgs.errors import DataError, InputError
 
-IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".exr", ".webp")
 
 
 @dataclass
@@ -291,16 +291,6 @@ def target_size(width: int, height: int, downscale: float) -> tuple[int, int]:
     if downscale <= 0:
         raise InputError(f"downscale must be > 0, got {downscale}")
     return max(1, int(round(width / downscale))), max(1, int(round(height / downscale)))
-
-
-def list_images(folder: os.PathLike | str) -> list[Path]:
-    """Image files directly inside ``folder``, sorted by name."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise DataError("image folder not found", folder)
-    return sorted(
-        p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS
-    )
 
 
 def find_object_files(root: os.PathLike | str, stem: str, subdir: str = "masks") -> dict[str, Path]:

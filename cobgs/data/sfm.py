@@ -28,9 +28,10 @@ from pathlib import Path
 from typing import Dict, List, Optional, Sequence, Tuple
 
 from cobgs.configs import Files, SfmOptions
+from cobgs.data.images import list_images
 from cobgs.errors import DataError, InputError
 
-IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
+SFM_IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")  # what COLMAP reads
 _MAX_NAMES_IN_ERROR = 30
 
 
@@ -75,14 +76,17 @@ class SfmResult:
         return d
 
 
-def list_images(image_dir: Path) -> List[str]:
-    """Image file names (relative, sorted) directly inside ``image_dir``."""
-    if not image_dir.is_dir():
+def sfm_image_names(image_dir: Path) -> List[str]:
+    """The image file names SfM takes from ``image_dir`` (the formats COLMAP reads), sorted.
+
+    Raises:
+        InputError: the folder does not exist. DataError: it holds no such image.
+    """
+    if not Path(image_dir).is_dir():
         raise InputError(f"image folder {image_dir} does not exist")
-    names = sorted(p.name for p in image_dir.iterdir()
-                   if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS)
+    names = [p.name for p in list_images(image_dir, SFM_IMAGE_EXTENSIONS)]
     if not names:
-        raise DataError(f"no images ({', '.join(IMAGE_EXTENSIONS)}) found", image_dir)
+        raise DataError(f"no images ({', '.join(SFM_IMAGE_EXTENSIONS)}) found", image_dir)
     return names
 
 
@@ -163,7 +167,7 @@ def run_sfm(image_dir: os.PathLike | str, out_dir: os.PathLike | str,
 
     image_dir = Path(image_dir)
     out = Path(out_dir)
-    all_names = list_images(image_dir)
+    all_names = sfm_image_names(image_dir)
     if image_names is not None:
         missing = sorted(set(image_names) - set(all_names))
         if missing:

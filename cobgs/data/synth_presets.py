@@ -17,7 +17,7 @@ import numpy as np
 from cobgs.errors import InputError
 from cobgs.data.synth_cameras import forward_facing, orbit
 from cobgs.data.synth_primitives import Box, Cylinder, Plane, Sphere, rotation_from_euler_deg
-from cobgs.data.synth_render import Scene, SceneObject
+from cobgs.data.synth_render import SynthScene, SceneObject
 from cobgs.data.synth_textures import Texture
 
 
@@ -150,7 +150,7 @@ def _demo(rng: np.random.Generator, p: SynthPreset):
     crate = _crate(rng, 1, (-0.2, 0.25), (0.32, 0.26, 0.26), 20.0 + rng.uniform(-8, 8))
     ball = _ball_leaning(rng, 2, crate.shape, 0.2, 1, -1.0, "ball", along=0.45)
     can = _can(rng, 3, (-0.5, -0.22), 0.13, 0.5, 0.09, "can")
-    scene = Scene((crate, ball, can), (ground, wall), _LIGHT, ambient=0.4)
+    scene = SynthScene((crate, ball, can), (ground, wall), _LIGHT, ambient=0.4)
     poses = forward_facing(p.num_views, (0.0, -1.75, 0.85), (-0.05, 0.25, 0.3), 0.4, 0.22, rng)
     return scene, poses
 
@@ -164,7 +164,7 @@ def _forward(rng: np.random.Generator, p: SynthPreset):
     pole = _can(rng, 4, (0.45, 0.05), 0.018, 1.0, 0.1, "pole")
     ball2 = _ball_leaning(rng, 5, crate.shape, 0.14, 1, -1.0, "ball2", along=0.55)
     gem = _gem(rng, 6, (0.75, -0.3), 0.12, target=False)
-    scene = Scene((crate, ball, can, pole, ball2, gem), (ground, wall), _LIGHT, ambient=0.4)
+    scene = SynthScene((crate, ball, can, pole, ball2, gem), (ground, wall), _LIGHT, ambient=0.4)
     poses = forward_facing(p.num_views, (0.05, -2.2, 1.0), (0.05, 0.2, 0.3), 0.5, 0.28, rng)
     return scene, poses
 
@@ -182,13 +182,13 @@ def _orbit(rng: np.random.Generator, p: SynthPreset):
     can = _can(rng, 4, (0.45, -0.45), 0.12, 0.5, 0.08, "can")
     pole = _can(rng, 5, (-0.35, -0.4), 0.018, 0.9, 0.1, "pole")
     gem = _gem(rng, 6, (0.5, 0.6), 0.12, target=False)
-    scene = Scene((crate, ball, ball2, can, pole, gem), (ground, *walls), (-0.5, -0.3, 1.2),
+    scene = SynthScene((crate, ball, ball2, can, pole, gem), (ground, *walls), (-0.5, -0.3, 1.2),
                   ambient=0.4)
     poses = orbit(p.num_views, (0.0, 0.0, 0.25), 2.0, 1.35, 0.25, phase_deg=rng.uniform(0, 360))
     return scene, poses
 
 
-BUILDERS: Dict[str, Callable[[np.random.Generator, SynthPreset], Tuple[Scene, List[np.ndarray]]]] = {
+BUILDERS: Dict[str, Callable[[np.random.Generator, SynthPreset], Tuple[SynthScene, List[np.ndarray]]]] = {
     "demo": _demo,
     "forward": _forward,
     "orbit": _orbit,

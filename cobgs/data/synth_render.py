@@ -43,7 +43,7 @@ class SceneObject:
 
 
 @dataclass(frozen=True)
-class Scene:
+class SynthScene:
     """Objects (ids 1..K), background surfaces (id 0) and lighting.
 
     Attributes:
@@ -95,7 +95,7 @@ class RenderedView:
 class _Caster:
     """Holds the per-scene constants (bounds, texture lattices) for many casts."""
 
-    def __init__(self, scene: Scene):
+    def __init__(self, scene: SynthScene):
         self.scene = scene
         self.surfaces = scene.surfaces
         self.bounds = [s.shape.bound() for s in self.surfaces]
@@ -208,7 +208,7 @@ def subsample_offsets(s: int) -> np.ndarray:
     return np.stack([xx.ravel(), yy.ravel()], axis=1)
 
 
-def render_view(scene: Scene, camera: PinholeCamera, supersampling: int,
+def render_view(scene: SynthScene, camera: PinholeCamera, supersampling: int,
                 chunk_rays: int = 1 << 14, caster: "_Caster | None" = None) -> RenderedView:
     """Ray-cast one view.
 
@@ -269,7 +269,7 @@ def _ray_chunks(camera: PinholeCamera, supersampling: int, chunk_rays: int):
         yield pix, eye, d
 
 
-def silhouette_hits(scene: Scene, camera: PinholeCamera, supersampling: int,
+def silhouette_hits(scene: SynthScene, camera: PinholeCamera, supersampling: int,
                     chunk_rays: int = 1 << 14, caster: "_Caster | None" = None) -> np.ndarray:
     """[K, H, W] uint16: per object, how many of the pixel's subsamples hit it at all,
     occluders ignored (its amodal silhouette; the mask rule of :func:`render_view`'s hits
@@ -284,7 +284,7 @@ def silhouette_hits(scene: Scene, camera: PinholeCamera, supersampling: int,
     return out.reshape(k, camera.height, camera.width)
 
 
-def make_caster(scene: Scene) -> _Caster:
+def make_caster(scene: SynthScene) -> _Caster:
     """Per-scene constants to share between :func:`render_view` calls."""
     return _Caster(scene)
 

@@ -27,7 +27,7 @@ from cobgs._atomic import build_folder_atomic
 from cobgs.errors import DataError, InputError
 from cobgs.data.synth_cameras import PinholeCamera, intrinsics_from_fov, opencv_to_opengl
 from cobgs.data.synth_presets import BUILDERS, PRESETS, SynthPreset
-from cobgs.data.synth_render import RenderedView, Scene, make_caster, render_view, silhouette_hits
+from cobgs.data.synth_render import RenderedView, SynthScene, make_caster, render_view, silhouette_hits
 
 GENERATOR = "cobgs.data.synthetic"
 FORMAT_VERSION = 1
@@ -51,7 +51,7 @@ def resolve_preset(preset: str | SynthPreset, **overrides) -> SynthPreset:
 
 
 def build_scene(preset: str | SynthPreset, seed: int = 0, **overrides
-                ) -> Tuple[SynthPreset, Scene, List[PinholeCamera]]:
+                ) -> Tuple[SynthPreset, SynthScene, List[PinholeCamera]]:
     """The resolved preset, its scene and its cameras for ``seed`` (nothing is rendered).
 
     ``overrides`` replace preset fields (``width_px``, ``height_px``, ``num_views``,
@@ -70,7 +70,7 @@ def build_scene(preset: str | SynthPreset, seed: int = 0, **overrides
     return p, scene, cams
 
 
-def render_scene_view(scene: Scene, camera: PinholeCamera, supersampling: int) -> RenderedView:
+def render_scene_view(scene: SynthScene, camera: PinholeCamera, supersampling: int) -> RenderedView:
     """Render one view (colour and per-object subsample hit counts)."""
     return render_view(scene, camera, supersampling)
 
@@ -79,7 +79,7 @@ def render_scene_view(scene: Scene, camera: PinholeCamera, supersampling: int) -
 _WORKER: dict = {}
 
 
-def _init_worker(scene: Scene, cams: List[PinholeCamera], s: int, parent_pid: int, test_every: int) -> None:
+def _init_worker(scene: SynthScene, cams: List[PinholeCamera], s: int, parent_pid: int, test_every: int) -> None:
     # A render worker must not outlive the process that started it (a SIGKILLed run would
     # leave it waiting on its task queue forever): Linux's PR_SET_PDEATHSIG ends it then.
     try:
@@ -94,7 +94,7 @@ def _init_worker(scene: Scene, cams: List[PinholeCamera], s: int, parent_pid: in
     _WORKER.update(scene=scene, cams=cams, s=s, caster=make_caster(scene), test_every=test_every)
 
 
-def _render_one(scene: Scene, cam: PinholeCamera, s: int, caster, held_out: bool):
+def _render_one(scene: SynthScene, cam: PinholeCamera, s: int, caster, held_out: bool):
     view = render_view(scene, cam, s, caster=caster)
     return view, (silhouette_hits(scene, cam, s, caster=caster) if held_out else None)
 
@@ -104,7 +104,7 @@ def _render_index(i: int):
     return _render_one(w["scene"], w["cams"][i], w["s"], w["caster"], i % w["test_every"] == 0)
 
 
-def _render_all(scene: Scene, cams: List[PinholeCamera], s: int, progress: bool, workers: int,
+def _render_all(scene: SynthScene, cams: List[PinholeCamera], s: int, progress: bool, workers: int,
                 test_every: int):
     """Yield (view, silhouette hits of the held-out views, else None) in order; views are
     independent, so ``workers`` processes render them in parallel with identical results."""
@@ -214,7 +214,7 @@ def generate_scene(out_dir: os.PathLike | str, preset: str | SynthPreset = "demo
     return build_folder_atomic(out, lambda tmp: _write(tmp, p, scene, cams, seed, progress, workers))
 
 
-def _write(root: Path, p: SynthPreset, scene: Scene, cams: List[PinholeCamera], seed: int,
+def _write(root: Path, p: SynthPreset, scene: SynthScene, cams: List[PinholeCamera], seed: int,
            progress: bool, workers: int) -> None:
     names = [o.name for o in scene.objects]
     (root / "images").mkdir()

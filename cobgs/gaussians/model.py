@@ -44,16 +44,19 @@ def inverse_sigmoid(x: Tensor) -> Tensor:
     return torch.log(x / (1.0 - x))
 
 
-def quat_to_rotmat(quats: Tensor) -> Tensor:
-    """Rotation matrices of (w, x, y, z) quaternions.
+def quat_to_rotmat(quats: Tensor, normalize: bool = True) -> Tensor:
+    """Rotation matrices of (w, x, y, z) quaternions (the one copy: the model and the
+    rasterizer's reference use it).
 
     Args:
-        quats: [N, 4], normalised inside.
+        quats: [N, 4].
+        normalize: normalise them first; False for quaternions already of unit norm (the
+            reference, which normalises them itself), so their entries are used as given.
 
     Returns:
         [N, 3, 3].
     """
-    q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    q = quats / quats.norm(dim=-1, keepdim=True).clamp_min(1e-12) if normalize else quats
     w, x, y, z = q.unbind(-1)
     return torch.stack(
         [

@@ -5,7 +5,7 @@
   ``generate_masks_from_clicks``, ``FramePrompt``;
 * :mod:`~cobgs.masks.clicks`: click files (SAGA-v2's NVOS points, the per-object layout);
 * :mod:`~cobgs.masks.manifest`: the model folder's manifests (``load_manifest``);
-  :mod:`~cobgs.masks.session`: onnxruntime sessions (``RunOptions``);
+  :mod:`~cobgs.masks.session`: onnxruntime sessions (``SessionOptions``);
 * :mod:`~cobgs.masks.two_stage`, :mod:`~cobgs.masks.video`, :mod:`~cobgs.masks.gdino`,
   :mod:`~cobgs.masks.scribbles`: the pieces; :mod:`~cobgs.masks.export`: the ONNX export.
 

@@ -27,7 +27,7 @@ from cobgs.masks.encoder_cache import EncoderCache
 from cobgs.masks.manifest import ModelsNotConfiguredError, load_manifest
 from cobgs.configs import ScribbleConfig, TwoStageConfig
 from cobgs.masks.scribbles import scribble_points
-from cobgs.masks.session import RunOptions
+from cobgs.masks.session import SessionOptions
 from cobgs.masks.two_stage import run_two_stage
 from cobgs.masks.video import VideoPredictor
 from cobgs.masks.writer import write_json, write_mask_png
@@ -69,7 +69,7 @@ def _paths(image_paths: Sequence[PathLike]) -> List[Path]:
     return paths
 
 
-def _sam2(models_dir: PathLike, options: Optional[RunOptions]):
+def _sam2(models_dir: PathLike, options: Optional[SessionOptions]):
     from cobgs.masks.sam2_models import Sam2Models
 
     manifest = load_manifest(models_dir)
@@ -136,7 +136,7 @@ def generate_masks(
     config: TwoStageConfig = TwoStageConfig(),
     names: Optional[Sequence[str]] = None,
     log_path: Optional[PathLike] = None,
-    options: Optional[RunOptions] = None,
+    options: Optional[SessionOptions] = None,
 ) -> MaskGenerationResult:
     """Two-stage text-prompted masks for an ordered image sequence.
 
@@ -191,7 +191,7 @@ def generate_masks_from_points(
     box: Optional[Sequence[float]] = None,
     names: Optional[Sequence[str]] = None,
     log_path: Optional[PathLike] = None,
-    options: Optional[RunOptions] = None,
+    options: Optional[SessionOptions] = None,
     extra_log: Optional[dict] = None,
 ) -> MaskGenerationResult:
     """Prompt ``frame`` with points (x, y in that image's pixels; labels 1/0) and/or a
@@ -228,7 +228,7 @@ def generate_masks_from_clicks(
     *,
     names: Optional[Sequence[str]] = None,
     log_path: Optional[PathLike] = None,
-    options: Optional[RunOptions] = None,
+    options: Optional[SessionOptions] = None,
     extra_log: Optional[dict] = None,
 ) -> MaskGenerationResult:
     """Prompt one object on one or more frames, propagate with the SAM2 video predictor,
@@ -304,7 +304,7 @@ def generate_masks_from_scribbles(
     config: ScribbleConfig = ScribbleConfig(),
     log_path: Optional[PathLike] = None,
     names: Optional[Sequence[str]] = None,
-    options: Optional[RunOptions] = None,
+    options: Optional[SessionOptions] = None,
 ) -> MaskGenerationResult:
     """NVOS protocol: scribbles on the reference view -> sampled points -> SAM2 on that
     view -> propagation to all views (docs/method.md §5)."""

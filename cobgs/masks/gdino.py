@@ -19,7 +19,7 @@ from cobgs.errors import InputError, ModelError
 
 from cobgs.masks.images import to_model_input
 from cobgs.masks.manifest import GdinoManifest, keep_aspect_size
-from cobgs.masks.session import GraphSession, RunOptions
+from cobgs.masks.session import GraphSession, SessionOptions
 
 
 @dataclass(frozen=True)
@@ -113,7 +113,7 @@ class Tokenizer:
 class GroundingDino:
     """Open-vocabulary box detector over one checked ONNX graph."""
 
-    def __init__(self, manifest: GdinoManifest, options: Optional[RunOptions] = None):
+    def __init__(self, manifest: GdinoManifest, options: Optional[SessionOptions] = None):
         self.manifest = manifest
         self.session = GraphSession(manifest.graph, options)
         cfg = manifest.config

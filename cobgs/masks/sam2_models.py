@@ -14,7 +14,7 @@ import numpy as np
 from cobgs.errors import ModelError
 
 from cobgs.masks.manifest import Sam2Manifest
-from cobgs.masks.session import GraphSession, RunOptions
+from cobgs.masks.session import GraphSession, SessionOptions
 
 VIDEO_REFUSED = (
     "this SAM2 export is image-only (no memory_attention / memory_encoder graphs), so it "
@@ -129,7 +129,7 @@ class Sam2Models:
         options: providers / threads / tracing for every session.
     """
 
-    def __init__(self, manifest: Sam2Manifest, options: Optional[RunOptions] = None):
+    def __init__(self, manifest: Sam2Manifest, options: Optional[SessionOptions] = None):
         self.manifest = manifest
         self.layout = manifest.layout
         self.config = manifest.config

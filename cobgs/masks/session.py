@@ -62,7 +62,7 @@ def choose_providers(requested: Optional[Sequence[str]] = None) -> List[str]:
 
 
 @dataclass
-class RunOptions:
+class SessionOptions:
     """How sessions are created.
 
     Attributes:
@@ -99,11 +99,11 @@ class GraphSession:
         options: providers, threads, tracing.
     """
 
-    def __init__(self, spec: GraphSpec, options: Optional[RunOptions] = None):
+    def __init__(self, spec: GraphSpec, options: Optional[SessionOptions] = None):
         import onnxruntime as ort
 
         self.spec = spec
-        self.options = options or RunOptions()
+        self.options = options or SessionOptions()
         self.stats = CallStats()
         path = spec.path
         if not path.is_file():

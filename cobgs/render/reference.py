@@ -47,6 +47,8 @@ from typing import Optional, Tuple
 import torch
 from torch import Tensor
 
+from cobgs.gaussians.model import quat_to_rotmat
+
 TILE_SIZE = 16
 NEAR_PLANE = 0.01  # scene units; Gaussians with camera depth <= this are culled
 LOWPASS_PX2 = 0.3  # EWA low-pass added to the 2D covariance diagonal (px²)
@@ -83,23 +85,6 @@ class RasterOutput:
     label_weights: Optional[Tensor] = None
 
 
-def quat_to_rotmat(quats: Tensor) -> Tensor:
-    """Rotation matrices of unit quaternions.
-
-    Args:
-        quats: Tensor  # [N, 4] (w, x, y, z), normalised
-    Returns:
-        Tensor  # [N, 3, 3]
-    """
-    w, x, y, z = quats.unbind(-1)
-    entries = [
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
-    ]
-    return torch.stack(entries, dim=-1).reshape(quats.shape[:-1] + (3, 3))
-
-
 def _projection_formulas(t, quats, scales, viewmat, K, width, height):
     """Every projection formula of the contract, without culling.
 
@@ -111,7 +96,7 @@ def _projection_formulas(t, quats, scales, viewmat, K, width, height):
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
 
     qn = quats / quats.norm(dim=-1, keepdim=True)
-    M = quat_to_rotmat(qn) * scales[:, None, :]  # R_q · diag(s)
+    M = quat_to_rotmat(qn, normalize=False) * scales[:, None, :]  # R_q · diag(s)
     cov_cam = R @ (M @ M.transpose(1, 2)) @ R.T  # W Σ Wᵀ
 
     # Jacobian of the pinhole projection at a clamped tx/tz (3DGS), keeping footprints of

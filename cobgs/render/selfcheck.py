@@ -4,7 +4,7 @@ render what the pure-PyTorch reference renders, and how fast is it.
 * :func:`parity`: a seeded 200-Gaussian scene (no extreme values) rendered in float32 by the
   native ops on a device and in float64 by :mod:`cobgs.render.reference` on the CPU, with
   gradients of a fixed random loss. Tolerances are the test suite's float32 ones
-  (tests/test_rasterize.py ``test_float32_matches_float64_reference``): image and alpha
+  (tests/render/test_rasterize.py ``test_float32_matches_float64_reference``): image and alpha
   within 1e-4 absolute (colours are sums of ~20 float32 terms of size <= 1); every gradient
   within 1e-3 of its tensor's largest entry (float32 sums over ~50 pairs per Gaussian with
   cancellations); projected radii equal.

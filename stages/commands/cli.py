@@ -41,6 +41,28 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: The top-level packages of this distribution besides cobgs (docs/install_names.md).
+SIBLINGS = ("pipeline", "stages", "reports")
+
+
+def check_sibling_packages() -> Optional[str]:
+    """Why the top-level packages this program imports are not the ones installed beside
+    ``cobgs`` (another distribution's ``pipeline`` or ``reports`` first on sys.path), or None."""
+    import importlib.util
+    from pathlib import Path
+
+    home = Path(importlib.util.find_spec("cobgs").origin).resolve().parents[1]
+    for name in SIBLINGS:
+        spec = importlib.util.find_spec(name)
+        where = Path(spec.origin).resolve().parents[1] if spec is not None and spec.origin else None
+        if where != home:
+            found = spec.origin if spec is not None and spec.origin else "nowhere"
+            return (f"the package {name!r} imported here is {found}, not the one installed with cobgs (in {home}): "
+                    f"another distribution provides a top-level {name!r}. Install cobgs in its own virtual "
+                    "environment (docs/install_names.md)")
+    return None
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     # OpenMP threads that spin while waiting burn the cores they wait for: on a shared or
     # oversubscribed host, torch's 2-thread ops then run ~10x slower than 1 thread (measured:
@@ -50,6 +72,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     import os
 
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+    clash = check_sibling_packages()
+    if clash:
+        print(f"cobgs: error: {clash}", file=sys.stderr)
+        return 2
     # Large per-iteration tensors reuse freed memory instead of page-faulting fresh
     # mmaps (cobgs/_memory.py: about 10 % of a training iteration).
     from cobgs._memory import retain_freed_memory

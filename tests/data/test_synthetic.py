@@ -139,7 +139,7 @@ def test_masks_follow_majority_of_subsamples(scene_dir):
 def test_amodal_masks_hold_the_visible_ones(scene_dir):
     """amodal/<object>/ holds the held-out views only: the whole silhouette (occluders
     ignored) contains the visible mask, and is larger where something hides the object."""
-    from cobgs.data.synth_render import Scene as SynthScene, render_view
+    from cobgs.data.synth_render import SynthScene, render_view
     from cobgs.data.synthetic import build_scene
     import dataclasses as dc
 

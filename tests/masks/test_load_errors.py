@@ -161,15 +161,15 @@ def test_gdino_int64_mask_rejected(tmp_path):
 
 
 def test_unavailable_provider_named(models_dir, caplog):
-    from cobgs.masks.session import RunOptions
+    from cobgs.masks.session import SessionOptions
 
     with pytest.raises(ModelError, match=r"\['NoSuchExecutionProvider'\] not available"):
         Sam2Models(load_manifest(models_dir).sam2,
-                   RunOptions(providers=["NoSuchExecutionProvider"]))
+                   SessionOptions(providers=["NoSuchExecutionProvider"]))
     # with a fallback listed, the missing one is dropped and said so
     caplog.set_level("WARNING", logger="cobgs.masks")
     m = Sam2Models(load_manifest(models_dir).sam2,
-                   RunOptions(providers=["NoSuchExecutionProvider", "CPUExecutionProvider"]))
+                   SessionOptions(providers=["NoSuchExecutionProvider", "CPUExecutionProvider"]))
     assert m.sessions["mask_decoder"].providers == ["CPUExecutionProvider"]
     assert "lacks ['NoSuchExecutionProvider']" in caplog.text
 

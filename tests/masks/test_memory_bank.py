@@ -10,7 +10,7 @@ from cobgs.masks.manifest import Sam2Config, load_manifest
 from cobgs.masks.memory_bank import FrameMemory, MemoryBank
 from cobgs.masks.postprocess import sine_pe_1d
 from cobgs.masks.sam2_models import Sam2Models
-from cobgs.masks.session import RunOptions
+from cobgs.masks.session import SessionOptions
 from cobgs.masks.video import VideoPredictor
 
 from . import scenes
@@ -118,7 +118,7 @@ def test_instrumented_propagation_forward_and_backward(request, tmp_path, models
     root = request.getfixturevalue(models)
     seq = [scenes.Frame("red", x=10 + i) for i in range(12)]
     paths, _ = scenes.write_sequence(tmp_path / "seq", seq)
-    sam = Sam2Models(load_manifest(root).sam2, RunOptions(trace_shapes=True))
+    sam = Sam2Models(load_manifest(root).sam2, SessionOptions(trace_shapes=True))
     cache = EncoderCache(sam, paths)
     pred = VideoPredictor(sam, cache)
     pred.add_prompt(4, 1, box=(14, 16, 26, 28))

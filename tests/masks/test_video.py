@@ -111,11 +111,11 @@ def test_encoder_no_mem_embed_flag_recovers_raw_features(models_dir, tmp_path, m
 
 
 def test_concat_pointer_layout_feeds_pointer_count(tmp_path, moving):
-    from cobgs.masks.session import RunOptions
+    from cobgs.masks.session import SessionOptions
 
     root = fakes.build_sam2(tmp_path / "m", concat_ptr=True)
     paths, _ = moving
-    sam = Sam2Models(load_manifest(root).sam2, RunOptions(trace_shapes=True))
+    sam = Sam2Models(load_manifest(root).sam2, SessionOptions(trace_shapes=True))
     pred = VideoPredictor(sam, EncoderCache(sam, paths))
     pred.add_prompt(0, 1, box=(8, 10, 20, 22))
     list(pred.propagate(0, 2))

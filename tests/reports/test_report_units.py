@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from reports import fmt, paper
-from reports.pictures import FN_RGB, FP_RGB, crop_window, overlay, resize_nearest, slug
+from reports.pictures import FN_RGB, FP_RGB, crop_window, overlay, slug
 from reports.results import options_of
 from reports.tables import Column, best_indices, build_table
 
@@ -155,16 +155,6 @@ def test_crop_window_goes_where_errors_are_and_stays_inside():
     t2, l2, s2 = crop_window(gt, [np.zeros_like(gt)])
     assert 0 <= t2 <= 40 and 0 <= l2 <= 70
     assert 0.2 < gt[t2:t2 + s2, l2:l2 + s2].mean() < 0.8
-
-
-def test_resize_nearest_matches_the_protocol_sampling():
-    from cobgs.evaluate.protocols import resize_nearest as protocol_resize
-
-    rng = np.random.default_rng(0)
-    m = rng.random((13, 17)) > 0.5
-    ours = resize_nearest(m, (40, 31))
-    theirs = protocol_resize(m.astype(np.uint8) * 255, 40, 31) > 128
-    assert np.array_equal(ours, theirs)
 
 
 def test_slug_keeps_names_apart():

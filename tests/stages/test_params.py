@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -145,7 +146,7 @@ def test_masks_cache_key_holds_only_what_the_route_reads():
     assert set(key(noisy)) == {"source", "files_threshold", "files_root", "noise"}
 
 
-DEMO_WORKFLOW = __import__("pathlib").Path(__file__).resolve().parents[2] / "workflows" / "demo.toml"
+DEMO_WORKFLOW = Path(__file__).resolve().parents[2] / "workflows" / "demo.toml"
 
 
 @pytest.mark.parametrize("key", ["train.iterations", "train.position_lr_init"])
@@ -191,3 +192,74 @@ def test_segment_mask_threshold_range_is_stated_once_and_documented():
             SegmentParams(mask_threshold=bad)
     docs = (Path(__file__).resolve().parents[2] / "docs" / "pipeline.md").read_text()
     assert "# mask_threshold = ...  # default: none (Optional[float]); in (0, 1)" in docs
+
+
+DEMO = DEMO_WORKFLOW
+
+
+@pytest.mark.parametrize("setting", [
+    # H2: values that ruined results silently
+    "train.prune_min_opacity=inf", "train.ssim_weight=nan", "train.position_lr_init=nan", "train.adam_eps=0",
+    "train.init_opacity=1.5", "refine.cobgs.mask_lambda=nan", "refine.cobgs.split_size_fraction=nan",
+    "refine.cobgs.raem_footprint_px=-1",
+    # M1: errors that came late, after upstream tasks ran
+    "train.position_lr_init=-1", "train.adam_eps=nan", "train.log_interval_its=0", "train.backend=evil",
+    "evaluate.boundary_ratio=nan", "dataset.workers=-3", "dataset.num_views=-1", "refine.cobgs.label_name=x",
+    # L7: no upper bounds
+    "train.iterations=10000000000000000000", "refine.cobgs.split_children=1000000", "dataset.width_px=100000",
+    # L10
+    "evaluate.boundary_ratio=5", "summary.target_miou=nan", "evaluate.warn_psnr_drop_db=inf",
+])
+def test_params_out_of_range_refused_when_planned_naming_set_and_key(setting):
+    from pipeline import Plan, WorkflowError, load_workflow
+    from stages.registry import load_registry
+
+    key = setting.split("=")[0]
+    with pytest.raises(WorkflowError) as err:
+        Plan(load_workflow(DEMO, load_registry(), [setting]))
+    text = str(err.value)
+    assert "--set" in text and key.split(".")[-1] in text, text
+    assert ("must be in" in text or "must be one of" in text or "finite" in text
+            or "an integer" in text), text
+
+
+def test_every_numeric_param_states_a_range_or_is_finite():
+    """The rule behind the list above: each float param of every stage has a stated range
+    or must be finite; the generated docs list every range."""
+    import dataclasses
+    import typing
+
+    from cobgs.configs import check_params
+    from stages.registry import load_registry
+
+    for stage in load_registry().stages.values():
+        cls = stage.params
+        if cls is None:
+            continue
+        todo = [cls]
+        while todo:
+            c = todo.pop()
+            hints = typing.get_type_hints(c)
+            for f in dataclasses.fields(c):
+                tp = hints[f.name]
+                if dataclasses.is_dataclass(tp):
+                    todo.append(tp)
+            # a float field holding nan is refused by every params class
+            for f in dataclasses.fields(c):
+                if hints[f.name] is float:
+                    inst = c()
+                    with pytest.raises(ValueError):
+                        check_params(dataclasses.replace(inst, **{f.name: float("nan")}))
+
+
+def test_docs_list_every_param_with_its_range_as_generated():
+    """docs/pipeline.md states the valid range of every param, generated from the params
+    classes (`cobgs stages --docs docs/pipeline.md` rewrites it), never written twice."""
+    from pipeline.commands import DOCS_BEGIN, DOCS_END, stages_toml
+    from stages.registry import load_registry
+
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "pipeline.md").read_text()
+    inside = doc.split(DOCS_BEGIN, 1)[1].split(DOCS_END, 1)[0]
+    expected = f"\n```toml\n{stages_toml(load_registry()).rstrip()}\n```\n"
+    assert inside == expected, "docs/pipeline.md is stale: run `cobgs stages --docs docs/pipeline.md`"
+    assert "prune_min_opacity = 0.005  # in [0, 1)" in inside and "boundary_ratio = 0.02  # in (0, 0.5]" in inside

@@ -23,7 +23,7 @@ from cobgs.refine.segment import (
     render_removed_rgb,
     subset,
 )
-from test_refine_fixtures import three_gaussians, tiny_model, tiny_scene
+from refine_fixtures import three_gaussians, tiny_model, tiny_scene
 
 
 def _result(model, fg, bg, values=None) -> RefineResult:

@@ -22,7 +22,7 @@ from cobgs.refine.scores import (
     view_scores,
 )
 from cobgs.refine.split import boundary_split, pixel_footprint, raem_prune_mask, split_candidates
-from test_refine_fixtures import three_gaussians, tiny_scene
+from refine_fixtures import three_gaussians, tiny_scene
 
 CORE_NO_LABEL = ("means", "log_scales", "quats", "opacity_logits", "sh0", "shN")
 

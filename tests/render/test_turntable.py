@@ -8,7 +8,7 @@ import torch
 
 from cobgs.errors import InputError
 from cobgs.render.turntable import object_center, orbit_cameras, render_turntable, write_animation
-from test_refine_fixtures import tiny_scene
+from refine_fixtures import tiny_scene
 
 
 def test_orbit_looks_at_the_centre_from_the_first_cameras_height_with_up_upwards():

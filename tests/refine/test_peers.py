@@ -19,7 +19,7 @@ from cobgs.refine.peers import (
 from cobgs.refine.alternation import masks_for
 from cobgs.configs import RefineConfig
 from cobgs.refine.scores import pixel_labels_from_mask
-from test_refine_fixtures import three_gaussians, tiny_scene
+from refine_fixtures import three_gaussians, tiny_scene
 
 
 def test_flashsplat_votes_are_alpha_t_sums_per_label():

@@ -24,7 +24,7 @@ from cobgs.errors import BuildError
 from cobgs.render import _build
 from cobgs.render._toolchain import links_libstdcxx_statically, needed_libraries, probe_library
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 GXX = shutil.which("g++")
 pytestmark = pytest.mark.skipif(GXX is None, reason="needs g++ to build the test libraries")
 

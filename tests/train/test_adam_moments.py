@@ -14,7 +14,7 @@ from cobgs.train.losses import photometric_loss
 from cobgs.refine.alternation import Refiner, masks_for, refine, refine_objects
 from cobgs.configs import RefineConfig
 from cobgs.render.image import render
-from test_refine_fixtures import tiny_scene
+from refine_fixtures import tiny_scene
 
 TEXTURE = ("means", "sh0", "shN", "opacity_logits", "log_scales", "quats")
 

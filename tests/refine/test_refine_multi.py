@@ -13,7 +13,7 @@ from cobgs.refine.alternation import OBJECT_ID, OBJECT_LOGITS, assign_object_ids
 from cobgs.configs import RefineConfig
 from cobgs.refine.scores import LABEL
 from cobgs.refine.segment import export_objects, object_index
-from test_refine_fixtures import tiny_scene
+from refine_fixtures import tiny_scene
 
 L9 = math.log(9.0)
 

@@ -20,7 +20,7 @@ from cobgs.configs import RefineConfig
 from cobgs.refine.segment import evaluate_masks
 from cobgs.train.optimize import evaluate, train
 from cobgs.configs import TrainConfig
-from test_refine_fixtures import synthetic_surface_points
+from refine_fixtures import synthetic_surface_points
 
 pytestmark = pytest.mark.slow
 

@@ -16,7 +16,7 @@ import pytest
 from cobgs.render import _build
 from cobgs.errors import BuildError
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def run_python(code: str, env_extra: dict, timeout=120) -> subprocess.CompletedProcess:
