@@ -10,12 +10,12 @@ import pytest
 import torch
 
 from cobgs.configs import FAST_RECIPE, TrainConfig, key_without_later
-from cobgs.render.camera import Camera
 from cobgs.data.scene import View, make_scene
 from cobgs.render.image import render
 from cobgs.gaussians.model import GaussianModel
 from cobgs.train.optimize import Trainer, resolution_levels, spectral_energy_kept, train
 from cobgs.train.visible_adam import VisibleAdam
+from refine_fixtures import look_at_camera
 
 # TrainConfig's fields at 93c1d91, before the recipe existed: the train stage's key (and
 # train.json's config) of a 3dgs run must hold exactly these, so earlier cache entries are reused.
@@ -32,13 +32,8 @@ FIELDS_BEFORE_RECIPES = {
 
 def _camera(i, n, w, h, radius=3.0):
     a = 2 * math.pi * i / n
-    eye = torch.tensor([radius * math.cos(a), 0.6 * math.sin(2 * a), radius * math.sin(a)])
-    fwd = -eye / eye.norm()
-    right = torch.linalg.cross(torch.tensor([0.0, -1.0, 0.0]), fwd)
-    right = right / right.norm()
-    c2w = torch.eye(4)
-    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, torch.linalg.cross(fwd, right), fwd, eye
-    return Camera.from_c2w(c2w, 0.9 * w, 0.9 * w, w / 2, h / 2, w, h, f"v{i:02d}")
+    eye = (radius * math.cos(a), 0.6 * math.sin(2 * a), radius * math.sin(a))
+    return look_at_camera(eye, (0.0, 0.0, 0.0), w, h, 0.9 * w, f"v{i:02d}")
 
 
 @pytest.fixture(scope="module")
