@@ -32,7 +32,7 @@ _HOME = {
     "GaussianModel": "cobgs.gaussians.model", "load_ply": "cobgs.gaussians.ply", "save_ply": "cobgs.gaussians.ply",
     "TrainConfig": "cobgs.configs", "RefineConfig": "cobgs.configs", "SA3DConfig": "cobgs.configs",
     "FlashSplatConfig": "cobgs.configs",
-    "refine_objects": "cobgs.refine.alternation", "run_method": "cobgs.refine.peers",
+    "refine_objects": "cobgs.refine.alternation", "run_method": "cobgs.refine.methods",
     "read_scene": "cobgs.data.readers",
 }
 __all__ = sorted(_HOME) + ["BuildError", "CobgsError", "DataError", "InputError", "ModelError", "__version__"]

@@ -17,12 +17,11 @@ from typing import ClassVar, Optional, Tuple
 
 from cobgs.errors import InputError
 
-__all__ = ["Files", "METHODS", "NOSPLIT_SWITCHES", "key_without_later", "with_later_values", "check_params", "parse_interval", "in_interval", "TrainConfig", "Schedule", "RefineConfig",
+__all__ = ["Files", "NGSConfig", "NOSPLIT_SWITCHES", "key_without_later", "with_later_values", "check_params", "parse_interval", "in_interval", "TrainConfig", "Schedule", "RefineConfig",
            "SA3DConfig", "FlashSplatConfig", "TwoStageConfig", "ScribbleConfig", "MaskNoiseParams", "SfmOptions", "LABEL",
            "RAEM_VARIANTS", "TEXTURE_ADAM", "SCENE_DEFAULTS", "MATCHERS"]
 
 LABEL = "mask_logit"  # name of the per-Gaussian label-logit extra
-METHODS = ("cobgs", "nosplit", "sa3d", "flashsplat")  # the refinement methods (cobgs.refine.peers.run_method)
 #: What the no-split peer forces on COB-GS's config (paper Table 5, first row; with the
 #: stage count, cobgs.refine.peers.nosplit_config): these switches say nothing of a no-split row.
 NOSPLIT_SWITCHES = {"bags": False, "bgtr": False, "raem": "off", "object_check": "off"}
@@ -564,6 +563,48 @@ class FlashSplatConfig:
 
     def __post_init__(self):
         check_params(self)
+
+
+@dataclass(frozen=True)
+class NGSConfig:
+    """NG-GS's boundary stage (cobgs.refine.ngs; docs/method.md §3 "NG-GS"). Defaults: the
+    released ``arguments/__init__.py`` and ``scene/ngs_model.py``.
+
+    Attributes:
+        lr: the refiner's Adam learning rate (``ngs_lr``).
+        max_points: boundary Gaussians per texture iteration (``ngs_max_points``).
+        lambda_align, lambda_cont, lambda_smooth: the loss weights (``lambda_ngs_*``).
+        hash_levels, features_per_level, log2_hashmap_size, base_resolution,
+        finest_resolution: the hash encoding; hidden_dim: the MLP width; k_neighbors: the
+        RBF neighbourhood.
+        seed: the refiner's initialisation, the jitter and the random subset.
+    """
+
+    lr: float = 1e-3
+    max_points: int = 4096
+    lambda_align: float = 1.0
+    lambda_cont: float = 0.1
+    lambda_smooth: float = 0.05
+    hash_levels: int = 8
+    features_per_level: int = 2
+    log2_hashmap_size: int = 15
+    base_resolution: int = 16
+    finest_resolution: int = 512
+    hidden_dim: int = 64
+    k_neighbors: int = 8
+    seed: int = 0
+
+    RANGES: ClassVar[dict] = {"lr": "(0, 1]", "max_points": "[1, 1e8]", "lambda_align": "[0, 1e3]",
+                              "lambda_cont": "[0, 1e3]", "lambda_smooth": "[0, 1e3]", "hash_levels": "[1, 32]",
+                              "features_per_level": "[1, 64]", "log2_hashmap_size": "[4, 28]",
+                              "base_resolution": "[1, 1e6]", "finest_resolution": "[1, 1e6]",
+                              "hidden_dim": "[1, 4096]", "k_neighbors": "[1, 1024]", "seed": "[0, 2147483647]"}
+
+    def __post_init__(self):
+        check_params(self)
+        if self.finest_resolution < self.base_resolution:
+            raise InputError(f"NGSConfig.finest_resolution ({self.finest_resolution}) must be >= base_resolution "
+                             f"({self.base_resolution})")
 
 
 # -- two-stage masks and scribbles (cobgs.masks) ------------------------------------------

@@ -15,15 +15,16 @@ from .collect import Result, RunData, TaskRecord
 from .fmt import finite
 
 from cobgs.configs import NOSPLIT_SWITCHES, Files
+from cobgs.refine.methods import REGISTRY
 from cobgs.data.spec import DatasetSpec
 from cobgs.evaluate.protocols import ORACLE_METHOD
 
-KIND_LABELS = {"cobgs": "COB-GS", "nosplit": "labels only, no split", "sa3d": "SA3D-GS", "flashsplat": "FlashSplat"}
+KIND_LABELS = {name: m.label for name, m in REGISTRY.items()}  # (cobgs.refine.methods)
 METRICS = ("iou", "acc", "biou", "iou_released", "biou_released", "iou_occlusion", "biou_occlusion", "psnr",
            "psnr_before_raem", "psnr_vanilla", "psnr_delta", "psnr_delta_before_raem", "num_gaussians",
            "num_gaussians_vanilla", "object_gaussians", "refine_s", "splits", "pruned", "dropped")
 # The params section of the refine stage each method kind reads.
-_SECTIONS = {"cobgs": "cobgs", "nosplit": "cobgs", "sa3d": "sa3d", "flashsplat": "flashsplat"}
+_SECTIONS = {name: m.sections for name, m in REGISTRY.items()}  # the params sections it reads
 
 LogHref = Callable[[Optional[TaskRecord]], Optional[str]]
 
@@ -93,10 +94,10 @@ _FORCED = {"nosplit": tuple(f"cobgs.{k}" for k in NOSPLIT_SWITCHES)}
 def options_of(kind: str, params: Optional[dict], defaults: dict) -> list[str]:
     if not params:
         return []
-    section = _SECTIONS.get(kind)
+    sections = _SECTIONS.get(kind, ())
     got, base = _flat(params), _flat(defaults)
     keep = [k for k in got if k not in ("method",) + _FORCED.get(kind, ())
-            and (k.split(".")[0] == section or "." not in k)]
+            and (k.split(".")[0] in sections or "." not in k)]
     return [f"{k.split('.', 1)[-1]}={_value_text(got[k])}" for k in keep if got[k] != base.get(k)]
 
 

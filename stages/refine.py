@@ -22,13 +22,13 @@ elsewhere) refines with fresh moments, and ``refine.json`` says which (``texture
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
 
-from cobgs.configs import (METHODS, Files, FlashSplatConfig, RefineConfig, SA3DConfig, check_params,
+from cobgs.configs import (Files, FlashSplatConfig, NGSConfig, RefineConfig, SA3DConfig, check_params,
                            key_without_later)
+from cobgs.refine.methods import METHODS, method_for
 from pipeline import Resources, Stage
 
 from ._common import (StageInputError, load_scene, masks_for_views, object_name, read_json, read_spec,
@@ -38,13 +38,15 @@ from ._common import (StageInputError, load_scene, masks_for_views, object_name,
 @dataclass(frozen=True)
 class RefineParams:
     """Attributes:
-        method: "cobgs" (ablations through ``cobgs``), "nosplit", "sa3d", "flashsplat".
+        method: "cobgs" (ablations through ``cobgs``), "nosplit", "sa3d", "flashsplat", "ngs"
+            (:data:`cobgs.refine.methods.REGISTRY`).
         scene_type: "auto" (the dataset's: forward-facing or 360°), "forward" or "360";
             the scene type of :class:`cobgs.refine.alternation.RefineConfig` (default δ and number of
             stages).
         cobgs: COB-GS parameters (also the no-split peer's, with its switches forced off).
         sa3d: SA3D-GS parameters.
         flashsplat: FlashSplat parameters.
+        ngs: NG-GS's boundary stage (method "ngs": COB-GS's stages from ``cobgs`` plus this).
     """
 
     method: str = "cobgs"
@@ -52,13 +54,12 @@ class RefineParams:
     cobgs: RefineConfig = field(default_factory=RefineConfig)
     sa3d: SA3DConfig = field(default_factory=SA3DConfig)
     flashsplat: FlashSplatConfig = field(default_factory=FlashSplatConfig)
+    ngs: NGSConfig = field(default_factory=NGSConfig)
 
     CHOICES: ClassVar[dict] = {"method": METHODS, "scene_type": ("auto", "forward", "360")}
 
     def __post_init__(self) -> None:
         check_params(self)
-        if self.method not in METHODS:
-            raise ValueError(f"method must be one of {list(METHODS)}, got {self.method!r}")
         if self.scene_type not in ("auto", "forward", "360"):
             raise ValueError(f"scene_type must be 'auto', 'forward' or '360', got {self.scene_type!r}")
         if self.cobgs.scene_type != RefineConfig.scene_type:
@@ -67,13 +68,8 @@ class RefineParams:
 
 
 def method_config(p: RefineParams, dataset_scene_type: str):
-    """The library config object :func:`cobgs.refine.peers.run_method` takes for ``p.method``."""
-    if p.method in ("cobgs", "nosplit"):
-        st = dataset_scene_type if p.scene_type == "auto" else p.scene_type
-        return dataclasses.replace(p.cobgs, scene_type=st or "forward")
-    if p.method == "sa3d":
-        return p.sa3d
-    return p.flashsplat
+    """The library config object :func:`cobgs.refine.methods.run_method` takes for ``p.method``."""
+    return method_for(p.method).config_of(p, dataset_scene_type)
 
 
 def _run(ctx, inputs):
@@ -81,7 +77,7 @@ def _run(ctx, inputs):
     import torch
 
     from cobgs.train.adam_moments import MOMENTS_FILE, read_moments
-    from cobgs.refine.peers import run_method
+    from cobgs.refine.methods import run_method
     from cobgs.gaussians.ply import load_ply, save_ply
 
     p: RefineParams = ctx.params
@@ -95,20 +91,22 @@ def _run(ctx, inputs):
     if all(m is None for m in masks):
         raise StageInputError(f"no mask of object {obj!r} matches a training view of {spec['scene']!r}")
     masks = [None if m is None else m.to(dev) for m in masks]
+    method = method_for(p.method)
     config = method_config(p, spec.scene_type)
+    sched = method.schedule(config)
     moments = None
     moments_file = Path(inputs["scene"]) / MOMENTS_FILE
-    if p.method == "cobgs" and config.bgtr and config.texture_adam == "baseline":
+    if method.alternates and sched.bgtr and sched.texture_adam == "baseline":
         if moments_file.is_file():
             moments = read_moments(moments_file, len(model), device=dev)
         else:
             ctx.log.warning("%s not found: the texture stages start from fresh Adam moments", moments_file)
     ctx.log.info("%s on %r: %d Gaussians, %d views (%d with a mask)", p.method, obj, len(model),
                  len(scene.train), sum(m is not None for m in masks))
-    if p.method == "cobgs":
+    if method.alternates:
         from cobgs.refine.alternation import short_stage_warning
 
-        short = short_stage_warning(config, len(scene.train))
+        short = short_stage_warning(sched, len(scene.train))
         if short:  # on the task's line and in its manifest, also when reused from the cache
             ctx.warn(short)
     result = run_method(p.method, model, scene.train, masks, scene.extent, config=config,
@@ -138,10 +136,8 @@ def _run(ctx, inputs):
     summary.update(method_param=p.method, method_item=ctx.item["method"], object=obj,
                    scene=spec.scene, train_views=len(scene.train),
                    views_with_mask=sum(m is not None for m in masks), extent=scene.extent)
-    if p.method in ("cobgs", "nosplit"):
-        from cobgs.refine.peers import nosplit_config
-
-        eff = nosplit_config(config) if p.method == "nosplit" else config
+    if sched is not None:
+        eff = sched
         summary.update(delta=eff.threshold, scene_type=eff.scene_type, mask_stages=eff.num_mask_stages,
                        plan=eff.plan(), texture_adam=result.config.get("texture_adam"))
     write_json(ctx.out_dir / Files.REFINE, summary)
@@ -160,9 +156,12 @@ def _key_params(params: RefineParams, full: dict) -> dict:
     the segmentation every entry before the switch made) and ``object_check`` where it does
     not apply (peers, the no-split row), so that adding a switch keeps every earlier entry valid."""
     cob = key_without_later(RefineConfig, dict(full.get("cobgs") or {}))
-    if params.method != "cobgs":
+    if params.method not in ("cobgs", "ngs"):
         cob.pop("object_check", None)
-    return dict(full, cobgs=cob)
+    out = dict(full, cobgs=cob)
+    if params.method != "ngs":  # (a section added later: only NG-GS reads it)
+        out.pop("ngs", None)
+    return out
 
 
 STAGE = Stage(

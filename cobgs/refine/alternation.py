@@ -79,7 +79,7 @@ from cobgs.refine.scores import (
 from cobgs.refine.split import boundary_split, raem_prune_mask, split_candidates
 from cobgs.render.image import render
 from cobgs._memory import retain_freed_memory
-from cobgs.configs import FOREGROUND_LABEL, RefineConfig
+from cobgs.configs import FOREGROUND_LABEL, NGSConfig, RefineConfig
 
 __all__ = [
     "Refiner",
@@ -120,6 +120,8 @@ class Refiner:
         reset_labels: start every label logit at 0 (docs/method.md §2).
         texture_moments: the baseline's Adam moments of the texture tensors
             (:mod:`cobgs.train.adam_moments`); used when ``config.texture_adam == "baseline"``.
+        ngs: NG-GS's boundary stage (:mod:`cobgs.refine.ngs`): its loss joins every TEXTURE
+            iteration's; None (COB-GS) leaves the texture step as it is.
 
     Attributes:
         texture_adam: "baseline" when the texture Adam started from ``texture_moments``,
@@ -136,6 +138,7 @@ class Refiner:
         background: Sequence[float] = (0.0, 0.0, 0.0),
         reset_labels: bool = True,
         texture_moments: Optional[Moments] = None,
+        ngs: Optional[NGSConfig] = None,
     ):
         if not views:
             raise InputError("refinement needs at least one training view")
@@ -169,6 +172,11 @@ class Refiner:
         self.raem_removed: Optional[GaussianModel] = None
         self.iteration = 0
         self.last_mask_info: dict = {}
+        self.ngs = None
+        if ngs is not None:
+            from cobgs.refine.ngs import NGSStage
+
+            self.ngs = NGSStage(ngs, model.device)
 
     @property
     def optimizers(self) -> list:
@@ -200,10 +208,14 @@ class Refiner:
         c, view = self.config, self.views[i]
         out = render(self.model, view.camera, self.background, backend=c.backend)
         loss = photometric_loss(out.image, view.image.to(out.image.device), c.ssim_weight)
+        if self.ngs is not None:  # (the accumulator is empty in texture stages, as NG-GS's after a split)
+            loss = loss + self.ngs.loss(self.model, c.label_name, self.scores.sum)
         loss.backward()
         with torch.no_grad():
             self.texture_opt.step()
             self.texture_opt.zero_grad(set_to_none=True)
+            if self.ngs is not None:
+                self.ngs.step()
         self.iteration += 1
         return float(loss.detach())
 
@@ -360,6 +372,7 @@ def refine(
     copy: bool = True,
     texture_moments: Optional[Moments] = None,
     return_moments: bool = False,
+    ngs: Optional[NGSConfig] = None,
 ) -> RefineResult:
     """Refine ``model`` for one object with COB-GS and segment it.
 
@@ -379,6 +392,8 @@ def refine(
             TEXTURE stages; without them those stages start from zero moments (logged).
         return_moments: keep the texture Adam's final moments in the result (to continue
             from them, as :func:`refine_objects` does for the next object).
+        ngs: NG-GS's boundary stage in the TEXTURE iterations (:mod:`cobgs.refine.ngs`);
+            None: COB-GS as it is.
 
     Returns:
         :class:`RefineResult`; ``model`` carries the label-logit extra; foreground =
@@ -389,7 +404,7 @@ def refine(
     n0 = len(m)
     t0 = time.perf_counter()
     with PeakMemory() as mem:
-        r = Refiner(m, views, masks, extent, config, background, texture_moments=texture_moments)
+        r = Refiner(m, views, masks, extent, config, background, texture_moments=texture_moments, ngs=ngs)
         if config.bgtr and config.texture_adam == "baseline" and r.texture_adam == "fresh":
             log.warning("%s %s: no baseline Adam moments given; the TEXTURE stages start from zero moments "
                         "(pass texture_moments, e.g. TrainResult.adam_moments or read_moments(adam_moments.pt))",
@@ -420,7 +435,8 @@ def refine(
         num_gaussians_end=len(m),
         wall_s=wall,
         peak_mem_bytes=mem.peak_bytes,
-        config=dict(config.as_dict(), texture_adam=r.texture_adam, object_check_dropped=checked),
+        config=dict(config.as_dict(), texture_adam=r.texture_adam, object_check_dropped=checked,
+                    **({"ngs": dataclasses.asdict(ngs)} if ngs is not None else {})),
         texture_moments=export_moments(r.texture_opt) if return_moments else None,
         raem_keep=r.raem_keep,
         raem_removed=r.raem_removed,

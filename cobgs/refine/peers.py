@@ -44,7 +44,7 @@ from torch import Tensor
 
 from cobgs.data.scene import View
 from cobgs.progress import Progress
-from cobgs.configs import METHODS, NOSPLIT_SWITCHES, FlashSplatConfig, RefineConfig, SA3DConfig
+from cobgs.configs import NOSPLIT_SWITCHES, FlashSplatConfig, RefineConfig, SA3DConfig
 from cobgs.errors import InputError
 from cobgs.gaussians.model import GaussianModel
 from cobgs.refine.alternation import refine
@@ -59,8 +59,6 @@ __all__ = [
     "run_flashsplat",
     "run_flashsplat_multi",
     "flashsplat_votes",
-    "run_method",
-    "make_config",
 ]
 
 
@@ -309,69 +307,3 @@ def run_flashsplat_multi(
                                  peak_mem_bytes=mem.peak_bytes,
                                  config=dataclasses.asdict(config) | {"objects": names})
     return res
-
-
-_CONFIGS = {"cobgs": RefineConfig, "nosplit": RefineConfig, "sa3d": SA3DConfig, "flashsplat": FlashSplatConfig}
-
-
-def make_config(method: str, params: Optional[Mapping] = None):
-    """The config dataclass of ``method`` from plain parameters (e.g. a workflow's TOML).
-
-    Args:
-        method: one of :data:`cobgs.configs.METHODS`.
-        params: field name → value; unknown names raise :class:`InputError`.
-    """
-    if method not in _CONFIGS:
-        raise InputError(f"unknown method {method!r} (expected one of {METHODS})")
-    cls = _CONFIGS[method]
-    params = dict(params or {})
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(params) - names)
-    if unknown:
-        raise InputError(f"unknown {cls.__name__} parameter(s) {unknown} for method {method!r}; "
-                         f"expected some of {sorted(names)}")
-    return cls(**params)
-
-
-def run_method(
-    method: str,
-    model: GaussianModel,
-    views: Sequence[View],
-    masks: Sequence[Optional[Tensor]],
-    extent: float,
-    *,
-    config=None,
-    background: Sequence[float] = (0.0, 0.0, 0.0),
-    object_name: str = "",
-    progress: "Progress" = True,
-    texture_moments=None,
-) -> RefineResult:
-    """Run one segmentation method on one object.
-
-    Args:
-        method: "cobgs" (config: :class:`RefineConfig`, ablations included), "nosplit"
-            (:class:`RefineConfig`, switches forced off), "sa3d" (:class:`SA3DConfig`) or
-            "flashsplat" (:class:`FlashSplatConfig`).
-        model: the trained scene (not modified).
-        views, masks, extent, background: as in :func:`cobgs.refine.alternation.refine`.
-        config: the method's config (None = its defaults).
-        object_name: recorded in the result.
-        progress: False, True (a tqdm bar) or a factory (:mod:`cobgs.progress`).
-        texture_moments: the baseline's Adam moments, where COB-GS's texture stages start
-            (:func:`cobgs.refine.alternation.refine`); the peers have no texture stages and ignore them.
-    """
-    defaults = _CONFIGS
-    if method not in defaults:
-        raise InputError(f"unknown method {method!r} (expected one of {METHODS})")
-    cfg = defaults[method]() if config is None else config
-    if not isinstance(cfg, defaults[method]):
-        raise InputError(f"method {method!r} takes a {defaults[method].__name__}, got {type(cfg).__name__}")
-    if method == "cobgs":
-        return refine(model, views, masks, extent, cfg, background=background, object_name=object_name,
-                      progress=progress, texture_moments=texture_moments)
-    if method == "nosplit":
-        return run_nosplit(model, views, masks, extent, cfg, background=background, object_name=object_name,
-                           progress=progress)
-    if method == "sa3d":
-        return run_sa3d(model, views, masks, cfg, object_name=object_name, progress=progress)
-    return run_flashsplat(model, views, masks, cfg, object_name=object_name, progress=progress)

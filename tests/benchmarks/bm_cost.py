@@ -219,7 +219,7 @@ def cmd_one(args) -> int:
     from PIL import Image
 
     from cobgs.evaluate.metrics import iou
-    from cobgs.refine.peers import run_method
+    from cobgs.refine.methods import run_method
     from cobgs.render.rasterize import rasterize
     from cobgs.refine.segment import extract
 

@@ -7,17 +7,15 @@ import torch
 
 from cobgs.errors import InputError
 from cobgs.refine.peers import (
-    FlashSplatConfig,
-    SA3DConfig,
     flashsplat_votes,
     nosplit_config,
     run_flashsplat,
     run_flashsplat_multi,
-    run_method,
     run_sa3d,
 )
 from cobgs.refine.alternation import masks_for
-from cobgs.configs import RefineConfig
+from cobgs.refine.methods import run_method
+from cobgs.configs import FlashSplatConfig, RefineConfig, SA3DConfig
 from cobgs.refine.scores import pixel_labels_from_mask
 from refine_fixtures import three_gaussians, tiny_scene
 
@@ -305,7 +303,7 @@ def test_run_method_dispatch_and_errors():
 
 
 def test_make_config():
-    from cobgs.refine.peers import make_config
+    from cobgs.refine.methods import make_config
 
     assert make_config("sa3d", {"lr": 0.5}) == SA3DConfig(lr=0.5)
     assert make_config("cobgs", {"raem": "paper", "delta": 0.6}) == RefineConfig(raem="paper", delta=0.6)

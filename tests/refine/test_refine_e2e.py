@@ -14,7 +14,7 @@ import torch
 from cobgs.data.readers import read_scene
 from cobgs.data.synthetic import generate_scene
 from cobgs.gaussians.model import GaussianModel
-from cobgs.refine.peers import run_method
+from cobgs.refine.methods import run_method
 from cobgs.refine.alternation import masks_for
 from cobgs.configs import RefineConfig
 from cobgs.refine.segment import evaluate_masks
