@@ -21,8 +21,10 @@ NG-GS is COB-GS's released refinement plus one loss in the TEXTURE stages (``--u
   RBF-weighted squared colour difference to the neighbours (mean over point-neighbour pairs); ``smooth`` = MSE(refined, the
   refiner's colour at positions jittered by 1 % of the points' spread).
 * **What trains.** The refiner (its own Adam, lr 1e-3, eps 1e-15, stepped with the scene's
-  texture Adam) and, through the loss, the selected Gaussians' positions and DC colours
-  (the texture Adam steps them with everything else). Nothing of the MASK stages changes.
+  texture Adam) and, through the loss, the selected Gaussians' DC colours and positions (the
+  latter through the continuity term's RBF weights only: the encoding floors positions to
+  table indices); the texture Adam steps them with everything else. Nothing of the MASK
+  stages changes.
 
 Randomness (initialisation, jitter, the random subset) comes from private generators seeded
 by ``NGSConfig.seed``, so a run repeats.
