@@ -17,7 +17,7 @@ from typing import ClassVar, Optional, Tuple
 
 from cobgs.errors import InputError
 
-__all__ = ["Files", "NGSConfig", "NOSPLIT_SWITCHES", "key_without_later", "with_later_values", "check_params", "parse_interval", "in_interval", "TrainConfig", "Schedule", "RefineConfig",
+__all__ = ["Files", "DatasetConfig", "NGSConfig", "NOSPLIT_SWITCHES", "key_without_later", "with_later_values", "check_params", "parse_interval", "in_interval", "TrainConfig", "Schedule", "RefineConfig",
            "SA3DConfig", "FlashSplatConfig", "TwoStageConfig", "ScribbleConfig", "MaskNoiseParams", "SfmOptions", "LABEL",
            "RAEM_VARIANTS", "TEXTURE_ADAM", "SCENE_DEFAULTS", "MATCHERS"]
 
@@ -127,6 +127,55 @@ def _short(x) -> str:
     if isinstance(x, int) and abs(x) >= 10 ** 60:
         return f"an integer of {len(str(abs(x)))} digits"
     return repr(x)
+
+
+# -- scenes (cobgs.data.build) ----------------------------------------------------------------------
+@dataclass(frozen=True)
+class DatasetConfig:
+    """How a scene is generated or ingested (the dataset stage's params; cobgs.data.build).
+
+    Attributes:
+        preset: synthetic preset ("demo", "forward", "orbit").
+        seed: synthetic seed.
+        width_px, height_px, num_views, supersampling: synthetic overrides (0 = preset's).
+        workers: processes rendering synthetic views (the output does not depend on it).
+        downscale: divide the image size for training (LLFF: picks ``images_<k>/``).
+        images_dir: image sub-folder SfM runs on ("" = ``images_<downscale>/`` when it
+            exists, else ``images/``); when given, ``downscale`` applies after SfM.
+        view_stride: keep every k-th view (sorted by name) — subsets of long captures.
+        max_views: keep at most this many views after the stride (0 = all).
+        test_every: hold out every k-th kept view when the data defines no split.
+        background: RGB in [0, 1] that RGBA images are composited on (None: the reader's).
+    """
+
+    preset: str = "demo"
+    seed: int = 0
+    width_px: int = 0
+    height_px: int = 0
+    num_views: int = 0
+    supersampling: int = 0
+    workers: int = 1
+    downscale: float = 1.0
+    images_dir: str = ""
+    view_stride: int = 1
+    max_views: int = 0
+    test_every: int = 8
+    background: Optional[tuple[float, float, float]] = None
+
+    RANGES: ClassVar[dict] = {
+        "seed": "[0, 2147483647]", "width_px": "[0, 16384]", "height_px": "[0, 16384]", "num_views": "[0, 10000]",
+        "supersampling": "[0, 16]", "workers": "[0, 256]", "downscale": "(0, 64]", "view_stride": "[1, 1e6]",
+        "max_views": "[0, 1e6]", "test_every": "[0, 1e6]", "background": "[0, 1]"}
+
+    def __post_init__(self) -> None:
+        check_params(self)
+        if self.view_stride < 1 or self.max_views < 0 or self.test_every < 0:
+            raise ValueError("view_stride must be >= 1, max_views and test_every >= 0")
+        if self.test_every == 1:
+            raise ValueError("test_every = 1 holds out every view, leaving nothing to train on: 0 holds out "
+                             "none, k >= 2 every k-th view")
+        if not self.downscale > 0:
+            raise ValueError(f"downscale must be > 0, got {self.downscale}")
 
 
 # -- baseline training (cobgs.train.optimize) ---------------------------------------------------------

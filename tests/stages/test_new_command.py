@@ -190,10 +190,10 @@ def test_test_every_that_cannot_work_is_refused_before_writing(tmp_path, capsys)
             main(["new", str(root), "--out", str(tmp_path / "w.toml"), "--test-every", bad])
         assert "--test-every" in capsys.readouterr().err and not (tmp_path / "w.toml").exists()
     assert main(["new", str(root), "--out", str(tmp_path / "w.toml"), "--test-every", "0"]) == 0
-    from stages.dataset import DatasetParams
+    from cobgs.configs import DatasetConfig
 
     with pytest.raises(ValueError, match="test_every = 1 holds out every view"):
-        DatasetParams(test_every=1)
+        DatasetConfig(test_every=1)
 
 
 def test_unreadable_empty_mixed_and_rotated_photos_are_said(tmp_path, capsys):

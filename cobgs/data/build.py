@@ -1,0 +1,305 @@
+"""dataset.json from a scene's data: one builder per kind (the dataset stage's library side).
+
+:func:`build_spec` fills the scene's record (:class:`cobgs.data.spec.DatasetSpec`): its views
+and held-out views, objects, protocol, the folder SfM reads, how later stages read the
+scene. Kinds:
+
+  synthetic  cobgs.data.synthetic preset, generated into ``out_dir/scene`` (exact masks)
+  transforms NeRF-style transforms.json with masks/<object>/ (exact-GT protocol when masks)
+  blender    NeRF-synthetic (alpha = object mask "object"; exact-GT protocol)
+  llff       poses_bounds.npy + images_<k>/ (no masks)
+  colmap     a COLMAP model + images/ (masks/<object>/ optional)
+  images     a folder of images without poses (SfM required)
+  nvos       an LLFF scene + the NVOS labels folder (NVOS protocol; target view held out)
+  lerf_mask  a LERF-mask scene (LERF-mask protocol; split from images_train/)
+
+External data is only read: the spec points at it by absolute path.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional, Union
+
+from cobgs.configs import DatasetConfig
+from cobgs.data.spec import FORMAT as SPEC_FORMAT, VERSION as SPEC_VERSION
+from cobgs.errors import InputError
+
+log = logging.getLogger(__name__)
+
+KINDS = ("synthetic", "transforms", "blender", "llff", "colmap", "images", "nvos", "lerf_mask")
+_POSED_FORMATS = {"transforms": "transforms", "blender": "blender", "llff": "llff", "colmap": "colmap",
+                  "nvos": None, "lerf_mask": "colmap"}
+_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
+@dataclass(frozen=True)
+class ObjectRequest:
+    """An object a workflow asks of the scene: its name, the dataset object it stands for
+    (``mask``), and whether it brings its own masks (a text prompt or a mask folder)."""
+
+    name: str
+    mask: str = ""
+    own_masks: bool = False
+
+
+@dataclass(frozen=True)
+class BuildInput:
+    """What :func:`build_spec` needs beside the config: the scene's name, kind and folder, the
+    NVOS fields, the scene type asked for, where generated data go, the objects asked for."""
+
+    scene: str
+    kind: str
+    path: Optional[Path] = None
+    out_dir: Path = Path(".")
+    labels: Optional[Path] = None
+    task: Union[str, tuple[str, ...]] = ""
+    scene_type: str = ""
+    objects: tuple[ObjectRequest, ...] = field(default_factory=tuple)
+
+
+def build_spec(inp: BuildInput, p: DatasetConfig) -> dict:
+    """The scene's record (dataset.json's content) for ``inp`` read with ``p``.
+
+    Raises:
+        InputError, DataError: the data does not hold what the kind needs (named).
+    """
+    spec: dict = {"format": SPEC_FORMAT, "version": SPEC_VERSION, "scene": inp.scene, "kind": inp.kind,
+                  "protocol": "none", "objects": [], "sfm_downscale": 1.0}
+    reader: dict = {"format": _POSED_FORMATS.get(inp.kind), "path": None, "downscale": p.downscale,
+                    "background": None if p.background is None else list(p.background)}
+    if inp.kind != "synthetic":
+        root = Path(inp.path).resolve()
+        spec["source"] = os.fspath(root)
+        reader["path"] = os.fspath(root)
+    _BUILDERS.get(inp.kind, _build_posed)(inp, p, spec, reader)
+    if spec.get("images") and inp.kind != "synthetic":
+        # one reading of "up" for SfM, masks and clicks: rotated photos are refused (cobgs.data.images)
+        from cobgs.data.images import check_upright
+
+        d = Path(spec["images"]["dir"])
+        folder = d if d.is_absolute() else inp.out_dir / d
+        check_upright([folder / n for n in spec["images"]["names"]], "photo")
+    spec["reader"] = reader
+    return spec
+
+
+def _stems(folder: Path) -> list[str]:
+    if not folder.is_dir():
+        raise InputError(f"{folder}: image folder not found")
+    return sorted(p.stem for p in folder.iterdir() if p.is_file() and p.suffix.lower() in _IMAGE_SUFFIXES)
+
+
+def _names(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if p.is_file() and p.suffix.lower() in _IMAGE_SUFFIXES)
+
+
+def _subset(names: list[str], p: DatasetConfig) -> list[str]:
+    out = names[:: p.view_stride]
+    return out[: p.max_views] if p.max_views else out
+
+
+def _every(names: list[str], k: int) -> list[str]:
+    return [n for i, n in enumerate(names) if k and i % k == 0]
+
+
+def _sfm_images(root: Path, p: DatasetConfig) -> tuple[Path, float]:
+    """(folder SfM reads, downscale applied to its images afterwards)."""
+    if p.images_dir:
+        d = root / p.images_dir
+        if not d.is_dir():
+            raise InputError(f"dataset.images_dir: {d} does not exist")
+        return d, p.downscale
+    k = int(round(p.downscale))
+    if abs(p.downscale - k) < 1e-9 and k > 1 and (root / f"images_{k}").is_dir():
+        return root / f"images_{k}", 1.0
+    return root / "images", p.downscale
+
+
+def _sfm_images_as_views(out_dir: Path, scene, sfm_dir: Path) -> Path:
+    """The SfM image folder, as copies named after the views when the reader matched files
+    named otherwise (nerf_llff_data's images_4/image000.png for IMG_4026): SfM names its
+    images after the files, and the views, the NVOS task and the masks use the views'
+    names. The copies live in the artifact (returned relative to it: the artifact moves
+    when it is committed)."""
+    import shutil
+
+    views = [v for v in scene.views if v.path]
+    if all(Path(v.path).stem == v.name for v in views):
+        return sfm_dir
+    out = out_dir / "sfm_images"
+    out.mkdir(parents=True, exist_ok=True)
+    for v in views:
+        src = Path(v.path)
+        if src.parent.resolve() != sfm_dir.resolve():
+            src = sfm_dir / src.name  # the folder SfM reads holds the file under its own name
+        shutil.copy2(src, out / f"{v.name}{src.suffix}")
+    return Path(out.name)
+
+
+def _check_blender_objects(inp: "BuildInput", root: Path, have: list) -> None:
+    """A NeRF-synthetic scene's objects come from the images' alpha channel (``object``) or
+    ``masks/<object>/`` folders; an object the workflow asks for that neither gives fails
+    here, in the first task, naming the folder (objects with a text prompt are exempt)."""
+    for obj in inp.objects:
+        name = obj.mask or obj.name
+        if name in have or obj.own_masks:
+            continue
+        why = ", ".join(w for w in ("its images have no alpha channel" if "object" not in have else "",
+                                    f"it has masks of {have} only" if have else "") if w)
+        raise InputError(f"object {obj.name!r} of scene {inp.scene!r}: {root} gives no "
+                              f"mask of {name!r} ({why}, and there is no masks/{name}/ folder); add "
+                              f"masks/{name}/<image>.png, or set the object's mask / prompt")
+
+
+
+
+def _build_synthetic(inp: "BuildInput", p: DatasetConfig, spec: dict, reader: dict) -> None:
+    """A synthetic scene, generated into the artifact (exact GT, amodal masks)."""
+    from cobgs.data.synthetic import generate_scene
+
+    out = generate_scene(inp.out_dir / "scene", p.preset, p.seed, progress=False,
+                         width_px=p.width_px or None, height_px=p.height_px or None,
+                         num_views=p.num_views or None, supersampling=p.supersampling or None,
+                         workers=p.workers)
+    meta = json.loads((out / "scene.json").read_text(encoding="utf-8"))
+    tf = json.loads((out / "transforms.json").read_text(encoding="utf-8"))
+    reader.update(format="transforms", path="scene")
+    views = [Path(f["file_path"]).stem for f in tf["frames"]]
+    test = [Path(f).stem for f in tf.get("test_filenames", [])]
+    spec.update(protocol="exact", synthetic={k: meta[k] for k in ("preset", "seed", "trajectory",
+                                                                    "image_size", "supersampling",
+                                                                    "num_views")},
+                objects=[o["name"] for o in meta["objects"] if o.get("target", True)],
+                distractors=[o["name"] for o in meta["objects"] if not o.get("target", True)],
+                scene_type=inp.scene_type or ("360" if meta["trajectory"] == "orbit" else "forward"),
+                images={"dir": "scene/images", "names": [Path(f["file_path"]).name for f in tf["frames"]]},
+                has_poses=True,
+                amodal={"source": "files", "dir": "scene/amodal",
+                        "objects": [o["name"] for o in meta["objects"]]})
+    kept = _subset(views, p)
+    spec.update(views=kept, test_views=[v for v in test if v in set(kept)])
+
+
+def _build_images(inp: "BuildInput", p: DatasetConfig, spec: dict, reader: dict) -> None:
+    """Photos without poses: SfM finds them."""
+    root = Path(spec["source"])
+    sfm_dir, post = _sfm_images(root, p)
+    names = _subset(_names(sfm_dir), p)
+    stems = [Path(n).stem for n in names]
+    spec.update(views=stems, test_views=_every(stems, p.test_every), has_poses=False,
+                images={"dir": os.fspath(sfm_dir), "names": names}, sfm_downscale=post,
+                scene_type=inp.scene_type or "360")
+
+
+def _build_nvos(inp: "BuildInput", p: DatasetConfig, spec: dict, reader: dict) -> None:
+    """An LLFF scene and the NVOS labels: one or several tasks, their targets held out."""
+    from cobgs.data.readers import read_scene
+
+    root = Path(spec["source"])
+    name = inp.scene
+    from cobgs.data.nvos import read_nvos_task
+
+    names = (inp.task or name,) if isinstance(inp.task, str) else inp.task
+    tasks = [read_nvos_task(inp.labels, t) for t in names]
+    task = tasks[0]
+    targets = sorted({t.target for t in tasks})
+    for t in tasks:
+        if t.reference in targets:
+            raise InputError(f"NVOS task {t.task!r}: its reference view {t.reference!r} is "
+                                  f"another task's held-out target; give those tasks their own scenes")
+    fmt = _detect(root)
+    # The NVOS GT is in the captured (distorted) frame at every size, and the
+    # reference methods read nerf_llff_data's SIMPLE_RADIAL camera as a pinhole: the
+    # images are read the same way at every downscale (undistorting the full-size
+    # images would move them off the GT: 512x384 -> 510x382).
+    reader.update(format=fmt, distortion="ignore")
+    scene = read_scene(root, format=fmt, downscale=p.downscale, test_every=0, distortion="ignore")
+    stems = sorted(v.name for v in scene.views)
+    for t in tasks:
+        for need in (t.target, t.reference):
+            if need not in stems:
+                raise InputError(f"NVOS task {t.task!r}: view {need!r} is not an image of "
+                                      f"{root} (images: {stems[:3]} ...)")
+    sfm_dir, post = _sfm_images(root, p)
+    sfm_dir = _sfm_images_as_views(inp.out_dir, scene, sfm_dir)
+    spec["notes"] = list(scene.notes)
+    if len(tasks) > 1:  # one training, shared by the scene's tasks
+        spec["nvos_tasks"] = {t.task: t.to_json() for t in tasks}
+    if any("read as a pinhole" in n for n in scene.notes):
+        spec["notes"].append(
+            f"NVOS at downscale {p.downscale:g}: images kept in the captured frame (camera read as "
+            "a pinhole, not undistorted), the frame the NVOS ground truth is in")
+    spec.update(protocol="nvos", nvos=task.to_json(), objects=[t.task for t in tasks],
+                views=stems, test_views=targets, has_poses=True,
+                images={"dir": os.fspath(sfm_dir),
+                        "names": _names(sfm_dir if sfm_dir.is_absolute()
+                                        else inp.out_dir / sfm_dir)},
+                sfm_downscale=post,
+                scene_type=inp.scene_type or "forward")
+
+
+def _build_lerf_mask(inp: "BuildInput", p: DatasetConfig, spec: dict, reader: dict) -> None:
+    """A LERF-mask scene: Gaussian Grouping's GT index, its train / test split."""
+    root = Path(spec["source"])
+    from cobgs.data.lerf_mask import read_lerf_gt
+
+    gt = read_lerf_gt(root)
+    every = _stems(root / "images")
+    spec.update(protocol="lerf_mask", lerf_mask=gt.to_json(), objects=gt.prompts,
+                views=every, test_views=list(gt.test_views), has_poses=True,
+                images={"dir": os.fspath(root / "images"), "names": _names(root / "images")},
+                sfm_downscale=p.downscale, scene_type=inp.scene_type or "360")
+    if gt.views_without_gt:
+        log.info("LERF-mask: %d test view(s) have no GT folder: %s", len(gt.views_without_gt),
+                 gt.views_without_gt[:10])
+
+
+def _build_posed(inp: "BuildInput", p: DatasetConfig, spec: dict, reader: dict) -> None:
+    """A posed layout (transforms, Blender, COLMAP, LLFF) with its masks."""
+    from cobgs.data.readers import read_scene
+
+    root = Path(spec["source"])
+    kw = {"background": tuple(p.background)} if p.background is not None else {}
+    scene = read_scene(root, format=reader["format"], downscale=p.downscale,
+                       test_every=p.test_every, **kw)
+    spec["notes"] = list(scene.notes)
+    all_views = sorted(v.name for v in scene.views)
+    kept = set(_subset(all_views, p))
+    test = [v.name for v in scene.test if v.name in kept]
+    with_gt = sorted({k for v in scene.test for k in v.masks})
+    if inp.kind == "blender":
+        spec["has_poses"], spec["images"] = True, None
+    else:
+        sfm_dir, post = _sfm_images(root, p)
+        spec["has_poses"] = True
+        spec["images"] = {"dir": os.fspath(sfm_dir), "names": [n for n in _names(sfm_dir)
+                                                                if Path(n).stem in kept]}
+        spec["sfm_downscale"] = post
+    have = sorted({k for v in scene.views for k in v.masks})
+    if inp.kind == "blender":
+        _check_blender_objects(inp, root, have)
+        if have == ["object"] and not (root / "masks").is_dir():
+            # one object, nothing in front of it: the alpha matte is its whole silhouette
+            spec["amodal"] = {"source": "visible", "objects": ["object"]}
+    spec.update(views=sorted(kept), test_views=test, objects=have,
+                protocol="exact" if with_gt else "none",
+                scene_type=inp.scene_type or ("360" if inp.kind == "blender" else "forward"))
+
+
+_BUILDERS = {"synthetic": _build_synthetic, "images": _build_images, "nvos": _build_nvos,
+             "lerf_mask": _build_lerf_mask}
+
+
+def _detect(root: Path) -> str:
+    from cobgs.data.readers import detect_format
+
+    fmt = detect_format(root)
+    if fmt not in ("colmap", "llff"):
+        raise InputError(f"{root}: an NVOS scene must be an LLFF scene (sparse/0 or "
+                         f"poses_bounds.npy), found a {fmt!r} layout")
+    return fmt
