@@ -11,7 +11,7 @@ STAMP  := $(VENV)/.cobgs-installed
 TORCH_SPEC ?= torch==2.13.0
 PYTEST_ARGS ?=
 
-.PHONY: install build test demo bench report clean help chromium parity
+.PHONY: install build test demo bench report clean help chromium parity gpu-check
 
 help:
 	@echo "make demo    run the embedded demo workflow (installs and builds first)"
@@ -62,6 +62,15 @@ parity:
 
 report: build
 	$(VENV)/bin/cobgs report workflows/demo.toml --turntables 24
+
+# The whole GPU check (not in CI: it needs a CUDA device): build, the CUDA parity tests of both
+# blending paths, the kernel benchmark against gsplat, fern on both paths while time is left.
+# Results in $(GPU_CHECK_OUT); tests/benchmarks/gpu_check.sh lists GPU_CHECK_ARGS (--wheels,
+# --fern-scene, --fern-images, --budget-s).
+GPU_CHECK_OUT ?= runs/gpu_check
+GPU_CHECK_ARGS ?=
+gpu-check:
+	PYTHON=$(if $(wildcard $(PY)),$(PY),$(PYTHON)) bash tests/benchmarks/gpu_check.sh $(GPU_CHECK_OUT) $(GPU_CHECK_ARGS)
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache

@@ -12,6 +12,7 @@ schemas and CPU kernels; this module adds what is registered from Python:
 
 from __future__ import annotations
 
+import contextlib
 import threading
 from typing import Optional, Tuple
 
@@ -357,3 +358,23 @@ def rasterize_native(means, quats, scales, opacities, features, viewmat, K, widt
                         means2d=means2d, conics=conics, depths=depths,
                         label_counts=counts if has_labels else None,
                         label_weights=weights if has_labels else None)
+
+
+@contextlib.contextmanager
+def cuda_fast_path(on: bool = True):
+    """Within the block, the CUDA blending passes take the fast path (FMA and the hardware
+    exp; csrc/blend/blend_cuda.cuh) or the exact one (``on=False``); the previous setting is
+    restored after. Off by default (``COBGS_CUDA_FAST=1`` turns it on at load) until a GPU run
+    has verified it (``make gpu-check``). The CPU kernels have one path and ignore it."""
+    ensure_loaded()
+    before = torch.ops.cobgs.set_cuda_fast(bool(on))
+    try:
+        yield
+    finally:
+        torch.ops.cobgs.set_cuda_fast(before)
+
+
+def cuda_fast_path_on() -> bool:
+    """Whether the CUDA blending passes take the fast path now."""
+    ensure_loaded()
+    return bool(torch.ops.cobgs.get_cuda_fast())

@@ -62,7 +62,7 @@ __device__ __forceinline__ void exact_near_thresholds(double power, double o, do
   o_g = o * gauss;
 }
 
-template <typename T, int NC>
+template <typename T, int NC, bool kFast>
 __global__ void __launch_bounds__(kBlock) blend_bwd_kernel(const BwdParams<T> p) {
   constexpr int kRegC = NC > 0 ? NC : 1;
   __shared__ GaussPrep<T> recs[kBlock];
@@ -130,10 +130,15 @@ __global__ void __launch_bounds__(kBlock) blend_bwd_kernel(const BwdParams<T> p)
       T v_mx = T(0), v_my = T(0), v_ca = T(0), v_cb = T(0), v_cc = T(0), v_op = T(0);
       if (bottom + k < last && in_box(g, px.x, px.y)) {
         const T dx = xc - g.mx, dy = yc - g.my;
-        const T power = pixel_power(g, dx, dy);
+        const T power = path_power<kFast>(g, dx, dy);
         if (power <= T(0) && power >= g.power_reject) {
           T gauss, o_g;
-          exact_near_thresholds(power, g.o, gauss, o_g);
+          if (kFast) {  // the forward's fast formulas: the same decisions as the fast forward
+            gauss = fast_exp(power);
+            o_g = g.o * gauss;
+          } else {
+            exact_near_thresholds(power, g.o, gauss, o_g);
+          }
           const T alpha = o_g < T(math::kAlphaMax) ? o_g : T(math::kAlphaMax);
           if (alpha >= T(math::kAlphaMin)) {  // the forward blended it here
             ok = true;
@@ -202,7 +207,11 @@ __global__ void __launch_bounds__(kBlock) blend_bwd_kernel(const BwdParams<T> p)
 
 template <typename T, int NC>
 void launch_bwd(const BwdParams<T>& p, int64_t n_tiles) {
-  blend_bwd_kernel<T, NC><<<static_cast<unsigned int>(n_tiles), kBlock, 0, cuda::stream()>>>(p);
+  const unsigned int grid = static_cast<unsigned int>(n_tiles);
+  if (cuda_fast_path())
+    blend_bwd_kernel<T, NC, true><<<grid, kBlock, 0, cuda::stream()>>>(p);
+  else
+    blend_bwd_kernel<T, NC, false><<<grid, kBlock, 0, cuda::stream()>>>(p);
   C10_CUDA_KERNEL_LAUNCH_CHECK();
 }
 

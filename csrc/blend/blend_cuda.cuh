@@ -114,5 +114,40 @@ __device__ __forceinline__ bool in_box(const GaussPrep<T>& g, int x, int y) {
   return x >= g.x0 && x < g.x1 && y >= g.y0 && y < g.y1;
 }
 
+// -- the fast path (COBGS_CUDA_FAST=1, or cobgs::set_cuda_fast(True); off by default until a
+// GPU run has verified it: tests/render/test_cuda.py's tolerance tests, make gpu-check) --------
+// The exact path makes every per-pixel decision with the CPU kernels' roundings (no fused
+// multiply-adds, the shared polynomial exp). The fast path evaluates the exponent with fused
+// multiply-adds and the hardware exp (__expf: 2 ulp), and accumulates colours with fused
+// multiply-adds: images and gradients then agree with the CPU op within rounding, and a
+// pixel's decisions (blended or not, clamped or not, stopped or not) can differ where α lies
+// within a few 1e-7 (relative) of 1/255 or 0.99, or T of 1e-4. Forward and backward use the
+// same formulas, so they agree with each other exactly.
+template <typename T>
+__device__ __forceinline__ T fast_exp(T x);
+template <>
+__device__ __forceinline__ float fast_exp<float>(float x) { return __expf(x); }
+template <>
+__device__ __forceinline__ double fast_exp<double>(double x) { return exp(x); }
+
+template <typename T>
+__device__ __forceinline__ T fast_power(const GaussPrep<T>& g, T dx, T dy) {
+  return fma(T(-0.5) * g.ca, dx * dx, fma(T(-0.5) * g.cc, dy * dy, -g.cb * dx * dy));
+}
+
+// The exponent and exp of a path: kFast picks the fast formulas.
+template <bool kFast, typename T>
+__device__ __forceinline__ T path_power(const GaussPrep<T>& g, T dx, T dy) {
+  return kFast ? fast_power(g, dx, dy) : pixel_power(g, dx, dy);
+}
+template <bool kFast, typename T>
+__device__ __forceinline__ T path_exp(T x) {
+  return kFast ? fast_exp(x) : math::gauss_exp(x);
+}
+
 }  // namespace blend_detail
+
+// Whether the CUDA blending passes take the fast path (csrc/blend/fast_path.cpp).
+bool cuda_fast_path();
+
 }  // namespace cobgs

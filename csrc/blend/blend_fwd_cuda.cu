@@ -35,7 +35,7 @@ struct FwdParams {
 
 // NC > 0: a fixed channel count (colour in registers, features staged in shared memory);
 // NC = 0: any count (colour accumulated in the output image, features read from memory).
-template <typename T, int NC, bool kLabels>
+template <typename T, int NC, bool kLabels, bool kFast>
 __global__ void __launch_bounds__(kBlock) blend_fwd_kernel(const FwdParams<T> p) {
   constexpr int kRegC = NC > 0 ? NC : 1;
   __shared__ GaussPrep<T> recs[kBlock];
@@ -80,9 +80,9 @@ __global__ void __launch_bounds__(kBlock) blend_fwd_kernel(const FwdParams<T> p)
       T w = T(0);
       if (!done && in_box(recs[k], px.x, px.y)) {
         const GaussPrep<T>& g = recs[k];
-        const T power = pixel_power(g, xc - g.mx, yc - g.my);
+        const T power = path_power<kFast>(g, xc - g.mx, yc - g.my);
         if (power <= T(0) && power >= g.power_reject) {
-          T alpha = g.o * math::gauss_exp(power);
+          T alpha = g.o * path_exp<kFast>(power);
           alpha = alpha < T(math::kAlphaMax) ? alpha : T(math::kAlphaMax);
           if (alpha >= T(math::kAlphaMin)) {
             const T test_t = Tp * (T(1) - alpha);
@@ -91,10 +91,11 @@ __global__ void __launch_bounds__(kBlock) blend_fwd_kernel(const FwdParams<T> p)
             } else {
               w = alpha * Tp;
               if (NC > 0) {
-                for (int c = 0; c < kRegC; ++c) col[c] = col[c] + rec_f[c][k] * w;
+                for (int c = 0; c < kRegC; ++c)
+                  col[c] = kFast ? fma(rec_f[c][k], w, col[c]) : col[c] + rec_f[c][k] * w;
               } else {
                 const T* f = p.feat + int64_t(rec_id[k]) * C;
-                for (int c = 0; c < C; ++c) img[c] = img[c] + f[c] * w;
+                for (int c = 0; c < C; ++c) img[c] = kFast ? fma(f[c], w, img[c]) : img[c] + f[c] * w;
               }
               Tp = test_t;
               last = static_cast<int32_t>(base + k - lo + 1);
@@ -130,13 +131,22 @@ __global__ void __launch_bounds__(kBlock) blend_fwd_kernel(const FwdParams<T> p)
   p.n_contrib[px.index] = last;
 }
 
+template <typename T, int NC, bool kFast>
+void launch_fwd_path(const FwdParams<T>& p, int64_t n_tiles) {
+  const unsigned int grid = static_cast<unsigned int>(n_tiles);
+  if (p.labels)
+    blend_fwd_kernel<T, NC, true, kFast><<<grid, kBlock, 0, cuda::stream()>>>(p);
+  else
+    blend_fwd_kernel<T, NC, false, kFast><<<grid, kBlock, 0, cuda::stream()>>>(p);
+  C10_CUDA_KERNEL_LAUNCH_CHECK();
+}
+
 template <typename T, int NC>
 void launch_fwd(const FwdParams<T>& p, int64_t n_tiles) {
-  if (p.labels)
-    blend_fwd_kernel<T, NC, true><<<static_cast<unsigned int>(n_tiles), kBlock, 0, cuda::stream()>>>(p);
+  if (cuda_fast_path())
+    launch_fwd_path<T, NC, true>(p, n_tiles);
   else
-    blend_fwd_kernel<T, NC, false><<<static_cast<unsigned int>(n_tiles), kBlock, 0, cuda::stream()>>>(p);
-  C10_CUDA_KERNEL_LAUNCH_CHECK();
+    launch_fwd_path<T, NC, false>(p, n_tiles);
 }
 
 }  // namespace

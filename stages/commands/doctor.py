@@ -66,6 +66,9 @@ def collect(timing: bool = True) -> dict:
                         "built_with": built.get("compiler"), "switched_from": built.get("switched_from"),
                         "libstdcxx": built.get("libstdcxx"),
                         "cuda_kernels": bool(plan.get("enabled"))}
+    from cobgs.render._ops import cuda_fast_path_on
+
+    rec["extension"]["cuda_blend_path"] = "fast" if cuda_fast_path_on() else "exact"
     probe = probe_library(so)
     checks["error_probe"] = {"ok": probe.ok, "detail": probe.detail, "message": probe.message}
     for dev in devices:
@@ -105,7 +108,9 @@ def _text(rec: dict) -> str:
                      else "") + f"; libstdc++: {ext['libstdcxx'] or 'unknown'}",
                   f"            flags {' '.join(ext['cflags'])}; link {' '.join(ext['ldflags'])}",
                   "            CUDA kernels: " + (f"built for {plan['arch']} (nvcc {plan['nvcc_version']})"
-                                                  if plan.get("enabled") else f"not built ({plan.get('reason')})")]
+                                                  if plan.get("enabled") else f"not built ({plan.get('reason')})")
+                  + (f"; blending path: {ext['cuda_blend_path']} (COBGS_CUDA_FAST=1: fast)"
+                     if plan.get("enabled") and ext.get("cuda_blend_path") else "")]
     checks = rec["checks"]
     if "error_probe" in checks:
         ep = checks["error_probe"]

@@ -76,7 +76,9 @@ def _scene(out: Path, images: Path | None, test_every: int = 0, sfm_dir: Path | 
 def _config(iterations: int, recipe: str = "3dgs", sets: tuple = ()):
     from cobgs.configs import TrainConfig
 
-    kw = {"iterations": iterations, "log_interval_its": 1000, "checkpoint_interval_its": 1000}
+    kw = {"log_interval_its": 1000, "checkpoint_interval_its": 1000}
+    if iterations:  # 0: the recipe's (a given count would override the fast recipe's own)
+        kw["iterations"] = iterations
     if recipe != "3dgs":
         kw["recipe"] = recipe
     for item in sets:  # --set field=value (a TrainConfig field; value as a Python literal)
@@ -108,6 +110,7 @@ def cmd_scene(args) -> int:
     print(f"fern: {len(scene.train)} views at {w}x{h}; resuming from {resume.name if resume else 'the start'}",
           flush=True)
     cfg = _config(args.iterations, args.recipe, tuple(args.set or ()))
+    args.iterations = cfg.iterations
     (out / "config.json").write_text(json.dumps({"recipe": args.recipe, "sets": args.set or [],
                                                  "test_every": args.test_every,
                                                  "test_views": [v.name for v in scene.test]}, indent=1))
@@ -412,7 +415,7 @@ def main(argv=None) -> int:
     s = sub.add_parser("scene")
     s.add_argument("--images", type=Path)
     s.add_argument("--out", type=Path, required=True)
-    s.add_argument("--iterations", type=int, default=30_000)
+    s.add_argument("--iterations", type=int, default=0, help="0: the recipe's (3dgs: 30 000, fast: its own)")
     s.add_argument("--budget-s", type=float, default=0.0, help="stop at the first checkpoint after this long")
     s.add_argument("--stop-at", type=int, default=0, help="stop (resumably) at this iteration")
     s.add_argument("--test-every", type=int, default=0,

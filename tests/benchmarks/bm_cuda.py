@@ -46,7 +46,7 @@ def gpu_name() -> str:
     return f"{p.name} ({p.multi_processor_count} SMs, {p.total_memory / 2**30:.0f} GiB)"
 
 
-def frustum_scene(n: int, width: int, height: int, seed: int = 0):
+def frustum_scene(n: int, width: int, height: int, seed: int = 0, channels: int = 4):
     g = torch.Generator().manual_seed(seed)
     f = 0.8 * width
     z = 2.0 + 8.0 * torch.rand(n, generator=g)
@@ -59,7 +59,7 @@ def frustum_scene(n: int, width: int, height: int, seed: int = 0):
     quats = torch.randn(n, 4, generator=g)
     opacities = torch.where(torch.rand(n, generator=g) < 0.5, 0.02 + 0.1 * torch.rand(n, generator=g),
                             0.3 + 0.69 * torch.rand(n, generator=g))
-    colors = torch.rand(n, 4, generator=g)
+    colors = torch.rand(n, channels, generator=g)
     viewmat = torch.eye(4)
     K = torch.tensor([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
     dev = torch.device("cuda")
@@ -98,11 +98,43 @@ def profile_kernels(label: str, fn, reps: int = 5) -> None:
 
 
 def bench_kernels(args) -> None:
+    """Every size x channel count x path (exact / fast: csrc/blend/blend_cuda.cuh) against gsplat.
+    With 1 channel ours also counts the pixels of 2 labels per Gaussian (what COB-GS's mask
+    stages render); gsplat renders the channel alone."""
+    import itertools
+
+    from cobgs.render._ops import cuda_fast_path
+
+    rows = []
+    for channels, path in itertools.product([int(c) for c in args.channels.split(",")], args.paths.split(",")):
+        if path not in ("exact", "fast"):
+            raise SystemExit(f"--paths: exact and / or fast, got {path!r}")
+        with cuda_fast_path(path == "fast"):
+            rows += _bench_kernels(args, channels, path)
+    if args.out:
+        Path(args.out).mkdir(parents=True, exist_ok=True)
+        (Path(args.out) / "bm_cuda_kernels.json").write_text(json.dumps(
+            {"gpu": gpu_name(), "torch": torch.__version__, "gsplat": _gsplat_version(),
+             "width": args.width, "height": args.height, "rows": rows}, indent=1))
+
+
+def _gsplat_version():
+    try:
+        import gsplat
+
+        return gsplat.__version__
+    except Exception:  # noqa: BLE001 - absent or unbuildable: the rows say so
+        return None
+
+
+def _bench_kernels(args, channels: int, path: str) -> list:
     import cobgs
 
     w, h = args.width, args.height
-    print(f"GPU: {gpu_name()}; torch {torch.__version__}; {w}x{h}, 4 channels, "
-          f"median of {args.reps} (min in brackets)")
+    labels_on = channels == 1
+    print(f"GPU: {gpu_name()}; torch {torch.__version__}; {w}x{h}, {channels} channel(s)"
+          + (" + 2-label pixel counts (ours)" if labels_on else "")
+          + f", {path} path, median of {args.reps} (min in brackets)")
     try:
         import gsplat
         from gsplat import rasterization
@@ -112,27 +144,29 @@ def bench_kernels(args) -> None:
         print(f"gsplat not available: {exc}")
     rows = []
     for n in (int(s) for s in args.sizes.split(",")):
-        means, quats, scales, opac, colors, viewmat, K = frustum_scene(n, w, h)
-        weight = torch.rand(h, w, 4, device="cuda", generator=torch.Generator("cuda").manual_seed(1))
+        means, quats, scales, opac, colors, viewmat, K = frustum_scene(n, w, h, channels=channels)
+        weight = torch.rand(h, w, channels, device="cuda", generator=torch.Generator("cuda").manual_seed(1))
         leaves = [t.clone().requires_grad_() for t in (means, quats, scales, opac, colors)]
+        lab = (torch.rand(h, w, device="cuda", generator=torch.Generator("cuda").manual_seed(2)) < 0.3).int() \
+            if labels_on else None
 
         def ours():
             for t in leaves:
                 t.grad = None
-            out = cobgs.rasterize(*leaves, viewmat, K, w, h)
+            out = cobgs.rasterize(*leaves, viewmat, K, w, h, pixel_labels=lab, num_labels=2)
             (out.image * weight).sum().backward()
             return out
 
         def ours_fwd():
             with torch.no_grad():
-                return cobgs.rasterize(*leaves, viewmat, K, w, h)
+                return cobgs.rasterize(*leaves, viewmat, K, w, h, pixel_labels=lab, num_labels=2)
 
         torch.cuda.reset_peak_memory_stats()
         t_ours, t_ours_min = time_cuda(ours, args.reps)
         mem_ours = torch.cuda.max_memory_allocated()
         t_ours_fwd, _ = time_cuda(ours_fwd, args.reps)
-        row = {"n": n, "ours_ms": t_ours, "ours_min_ms": t_ours_min, "ours_fwd_ms": t_ours_fwd,
-               "ours_peak_mem": mem_ours}
+        row = {"n": n, "channels": channels, "path": path, "labels": labels_on, "ours_ms": t_ours,
+               "ours_min_ms": t_ours_min, "ours_fwd_ms": t_ours_fwd, "ours_peak_mem": mem_ours}
         line = (f"N={n:>8}: ours fwd+bwd {t_ours:7.2f} ms [{t_ours_min:.2f}] "
                 f"(fwd {t_ours_fwd:.2f}), peak {mem_ours / 2**20:.0f} MiB")
         if rasterization is not None:
@@ -183,10 +217,7 @@ def bench_kernels(args) -> None:
                     (img[0] * weight).sum().backward()
 
                 profile_kernels(f"gsplat packed={best[2]}", peer_best)
-    if args.out:
-        Path(args.out).mkdir(parents=True, exist_ok=True)
-        (Path(args.out) / "bm_cuda_kernels.json").write_text(json.dumps(
-            {"gpu": gpu_name(), "width": w, "height": h, "rows": rows}, indent=1))
+    return rows
 
 
 def object_masks(model, views, radius_frac: float = 0.25):
@@ -208,80 +239,134 @@ def object_masks(model, views, radius_frac: float = 0.25):
     return masks, int(inside.sum())
 
 
+def pack_fern(args) -> None:
+    """Write the SfM'd scene as cameras, names, split and points (``torch.save``), so that a
+    machine without pycolmap (the GPU machine) trains on exactly this scene: ``fern --scene``
+    reads it and the undistorted images from ``--images-dir`` (the SfM folder's ``images/``)."""
+    from cobgs.data.colmap import read_colmap
+
+    scene = read_colmap(args.sfm_dir, test_every=args.test_every)
+    pack = {"train": [(v.name, Path(v.path).name, v.camera) for v in scene.train],
+            "test": [(v.name, Path(v.path).name, v.camera) for v in scene.test],
+            "points": scene.points, "points_rgb": scene.points_rgb, "extent": scene.extent,
+            "init_bounds": scene.init_bounds, "background": scene.background,
+            "notes": scene.notes, "source": str(args.sfm_dir), "test_every": args.test_every}
+    torch.save(pack, args.out)
+    print(f"{args.out}: {len(scene.train)} train / {len(scene.test)} held-out views, "
+          f"{len(scene.points)} points")
+
+
+def _unpack_fern(path: Path, images_dir: Path):
+    from cobgs.data.scene import Scene, View, load_rgb
+
+    pack = torch.load(path, weights_only=False)
+
+    def views(rows):
+        out = []
+        for name, file, cam in rows:
+            image, _ = load_rgb(images_dir / file, (cam.width, cam.height))
+            out.append(View(cam, image, name, path=str(images_dir / file)))
+        return out
+
+    return Scene(train=views(pack["train"]), test=views(pack["test"]), extent=pack["extent"],
+                 points=pack["points"], points_rgb=pack["points_rgb"],
+                 init_bounds=pack["init_bounds"], background=tuple(pack["background"]),
+                 source=pack["source"], kind="colmap", notes=list(pack["notes"]))
+
+
 def bench_fern(args) -> None:
+    from cobgs.configs import RefineConfig, SfmOptions, TrainConfig
     from cobgs.data.colmap import read_colmap
     from cobgs.gaussians.ply import save_ply
     from cobgs.refine.alternation import refine
-    from cobgs.configs import RefineConfig
-    from cobgs.data.sfm import run_sfm
-    from cobgs.configs import SfmOptions
+    from cobgs.render._ops import cuda_fast_path
     from cobgs.train.optimize import train
-    from cobgs.configs import TrainConfig
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    report = {"gpu": gpu_name(), "torch": torch.__version__}
-    print(f"GPU: {report['gpu']}", flush=True)
-    sfm_dir = out / "fern_sfm"
+    report = {"gpu": gpu_name(), "torch": torch.__version__, "path": args.path,
+              "recipe": args.recipe, "iterations": args.iterations}
+    print(f"GPU: {report['gpu']}; CUDA blending path: {args.path}", flush=True)
     t = time.perf_counter()
-    if not (sfm_dir / "sparse" / "0").is_dir():
-        res = run_sfm(args.images, sfm_dir, SfmOptions(matcher="exhaustive", seed=0))
-        print(f"SfM: {len(res.registered)} registered, {res.num_points3d} points", flush=True)
-    report["sfm_s"] = time.perf_counter() - t
-    scene = read_colmap(sfm_dir, test_every=0)
+    if args.scene is not None:
+        scene = _unpack_fern(args.scene, args.images_dir)
+    else:
+        from cobgs.data.sfm import run_sfm
+
+        sfm_dir = out / "fern_sfm"
+        if not (sfm_dir / "sparse" / "0").is_dir():
+            res = run_sfm(args.images, sfm_dir, SfmOptions(matcher="exhaustive", seed=0))
+            print(f"SfM: {len(res.registered)} registered, {res.num_points3d} points", flush=True)
+        scene = read_colmap(sfm_dir, test_every=args.test_every)
+    report["load_s"] = time.perf_counter() - t
     dev = torch.device("cuda")
-    for v in scene.train:
+    for v in scene.train + scene.test:
         v.camera = v.camera.to(dev)
         v.image = v.image.to(dev)
     w, h = scene.train[0].camera.width, scene.train[0].camera.height
-    print(f"fern: {len(scene.train)} views at {w}x{h}, {len(scene.points)} SfM points "
-          f"(SfM {report['sfm_s']:.1f} s)", flush=True)
-    cfg = TrainConfig(iterations=args.iterations, log_interval_its=1000)
+    print(f"fern: {len(scene.train)} train / {len(scene.test)} held-out views at {w}x{h}, "
+          f"{len(scene.points)} SfM points ({report['load_s']:.1f} s)", flush=True)
+    kw = {"iterations": args.iterations} if args.iterations else {}
+    if args.recipe != "3dgs":
+        kw["recipe"] = args.recipe
+    cfg = TrainConfig(log_interval_its=1000, **kw)
+    its = cfg.iterations
+    report["iterations"] = its
     torch.cuda.reset_peak_memory_stats()
     t0 = time.perf_counter()
     last = [t0]
 
     def progress(trainer, info):
         if trainer.iteration % 1000 == 0:
+            torch.cuda.synchronize()
             now = time.perf_counter()
-            eta = (now - t0) / trainer.iteration * (cfg.iterations - trainer.iteration)
-            print(f"  train it {trainer.iteration}/{cfg.iterations}: loss {info['loss']:.4f}, "
+            eta = (now - t0) / trainer.iteration * (its - trainer.iteration)
+            print(f"  train it {trainer.iteration}/{its}: loss {info['loss']:.4f}, "
                   f"psnr {info['psnr']:.2f}, {len(trainer.model)} Gaussians, "
                   f"{(now - last[0]):.1f} s / 1000 its, ETA {eta:.0f} s", flush=True)
             last[0] = now
 
-    res = train(scene, cfg, progress=False, evaluate_test=False, callback=progress)
-    torch.cuda.synchronize()
-    report["train_s"] = time.perf_counter() - t0
-    report["train_peak_gpu_mem"] = torch.cuda.max_memory_allocated()
-    report["num_gaussians"] = len(res.model)
-    report["train_psnr_last"] = res.history[-1]["psnr"] if res.history else None
-    report["train_history"] = res.history
-    print(f"train: {report['train_s']:.1f} s, {len(res.model)} Gaussians, peak GPU memory "
-          f"{report['train_peak_gpu_mem'] / 2**30:.2f} GiB", flush=True)
-    save_ply(out / "fern.ply", res.model.clone().to(torch.device("cpu")))
-    cam = scene.train[0].camera  # for the parity tests (COBGS_TRAINED_PLY)
-    (out / "fern.ply.camera.json").write_text(json.dumps(
-        {"viewmat": cam.viewmat.tolist(), "K": cam.K.tolist(), "width": cam.width,
-         "height": cam.height}))
+    with cuda_fast_path(args.path == "fast"):
+        res = train(scene, cfg, progress=False, evaluate_test=False, callback=progress)
+        torch.cuda.synchronize()
+        report["train_s"] = time.perf_counter() - t0
+        report["train_peak_gpu_mem"] = torch.cuda.max_memory_allocated()
+        report["num_gaussians"] = len(res.model)
+        report["train_psnr_last"] = res.history[-1]["psnr"] if res.history else None
+        report["train_history"] = res.history
+        print(f"train: {report['train_s']:.1f} s, {len(res.model)} Gaussians, peak GPU memory "
+              f"{report['train_peak_gpu_mem'] / 2**30:.2f} GiB", flush=True)
+    if scene.test:  # held-out PSNR, rendered with the exact path for both trainings
+        from cobgs.train.optimize import evaluate
+
+        with cuda_fast_path(False):
+            ev = evaluate(res.model, scene.test, list(scene.background), cfg.backend)
+        report["test_psnr"], report["test_ssim"] = ev["psnr"], ev["ssim"]
+        print(f"held-out ({len(scene.test)} views): PSNR {ev['psnr']:.3f}, SSIM {ev['ssim']:.4f}",
+              flush=True)
+    (out / "bm_cuda_fern.json").write_text(json.dumps(report, indent=1, default=str))
+    if args.save_ply:
+        save_ply(out / "fern.ply", res.model.clone().to(torch.device("cpu")))
+        cam = scene.train[0].camera  # for the parity tests (COBGS_TRAINED_PLY)
+        (out / "fern.ply.camera.json").write_text(json.dumps(
+            {"viewmat": cam.viewmat.tolist(), "K": cam.K.tolist(), "width": cam.width,
+             "height": cam.height}))
     masks, n_obj = object_masks(res.model, scene.train)
     print(f"object: {n_obj} Gaussians; mask coverage "
           f"{float(torch.stack(masks).float().mean()):.3f}", flush=True)
     rcfg = RefineConfig(scene_type="forward")
     torch.cuda.reset_peak_memory_stats()
     t0 = time.perf_counter()
-    r = refine(res.model, scene.train, masks, scene.extent, rcfg, progress=False,
-               object_name="centre", texture_moments=res.adam_moments)
-    torch.cuda.synchronize()
+    with cuda_fast_path(args.path == "fast"):
+        r = refine(res.model, scene.train, masks, scene.extent, rcfg, progress=False,
+                   object_name="centre", texture_moments=res.adam_moments)
+        torch.cuda.synchronize()
     report["refine_s"] = time.perf_counter() - t0
-    report["refine_iterations"] = sum(s.iterations for s in r.stages) if hasattr(
-        r.stages[0], "iterations") else None
     report["refine_peak_gpu_mem"] = torch.cuda.max_memory_allocated()
     report["refine_gaussians"] = [r.num_gaussians_start, r.num_gaussians_end]
-    print(f"refine (forward, {len(scene.train)} views, {report['refine_iterations']} its): "
-          f"{report['refine_s']:.1f} s, Gaussians {r.num_gaussians_start} -> "
-          f"{r.num_gaussians_end}, peak GPU memory {report['refine_peak_gpu_mem'] / 2**30:.2f} GiB",
-          flush=True)
+    print(f"refine (forward, {len(scene.train)} views): {report['refine_s']:.1f} s, Gaussians "
+          f"{r.num_gaussians_start} -> {r.num_gaussians_end}, peak GPU memory "
+          f"{report['refine_peak_gpu_mem'] / 2**30:.2f} GiB", flush=True)
     (out / "bm_cuda_fern.json").write_text(json.dumps(report, indent=1, default=str))
 
 
@@ -293,13 +378,31 @@ def main() -> None:
     k.add_argument("--width", type=int, default=1008)
     k.add_argument("--height", type=int, default=756)
     k.add_argument("--reps", type=int, default=20)
+    k.add_argument("--channels", default="4,1", help="feature channels (1: with 2-label pixel counts, as "
+                   "COB-GS's mask stages render)")
+    k.add_argument("--paths", default="exact,fast", help="the CUDA blending paths to time (exact, fast)")
     k.add_argument("--out", default="")
     k.add_argument("--profile", action="store_true", help="per-kernel times (torch.profiler)")
     f = sub.add_parser("fern")
-    f.add_argument("--images", required=True, type=Path)
-    f.add_argument("--iterations", type=int, default=30_000)
+    src = f.add_mutually_exclusive_group(required=True)
+    src.add_argument("--images", type=Path, help="the 20 images (SfM with pycolmap first)")
+    src.add_argument("--scene", type=Path, help="a scene written by pack-fern (no pycolmap needed)")
+    f.add_argument("--images-dir", type=Path, help="with --scene: the SfM folder's images/")
+    f.add_argument("--test-every", type=int, default=8, help="held-out views (with --images)")
+    f.add_argument("--iterations", type=int, default=0, help="0: the recipe's (3dgs: 30 000)")
+    f.add_argument("--recipe", default="3dgs", help="TrainConfig.recipe")
+    f.add_argument("--path", choices=("exact", "fast"), default="exact", help="the CUDA blending path")
+    f.add_argument("--save-ply", action="store_true", help="write fern.ply (for COBGS_TRAINED_PLY)")
     f.add_argument("--out", required=True)
+    pk = sub.add_parser("pack-fern", help="(any machine) write an SfM'd scene for fern --scene")
+    pk.add_argument("--sfm-dir", required=True, type=Path)
+    pk.add_argument("--test-every", type=int, default=8)
+    pk.add_argument("--out", required=True, type=Path)
     args = ap.parse_args()
+    if args.cmd == "pack-fern":
+        return pack_fern(args)
+    if args.cmd == "fern" and args.scene is not None and args.images_dir is None:
+        ap.error("--scene needs --images-dir")
     if not torch.cuda.is_available():
         sys.exit("no CUDA device")
     {"kernels": bench_kernels, "fern": bench_fern}[args.cmd](args)

@@ -469,3 +469,87 @@ def test_training_on_cuda_follows_the_cpu_run():
     for a, b in zip(losses["cpu"], losses["cuda"]):
         assert abs(a - b) <= 2e-3 * abs(a), (losses["cpu"], losses["cuda"])
     assert losses["cuda"][-1] < losses["cuda"][0]
+
+
+# -- the fast path (FMA + hardware exp; off by default until these pass on a GPU) ------------
+# Stated tolerances (float32, against the CPU op / the exact path):
+#   image, transmittance     1e-5 absolute (colours are sums of <= ~200 terms <= 1: FMA and the
+#                            hardware exp's 2 ulp move each term by < 1e-7)
+#   n_contrib, label counts  equal except at pixels where a decision sits within 1e-5 (relative)
+#                            of its threshold (α vs 1/255 or 0.99, T vs 1e-4): at most 0.1 % of
+#                            pixels differ, each by the one Gaussian at the threshold
+#   gradients                1e-4 of each tensor's largest entry (atomics already reorder sums)
+FAST_IMAGE_ATOL = 1e-5
+FAST_DECISIONS_MAX_SHARE = 1e-3
+FAST_GRAD_REL = 1e-4
+
+
+def _fast_and_exact(run, d):
+    from cobgs.render._ops import cuda_fast_path
+
+    gd = to(d, "cuda")
+    with cuda_fast_path(False):
+        exact = [t.cpu() if torch.is_tensor(t) else t for t in run(gd)]
+    with cuda_fast_path(True):
+        fast = [t.cpu() if torch.is_tensor(t) else t for t in run(gd)]
+    return exact, fast
+
+
+@pytest.mark.parametrize("channels", [1, 3, 4])
+@pytest.mark.parametrize("labels", [0, 2])
+def test_fast_path_within_stated_tolerances_of_the_exact_path(channels, labels):
+    s = random_scene(torch.float32, seed=40 + channels + labels)
+    feats, bg = blend_inputs(s, channels)
+    g = torch.Generator().manual_seed(7)
+    lab = torch.randint(-1, max(labels, 1), (H, W), generator=g, dtype=torch.int32) if labels else None
+    d = dict(s, features=feats, bg=bg, lab=lab, v_img=torch.randn(H, W, channels, generator=g),
+             v_tr=torch.randn(H, W, generator=g))
+
+    def run(x):
+        m2, conics, depths, radii = project(x)
+        off, ids, prep = ops().bin_tiles_tight(m2, radii, depths, conics, x["opacities"], W, H)
+        out = ops().blend(m2, conics, x["opacities"], x["features"], x["bg"], off, ids, W, H,
+                          x["lab"], max(labels, 1), prep)
+        grads = ops().blend_bwd(m2, conics, x["opacities"], x["features"], x["bg"], off, ids,
+                                out[1], out[2], x["v_img"], x["v_tr"], prep)
+        return (*out, *grads)
+
+    exact, fast = _fast_and_exact(run, d)
+    assert (exact[0] - fast[0]).abs().max() <= FAST_IMAGE_ATOL
+    assert (exact[1] - fast[1]).abs().max() <= FAST_IMAGE_ATOL
+    share = float((exact[2] != fast[2]).float().mean())
+    assert share <= FAST_DECISIONS_MAX_SHARE, share
+    if labels:
+        diff = (exact[3] - fast[3]).abs().sum()
+        assert float(diff) <= FAST_DECISIONS_MAX_SHARE * H * W, float(diff)
+    for a, b in zip(exact[5:9], fast[5:9]):
+        scale = max(float(a.abs().max()), 1e-12)
+        assert float((a - b).abs().max()) <= FAST_GRAD_REL * scale
+
+
+def test_fast_path_is_off_by_default_and_switchable():
+    from cobgs.render._ops import cuda_fast_path, cuda_fast_path_on
+
+    assert cuda_fast_path_on() == (os.environ.get("COBGS_CUDA_FAST", "") not in ("", "0"))
+    with cuda_fast_path(True):
+        assert cuda_fast_path_on()
+    with cuda_fast_path(False):
+        assert not cuda_fast_path_on()
+
+
+def test_fast_path_training_within_stated_bounds():
+    """End result of a training: the held-out PSNR of the same 300 iterations (same seeds,
+    same views) within 0.1 dB of the exact path. (COB-GS's mIoU / mBIoU on the demo and lego
+    with device=cuda, both paths: tests/benchmarks/gpu_check.sh.)"""
+    from cobgs.data.scene import make_scene
+    from cobgs.render._ops import cuda_fast_path
+    from cobgs.train.optimize import train
+
+    views = _orbit_views(_ground_truth("cuda"), 16, 160, 120, "cuda")
+    scene = make_scene(views, test_every=8, kind="test")
+    scene.init_bounds = ([-1.5] * 3, [1.5] * 3)
+    psnr = {}
+    for fast in (False, True):
+        with cuda_fast_path(fast):
+            psnr[fast] = train(scene, _train_config(300), progress=False).eval["psnr"]
+    assert abs(psnr[True] - psnr[False]) <= 0.1, psnr
