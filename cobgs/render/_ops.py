@@ -362,10 +362,14 @@ def rasterize_native(means, quats, scales, opacities, features, viewmat, K, widt
 
 @contextlib.contextmanager
 def cuda_fast_path(on: bool = True):
-    """Within the block, the CUDA blending passes take the fast path (FMA and the hardware
-    exp; csrc/blend/blend_cuda.cuh) or the exact one (``on=False``); the previous setting is
-    restored after. Off by default (``COBGS_CUDA_FAST=1`` turns it on at load) until a GPU run
-    has verified it (``make gpu-check``). The CPU kernels have one path and ignore it."""
+    """Within the block, the CUDA blending passes take the fast path (fused multiply-adds and
+    the hardware exp; csrc/blend/blend_cuda.cuh) or, with ``on=False``, the exact one (every
+    per-pixel decision made with the CPU kernels' roundings: bit-identical images and label
+    counts); the previous setting is restored after. The fast path is the default
+    (``COBGS_CUDA_EXACT=1`` selects the exact one at load); its stated tolerances against the
+    exact path are tests/render/test_cuda.py's ``FAST_*``. A forward pass and its backward
+    must run under the same setting (the backward recomputes the forward's decisions). The CPU
+    kernels have one path and ignore it."""
     ensure_loaded()
     before = torch.ops.cobgs.set_cuda_fast(bool(on))
     try:

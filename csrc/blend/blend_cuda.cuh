@@ -114,8 +114,9 @@ __device__ __forceinline__ bool in_box(const GaussPrep<T>& g, int x, int y) {
   return x >= g.x0 && x < g.x1 && y >= g.y0 && y < g.y1;
 }
 
-// -- the fast path (COBGS_CUDA_FAST=1, or cobgs::set_cuda_fast(True); off by default until a
-// GPU run has verified it: tests/render/test_cuda.py's tolerance tests, make gpu-check) --------
+// -- the fast path (the default; COBGS_CUDA_EXACT=1 or cobgs::set_cuda_fast(False) selects the
+// exact one). Verified on an H100 by tests/render/test_cuda.py's tolerance tests and
+// make gpu-check (docs/benchmarks/cuda_h100.md) --------------------------------------------
 // The exact path makes every per-pixel decision with the CPU kernels' roundings (no fused
 // multiply-adds, the shared polynomial exp). The fast path evaluates the exponent with fused
 // multiply-adds and the hardware exp (__expf: 2 ulp), and accumulates colours with fused

@@ -109,7 +109,7 @@ def _text(rec: dict) -> str:
                   f"            flags {' '.join(ext['cflags'])}; link {' '.join(ext['ldflags'])}",
                   "            CUDA kernels: " + (f"built for {plan['arch']} (nvcc {plan['nvcc_version']})"
                                                   if plan.get("enabled") else f"not built ({plan.get('reason')})")
-                  + (f"; blending path: {ext['cuda_blend_path']} (COBGS_CUDA_FAST=1: fast)"
+                  + (f"; blending path: {ext['cuda_blend_path']} (COBGS_CUDA_EXACT=1: exact)"
                      if plan.get("enabled") and ext.get("cuda_blend_path") else "")]
     checks = rec["checks"]
     if "error_probe" in checks:

@@ -1,14 +1,18 @@
 """CUDA kernels against the CPU kernels (marked ``gpu``: skipped without a CUDA device or
 without an extension built with its CUDA kernels).
 
-Both backends evaluate the same formulas (csrc/common/gs_math.h, sh_math.h,
-gauss_prep.h) with the same operation order and no fused multiply-add, so every
+On the exact CUDA blending path (every test here runs on it unless it says otherwise:
+the ``_exact_path`` fixture) both backends evaluate the same formulas
+(csrc/common/gs_math.h, sh_math.h, gauss_prep.h) with the same operation order and no fused
+multiply-add, so every
 per-Gaussian and per-pixel output is compared *bit for bit*: projection and its
 gradients, SH colours and their gradients, the tile lists and the per-Gaussian records,
 the image, transmittance, n_contrib and label counts, and every per-pixel value of the
 blur / SSIM / photometric ops. Values the CUDA kernels sum with atomics (label weights,
 the blend gradients) or in another order (the SSIM / L1 means, the background gradient)
-are compared with a tolerance stated per test.
+are compared with a tolerance stated per test. The fast path (the default: fused
+multiply-adds and the hardware exp) is held to the stated tolerances ``FAST_*`` against the
+exact one, at the end of the file.
 
 Scenes: random Gaussians of mixed size and opacity (culled, clamped and tie cases
 included), and a trained scene (the synthetic ``demo`` preset trained on the GPU for a
@@ -40,6 +44,15 @@ def _cuda_kernels():
     _ops.ensure_loaded()
     if not _ops.serves(torch.device("cuda")):
         pytest.skip(f"extension built without CUDA kernels: {_build.cuda_plan().get('reason')}")
+
+
+@pytest.fixture(autouse=True)
+def _exact_path():
+    """The exact blending path for every test (the fast-path tests switch inside)."""
+    from cobgs.render._ops import cuda_fast_path
+
+    with cuda_fast_path(False):
+        yield
 
 
 def ops():
@@ -471,7 +484,7 @@ def test_training_on_cuda_follows_the_cpu_run():
     assert losses["cuda"][-1] < losses["cuda"][0]
 
 
-# -- the fast path (FMA + hardware exp; off by default until these pass on a GPU) ------------
+# -- the fast path (FMA + hardware exp; the default since these passed on an H100) ----------
 # Stated tolerances (float32, against the CPU op / the exact path):
 #   image, transmittance     1e-5 absolute (colours are sums of <= ~200 terms <= 1: FMA and the
 #                            hardware exp's 2 ulp move each term by < 1e-7)
@@ -525,16 +538,6 @@ def test_fast_path_within_stated_tolerances_of_the_exact_path(channels, labels):
     for a, b in zip(exact[5:9], fast[5:9]):
         scale = max(float(a.abs().max()), 1e-12)
         assert float((a - b).abs().max()) <= FAST_GRAD_REL * scale
-
-
-def test_fast_path_is_off_by_default_and_switchable():
-    from cobgs.render._ops import cuda_fast_path, cuda_fast_path_on
-
-    assert cuda_fast_path_on() == (os.environ.get("COBGS_CUDA_FAST", "") not in ("", "0"))
-    with cuda_fast_path(True):
-        assert cuda_fast_path_on()
-    with cuda_fast_path(False):
-        assert not cuda_fast_path_on()
 
 
 def test_fast_path_training_within_stated_bounds():
