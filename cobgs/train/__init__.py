@@ -1,6 +1,6 @@
-"""The Gaussians and their optimisation.
+"""3DGS training: the optimisation of the Gaussians (the model and its PLY I/O live below, in
+:mod:`cobgs.gaussians`).
 
-* :mod:`~cobgs.gaussians.model`: ``GaussianModel``; :mod:`~cobgs.gaussians.ply`: its PLY I/O;
 * :mod:`~cobgs.train.optimize`: the 3DGS training loop (``train``, ``Trainer``) and its recipes;
 * :mod:`~cobgs.train.losses`: L1 + SSIM; :mod:`~cobgs.train.adam_moments`: the Adam state
   COB-GS's texture stages continue; :mod:`~cobgs.train.visible_adam`: selective Adam.
