@@ -393,8 +393,27 @@ def scene_records(data: RunData) -> list[dict]:
                      "iterations": t.get("iterations"), "num_gaussians": t.get("num_gaussians"),
                      "train_s": _train_s(sc, t), "psnr": ev.get("psnr"), "ssim": ev.get("ssim"),
                      "status": sc.train_task.state if sc.train_task else "not in workflow",
-                     "notes": "; ".join([*spec.notes, *_init_note(t)])})
+                     "notes": "; ".join([*spec.notes, *_recipe_note(t), *_init_note(t)])})
     return recs
+
+
+def _recipe_note(t: dict) -> list[str]:
+    """The training recipe a trained scene used (``train.json``'s config; a 3DGS run leaves the
+    field out at its default, "3dgs"). Nothing for a scene trained elsewhere."""
+    cfg = t.get("config")
+    if not isinstance(cfg, dict) or t.get("imported"):
+        return []
+    recipe = cfg.get("recipe", "3dgs")
+    if recipe == "3dgs":
+        return [f"training recipe: 3dgs (the paper's schedule, {t.get('iterations') or cfg.get('iterations')} iterations)"]
+    parts = [f"{t.get('iterations') or cfg.get('iterations')} iterations"]
+    if cfg.get("resolution_schedule"):
+        parts.append("resolution schedule")
+    if cfg.get("gaussian_budget") or cfg.get("gaussian_budget_per_pixel"):
+        parts.append(f"Gaussian budget {cfg.get('gaussian_budget') or str(cfg.get('gaussian_budget_per_pixel')) + ' per pixel'}")
+    if cfg.get("sparse_adam"):
+        parts.append("visible-only Adam")
+    return [f"training recipe: {recipe} ({', '.join(parts)})"]
 
 
 def _init_note(t: dict) -> list[str]:

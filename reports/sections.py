@@ -141,9 +141,9 @@ def result_tables(data: RunData, infos: dict, logs: R.LogHref) -> dict:
          Column("psnr", "PSNR", fmt.db, title="vanilla scene, held-out views (dB)"),
          Column("ssim", "SSIM", lambda v: "" if fmt.finite(v) is None else f"{v:.4f}"),
          Column("status", "Training", numeric=False),
-         Column("notes", "Reader notes", numeric=False, wrap=True,
-                title="what the reader decided about the data: distortion read as a pinhole, "
-                      "images matched to poses by sorted order, ...")], R.scene_records(data))
+         Column("notes", "Notes", numeric=False, wrap=True,
+                title="the training recipe, and what the reader decided about the data: distortion "
+                      "read as a pinhole, images matched to poses by sorted order, ...")], R.scene_records(data))
     ref = R.reference_method(infos)
     drecs, compared = R.difference_records(data, infos, ref)
     t_diff = build_table(

@@ -234,6 +234,21 @@ def test_scene_notes_say_when_training_started_from_a_random_box():
     assert _init_note({"initial_points": 1234}) == [] and _init_note({}) == []
 
 
+def test_scene_notes_name_the_training_recipe():
+    """Issue 45: the scene table says which recipe trained each scene (a 3dgs train.json leaves
+    the field out; a scene trained elsewhere gets no recipe note)."""
+    from reports.results import _recipe_note
+
+    assert _recipe_note({"config": {"iterations": 30000}, "iterations": 30000}) == [
+        "training recipe: 3dgs (the paper's schedule, 30000 iterations)"]
+    fast = {"config": {"recipe": "fast", "iterations": 12000, "resolution_schedule": True,
+                       "gaussian_budget_per_pixel": 0.3}, "iterations": 12000}
+    assert _recipe_note(fast) == ["training recipe: fast (12000 iterations, resolution schedule, "
+                                  "Gaussian budget 0.3 per pixel)"]
+    assert _recipe_note({"config": {"recipe": "3dgs"}, "imported": {"iteration": 7000}}) == []
+    assert _recipe_note({}) == []
+
+
 def test_markdown_tables_escape_names():
     """Issue 38 L4: names go into tables.md; `a|b` and a newline stay inside one cell."""
     from reports.tables import Cell, Column, Row, Table, to_markdown
