@@ -33,6 +33,7 @@ os.environ.setdefault("OMP_WAIT_POLICY", "passive")
 import argparse  # noqa: E402
 import json  # noqa: E402
 import resource  # noqa: E402
+import statistics  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
@@ -113,6 +114,7 @@ def cmd_scene(args) -> int:
     args.iterations = cfg.iterations
     (out / "config.json").write_text(json.dumps({"recipe": args.recipe, "sets": args.set or [],
                                                  "test_every": args.test_every,
+                                                 "sfm_dir": str(args.sfm_dir) if args.sfm_dir else None,
                                                  "test_views": [v.name for v in scene.test]}, indent=1))
     log = (out / "train_log.jsonl").open("a")
     t_start = time.perf_counter()
@@ -157,6 +159,15 @@ def cmd_scene(args) -> int:
     return 0
 
 
+def _split_of(args) -> tuple:
+    """(test_every, sfm_dir) for table6 / _one: the flags, else what the scene run recorded in
+    config.json (so the refinement sees the training's split and reconstruction)."""
+    cfg = json.loads((args.out / "config.json").read_text()) if (args.out / "config.json").is_file() else {}
+    te = args.test_every if args.test_every is not None else int(cfg.get("test_every") or 0)
+    sfm = args.sfm_dir or (Path(cfg["sfm_dir"]) if cfg.get("sfm_dir") else None)
+    return te, sfm
+
+
 def _object_masks(model, views):
     sys.path.insert(0, str(HERE))
     from bm_cuda import object_masks
@@ -180,7 +191,7 @@ def cmd_table6(args) -> int:
     from PIL import Image
 
     out = args.out
-    scene = _scene(out, None)
+    scene = _scene(out, None, *_split_of(args))
     ckpt = out / "ckpt" / args.checkpoint
     mask_dir = out / f"masks_{ckpt.stem}"
     if not mask_dir.is_dir():
@@ -198,6 +209,10 @@ def cmd_table6(args) -> int:
     for method in args.methods.split(","):
         cmd = [sys.executable, __file__, "_one", "--out", str(out), "--checkpoint", args.checkpoint,
                "--iterations", str(args.iterations), "--method", method]
+        if args.sfm_dir:
+            cmd += ["--sfm-dir", str(args.sfm_dir)]
+        if args.test_every is not None:
+            cmd += ["--test-every", str(args.test_every)]
         print(f"{method}: running", flush=True)
         res = subprocess.run(cmd, capture_output=True, text=True)
         if res.returncode != 0:
@@ -228,7 +243,7 @@ def cmd_one(args) -> int:
 
     torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
     out = args.out
-    scene = _scene(out, None)
+    scene = _scene(out, None, *_split_of(args))
     ckpt = out / "ckpt" / args.checkpoint
     model, moments = _load_checkpoint(scene, ckpt, args.iterations)
     mask_dir = out / f"masks_{ckpt.stem}"
@@ -344,6 +359,59 @@ def _scene_cost(out: Path, recs: list, paused: dict) -> list:
             f"| **total** | **{total_m / 3600:.2f} h** | **{total_q / 3600:.2f} h** |", ""]
 
 
+def cmd_recipes(args) -> int:
+    """Issue 45's tables: each ``NAME=DIR`` scene run (recipe, switches, training time, held-out
+    PSNR, peak RSS) and, where its table6 ran, the whole scene (SfM + training + COB-GS
+    refinement + evaluation). Markdown on stdout (or --write)."""
+    rows = []
+    for spec in args.runs:
+        name, _, d = spec.partition("=")
+        d = Path(d)
+        recs = _train_chunks(d / "train_log.jsonl") if (d / "train_log.jsonl").is_file() else []
+        if not recs:
+            continue
+        cfg = json.loads((d / "config.json").read_text()) if (d / "config.json").is_file() else {}
+        ev = json.loads((d / "eval.json").read_text()) if (d / "eval.json").is_file() else {}
+        t6 = {}
+        for f in sorted(d.glob("table6_*.jsonl")):
+            for r in _jsonl(f):
+                if r.get("method") in ("cobgs", None):
+                    t6 = r
+        sfm_dir = Path(cfg["sfm_dir"]) if cfg.get("sfm_dir") else d / "fern_sfm"
+        sfm = json.loads((sfm_dir.parent / "sfm.json").read_text()) if (sfm_dir.parent / "sfm.json").is_file() \
+            else (json.loads((d / "sfm.json").read_text()) if (d / "sfm.json").is_file() else {})
+        rows.append({"name": name, "recipe": cfg.get("recipe", "3dgs"), "sets": cfg.get("sets") or [],
+                     "its": recs[-1]["it"], "done": bool(ev), "wall": sum(r["wall_s"] for r in recs),
+                     "cpu": sum(r["cpu_s"] for r in recs), "gaussians": recs[-1]["gaussians"],
+                     "max_gaussians": max(r["gaussians"] for r in recs),
+                     "rss": max(r.get("peak_rss", 0) for r in recs), "load": statistics.mean(r["load"] for r in recs),
+                     "res": recs[-1].get("resolution") or [recs[-1].get("width"), recs[-1].get("height")],
+                     "psnr": ev.get("psnr"), "ssim": ev.get("ssim"), "t6": t6, "sfm_s": sfm.get("wall_s")})
+    lines = ["| run | recipe and switches | iterations | training wall h | CPU h (2 threads) | mean load | "
+             "Gaussians (max) | held-out PSNR / SSIM | peak RSS |", "|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        its = f"{r['its']:,}" + ("" if r["done"] else " (stopped; no held-out eval)")
+        ps = f"{r['psnr']:.3f} / {r['ssim']:.4f}" if r["psnr"] is not None else "-"
+        lines.append(f"| {r['name']} | {r['recipe']}{' ' + ' '.join(r['sets']) if r['sets'] else ''} | {its} | "
+                     f"{r['wall'] / 3600:.2f} | {r['cpu'] / 3600:.2f} | {r['load']:.1f} | "
+                     f"{r['gaussians']:,} ({r['max_gaussians']:,}) | {ps} | {r['rss'] / 2**30:.2f} GiB |")
+    whole = [r for r in rows if r["done"] and r["t6"]]
+    if whole:
+        lines += ["", "| run | SfM | training | COB-GS refinement (prep + optimisation + extraction) | evaluation | whole scene |",
+                  "|---|---|---|---|---|---|"]
+        for r in whole:
+            t = r["t6"]
+            ref = t["prep_s"] + t["opt_s"] + t["seg_ms"] / 1000
+            tot = (r["sfm_s"] or 0) + r["wall"] + ref + t["eval_s"]
+            lines.append(f"| {r['name']} | {r['sfm_s'] or 0:.0f} s | {r['wall'] / 60:.1f} min | {ref:.0f} s | "
+                         f"{t['eval_s']:.0f} s | **{tot / 3600:.2f} h** |")
+    text = "\n".join(lines) + "\n"
+    if args.write:
+        args.write.write_text(text)
+    print(text)
+    return 0
+
+
 def cmd_summary(args) -> int:
     out = args.out
     lines = ["# A whole NVOS-protocol scene on a CPU: fern at 1008x756 (issue 26)", "",
@@ -427,17 +495,25 @@ def main(argv=None) -> int:
     t.add_argument("--out", type=Path, required=True)
     t.add_argument("--checkpoint", default="ckpt_final.pt")
     t.add_argument("--iterations", type=int, default=30_000)
+    t.add_argument("--sfm-dir", type=Path, default=None, help="the scene run's shared SfM (default: its config.json's)")
+    t.add_argument("--test-every", type=int, default=None, help="the scene run's split (default: its config.json's)")
     t.add_argument("--methods", default=",".join(METHODS))
     o = sub.add_parser("_one")
     o.add_argument("--out", type=Path, required=True)
     o.add_argument("--checkpoint", required=True)
     o.add_argument("--iterations", type=int, default=30_000)
+    o.add_argument("--sfm-dir", type=Path, default=None, help="the scene run's shared SfM (default: its config.json's)")
+    o.add_argument("--test-every", type=int, default=None, help="the scene run's split (default: its config.json's)")
     o.add_argument("--method", required=True, choices=METHODS)
+    rc = sub.add_parser("recipes", help="issue 45's tables over several scene runs")
+    rc.add_argument("runs", nargs="+", metavar="NAME=DIR")
+    rc.add_argument("--write", type=Path)
     m = sub.add_parser("summary")
     m.add_argument("--out", type=Path, required=True)
     m.add_argument("--write", type=Path)
     args = ap.parse_args(argv)
-    return {"scene": cmd_scene, "table6": cmd_table6, "_one": cmd_one, "summary": cmd_summary}[args.cmd](args)
+    return {"scene": cmd_scene, "table6": cmd_table6, "_one": cmd_one, "summary": cmd_summary,
+            "recipes": cmd_recipes}[args.cmd](args)
 
 
 if __name__ == "__main__":
