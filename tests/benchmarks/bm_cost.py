@@ -41,7 +41,7 @@ from pathlib import Path  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parents[1]
-METHODS = ("cobgs", "flashsplat", "sa3d", "nosplit")
+METHODS = ("cobgs", "flashsplat", "sa3d", "nosplit", "ngs")
 
 
 class _Budget(Exception):
