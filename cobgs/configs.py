@@ -397,7 +397,11 @@ class RefineConfig:
             the last stage, the foreground is rendered alone in every training view and a
             Gaussian whose votes there fall more on the mask's background than on its object
             (pixels where something else hides the object left out) leaves the foreground
-            (:mod:`cobgs.refine.consistency`); "off": the released segmentation (label > 0.9).
+            (:mod:`cobgs.refine.consistency`); "off": the released segmentation (label > 0.9);
+            "per_use": two outputs of one refinement, each for its use (docs/method.md §7):
+            the checked foreground for the object alone (extraction, the object-only
+            protocols), the released one (label > 0.9) for the object rendered within the
+            scene (``RefineResult.foreground_in_scene``, the occlusion-aware protocol).
     """
 
     scene_type: str = "forward"
@@ -440,7 +444,7 @@ class RefineConfig:
     CHOICES: ClassVar[dict] = {"backend": ("native", "reference"), "label_name": (LABEL,),
                                "scene_type": tuple(SCENE_DEFAULTS), "raem": RAEM_VARIANTS,
                                "score": ("count", "weight"), "texture_adam": TEXTURE_ADAM,
-                               "object_check": ("off", "visible")}
+                               "object_check": ("off", "visible", "per_use")}
 
     def __post_init__(self):
         check_params(self)

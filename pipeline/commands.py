@@ -350,12 +350,18 @@ def stages_toml(registry) -> str:
 def write_params_docs(path: Path, text: str) -> int:
     """Put ``text`` between the generated-params markers of a Markdown file (a ```toml block);
     returns the number of tables written."""
-    doc = path.read_text(encoding="utf-8")
+    try:
+        doc = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise PipelineError(f"{path}: cannot read it ({type(e).__name__}: {e}); --docs takes an existing "
+                            f"Markdown file holding the {DOCS_BEGIN} ... {DOCS_END} markers") from None
     if DOCS_BEGIN not in doc or DOCS_END not in doc:
         raise PipelineError(f"{path}: no {DOCS_BEGIN} ... {DOCS_END} markers to write between")
     head, rest = doc.split(DOCS_BEGIN, 1)
     _, tail = rest.split(DOCS_END, 1)
-    path.write_text(f"{head}{DOCS_BEGIN}\n```toml\n{text.rstrip()}\n```\n{DOCS_END}{tail}", encoding="utf-8")
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")  # never half-written
+    tmp.write_text(f"{head}{DOCS_BEGIN}\n```toml\n{text.rstrip()}\n```\n{DOCS_END}{tail}", encoding="utf-8")
+    os.replace(tmp, path)
     return text.count("[params.")
 
 

@@ -115,10 +115,12 @@ def _run(ctx, inputs):
                         texture_moments=moments)
     out_model = result.model.to(torch.device("cpu")) if dev.type != "cpu" else result.model
     save_ply(ctx.out_dir / Files.REFINED_PLY, out_model)
-    raem = {}
+    raem = {}  # (and the object-within-the-scene set, where there is one)
     if result.raem_keep is not None and result.raem_removed is not None:
         save_ply(ctx.out_dir / Files.RAEM_REMOVED, result.raem_removed.to(torch.device("cpu")))
         raem = {"raem_keep": result.raem_keep.cpu().numpy().astype(bool)}
+    if result.foreground_in_scene is not None:
+        raem["foreground_in_scene"] = result.foreground_in_scene.cpu().numpy().astype(bool)
     np.savez_compressed(ctx.out_dir / Files.SEGMENTATION,
                         foreground=result.foreground.cpu().numpy().astype(bool),
                         background=result.background.cpu().numpy().astype(bool),

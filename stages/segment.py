@@ -18,6 +18,7 @@ Output ``segmentation``:
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -73,6 +74,10 @@ def _run(ctx, inputs):
                           background=torch.from_numpy(seg["background"]).to(dev),
                           mask_values=torch.from_numpy(seg["mask_values"]).to(dev),
                           mask_threshold=info.get("mask_threshold"))
+    # the object as rendered within the scene (pred_visible): its own set where the refinement
+    # gave one (object_check = "per_use"), else the same foreground
+    in_scene = result if "foreground_in_scene" not in seg.files else dataclasses.replace(
+        result, foreground=torch.from_numpy(seg["foreground_in_scene"]).to(dev))
     before_raem = None
     if "raem_keep" in seg.files:
         from cobgs.refine.result import restore_pruned
@@ -94,7 +99,7 @@ def _run(ctx, inputs):
     for v in ctx.progress(views, desc=f"segment[{ctx.item.label}]", unit="view"):
         mask = render_object_mask(result, v.camera, threshold=p.mask_threshold, backend=p.backend)
         write_png(ctx.out_dir / Files.PRED_MASKS / f"{v.name}.png", mask.cpu().numpy())
-        visible = visible_object_mask(result, v.camera, threshold=p.mask_threshold, backend=p.backend)
+        visible = visible_object_mask(in_scene, v.camera, threshold=p.mask_threshold, backend=p.backend)
         write_png(ctx.out_dir / "pred_visible" / f"{v.name}.png", visible.cpu().numpy())
         write_png(ctx.out_dir / "render" / f"{v.name}.png",
                   render_image(model, v.camera, bg, backend=p.backend).clamp(0, 1).cpu().numpy())

@@ -416,9 +416,12 @@ def refine(
         logits = m.data[config.label_name]
         fg, bg = _label_sets(logits)
         checked = 0
-        if config.object_check == "visible":
+        in_scene = None
+        if config.object_check in ("visible", "per_use"):
             kept = object_render_check(m, fg, r.views, r.pixel_labels, config.mask_lambda, config.backend)
             checked = int((fg & ~kept).sum())
+            if config.object_check == "per_use":  # the object within the scene: the labels' verdict
+                in_scene = fg
             fg = kept
     wall = time.perf_counter() - t0
     return RefineResult(
@@ -428,6 +431,7 @@ def refine(
         foreground=fg,
         background=bg,
         mask_values=torch.sigmoid(logits.detach()),
+        foreground_in_scene=in_scene,
         stages=stats,
         stage_scores=scores,
         ambiguous_final=amb,

@@ -94,6 +94,10 @@ class RefineResult:
         raem_removed: the Gaussians RAEM removed, as a model (None as above); with
             ``raem_keep`` they give back the scene before the final pruning
             (:meth:`model_before_raem`: paper Table 4 measures texture there).
+        foreground_in_scene: [N] bool, the object's Gaussians where it is rendered within the
+            scene (occluders in front), when that differs from ``foreground``: the labels'
+            verdict of ``RefineConfig.object_check = "per_use"``. None: ``foreground`` serves
+            both uses.
     """
 
     method: str
@@ -114,6 +118,7 @@ class RefineResult:
     mask_threshold: Optional[float] = None
     raem_keep: Optional[Tensor] = None
     raem_removed: Optional[GaussianModel] = None
+    foreground_in_scene: Optional[Tensor] = None
 
     def model_before_raem(self) -> GaussianModel:
         """The scene before RAEM's pruning (``model`` itself when nothing was pruned)."""

@@ -514,6 +514,29 @@ def test_refine_applies_the_object_check_only_when_asked():
     assert on.config["object_check_dropped"] == int((off.foreground & ~on.foreground).sum())
     assert off.config["object_check_dropped"] == 0
     assert nosplit_config(cfg).object_check == "off"
+    assert on.foreground_in_scene is None and off.foreground_in_scene is None
+
+
+def test_per_use_gives_the_checked_set_alone_and_the_labels_verdict_in_the_scene(monkeypatch):
+    """object_check = "per_use": one refinement, two outputs: the checked foreground for the
+    object alone, the labels' verdict (the released segmentation) for the object within the
+    scene. (The check is replaced by one that drops the whole foreground, so that the two sets
+    differ on this small scene.)"""
+    import cobgs.refine.alternation as A
+
+    model, views, extent = tiny_scene(n_views=3)
+    masks = masks_for(views, "ball")
+    cfg = RefineConfig(stage_length_views=8.0, mask_stages=1)  # 24 iterations: labels pass 0.9
+    monkeypatch.setattr(A, "object_render_check", lambda m, fg, *a: torch.zeros_like(fg))
+    off = refine(model, views, masks, extent, dataclasses.replace(cfg, object_check="off"), progress=False)
+    vis = refine(model, views, masks, extent, dataclasses.replace(cfg, object_check="visible"), progress=False)
+    use = refine(model, views, masks, extent, dataclasses.replace(cfg, object_check="per_use"), progress=False)
+    assert off.foreground.any() and not vis.foreground.any()
+    assert torch.equal(use.model.data["mask_logit"], off.model.data["mask_logit"])
+    assert torch.equal(use.foreground, vis.foreground)
+    assert torch.equal(use.foreground_in_scene, off.foreground)
+    assert vis.foreground_in_scene is None
+    assert use.config["object_check_dropped"] == vis.config["object_check_dropped"] > 0
 
 
 def test_short_stages_cannot_carry_a_restarted_label_past_foreground_and_say_so(caplog):

@@ -263,3 +263,24 @@ def test_docs_list_every_param_with_its_range_as_generated():
     expected = f"\n```toml\n{stages_toml(load_registry()).rstrip()}\n```\n"
     assert inside == expected, "docs/pipeline.md is stale: run `cobgs stages --docs docs/pipeline.md`"
     assert "prune_min_opacity = 0.005  # in [0, 1)" in inside and "boundary_ratio = 0.02  # in (0, 0.5]" in inside
+
+
+def test_docs_target_that_is_missing_or_has_no_markers_is_named(tmp_path):
+    """`cobgs stages --docs FILE`: a missing file, a folder, or a file without the markers is
+    one clear error naming it; the file is left as it was."""
+    from pipeline.commands import DOCS_BEGIN, DOCS_END, write_params_docs
+    from pipeline.errors import PipelineError
+
+    for target in (tmp_path / "missing.md", tmp_path):
+        with pytest.raises(PipelineError, match="cannot read it.*--docs takes an existing Markdown file"):
+            write_params_docs(target, "[params.x]\n")
+    plain = tmp_path / "plain.md"
+    plain.write_text("# no markers\n")
+    with pytest.raises(PipelineError, match="no .* markers"):
+        write_params_docs(plain, "[params.x]\n")
+    assert plain.read_text() == "# no markers\n"
+    good = tmp_path / "good.md"
+    good.write_text(f"a\n{DOCS_BEGIN}\nold\n{DOCS_END}\nb\n")
+    assert write_params_docs(good, "[params.x]\ny = 1\n") == 1
+    assert good.read_text() == f"a\n{DOCS_BEGIN}\n```toml\n[params.x]\ny = 1\n```\n{DOCS_END}\nb\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["good.md", "plain.md"]  # no temporaries left

@@ -166,6 +166,34 @@ def test_changing_a_refine_param_reruns_refine_and_below_only(tiny):
     assert set(_states(again).values()) == {"cached"}, log
 
 
+def test_per_use_keeps_the_object_in_the_scene_as_the_labels_say(tiny):
+    """refine.cobgs.object_check = "per_use" (docs/method.md §7): the refine entry keeps the
+    object-within-the-scene set (the labels' verdict, a superset of the checked foreground) and
+    the segment stage renders pred_visible from it; the nosplit row's keys are untouched."""
+    import numpy as np
+    from PIL import Image
+
+    path, cache, _, _ = tiny
+    sets = ["refine.cobgs.object_check=per_use"]
+    wf, summary, log = _run(path, cache, sets=sets)
+    assert summary.exit_code == 0, log
+    states = _states(summary)
+    assert states[("refine", "tiny/cobgs/ball")] == "done" and states[("refine", "tiny/nosplit/ball")] == "cached"
+    ref = _entry(wf, cache, "refine", "tiny/cobgs/ball").output("refined")
+    seg = np.load(ref / "segmentation.npz")
+    fg, in_scene = seg["foreground"], seg["foreground_in_scene"]
+    assert not (fg & ~in_scene).any()
+    mv = seg["mask_values"]  # the released verdict: label > 0.9
+    assert not (in_scene & (mv < 0.9 - 1e-6)).any() and not ((mv > 0.9 + 1e-6) & ~in_scene).any()
+    visible = _entry(wf, cache, "segment", "tiny/cobgs/ball").output("segmentation") / "pred_visible"
+    assert sorted(visible.glob("*.png"))
+    default = _entry(load_workflow(path, load_registry(), []), cache, "segment", "tiny/cobgs/ball")
+    if not (fg != in_scene).any():  # nothing dropped on this scene: the two renders agree
+        for f in sorted(visible.glob("*.png")):
+            other = default.output("segmentation") / "pred_visible" / f.name
+            assert np.array_equal(np.asarray(Image.open(f)), np.asarray(Image.open(other)))
+
+
 def test_two_clean_runs_give_the_same_keys_and_results(tiny, tmp_path):
     """Reproducible runs (issue 22, F10): a second run into a clean cache gives every task
     the same cache key and the same summary.csv (timings live in the manifests, not in
