@@ -259,6 +259,11 @@ class TrainConfig:
     # Adam steps only the Gaussians the view touches (radius > 0): the others keep their
     # parameters and moments, as gsplat's selective Adam.
     sparse_adam: bool = field(default=False, metadata={"before": False})
+    # The CPU blending kernels' fast path in the training steps (fused multiply-adds; images and
+    # gradients within tests/render/test_cpu_fast_path.py's tolerances of the exact kernels,
+    # no longer bit-identical to them or to CUDA). Evaluation, refinement and export keep the
+    # exact kernels. CUDA has its own switch (COBGS_CUDA_EXACT).
+    fast_kernels: bool = field(default=False, metadata={"before": False})
 
     RANGES: ClassVar[dict] = {
         "iterations": "[1, 1e7]", "seed": "[0, 2147483647]", "reference_iterations": "[1, 1e7]",

@@ -413,6 +413,8 @@ def _recipe_note(t: dict) -> list[str]:
         parts.append(f"Gaussian budget {cfg.get('gaussian_budget') or str(cfg.get('gaussian_budget_per_pixel')) + ' per pixel'}")
     if cfg.get("sparse_adam"):
         parts.append("visible-only Adam")
+    if cfg.get("fast_kernels"):
+        parts.append("fast CPU kernels")
     return [f"training recipe: {recipe} ({', '.join(parts)})"]
 
 

@@ -369,7 +369,7 @@ def cuda_fast_path(on: bool = True):
     (``COBGS_CUDA_EXACT=1`` selects the exact one at load); its stated tolerances against the
     exact path are tests/render/test_cuda.py's ``FAST_*``. A forward pass and its backward
     must run under the same setting (the backward recomputes the forward's decisions). The CPU
-    kernels have one path and ignore it."""
+    kernels have a switch of their own, :func:`cpu_fast_path`."""
     ensure_loaded()
     before = torch.ops.cobgs.set_cuda_fast(bool(on))
     try:
@@ -382,3 +382,27 @@ def cuda_fast_path_on() -> bool:
     """Whether the CUDA blending passes take the fast path now."""
     ensure_loaded()
     return bool(torch.ops.cobgs.get_cuda_fast())
+
+
+@contextlib.contextmanager
+def cpu_fast_path(on: bool = True):
+    """Within the block, the CPU blending kernels take the fast path (fused multiply-adds;
+    csrc/common/cpu_isa.h) where the CPU has AVX2 and FMA, or with ``on=False`` the exact one
+    (the default: bit-identical to the CUDA exact path and across instruction sets); the
+    previous setting is restored after. ``COBGS_CPU_FAST=1`` turns it on at load;
+    ``TrainConfig.fast_kernels`` turns it on for the training steps. Its stated tolerances
+    against :mod:`cobgs.render.reference` and the exact path are
+    tests/render/test_cpu_fast_path.py's. A forward pass and its backward must run under the
+    same setting (the backward recomputes the forward's decisions)."""
+    ensure_loaded()
+    before = torch.ops.cobgs.set_cpu_fast(bool(on))
+    try:
+        yield
+    finally:
+        torch.ops.cobgs.set_cpu_fast(before)
+
+
+def cpu_fast_path_on() -> bool:
+    """Whether the CPU blending kernels take the fast path now."""
+    ensure_loaded()
+    return bool(torch.ops.cobgs.get_cpu_fast())

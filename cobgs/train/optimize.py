@@ -283,7 +283,18 @@ class Trainer:
 
     # -- one iteration ----------------------------------------------------------------------
     def step(self) -> dict:
-        """One optimisation iteration; returns ``{"loss", "psnr", "image"}`` of the view."""
+        """One optimisation iteration; returns ``{"loss", "psnr", "image"}`` of the view.
+        With ``TrainConfig.fast_kernels`` (native backend, CPU), its forward and backward
+        passes take the CPU kernels' fast path (:func:`cobgs.render._ops.cpu_fast_path`)."""
+        c = self.config
+        if not (c.fast_kernels and c.backend == "native" and self.device.type == "cpu"):
+            return self._step()
+        from cobgs.render._ops import cpu_fast_path
+
+        with cpu_fast_path(True):
+            return self._step()
+
+    def _step(self) -> dict:
         c, s = self.config, self.sched
         self.iteration += 1
         it = self.iteration

@@ -87,12 +87,27 @@ namespace backward_tile_avx512 {
 #undef COBGS_ISA_LEVEL
 }  // namespace backward_tile_avx512
 COBGS_END_ISA
+// The fast path (cpu_isa.h): the same kernel with fused multiply-adds.
+COBGS_BEGIN_ISA_AVX2_FAST
+namespace backward_tile_avx2fast {
+#define COBGS_ISA_LEVEL 1
+#include "blend_bwd_tile_cpu.h"
+#undef COBGS_ISA_LEVEL
+}  // namespace backward_tile_avx2fast
+COBGS_END_ISA
+COBGS_BEGIN_ISA_AVX512_FAST
+namespace backward_tile_avx512fast {
+#define COBGS_ISA_LEVEL 2
+#include "blend_bwd_tile_cpu.h"
+#undef COBGS_ISA_LEVEL
+}  // namespace backward_tile_avx512fast
+COBGS_END_ISA
 #endif
 
 namespace {
 
 inline BackwardTileFn<float> pick_backward_tile(float, int channels) {
-  return COBGS_ISA_DISPATCH(backward_tile, pick<float>(channels));
+  return COBGS_ISA_DISPATCH_FAST(backward_tile, pick<float>(channels));
 }
 inline BackwardTileFn<double> pick_backward_tile(double, int) {
   return backward_tile_base::backward_tile<double, 0>;

@@ -81,12 +81,27 @@ namespace forward_tile_avx512 {
 #undef COBGS_ISA_LEVEL
 }  // namespace forward_tile_avx512
 COBGS_END_ISA
+// The fast path (cpu_isa.h): the same kernel with fused multiply-adds.
+COBGS_BEGIN_ISA_AVX2_FAST
+namespace forward_tile_avx2fast {
+#define COBGS_ISA_LEVEL 1
+#include "blend_fwd_tile_cpu.h"
+#undef COBGS_ISA_LEVEL
+}  // namespace forward_tile_avx2fast
+COBGS_END_ISA
+COBGS_BEGIN_ISA_AVX512_FAST
+namespace forward_tile_avx512fast {
+#define COBGS_ISA_LEVEL 2
+#include "blend_fwd_tile_cpu.h"
+#undef COBGS_ISA_LEVEL
+}  // namespace forward_tile_avx512fast
+COBGS_END_ISA
 #endif
 
 namespace {
 
 inline ForwardTileFn<float> pick_forward_tile(float, int channels) {
-  return COBGS_ISA_DISPATCH(forward_tile, pick<float>(channels));
+  return COBGS_ISA_DISPATCH_FAST(forward_tile, pick<float>(channels));
 }
 inline ForwardTileFn<double> pick_forward_tile(double, int) {
   return forward_tile_base::forward_tile<double, 0>;

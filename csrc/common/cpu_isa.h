@@ -60,6 +60,25 @@ inline CpuIsa cpu_isa() {
 #endif
 }
 
+// The CPU fast path of the blending kernels (csrc/blend/fast_path.cpp): versions compiled
+// with fused multiply-adds (COBGS_BEGIN_ISA_*_FAST in simd_cpu.h), used while the switch
+// is on and the CPU has AVX2 and FMA. Off by default (the exact, bit-identical versions);
+// COBGS_CPU_FAST=1 turns it on at load, cobgs::set_cpu_fast at run time (the fast recipe's
+// training does, TrainConfig.fast_kernels).
+bool cpu_fast_path();
+
+inline bool cpu_has_fma() {
+#if COBGS_AVX2_CLONES
+  static const bool fma = [] {
+    __builtin_cpu_init();
+    return __builtin_cpu_supports("fma") != 0;
+  }();
+  return fma;
+#else
+  return false;
+#endif
+}
+
 // True when an AVX2 (or better) version of the kernels runs.
 inline bool cpu_use_avx2() { return cpu_isa() != CpuIsa::kBase; }
 
@@ -71,8 +90,16 @@ inline bool cpu_use_avx2() { return cpu_isa() != CpuIsa::kBase; }
   (::cobgs::cpu_isa() == ::cobgs::CpuIsa::kAvx512 ? prefix##_avx512::__VA_ARGS__ \
    : ::cobgs::cpu_isa() == ::cobgs::CpuIsa::kAvx2 ? prefix##_avx2::__VA_ARGS__   \
                                                   : prefix##_base::__VA_ARGS__)
+// COBGS_ISA_DISPATCH, or the fast version (<prefix>_avx2fast / <prefix>_avx512fast) while
+// the CPU fast path is on and the CPU can run it.
+#define COBGS_ISA_DISPATCH_FAST(prefix, ...)                                          \
+  ((::cobgs::cpu_fast_path() && ::cobgs::cpu_use_avx2() && ::cobgs::cpu_has_fma())   \
+       ? (::cobgs::cpu_isa() == ::cobgs::CpuIsa::kAvx512 ? prefix##_avx512fast::__VA_ARGS__ \
+                                                         : prefix##_avx2fast::__VA_ARGS__)  \
+       : COBGS_ISA_DISPATCH(prefix, __VA_ARGS__))
 #else
 #define COBGS_ISA_DISPATCH(prefix, ...) (prefix##_base::__VA_ARGS__)
+#define COBGS_ISA_DISPATCH_FAST(prefix, ...) (prefix##_base::__VA_ARGS__)
 #endif
 
 }  // namespace cobgs

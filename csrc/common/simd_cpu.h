@@ -15,7 +15,9 @@
 // function defined in between gets that target), with COBGS_ISA_LEVEL 0 (baseline),
 // 1 (AVX2) or 2 (AVX-512 on 256-bit vectors: 32 registers and mask registers). The
 // helpers that differ per instruction set (any, bits, min_with, gauss_exp) come from
-// simd_isa_cpu.h, included the same way. All versions compute bit-identical results.
+// simd_isa_cpu.h, included the same way. All these versions compute bit-identical results;
+// the fast versions (COBGS_BEGIN_ISA_*_FAST, the blending kernels only) fuse multiply-adds
+// and are compared with tolerances instead (tests/render/test_cpu_fast_path.py).
 #pragma once
 
 #include <cmath>
@@ -35,10 +37,27 @@
   _Pragma(                                                                                  \
       "clang attribute push(__attribute__((target(\"avx2,avx512f,avx512vl,avx512dq,avx512bw\"))), apply_to = function)")
 #define COBGS_END_ISA _Pragma("clang attribute pop")
+// Clang: the fast versions get FMA instructions but no contraction (-ffp-contract=off
+// stays), so there they compute what the exact versions compute.
+#define COBGS_BEGIN_ISA_AVX2_FAST \
+  _Pragma("clang attribute push(__attribute__((target(\"avx2,fma\"))), apply_to = function)")
+#define COBGS_BEGIN_ISA_AVX512_FAST                                                             \
+  _Pragma(                                                                                      \
+      "clang attribute push(__attribute__((target(\"avx2,fma,avx512f,avx512vl,avx512dq,avx512bw\"))), apply_to = function)")
 #elif COBGS_AVX2_CLONES
 #define COBGS_BEGIN_ISA_AVX2 _Pragma("GCC push_options") _Pragma("GCC target(\"avx2\")")
 #define COBGS_BEGIN_ISA_AVX512 \
   _Pragma("GCC push_options") _Pragma("GCC target(\"avx2,avx512f,avx512vl,avx512dq,avx512bw\")")
+// The fast versions (the CPU fast path, cpu_isa.h): the same source with fused
+// multiply-adds: FMA in the target and a*b+c contracted (GCC's optimize pragma overrides
+// -ffp-contract=off for the functions in between).
+#define COBGS_BEGIN_ISA_AVX2_FAST                                     \
+  _Pragma("GCC push_options") _Pragma("GCC target(\"avx2,fma\")") \
+      _Pragma("GCC optimize(\"fp-contract=fast\")")
+#define COBGS_BEGIN_ISA_AVX512_FAST                                                       \
+  _Pragma("GCC push_options")                                                             \
+      _Pragma("GCC target(\"avx2,fma,avx512f,avx512vl,avx512dq,avx512bw\")")            \
+          _Pragma("GCC optimize(\"fp-contract=fast\")")
 #define COBGS_END_ISA _Pragma("GCC pop_options")
 #endif
 

@@ -175,11 +175,15 @@ def _object_masks(model, views):
     return object_masks(model, views)
 
 
-def _load_checkpoint(scene, path: Path, iterations: int):
+def _load_checkpoint(scene, path: Path, iterations: int, out: Path | None = None):
+    """The model and Adam moments of a checkpoint, read with the TrainConfig of the scene run
+    that wrote it (its recipe and --set switches from ``out/config.json``)."""
     from cobgs.train.adam_moments import export_moments
     from cobgs.train.optimize import Trainer
 
-    tr = Trainer(scene, _config(iterations))
+    cfg = json.loads((out / "config.json").read_text()) if out and (out / "config.json").is_file() else {}
+    tr = Trainer(scene, _config(iterations if cfg.get("recipe", "3dgs") == "3dgs" else 0,
+                                cfg.get("recipe", "3dgs"), tuple(cfg.get("sets") or ())))
     tr.load_checkpoint(path)
     return tr.model, export_moments(tr.optimizer)
 
@@ -195,7 +199,7 @@ def cmd_table6(args) -> int:
     ckpt = out / "ckpt" / args.checkpoint
     mask_dir = out / f"masks_{ckpt.stem}"
     if not mask_dir.is_dir():
-        model, _ = _load_checkpoint(scene, ckpt, args.iterations)
+        model, _ = _load_checkpoint(scene, ckpt, args.iterations, out)
         masks, n_obj = _object_masks(model, scene.train)
         tmp = mask_dir.with_name(mask_dir.name + ".part")
         tmp.mkdir(parents=True, exist_ok=True)
@@ -245,7 +249,7 @@ def cmd_one(args) -> int:
     out = args.out
     scene = _scene(out, None, *_split_of(args))
     ckpt = out / "ckpt" / args.checkpoint
-    model, moments = _load_checkpoint(scene, ckpt, args.iterations)
+    model, moments = _load_checkpoint(scene, ckpt, args.iterations, out)
     mask_dir = out / f"masks_{ckpt.stem}"
     # prep: the masks from files, as the masks stage hands them to refine (bool at render size)
     t = time.perf_counter()

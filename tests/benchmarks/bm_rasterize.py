@@ -44,6 +44,8 @@ achieved / floor says how far the kernels are from compute-bound. CPU time is co
 with FLOPs / peak-per-thread.
 
 Targets (issue 10): forward + backward <= 60 ms wall (2 threads, 504x378, 100k).
+The CPU fast path (issue 45: fused multiply-adds, ``cobgs.render._ops.cpu_fast_path``) is
+timed in the same loop, one run of each path per repetition, and printed as ratios.
 """
 
 from __future__ import annotations
@@ -207,11 +209,16 @@ def main(argv=None) -> int:
           f"({evaluated / (W * H):.1f} per pixel), pairs contributing {contributions / 1e6:.2f} M")
 
     load0 = os.getloadavg()[0]
-    nat_f, nat_b, nat_fl, nat_fn = [], [], [], []
+    nat_f, nat_b, nat_fl, nat_fn, fast_f, fast_b = [], [], [], [], [], []
     for _ in range(args.reps):
         f, b, _ = run_once(tensors, "native", gi, ga)
         nat_f.append(f)
         nat_b.append(b)
+        # The CPU fast path (fused multiply-adds, issue 45), interleaved with the exact one.
+        with _ops.cpu_fast_path(True):
+            f, b, _ = run_once(tensors, "native", gi, ga)
+        fast_f.append(f)
+        fast_b.append(b)
         # Label overhead: forward-only pairs, interleaved so drift hits both equally.
         f0, _, _ = run_once(tensors, "native", gi, ga, backward=False)
         f1, _, _ = run_once(tensors, "native", gi, ga, labels=labels, backward=False)
@@ -220,6 +227,16 @@ def main(argv=None) -> int:
     nf, nb = median_ms(nat_f), median_ms(nat_b)
     print(f"native    forward {nf:8.1f} ms   backward {nb:8.1f} ms   total {nf + nb:8.1f} ms"
           f"   (median of {args.reps}, wall)")
+    ff_, fb_ = median_ms(fast_f), median_ms(fast_b)
+    with _ops.cpu_fast_path(True):
+        _, _, out_fast = run_once(tensors, "native", gi, ga, backward=False)
+    _, _, out_exact = run_once(tensors, "native", gi, ga, backward=False)
+    diff = float((out_fast.image - out_exact.image).abs().max())
+    print(f"fast path forward {ff_:8.1f} ms   backward {fb_:8.1f} ms   total {ff_ + fb_:8.1f} ms"
+          f"   (median of {args.reps}, wall; exact / fast: forward {nf / ff_:.2f}x, backward "
+          f"{nb / fb_:.2f}x, total {(nf + nb) / (ff_ + fb_):.2f}x; CPU time exact / fast "
+          f"{(median_ms(nat_f, 'cpu') + median_ms(nat_b, 'cpu')) / (median_ms(fast_f, 'cpu') + median_ms(fast_b, 'cpu')):.2f}x;"
+          f" image max |fast - exact| {diff:.2e})")
     # CPU time summed over threads: on a machine shared with other jobs the wall time
     # above includes waiting for a core; CPU / threads is what an idle machine would show.
     cf, cb = median_ms(nat_f, "cpu"), median_ms(nat_b, "cpu")
