@@ -367,13 +367,26 @@ def cmd_recipes(args) -> int:
     """Issue 45's tables: each ``NAME=DIR`` scene run (recipe, switches, training time, held-out
     PSNR, peak RSS) and, where its table6 ran, the whole scene (SfM + training + COB-GS
     refinement + evaluation). Markdown on stdout (or --write)."""
-    rows = []
+    rows, notes = [], []
     for spec in args.runs:
         name, _, d = spec.partition("=")
         d = Path(d)
         recs = _train_chunks(d / "train_log.jsonl") if (d / "train_log.jsonl").is_file() else []
         if not recs:
             continue
+        # A chunk another process disturbed, measured again alone from the checkpoint before it
+        # (resuming is bit-identical: same loss, PSNR and Gaussians): remeasured.jsonl holds
+        # those chunks' records (bm_cost.py scene --stop-at on a copy of the checkpoint).
+        redo = {r["it"]: r for r in _jsonl(d / "remeasured.jsonl")} if (d / "remeasured.jsonl").is_file() else {}
+        for i, r in enumerate(recs):
+            if r["it"] in redo:
+                if (redo[r["it"]]["gaussians"], redo[r["it"]]["loss"]) != (r["gaussians"], r["loss"]):
+                    raise SystemExit(f"{d / 'remeasured.jsonl'}: the chunk ending at {r['it']} did not repeat the run "
+                                     "(another Gaussian count or loss)")
+                notes.append(f"{name}: iterations {r['it'] - 999}-{r['it']} ran beside a build (load "
+                             f"{r['load']:.1f}, {r['wall_s']:.0f} s); measured again alone from the checkpoint before "
+                             f"them: {redo[r['it']]['wall_s']:.0f} s (load {redo[r['it']]['load']:.1f}), the value used here.")
+                recs[i] = redo[r["it"]]
         cfg = json.loads((d / "config.json").read_text()) if (d / "config.json").is_file() else {}
         ev = json.loads((d / "eval.json").read_text()) if (d / "eval.json").is_file() else {}
         t6 = {}
@@ -391,14 +404,23 @@ def cmd_recipes(args) -> int:
                      "rss": max(r.get("peak_rss", 0) for r in recs), "load": statistics.mean(r["load"] for r in recs),
                      "res": recs[-1].get("resolution") or [recs[-1].get("width"), recs[-1].get("height")],
                      "psnr": ev.get("psnr"), "ssim": ev.get("ssim"), "t6": t6, "sfm_s": sfm.get("wall_s")})
-    lines = ["| run | recipe and switches | iterations | training wall h | CPU h (2 threads) | mean load | "
-             "Gaussians (max) | held-out PSNR / SSIM | peak RSS |", "|---|---|---|---|---|---|---|---|---|"]
+    ref = next((r for r in rows if r["name"] == args.reference), None) if args.reference else None
+    extra = " CPU time vs " + args.reference + " | PSNR vs " + args.reference + " |" if ref else ""
+    lines = ["| run | recipe and switches | iterations | training wall h | CPU h (all threads) | mean load | "
+             "Gaussians (max) | held-out PSNR / SSIM | peak RSS |" + extra,
+             "|---|---|---|---|---|---|---|---|---|" + ("---|---|" if ref else "")]
     for r in rows:
         its = f"{r['its']:,}" + ("" if r["done"] else " (stopped; no held-out eval)")
         ps = f"{r['psnr']:.3f} / {r['ssim']:.4f}" if r["psnr"] is not None else "-"
+        vs = ""
+        if ref:
+            dp = f"{r['psnr'] - ref['psnr']:+.3f} dB" if r["psnr"] is not None and ref["psnr"] is not None else "-"
+            vs = f" {r['cpu'] / ref['cpu']:.2f}x | {dp} |"
         lines.append(f"| {r['name']} | {r['recipe']}{' ' + ' '.join(r['sets']) if r['sets'] else ''} | {its} | "
                      f"{r['wall'] / 3600:.2f} | {r['cpu'] / 3600:.2f} | {r['load']:.1f} | "
-                     f"{r['gaussians']:,} ({r['max_gaussians']:,}) | {ps} | {r['rss'] / 2**30:.2f} GiB |")
+                     f"{r['gaussians']:,} ({r['max_gaussians']:,}) | {ps} | {r['rss'] / 2**30:.2f} GiB |" + vs)
+    if notes:
+        lines += [""] + [f"- {n}" for n in notes]
     whole = [r for r in rows if r["done"] and r["t6"]]
     if whole:
         lines += ["", "| run | SfM | training | COB-GS refinement (prep + optimisation + extraction) | evaluation | whole scene |",
@@ -410,7 +432,18 @@ def cmd_recipes(args) -> int:
             lines.append(f"| {r['name']} | {r['sfm_s'] or 0:.0f} s | {r['wall'] / 60:.1f} min | {ref:.0f} s | "
                          f"{t['eval_s']:.0f} s | **{tot / 3600:.2f} h** |")
     text = "\n".join(lines) + "\n"
-    if args.write:
+    if args.write and args.tag:
+        # Between the tag's markers of an existing Markdown file (the rest of it stays).
+        begin, end = f"<!-- bm_cost recipes {args.tag} -->", f"<!-- end bm_cost recipes {args.tag} -->"
+        doc = args.write.read_text() if args.write.is_file() else ""
+        if begin not in doc or end not in doc:
+            raise SystemExit(f"{args.write}: no markers {begin!r} ... {end!r} to write between")
+        head, rest = doc.split(begin, 1)
+        _, tail = rest.split(end, 1)
+        tmp = args.write.with_name(args.write.name + ".part")
+        tmp.write_text(head + begin + "\n" + text + end + tail)
+        tmp.replace(args.write)
+    elif args.write:
         args.write.write_text(text)
     print(text)
     return 0
@@ -512,6 +545,9 @@ def main(argv=None) -> int:
     rc = sub.add_parser("recipes", help="issue 45's tables over several scene runs")
     rc.add_argument("runs", nargs="+", metavar="NAME=DIR")
     rc.add_argument("--write", type=Path)
+    rc.add_argument("--tag", help="with --write: replace only the text between this tag's markers "
+                    "(<!-- bm_cost recipes TAG --> ... <!-- end bm_cost recipes TAG -->)")
+    rc.add_argument("--reference", help="a NAME: adds each run's CPU time and held-out PSNR relative to it (ablations)")
     m = sub.add_parser("summary")
     m.add_argument("--out", type=Path, required=True)
     m.add_argument("--write", type=Path)
