@@ -1,0 +1,105 @@
+"""Row means and paired differences straight from a workflow cache's evaluate entries, for a
+partial `make bench` (a few scenes and rows run with ``--items``), where the report's tables,
+which want whole scenes, are not drawn yet.
+
+Run (not collected by pytest)::
+
+    .venv/bin/python tests/benchmarks/bm_rows.py --cache runs/cache \\
+        --rows ours,raem_paper,ngs,ngs_checked \\
+        --pair ours:ngs --pair ngs_checked:ours \\
+        --pair forward_coarse_fast/ours:forward_coarse/ours
+
+Per scene: each row's mean over the objects it has (headline mBIoU, occlusion-aware mBIoU,
+released mBIoU, mIoU), then each ``--pair A:B``: mean(A − B) with the report's bootstrap over
+views (``cobgs.evaluate.protocols.bootstrap_mean_diff``, objects weighted equally), on the views
+and objects both have. ``A`` / ``B`` are rows (methods) of one scene, or ``scene/row`` to pair
+across scenes (a scene trained with another recipe: the same views and GT masks).
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import statistics
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+
+METRICS = {"biou": "per_view", "biou_occlusion": "per_view_occlusion", "biou_released": "per_view_released"}
+LABELS = {"biou": "headline mBIoU", "biou_occlusion": "occlusion-aware mBIoU", "biou_released": "released mBIoU",
+          "iou": "mIoU"}
+
+
+def load(cache: Path) -> dict:
+    """(scene, method, object) -> the evaluate entry's metrics.json."""
+    out = {}
+    for f in glob.glob(str(cache / "entries" / "evaluate" / "*" / "out" / "metrics.json")):
+        m = json.loads(Path(f).read_text())
+        r = m.get("row", {})
+        if {"scene", "method", "object"} <= set(r):
+            out[(r["scene"], r["method"], r["object"])] = m
+    return out
+
+
+def _side(spec: str, scene: str) -> tuple[str, str]:
+    return tuple(spec.split("/", 1)) if "/" in spec else (scene, spec)
+
+
+def pair_diff(R: dict, a: tuple[str, str], b: tuple[str, str], metric: str):
+    from cobgs.evaluate.protocols import bootstrap_mean_diff
+
+    pairs = {}
+    objects = sorted({o for (s, m, o) in R if (s, m) == a} & {o for (s, m, o) in R if (s, m) == b})
+    for o in objects:
+        pa = R[(a[0], a[1], o)]["details"][METRICS[metric]]
+        pb = R[(b[0], b[1], o)]["details"][METRICS[metric]]
+        pairs[o] = [(pa[v]["biou"], pb[v]["biou"]) for v in pa if v in pb]
+    return bootstrap_mean_diff(pairs) if pairs else None
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--cache", type=Path, required=True)
+    ap.add_argument("--rows", default="", help="methods to tabulate, comma-separated (default: all)")
+    ap.add_argument("--scenes", default="", help="scenes, comma-separated (default: all in the cache)")
+    ap.add_argument("--pair", action="append", default=[], metavar="A:B")
+    args = ap.parse_args(argv)
+    R = load(args.cache)
+    if not R:
+        raise SystemExit(f"{args.cache}: no evaluate entries with a row")
+    scenes = [s for s in args.scenes.split(",") if s] or sorted({k[0] for k in R})
+    rows = [r for r in args.rows.split(",") if r] or sorted({k[1] for k in R})
+    for s in scenes:
+        have = [r for r in rows if any(k[:2] == (s, r) for k in R)]
+        if not have:
+            continue
+        print(f"\n### {s}\n")
+        print("| row (objects) | " + " | ".join(LABELS[m] for m in ("biou", "biou_occlusion", "biou_released", "iou"))
+              + " |")
+        print("|---|---|---|---|---|")
+        for r in have:
+            ms = [R[k]["row"] for k in R if k[:2] == (s, r)]
+            cells = [f"{100 * statistics.mean(x[m] for x in ms):.2f}" for m in ("biou", "biou_occlusion",
+                                                                                 "biou_released", "iou")]
+            print(f"| {r} ({len(ms)}) | " + " | ".join(cells) + " |")
+        lines = []
+        for spec in args.pair:
+            left, right = spec.split(":", 1)
+            a, b = _side(left, s), _side(right, s)
+            if a[0] != s:  # a pair is listed under its left side's scene
+                continue
+            for metric in ("biou", "biou_occlusion"):
+                d = pair_diff(R, a, b, metric)
+                if d is not None:
+                    lines.append(f"- {'/'.join(a)} − {'/'.join(b)}, {LABELS[metric]}: {d['diff']:+.2f} "
+                                 f"[{d['lo']:+.2f}, {d['hi']:+.2f}] ({d['objects']} objects)")
+        if lines:
+            print()
+            print("\n".join(lines))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
