@@ -403,7 +403,8 @@ def cmd_recipes(args) -> int:
                      "max_gaussians": max(r["gaussians"] for r in recs),
                      "rss": max(r.get("peak_rss", 0) for r in recs), "load": statistics.mean(r["load"] for r in recs),
                      "res": recs[-1].get("resolution") or [recs[-1].get("width"), recs[-1].get("height")],
-                     "psnr": ev.get("psnr"), "ssim": ev.get("ssim"), "t6": t6, "sfm_s": sfm.get("wall_s")})
+                     "psnr": ev.get("psnr"), "ssim": ev.get("ssim"), "t6": t6, "sfm_s": sfm.get("wall_s"),
+                     "cpu_to": {r["it"]: r["cpu_s"] for r in recs}})
     ref = next((r for r in rows if r["name"] == args.reference), None) if args.reference else None
     extra = " CPU time vs " + args.reference + " | PSNR vs " + args.reference + " |" if ref else ""
     lines = ["| run | recipe and switches | iterations | training wall h | CPU h (all threads) | mean load | "
@@ -415,7 +416,13 @@ def cmd_recipes(args) -> int:
         vs = ""
         if ref:
             dp = f"{r['psnr'] - ref['psnr']:+.3f} dB" if r["psnr"] is not None and ref["psnr"] is not None else "-"
-            vs = f" {r['cpu'] / ref['cpu']:.2f}x | {dp} |"
+            # over the iterations both have logged (a stopped run against the same stretch of the reference)
+            common = sorted(set(r["cpu_to"]) & set(ref["cpu_to"]))
+            upto = common[-1] if common else 0
+            c_r = sum(v for k, v in r["cpu_to"].items() if k <= upto)
+            c_ref = sum(v for k, v in ref["cpu_to"].items() if k <= upto)
+            span = "" if upto == ref["its"] == r["its"] else f" (its 1-{upto:,})"
+            vs = f" {c_r / c_ref:.2f}x{span} | {dp} |" if c_ref else f" - | {dp} |"
         lines.append(f"| {r['name']} | {r['recipe']}{' ' + ' '.join(r['sets']) if r['sets'] else ''} | {its} | "
                      f"{r['wall'] / 3600:.2f} | {r['cpu'] / 3600:.2f} | {r['load']:.1f} | "
                      f"{r['gaussians']:,} ({r['max_gaussians']:,}) | {ps} | {r['rss'] / 2**30:.2f} GiB |" + vs)
