@@ -361,6 +361,17 @@ def rasterize_native(means, quats, scales, opacities, features, viewmat, K, widt
 
 
 @contextlib.contextmanager
+def _path_switch(kind: str, on: bool):
+    """Set the blending path switch ``kind`` ("cuda" / "cpu") for the block, then restore it."""
+    ensure_loaded()
+    setter = getattr(torch.ops.cobgs, f"set_{kind}_fast")
+    before = setter(bool(on))
+    try:
+        yield
+    finally:
+        setter(before)
+
+
 def cuda_fast_path(on: bool = True):
     """Within the block, the CUDA blending passes take the fast path (fused multiply-adds and
     the hardware exp; csrc/blend/blend_cuda.cuh) or, with ``on=False``, the exact one (every
@@ -370,12 +381,7 @@ def cuda_fast_path(on: bool = True):
     exact path are tests/render/test_cuda.py's ``FAST_*``. A forward pass and its backward
     must run under the same setting (the backward recomputes the forward's decisions). The CPU
     kernels have a switch of their own, :func:`cpu_fast_path`."""
-    ensure_loaded()
-    before = torch.ops.cobgs.set_cuda_fast(bool(on))
-    try:
-        yield
-    finally:
-        torch.ops.cobgs.set_cuda_fast(before)
+    return _path_switch("cuda", on)
 
 
 def cuda_fast_path_on() -> bool:
@@ -384,7 +390,6 @@ def cuda_fast_path_on() -> bool:
     return bool(torch.ops.cobgs.get_cuda_fast())
 
 
-@contextlib.contextmanager
 def cpu_fast_path(on: bool = True):
     """Within the block, the CPU blending kernels take the fast path (fused multiply-adds;
     csrc/common/cpu_isa.h) where the CPU has AVX2 and FMA, or with ``on=False`` the exact one
@@ -394,12 +399,7 @@ def cpu_fast_path(on: bool = True):
     against :mod:`cobgs.render.reference` and the exact path are
     tests/render/test_cpu_fast_path.py's. A forward pass and its backward must run under the
     same setting (the backward recomputes the forward's decisions)."""
-    ensure_loaded()
-    before = torch.ops.cobgs.set_cpu_fast(bool(on))
-    try:
-        yield
-    finally:
-        torch.ops.cobgs.set_cpu_fast(before)
+    return _path_switch("cpu", on)
 
 
 def cpu_fast_path_on() -> bool:

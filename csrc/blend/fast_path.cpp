@@ -10,40 +10,26 @@
 #include <torch/library.h>
 
 #include <atomic>
-#include <cstdlib>
-#include <cstring>
+
+#include "../common/cpu_isa.h"  // env_flag
 
 namespace cobgs {
 namespace {
 
-bool from_env() {  // fast unless COBGS_CUDA_EXACT is set to something other than "" / "0"
-  const char* v = std::getenv("COBGS_CUDA_EXACT");
-  return v == nullptr || std::strcmp(v, "") == 0 || std::strcmp(v, "0") == 0;
-}
-
-std::atomic<bool>& flag() {
-  static std::atomic<bool> f{from_env()};
+std::atomic<bool>& flag() {  // fast unless COBGS_CUDA_EXACT is set (not "" / "0")
+  static std::atomic<bool> f{!env_flag("COBGS_CUDA_EXACT")};
   return f;
 }
 
-bool set_cuda_fast(bool on) {
-  return flag().exchange(on);  // the previous setting
+std::atomic<bool>& cpu_flag() {  // exact unless COBGS_CPU_FAST is set (not "" / "0")
+  static std::atomic<bool> f{env_flag("COBGS_CPU_FAST")};
+  return f;
 }
 
+// The previous setting, for the Python context managers to restore.
+bool set_cuda_fast(bool on) { return flag().exchange(on); }
 bool get_cuda_fast() { return flag().load(); }
-
-bool cpu_from_env() {  // exact unless COBGS_CPU_FAST is set to something other than "" / "0"
-  const char* v = std::getenv("COBGS_CPU_FAST");
-  return v != nullptr && std::strcmp(v, "") != 0 && std::strcmp(v, "0") != 0;
-}
-
-std::atomic<bool>& cpu_flag() {
-  static std::atomic<bool> f{cpu_from_env()};
-  return f;
-}
-
 bool set_cpu_fast(bool on) { return cpu_flag().exchange(on); }
-
 bool get_cpu_fast() { return cpu_flag().load(); }
 
 }  // namespace
