@@ -298,6 +298,21 @@ def blend_inputs(s, channels, seed=2):
     return feats, torch.rand(channels, generator=g, dtype=dt)
 
 
+def blend_fwd_bwd(x, labels, tight):
+    """Project, bin (tight lists or 3-sigma boxes), blend and blend_bwd on the device of ``x``:
+    the blend outputs followed by the gradients."""
+    m2, conics, depths, radii = project(x)
+    if tight:
+        off, ids, prep = ops().bin_tiles_tight(m2, radii, depths, conics, x["opacities"], W, H)
+    else:
+        (off, ids), prep = ops().bin_tiles(m2, radii, depths, W, H), None
+    out = ops().blend(m2, conics, x["opacities"], x["features"], x["bg"], off, ids, W, H,
+                      x["lab"], max(labels, 1), prep)
+    grads = ops().blend_bwd(m2, conics, x["opacities"], x["features"], x["bg"], off, ids,
+                            out[1], out[2], x["v_img"], x["v_tr"], prep)
+    return (*out, *grads)
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("channels", [1, 3, 4, 7])
 @pytest.mark.parametrize("labels", [0, 2, 5])
@@ -312,19 +327,7 @@ def test_blend_forward_and_backward_match_the_cpu_op(dtype, channels, labels, ti
     v_tr = torch.randn(H, W, generator=g, dtype=dtype)
     d = dict(s, features=feats, bg=bg, lab=lab, v_img=v_img, v_tr=v_tr)
 
-    def run(x):
-        m2, conics, depths, radii = project(x)
-        if tight:
-            off, ids, prep = ops().bin_tiles_tight(m2, radii, depths, conics, x["opacities"], W, H)
-        else:
-            (off, ids), prep = ops().bin_tiles(m2, radii, depths, W, H), None
-        out = ops().blend(m2, conics, x["opacities"], x["features"], x["bg"], off, ids, W, H,
-                          x["lab"], max(labels, 1), prep)
-        grads = ops().blend_bwd(m2, conics, x["opacities"], x["features"], x["bg"], off, ids,
-                                out[1], out[2], x["v_img"], x["v_tr"], prep)
-        return (*out, *grads)
-
-    cpu, gpu = both(run, d)
+    cpu, gpu = both(lambda x: blend_fwd_bwd(x, labels, tight), d)
     names = ("image", "transmittance", "n_contrib", "label_counts", "label_weights",
              "v_means2d", "v_conics", "v_opacities", "v_features", "v_background")
     # float32 uses the shared polynomial exp (gs_math.h): image and transmittance are
@@ -518,16 +521,7 @@ def test_fast_path_within_stated_tolerances_of_the_exact_path(channels, labels):
     d = dict(s, features=feats, bg=bg, lab=lab, v_img=torch.randn(H, W, channels, generator=g),
              v_tr=torch.randn(H, W, generator=g))
 
-    def run(x):
-        m2, conics, depths, radii = project(x)
-        off, ids, prep = ops().bin_tiles_tight(m2, radii, depths, conics, x["opacities"], W, H)
-        out = ops().blend(m2, conics, x["opacities"], x["features"], x["bg"], off, ids, W, H,
-                          x["lab"], max(labels, 1), prep)
-        grads = ops().blend_bwd(m2, conics, x["opacities"], x["features"], x["bg"], off, ids,
-                                out[1], out[2], x["v_img"], x["v_tr"], prep)
-        return (*out, *grads)
-
-    exact, fast = _fast_and_exact(run, d)
+    exact, fast = _fast_and_exact(lambda x: blend_fwd_bwd(x, labels, tight=True), d)
     assert (exact[0] - fast[0]).abs().max() <= FAST_IMAGE_ATOL
     assert (exact[1] - fast[1]).abs().max() <= FAST_IMAGE_ATOL
     share = float((exact[2] != fast[2]).float().mean())
