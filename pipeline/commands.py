@@ -347,21 +347,32 @@ def stages_toml(registry) -> str:
     return "".join(defaults_toml(graph.stages[n].params, f"params.{n}") + "\n\n" for n in graph.order)
 
 
-def write_params_docs(path: Path, text: str) -> int:
-    """Put ``text`` between the generated-params markers of a Markdown file (a ```toml block);
-    returns the number of tables written."""
+def write_between(path: Path, begin: str, end: str, body: str, what: str) -> None:
+    """Replace what lies between the markers ``begin`` ... ``end`` of an existing text file with
+    ``body``, through a rename (never half-written). A file that cannot be read or lacks either
+    marker is refused, naming it: only a section the writer marked is ever replaced. ``what``
+    names the option that gave the path."""
     try:
         doc = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as e:
-        raise PipelineError(f"{path}: cannot read it ({type(e).__name__}: {e}); --docs takes an existing "
-                            f"Markdown file holding the {DOCS_BEGIN} ... {DOCS_END} markers") from None
-    if DOCS_BEGIN not in doc or DOCS_END not in doc:
-        raise PipelineError(f"{path}: no {DOCS_BEGIN} ... {DOCS_END} markers to write between")
-    head, rest = doc.split(DOCS_BEGIN, 1)
-    _, tail = rest.split(DOCS_END, 1)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")  # never half-written
-    tmp.write_text(f"{head}{DOCS_BEGIN}\n```toml\n{text.rstrip()}\n```\n{DOCS_END}{tail}", encoding="utf-8")
-    os.replace(tmp, path)
+        raise PipelineError(f"{path}: cannot read it ({type(e).__name__}: {e}); {what} takes an existing "
+                            f"Markdown file holding the {begin} ... {end} markers") from None
+    if begin not in doc or end not in doc:
+        raise PipelineError(f"{path}: no {begin} ... {end} markers to write between")
+    head, rest = doc.split(begin, 1)
+    _, tail = rest.split(end, 1)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        tmp.write_text(f"{head}{begin}{body}{end}{tail}", encoding="utf-8")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def write_params_docs(path: Path, text: str) -> int:
+    """Put ``text`` between the generated-params markers of a Markdown file (a ```toml block);
+    returns the number of tables written."""
+    write_between(path, DOCS_BEGIN, DOCS_END, f"\n```toml\n{text.rstrip()}\n```\n", "--docs")
     return text.count("[params.")
 
 

@@ -13,6 +13,7 @@ Run (not collected by pytest), on this repository's venv::
     .venv/bin/python tests/benchmarks/bm_cost.py table6 --out runs/bm_cost [--checkpoint ckpt_30000.pt]
     # 3. The Markdown summary of both.
     .venv/bin/python tests/benchmarks/bm_cost.py summary --out runs/bm_cost [--write docs/benchmarks/cost_cpu.md]
+    #    (--write replaces only the text between the file's <!-- bm_cost summary --> markers)
     # (a profile_<checkpoint>.txt in --out, bm_profile.py's output on that checkpoint, is
     #  appended to the summary)
 
@@ -159,10 +160,17 @@ def cmd_scene(args) -> int:
     return 0
 
 
+def _run_config(out: Path) -> dict:
+    """What ``bm_cost.py scene`` recorded of a run (``out/config.json``: recipe, --set switches,
+    split, shared SfM); {} for a run folder without one."""
+    f = out / "config.json"
+    return json.loads(f.read_text()) if f.is_file() else {}
+
+
 def _split_of(args) -> tuple:
     """(test_every, sfm_dir) for table6 / _one: the flags, else what the scene run recorded in
     config.json (so the refinement sees the training's split and reconstruction)."""
-    cfg = json.loads((args.out / "config.json").read_text()) if (args.out / "config.json").is_file() else {}
+    cfg = _run_config(args.out)
     te = args.test_every if args.test_every is not None else int(cfg.get("test_every") or 0)
     sfm = args.sfm_dir or (Path(cfg["sfm_dir"]) if cfg.get("sfm_dir") else None)
     return te, sfm
@@ -181,7 +189,7 @@ def _load_checkpoint(scene, path: Path, iterations: int, out: Path | None = None
     from cobgs.train.adam_moments import export_moments
     from cobgs.train.optimize import Trainer
 
-    cfg = json.loads((out / "config.json").read_text()) if out and (out / "config.json").is_file() else {}
+    cfg = _run_config(out) if out else {}
     tr = Trainer(scene, _config(iterations if cfg.get("recipe", "3dgs") == "3dgs" else 0,
                                 cfg.get("recipe", "3dgs"), tuple(cfg.get("sets") or ())))
     tr.load_checkpoint(path)
@@ -372,8 +380,8 @@ def cmd_recipes(args) -> int:
         name, _, d = spec.partition("=")
         d = Path(d)
         recs = _train_chunks(d / "train_log.jsonl") if (d / "train_log.jsonl").is_file() else []
-        if not recs:
-            continue
+        if not recs:  # a mistyped folder would otherwise drop out of the table unnoticed
+            raise SystemExit(f"{spec}: {d / 'train_log.jsonl'} is missing or empty (not a bm_cost.py scene run)")
         # A chunk another process disturbed, measured again alone from the checkpoint before it
         # (resuming is bit-identical: same loss, PSNR and Gaussians): remeasured.jsonl holds
         # those chunks' records (bm_cost.py scene --stop-at on a copy of the checkpoint).
@@ -387,7 +395,7 @@ def cmd_recipes(args) -> int:
                              f"{r['load']:.1f}, {r['wall_s']:.0f} s); measured again alone from the checkpoint before "
                              f"them: {redo[r['it']]['wall_s']:.0f} s (load {redo[r['it']]['load']:.1f}), the value used here.")
                 recs[i] = redo[r["it"]]
-        cfg = json.loads((d / "config.json").read_text()) if (d / "config.json").is_file() else {}
+        cfg = _run_config(d)
         ev = json.loads((d / "eval.json").read_text()) if (d / "eval.json").is_file() else {}
         t6 = {}
         for f in sorted(d.glob("table6_*.jsonl")):
@@ -439,27 +447,21 @@ def cmd_recipes(args) -> int:
             lines.append(f"| {r['name']} | {r['sfm_s'] or 0:.0f} s | {r['wall'] / 60:.1f} min | {ref:.0f} s | "
                          f"{t['eval_s']:.0f} s | **{tot / 3600:.2f} h** |")
     text = "\n".join(lines) + "\n"
-    if args.write and args.tag:
-        # Between the tag's markers of an existing Markdown file (the rest of it stays).
-        begin, end = f"<!-- bm_cost recipes {args.tag} -->", f"<!-- end bm_cost recipes {args.tag} -->"
-        doc = args.write.read_text() if args.write.is_file() else ""
-        if begin not in doc or end not in doc:
-            raise SystemExit(f"{args.write}: no markers {begin!r} ... {end!r} to write between")
-        head, rest = doc.split(begin, 1)
-        _, tail = rest.split(end, 1)
-        tmp = args.write.with_name(args.write.name + ".part")
-        tmp.write_text(head + begin + "\n" + text + end + tail)
-        tmp.replace(args.write)
-    elif args.write:
-        args.write.write_text(text)
+    if args.write:  # between the tag's markers of an existing document (the rest of it stays)
+        from pipeline.commands import write_between
+
+        write_between(args.write, f"<!-- bm_cost recipes {args.tag} -->", f"<!-- end bm_cost recipes {args.tag} -->",
+                      "\n" + text, "--write")
     print(text)
     return 0
 
 
+SUMMARY_BEGIN, SUMMARY_END = "<!-- bm_cost summary -->", "<!-- end bm_cost summary -->"
+
+
 def cmd_summary(args) -> int:
     out = args.out
-    lines = ["# A whole NVOS-protocol scene on a CPU: fern at 1008x756 (issue 26)", "",
-             "Written by `tests/benchmarks/bm_cost.py summary` from the logs of `bm_cost.py scene` and "
+    lines = ["Written by `tests/benchmarks/bm_cost.py summary` from the logs of `bm_cost.py scene` and "
              "`bm_cost.py table6` (2 threads, this 2-core machine, no GPU).", ""]
     sfm = out / "sfm.json"
     if sfm.is_file():
@@ -515,8 +517,10 @@ def cmd_summary(args) -> int:
                   "--ply CKPT --sfm-dir OUT/fern_sfm --threads 2 --train-steps 5 --reps 5`):", "", "```"] + body + ["```", ""]
     text = "\n".join(lines)
     print(text)
-    if args.write:
-        args.write.write_text(text + "\n", encoding="utf-8")
+    if args.write:  # between the summary's markers of an existing document (the rest of it stays)
+        from pipeline.commands import write_between
+
+        write_between(args.write, SUMMARY_BEGIN, SUMMARY_END, "\n" + text + "\n", "--write")
     return 0
 
 
@@ -551,14 +555,17 @@ def main(argv=None) -> int:
     o.add_argument("--method", required=True, choices=METHODS)
     rc = sub.add_parser("recipes", help="issue 45's tables over several scene runs")
     rc.add_argument("runs", nargs="+", metavar="NAME=DIR")
-    rc.add_argument("--write", type=Path)
-    rc.add_argument("--tag", help="with --write: replace only the text between this tag's markers "
-                    "(<!-- bm_cost recipes TAG --> ... <!-- end bm_cost recipes TAG -->)")
+    rc.add_argument("--write", type=Path, help="a Markdown file: the tables replace the text between the "
+                    "markers <!-- bm_cost recipes TAG --> ... <!-- end bm_cost recipes TAG --> (needs --tag)")
+    rc.add_argument("--tag")
     rc.add_argument("--reference", help="a NAME: adds each run's CPU time and held-out PSNR relative to it (ablations)")
     m = sub.add_parser("summary")
     m.add_argument("--out", type=Path, required=True)
-    m.add_argument("--write", type=Path)
+    m.add_argument("--write", type=Path, help="a Markdown file: the summary replaces the text between its "
+                   "markers <!-- bm_cost summary --> ... <!-- end bm_cost summary -->")
     args = ap.parse_args(argv)
+    if args.cmd == "recipes" and args.write and not args.tag:
+        ap.error("recipes --write needs --tag (the markers of the section it replaces)")
     return {"scene": cmd_scene, "table6": cmd_table6, "_one": cmd_one, "summary": cmd_summary,
             "recipes": cmd_recipes}[args.cmd](args)
 

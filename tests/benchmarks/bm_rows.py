@@ -66,6 +66,9 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", default="", help="scenes, comma-separated (default: all in the cache)")
     ap.add_argument("--pair", action="append", default=[], metavar="A:B")
     args = ap.parse_args(argv)
+    bad = [spec for spec in args.pair if spec.count(":") != 1 or "" in spec.split(":")]
+    if bad:
+        ap.error(f"--pair takes A:B (rows, or scene/row), got {bad[0]!r}")
     R = load(args.cache)
     if not R:
         raise SystemExit(f"{args.cache}: no evaluate entries with a row")
