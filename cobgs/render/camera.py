@@ -140,7 +140,7 @@ class Camera:
         """The same camera for the image resized to ``width`` x ``height`` pixels."""
         sx, sy = width / self.width, height / self.height
         # Pixel centres are at +0.5, so the continuous image plane scales uniformly.
-        S = torch.tensor([[sx, 0.0, 0.0], [0.0, sy, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float32)
+        S = torch.tensor([[sx, 0.0, 0.0], [0.0, sy, 0.0], [0.0, 0.0, 1.0]], dtype=self.K.dtype, device=self.K.device)
         return replace(self, K=S @ self.K, width=int(width), height=int(height))
 
     def to(self, device) -> "Camera":

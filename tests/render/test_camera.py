@@ -45,6 +45,17 @@ def test_scaled_keeps_projection_consistent():
     assert half.fov_x_rad == pytest.approx(cam.fov_x_rad, rel=1e-6)
 
 
+def test_scaled_keeps_device_and_dtype():
+    """The resolution schedule scales cameras that live on the GPU: the scale matrix follows
+    K's device and dtype (the meta device stands in for CUDA here; it failed on an H100 when
+    the matrix was always a CPU float32 tensor)."""
+    cam = Camera.from_c2w(np.eye(4), 200, 210, 101, 77, 200, 150)
+    meta = cam.to("meta").scaled(1.5)
+    assert meta.K.device.type == "meta" and (meta.width, meta.height) == (133, 100)
+    f64 = Camera(K=cam.K.double(), viewmat=cam.viewmat.double(), width=cam.width, height=cam.height)
+    assert f64.scaled(2).K.dtype == torch.float64
+
+
 def test_scene_extent_is_nerfpp_radius():
     centers = [(-1, 0, 0), (3, 0, 0), (1, 2, 0)]
     cams = []
