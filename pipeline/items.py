@@ -111,13 +111,27 @@ class Axes:
     one exists only when it is the projection of such a full item (so no task runs for a
     combination nothing downstream asks for). Items holding no restricted value are the
     plain product, as without restrictions.
+
+    ``shares`` maps ``(axis, value)`` to another value of the same (flat) axis whose tasks the
+    value reuses wherever they would compute the same thing (:meth:`twin`; the plan decides
+    where, :class:`pipeline.plan.Plan`).
     """
 
-    def __init__(self, axes: Sequence[Axis], only: Optional[Mapping[tuple[str, str], "ItemFilter"]] = None):
+    def __init__(self, axes: Sequence[Axis], only: Optional[Mapping[tuple[str, str], "ItemFilter"]] = None,
+                 shares: Optional[Mapping[tuple[str, str], str]] = None):
         self._axes = {a.name: a for a in axes}
         self.order = tuple(a.name for a in axes)
         self.only = dict(only or {})
+        self.shares = dict(shares or {})
         self._instances: dict[tuple[str, ...], list[Item]] = {}
+
+    def twin(self, item: Item) -> Optional[Item]:
+        """``item`` with each value that ``shares`` another replaced by that value (the pairs
+        only: its attributes stay ``item``'s); None when it holds no such value."""
+        if not self.shares:
+            return None
+        pairs = tuple((a, self.shares.get((a, v), v)) for a, v in item.pairs)
+        return Item(pairs, item.attrs) if pairs != item.pairs else None
 
     def __contains__(self, name: str) -> bool:
         return name in self._axes

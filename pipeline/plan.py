@@ -7,6 +7,14 @@ A task's cache key is the sha256 of the canonical JSON of
 the files and folders the params and attributes name, only where they name some). Input hashes are the content
 hashes recorded in upstream manifests, so a key is known only once every upstream task is
 done; until then the task is *pending* on them.
+
+A value that ``shares`` another (``[axes.scene.lego_fast] shares = "lego"``) reuses that value's
+tasks wherever they would compute the same thing: a task whose params and key attributes equal
+those of its *twin* (the same item with the shared value in place of this one) and whose inputs
+come from the twin's own upstream tasks is keyed as the twin (``Task.key_item``) and runs after
+it: the two have one key and one cache entry (the same SfM, the same masks), computed once,
+by the twin. Elsewhere (a training with another recipe, and everything downstream of it) the
+task is keyed as itself, so its entries are those it would have without ``shares``.
 """
 
 from __future__ import annotations
@@ -39,6 +47,9 @@ class Task:
     item: Item
     params: ResolvedParams
     bindings: tuple[Binding, ...]
+    #: the twin task this one is keyed as and runs after (``shares``), else None
+    twin: Optional[int] = None
+    key_item: Optional[Item] = None
 
     @property
     def id(self) -> str:
@@ -50,6 +61,8 @@ class Task:
         for b in self.bindings:
             for s in b.sources:
                 seen[s] = None
+        if self.twin is not None:
+            seen[self.twin] = None
         return tuple(seen)
 
 
@@ -79,19 +92,43 @@ class Plan:
                     index[(prod, shared)] = table
                 producers.append((art, prod, shared, fan_in, table))
             ids = self.by_stage.setdefault(name, [])
-            for item in wf.axes.instances(level):
+            items = wf.axes.instances(level)
+            # values that share another come after it, so that a twin is always planned first
+            twins = {item: wf.axes.twin(item) for item in items}
+            own: dict[Item, Task] = {}
+            for item in sorted(items, key=lambda i: twins[i] is not None):
                 bindings = []
                 for art, prod, shared, fan_in, table in producers:
                     sources = tuple(table.get(item.project(shared), ()))
                     bindings.append(Binding(art, prod, sources, fan_in))
-                task = Task(len(self.tasks), stage, item, wf.params_for(name, item),
-                            tuple(bindings))
+                params = wf.params_for(name, item)
+                twin = own.get(twins[item]) if twins[item] is not None else None
+                if twin is not None and not self._same_work(twin, item, params, bindings):
+                    twin = None
+                task = Task(len(self.tasks), stage, item, params, tuple(bindings),
+                            twin=twin.index if twin is not None else None,
+                            key_item=twin.item if twin is not None else None)
                 self.tasks.append(task)
                 ids.append(task.index)
+                own[item] = task
         self.dependents: list[list[int]] = [[] for _ in self.tasks]
         for task in self.tasks:
             for dep in task.deps:
                 self.dependents[dep].append(task.index)
+
+    def _same_work(self, twin: Task, item: Item, params: ResolvedParams,
+                   bindings: Sequence[Binding]) -> bool:
+        """Whether a task of ``item`` would compute what ``twin`` computes: the same key params
+        and key attributes, and inputs from the twin's own sources (or their twins)."""
+        wf = self.workflow
+        if twin.params.key_json != params.key_json or \
+                wf.key_attrs(twin.item, twin.stage.name) != wf.key_attrs(item, twin.stage.name):
+            return False
+        for mine, theirs in zip(bindings, twin.bindings):
+            sources = tuple(self.tasks[s].twin if self.tasks[s].twin is not None else s for s in mine.sources)
+            if sources != theirs.sources:
+                return False
+        return True
 
     def find(self, stage: str, item_id: str) -> Task:
         for i in self.by_stage.get(stage, []):
@@ -155,7 +192,7 @@ def key_document(task: Task, workflow: Workflow, hashes: Mapping[str, Any]) -> d
         "stage": stage.name,
         "version": stage.version,
         "params": task.params.key_json,
-        "item": task.item.to_json(),
+        "item": (task.key_item or task.item).to_json(),
         "attrs": workflow.key_attrs(task.item, stage.name),
         "inputs": hashes,
         "device": workflow.settings.device if stage.uses_device else None,

@@ -129,6 +129,7 @@ def select(plan: Plan, options: RunOptions) -> Selection:
     selected = {t.index for t in plan.tasks
                 if (by_items is None or t.index in by_items)
                 and (not only or t.stage.name in only)}
+    selected |= {plan.tasks[i].twin for i in selected if plan.tasks[i].twin is not None}  # its work
     relevant = set(selected)
     todo = list(selected)
     while todo:
@@ -139,6 +140,8 @@ def select(plan: Plan, options: RunOptions) -> Selection:
     forced = {i for i in selected
               if force_all or plan.tasks[i].stage.name in force
               or plan.tasks[i].stage.name in from_}
+    # a task keyed as its forced twin is recomputed by the twin, once
+    forced -= {i for i in forced if plan.tasks[i].twin in forced}
     return Selection(sorted(relevant), frozenset(selected), frozenset(forced), tuple(notes))
 
 

@@ -35,7 +35,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
 NAME_RE = re.compile(r"^[a-z][a-z0-9_]*$")
 #: Words that mean something else on the command line (``--force all``) or in a workflow.
-RESERVED_NAMES = frozenset({"all", "device", "settings", "axes", "params", "workflow", "only"})
+RESERVED_NAMES = frozenset({"all", "device", "settings", "axes", "params", "workflow", "only", "shares"})
 
 
 @dataclass(frozen=True)

@@ -466,6 +466,7 @@ def _load_axes(axes_raw: dict, nested: dict, graph: Graph, registry: Registry, s
     staged = key_attrs.setdefault("__staged__", {})  # (axis, attr) -> (stages, default)
     axes: list[Axis] = []
     only_raw: dict[tuple[str, str], Any] = {}
+    shares_raw: dict[tuple[str, str], Any] = {}
     for child, parent in nested.items():
         if child not in axes_raw or not isinstance(parent, str) or parent not in axes_raw:
             raise WorkflowError(f"expected an axis nested in a declared axis, got {child!r} in "
@@ -493,7 +494,7 @@ def _load_axes(axes_raw: dict, nested: dict, graph: Graph, registry: Registry, s
             values = {}
             for value, vt in table.items():
                 values[value] = _load_value(axis_name, value, vt, f"axes.{axis_name}.{value}",
-                                            schema, graph, source, base, item_layers, only_raw)
+                                            schema, graph, source, base, item_layers, only_raw, shares_raw)
             axes.append(Axis(axis_name, values))
         else:
             parent_values = next(a for a in axes if a.name == parent).values
@@ -505,12 +506,32 @@ def _load_axes(axes_raw: dict, nested: dict, graph: Graph, registry: Registry, s
                 sub = _table(sub, source, f"axes.{axis_name}.{pv}")
                 per_parent[pv] = {
                     value: _load_value(axis_name, value, vt, f"axes.{axis_name}.{pv}.{value}",
-                                       schema, graph, source, base, item_layers, only_raw, slot=pv)
+                                       schema, graph, source, base, item_layers, only_raw, shares_raw, slot=pv)
                     for value, vt in sub.items()}
             axes.append(Axis(axis_name, per_parent, parent=parent))
     plain = Axes(axes)
     only = {slot: _parse_only(text, slot, plain, source) for slot, text in only_raw.items()}
-    return Axes(axes, only), item_layers, key_attrs
+    shares = _check_shares(shares_raw, plain, source)
+    return Axes(axes, only, shares), item_layers, key_attrs
+
+
+def _check_shares(shares_raw: dict, axes: Axes, source: str) -> dict[tuple[str, str], str]:
+    """``shares = "VALUE"``: another value of the same flat axis, itself sharing nothing."""
+    out = {}
+    for (axis, slot), target in shares_raw.items():
+        key = f"axes.{axis}.{slot.replace('/', '.')}.shares"
+        if axes[axis].parent is not None:
+            raise WorkflowError(f"'shares' is for values of a flat axis; {axis!r} is nested in "
+                                f"{axes[axis].parent!r}", source, key)
+        names = axes[axis].names()
+        if not isinstance(target, str) or target not in names or target == slot:
+            raise WorkflowError(f"expected the name of another {axis} value, got {target!r} "
+                                f"(values: {[n for n in names if n != slot]})", source, key)
+        if (axis, target) in shares_raw:
+            raise WorkflowError(f"{target!r} itself shares {shares_raw[(axis, target)]!r}; name that "
+                                "value instead (no chains)", source, key)
+        out[(axis, slot)] = target
+    return out
 
 
 def _parse_only(text: Any, slot: tuple[str, str], axes: Axes, source: str) -> ItemFilter:
@@ -541,13 +562,15 @@ def _parse_only(text: Any, slot: tuple[str, str], axes: Axes, source: str) -> It
 
 def _load_value(axis: str, value: str, table: Any, key: str, schema: Optional[type],
                 graph: Graph, source: str, base: Path, item_layers: dict, only_raw: dict,
-                slot: Optional[str] = None) -> Any:
+                shares_raw: dict, slot: Optional[str] = None) -> Any:
     check_value_name(value, axis, source)
     table = _table(table, source, key)
     attrs, overrides = {}, {}
     for k, v in table.items():
         if k == "only":  # reserved: where the value takes part (not an attribute, not hashed)
             only_raw[(axis, f"{slot}/{value}" if slot is not None else value)] = v
+        elif k == "shares":  # reserved: the value whose identical tasks this one reuses
+            shares_raw[(axis, f"{slot}/{value}" if slot is not None else value)] = v
         elif k in graph.stages:
             overrides[k] = P.Layer(_table(v, source, f"{key}.{k}"), source, base,
                                    prefix=f"{key}.{k}")

@@ -596,3 +596,69 @@ def test_gc_removes_memo_temporaries_of_killed_runs(toy, executions):
     assert any(dead.name in line for line in report.lines) and dead.exists()
     collect(toy.cache, keep)
     assert not dead.exists() and live.exists()
+
+
+SHARING = toys.WORKFLOW + """
+[axes.scene.alpha_long]
+shares = "alpha"
+kind = "synthetic"
+train = { iterations = 30 }
+"""
+
+
+def test_a_value_that_shares_reuses_the_identical_tasks_only(toy, executions):
+    """``shares``: alpha_long's load is alpha's (one key, one entry, computed once, by alpha);
+    its training (other params) and everything downstream are its own; alpha's and beta's
+    keys are those of the workflow without alpha_long."""
+    toy.run()
+    before = {(r.stage, r.item.id): r.key for r in entries(toy.load(), toy.cache)}
+    executions.reset()
+    toy.load(text=SHARING)
+    s = toy.run()
+    assert s.exit_code == 0, s.output
+    # the cache written without alpha_long serves alpha's and beta's tasks and alpha_long's load
+    assert executions.count() == {"train alpha_long": 1, "refine alpha_long/full": 1,
+                                  "refine alpha_long/nosplit": 1, "evaluate alpha_long/full": 1,
+                                  "evaluate alpha_long/nosplit": 1, "summary ": 1}
+    recs = states(toy)
+    assert recs[("load", "alpha_long")].key == recs[("load", "alpha")].key
+    assert recs[("load", "alpha_long")].entry_dir == recs[("load", "alpha")].entry_dir
+    assert recs[("load", "alpha_long")].state == "done"
+    assert recs[("train", "alpha_long")].key != recs[("train", "alpha")].key
+    weights = recs[("train", "alpha_long")].output("model") / "weights.txt"
+    assert weights.read_text().startswith("scene=alpha kind") and "iterations=30" in weights.read_text()
+    assert {k: r.key for k, r in recs.items() if k in before and k[0] != "summary"} == \
+        {k: v for k, v in before.items() if k[0] != "summary"}  # (summary gathers alpha_long too)
+    # the alias alone: the twin's shared task comes along, nothing else of the twin's
+    shutil.rmtree(toy.cache)
+    executions.reset()
+    s = toy.run(items="alpha_long")
+    assert s.exit_code == 0, s.output
+    assert executions.count() == {"load alpha": 1, "train alpha_long": 1, "refine alpha_long/full": 1,
+                                  "refine alpha_long/nosplit": 1, "evaluate alpha_long/full": 1,
+                                  "evaluate alpha_long/nosplit": 1}
+    # a forced shared task is recomputed once, by its twin
+    executions.reset()
+    toy.run(force=("load",), only=("load",))
+    assert executions.count() == {"load alpha": 1, "load beta": 1}
+    # different params: a task of its own, keyed as itself
+    toy.load(text=SHARING + 'load = { size = 5 }\n')
+    executions.reset()
+    toy.run(only=("load",))
+    assert executions.count() == {"load alpha_long": 1}
+
+
+@pytest.mark.parametrize("value, message", [
+    ('"gamma"', "expected the name of another scene value, got 'gamma'"),
+    ('"alpha_long"', "expected the name of another scene value, got 'alpha_long'"),
+    ("3", "expected the name of another scene value, got 3"),
+])
+def test_shares_names_another_value(toy, value, message):
+    with pytest.raises(WorkflowError, match=message):
+        toy.load(text=SHARING.replace('shares = "alpha"', f"shares = {value}"))
+
+
+def test_shares_has_no_chains(toy):
+    text = SHARING + '\n[axes.scene.alpha_longer]\nshares = "alpha_long"\nkind = "synthetic"\n'
+    with pytest.raises(WorkflowError, match="'alpha_long' itself shares 'alpha'"):
+        toy.load(text=text)
