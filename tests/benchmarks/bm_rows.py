@@ -5,9 +5,16 @@ which want whole scenes, are not drawn yet.
 Run (not collected by pytest)::
 
     .venv/bin/python tests/benchmarks/bm_rows.py --cache runs/cache \\
+        [--workflow workflows/synthetic_bench.toml] \\
         --rows ours,raem_paper,ngs,ngs_checked \\
         --pair ours:ngs --pair ngs_checked:ours \\
-        --pair forward_coarse_fast/ours:forward_coarse/ours
+        --pair forward_coarse_fast/ours:forward_coarse/ours --train
+
+The entries read are the workflow's current ones (``pipeline.entries``: the keys its tasks have
+now), so an entry that a changed upstream made stale (a scene retrained on another SfM) is not
+mixed in. ``--train`` adds, per scene, its training: recipe, iterations, Gaussians, held-out
+PSNR, CPU time and the SfM entry it read (the first 12 hex digits of the sfm task's key: equal
+for scenes that share one).
 
 Per scene: each row's mean over the objects it has (headline mBIoU, occlusion-aware mBIoU,
 released mBIoU, mIoU), then each ``--pair A:B``: mean(A − B) with the report's bootstrap over
@@ -19,7 +26,6 @@ across scenes (a scene trained with another recipe: the same views and GT masks)
 from __future__ import annotations
 
 import argparse
-import glob
 import json
 import statistics
 import sys
@@ -32,15 +38,32 @@ LABELS = {"biou": "headline mBIoU", "biou_occlusion": "occlusion-aware mBIoU", "
           "iou": "mIoU"}
 
 
-def load(cache: Path) -> dict:
-    """(scene, method, object) -> the evaluate entry's metrics.json."""
-    out = {}
-    for f in glob.glob(str(cache / "entries" / "evaluate" / "*" / "out" / "metrics.json")):
-        m = json.loads(Path(f).read_text())
-        r = m.get("row", {})
-        if {"scene", "method", "object"} <= set(r):
-            out[(r["scene"], r["method"], r["object"])] = m
-    return out
+def load(workflow: Path, cache: Path) -> tuple[dict, dict]:
+    """``(rows, trainings)``: (scene, method, object) -> the done evaluate entry's metrics.json,
+    and scene -> its done training's facts, for the tasks ``workflow`` has now."""
+    from pipeline import entries, load_workflow
+    from stages.registry import load_registry
+
+    wf = load_workflow(workflow, load_registry())
+    rows, trainings = {}, {}
+    for rec in entries(wf, cache):
+        if rec.state != "done":
+            continue
+        if rec.stage == "evaluate":
+            m = json.loads((rec.output("metrics") / "metrics.json").read_text()) \
+                if rec.output("metrics").is_dir() else json.loads(rec.output("metrics").read_text())
+            r = m.get("row", {})
+            if {"scene", "method", "object"} <= set(r):
+                rows[(r["scene"], r["method"], r["object"])] = m
+        elif rec.stage == "train":
+            t = json.loads((rec.output("scene") / "train.json").read_text())
+            man = rec.manifest
+            trainings[rec.item.id] = {
+                "recipe": (t.get("config") or {}).get("recipe") or "3dgs",
+                "iterations": t.get("iterations"), "gaussians": t.get("num_gaussians"),
+                "psnr": (t.get("eval") or {}).get("psnr"), "cpu_s": man.get("cpu_s"),
+                "wall_s": man.get("wall_s"), "sfm": (man.get("inputs", {}).get("poses") or {}).get("key", "")[:12]}
+    return rows, trainings
 
 
 def _side(spec: str, scene: str) -> tuple[str, str]:
@@ -62,6 +85,8 @@ def pair_diff(R: dict, a: tuple[str, str], b: tuple[str, str], metric: str):
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--cache", type=Path, required=True)
+    ap.add_argument("--workflow", type=Path, default=Path(__file__).resolve().parents[2] / "workflows" / "synthetic_bench.toml")
+    ap.add_argument("--train", action="store_true", help="each scene's training (recipe, Gaussians, PSNR, SfM entry)")
     ap.add_argument("--rows", default="", help="methods to tabulate, comma-separated (default: all)")
     ap.add_argument("--scenes", default="", help="scenes, comma-separated (default: all in the cache)")
     ap.add_argument("--pair", action="append", default=[], metavar="A:B")
@@ -69,11 +94,19 @@ def main(argv=None) -> int:
     bad = [spec for spec in args.pair if spec.count(":") != 1 or "" in spec.split(":")]
     if bad:
         ap.error(f"--pair takes A:B (rows, or scene/row), got {bad[0]!r}")
-    R = load(args.cache)
+    R, T = load(args.workflow, args.cache)
     if not R:
-        raise SystemExit(f"{args.cache}: no evaluate entries with a row")
+        raise SystemExit(f"{args.cache}: no done evaluate entries of {args.workflow} with a row")
     scenes = [s for s in args.scenes.split(",") if s] or sorted({k[0] for k in R})
     rows = [r for r in args.rows.split(",") if r] or sorted({k[1] for k in R})
+    if args.train:
+        print("| scene | recipe | iterations | Gaussians | held-out PSNR | train CPU s | SfM entry |")
+        print("|---|---|---|---|---|---|---|")
+        for s in scenes:
+            t = T.get(s)
+            if t is not None:
+                print(f"| {s} | {t['recipe']} | {t['iterations']} | {t['gaussians']:,} | {t['psnr']:.2f} | "
+                      f"{t['cpu_s']:.0f} | {t['sfm']} |")
     for s in scenes:
         have = [r for r in rows if any(k[:2] == (s, r) for k in R)]
         if not have:
