@@ -125,7 +125,7 @@ def _run(ctx, inputs):
         raise StageInputError(f"segment did not render held-out view(s) {missing[:5]}")
     protocol = spec.protocol
     preds = _read_preds(seg_dir / Files.PRED_MASKS, list(test))
-    row: dict = {"protocol": protocol, "scene": spec.scene, "method": ctx.item["method"],
+    row: dict = {"protocol": protocol, "scene": ctx.item["scene"], "method": ctx.item["method"],
                  "object": ctx.item["object"], "dataset_object": obj, "method_kind": ref["method"]}
     details: dict = {}
     if protocol == "exact":

@@ -136,7 +136,7 @@ def _run(ctx, inputs):
     masks_info = read_json(Path(inputs["masks"]) / Files.MASKS)
     summary.update(mask_route=masks_info.get("route"), mask_source=masks_info.get("source"))
     summary.update(method_param=p.method, method_item=ctx.item["method"], object=obj,
-                   scene=spec.scene, train_views=len(scene.train),
+                   scene=ctx.item["scene"], train_views=len(scene.train),
                    views_with_mask=sum(m is not None for m in masks), extent=scene.extent)
     if sched is not None:
         eff = sched

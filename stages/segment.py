@@ -111,7 +111,7 @@ def _run(ctx, inputs):
         write_png(ctx.out_dir / "removed" / f"{v.name}.png",
                   render_removed_rgb(result, v.camera, bg, backend=p.backend).clamp(0, 1).cpu().numpy())
     render_s = time.perf_counter() - t0
-    out = {"method": info["method"], "object": info["object"], "scene": spec.scene,
+    out = {"method": info["method"], "object": info["object"], "scene": ctx.item["scene"],
            "num_gaussians": len(model), "object_gaussians": len(obj_model),
            "num_gaussians_before_raem": len(before_raem) if before_raem is not None else len(model),
            "mask_threshold": method_threshold(result, p.mask_threshold),

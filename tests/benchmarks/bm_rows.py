@@ -52,9 +52,9 @@ def load(workflow: Path, cache: Path) -> tuple[dict, dict]:
         if rec.stage == "evaluate":
             m = json.loads((rec.output("metrics") / "metrics.json").read_text()) \
                 if rec.output("metrics").is_dir() else json.loads(rec.output("metrics").read_text())
-            r = m.get("row", {})
-            if {"scene", "method", "object"} <= set(r):
-                rows[(r["scene"], r["method"], r["object"])] = m
+            v = rec.item.values  # (not the row's names: a shared dataset entry names its twin's scene)
+            if {"scene", "method", "object"} <= set(v):
+                rows[(v["scene"], v["method"], v["object"])] = m
         elif rec.stage == "train":
             t = json.loads((rec.output("scene") / "train.json").read_text())
             man = rec.manifest

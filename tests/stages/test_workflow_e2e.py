@@ -14,6 +14,7 @@ from pathlib import Path
 
 import pytest
 
+from cobgs.configs import Files
 from pipeline import RunOptions, entries, load_workflow, run_workflow
 from stages.registry import load_registry
 from tiny_recipe import tiny_recipe  # tests/ is on sys.path
@@ -164,6 +165,39 @@ def test_changing_a_refine_param_reruns_refine_and_below_only(tiny):
     # and back: the first configuration's entries are still there
     _, again, log = _run(path, cache)
     assert set(_states(again).values()) == {"cached"}, log
+
+
+def test_a_scene_that_shares_reads_the_same_sfm_and_names_itself(tiny, tmp_path):
+    """``shares`` with the real stages: a second scene trained with another seed reuses the
+    first scene's dataset, SfM, masks and held-out entries (cached, not run) and trains, refines
+    and evaluates on its own; its refine, segment and evaluate outputs name it, not the scene
+    whose dataset entry it reads (that entry names its twin)."""
+    path, cache, _, _ = tiny
+    variant = tmp_path / "tiny_shares.toml"
+    variant.write_text(WORKFLOW + """
+[axes.scene.tiny_b]
+shares = "tiny"
+kind = "synthetic"
+train = { seed = 1 }
+only = "scene=tiny_b/method=cobgs"
+
+[axes.object.tiny_b.ball]
+""")
+    wf, summary, log = _run(variant, cache, items="tiny_b")
+    assert summary.exit_code == 0, log
+    states = _states(summary)
+    for stage, item in (("dataset", "tiny_b"), ("sfm", "tiny_b"), ("masks", "tiny_b/ball"),
+                        ("dataset", "tiny"), ("sfm", "tiny")):
+        assert states[(stage, item)] == "cached", (stage, item, log)
+    for stage, item in (("train", "tiny_b"), ("refine", "tiny_b/cobgs/ball"), ("evaluate", "tiny_b/cobgs/ball")):
+        assert states[(stage, item)] == "done", (stage, item, log)
+    assert ("train", "tiny") not in states  # the twin's own training is not brought along
+    shared = _entry(wf, cache, "sfm", "tiny_b")
+    assert shared.entry_dir == _entry(wf, cache, "sfm", "tiny").entry_dir
+    row = json.loads((_entry(wf, cache, "evaluate", "tiny_b/cobgs/ball").output("metrics") / "metrics.json").read_text())["row"]
+    assert row["scene"] == "tiny_b"
+    seg = json.loads((_entry(wf, cache, "segment", "tiny_b/cobgs/ball").output("segmentation") / Files.SEGMENT).read_text())
+    assert seg["scene"] == "tiny_b"
 
 
 def test_per_use_keeps_the_object_in_the_scene_as_the_labels_say(tiny):
