@@ -38,13 +38,13 @@ LABELS = {"biou": "headline mBIoU", "biou_occlusion": "occlusion-aware mBIoU", "
           "iou": "mIoU"}
 
 
-def load(workflow: Path, cache: Path) -> tuple[dict, dict]:
+def load(workflow: Path, cache: Path, sets=()) -> tuple[dict, dict]:
     """``(rows, trainings)``: (scene, method, object) -> the done evaluate entry's metrics.json,
     and scene -> its done training's facts, for the tasks ``workflow`` has now."""
     from pipeline import entries, load_workflow
     from stages.registry import load_registry
 
-    wf = load_workflow(workflow, load_registry())
+    wf = load_workflow(workflow, load_registry(), list(sets))
     rows, trainings = {}, {}
     for rec in entries(wf, cache):
         if rec.state != "done":
@@ -86,6 +86,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--cache", type=Path, required=True)
     ap.add_argument("--workflow", type=Path, default=Path(__file__).resolve().parents[2] / "workflows" / "synthetic_bench.toml")
+    ap.add_argument("--set", action="append", default=[], metavar="K=V", help="as cobgs run --set")
     ap.add_argument("--train", action="store_true", help="each scene's training (recipe, Gaussians, PSNR, SfM entry)")
     ap.add_argument("--rows", default="", help="methods to tabulate, comma-separated (default: all)")
     ap.add_argument("--scenes", default="", help="scenes, comma-separated (default: all in the cache)")
@@ -94,7 +95,7 @@ def main(argv=None) -> int:
     bad = [spec for spec in args.pair if spec.count(":") != 1 or "" in spec.split(":")]
     if bad:
         ap.error(f"--pair takes A:B (rows, or scene/row), got {bad[0]!r}")
-    R, T = load(args.workflow, args.cache)
+    R, T = load(args.workflow, args.cache, args.set)
     if not R:
         raise SystemExit(f"{args.cache}: no done evaluate entries of {args.workflow} with a row")
     scenes = [s for s in args.scenes.split(",") if s] or sorted({k[0] for k in R})
