@@ -26,7 +26,6 @@ across scenes (a scene trained with another recipe: the same views and GT masks)
 from __future__ import annotations
 
 import argparse
-import json
 import statistics
 import sys
 from pathlib import Path
@@ -42,6 +41,7 @@ def load(workflow: Path, cache: Path, sets=()) -> tuple[dict, dict]:
     """``(rows, trainings)``: (scene, method, object) -> the done evaluate entry's metrics.json,
     and scene -> its done training's facts, for the tasks ``workflow`` has now."""
     from pipeline import entries, load_workflow
+    from reports.collect import DESCRIPTORS, read_artifact_json
     from stages.registry import load_registry
 
     wf = load_workflow(workflow, load_registry(), list(sets))
@@ -50,13 +50,12 @@ def load(workflow: Path, cache: Path, sets=()) -> tuple[dict, dict]:
         if rec.state != "done":
             continue
         if rec.stage == "evaluate":
-            m = json.loads((rec.output("metrics") / "metrics.json").read_text()) \
-                if rec.output("metrics").is_dir() else json.loads(rec.output("metrics").read_text())
+            m = read_artifact_json(rec.output("metrics"), DESCRIPTORS["metrics"], rec.task.id)
             v = rec.item.values  # (not the row's names: a shared dataset entry names its twin's scene)
             if {"scene", "method", "object"} <= set(v):
                 rows[(v["scene"], v["method"], v["object"])] = m
         elif rec.stage == "train":
-            t = json.loads((rec.output("scene") / "train.json").read_text())
+            t = read_artifact_json(rec.output("scene"), DESCRIPTORS["scene"], rec.task.id)
             man = rec.manifest
             trainings[rec.item.id] = {
                 "recipe": (t.get("config") or {}).get("recipe") or "3dgs",
