@@ -239,7 +239,7 @@ class TrainConfig:
     # while it holds that value (cobgs.configs.key_without_later), so earlier entries stay valid.
     recipe: str = field(default="3dgs", metadata={"before": "3dgs", "help": (
         '"3dgs": the paper\'s schedule as written; "fast": RECIPES["fast"] for the fields left '
-        "unset (iterations, resolution_schedule, gaussian_budget_per_pixel)")})
+        "unset (iterations, resolution_schedule, the budget's fields)")})
     # DashGaussian-style resolution schedule: render at 1/d of the image size, d chosen so that
     # the share of the images' spectral energy below the rendered Nyquist grows linearly from
     # what 1/resolution_max_downscale holds to all of it at resolution_full_at x iterations.
@@ -249,13 +249,21 @@ class TrainConfig:
     resolution_full_at: float = field(default=0.5, metadata={"before": 0.5})
     # Taming-3DGS-style budget: densification follows a count that grows linearly from the
     # initial points to the budget at budget_full_at of the densification window, densifying
-    # the Gaussians of highest score (the averaged view-space gradient) instead of those above
-    # the gradient threshold; the budget is never exceeded. Absolute (wins where set), or per
-    # pixel of a training image (0 and 0: no budget).
+    # the Gaussians of highest score (the averaged view-space gradient) first; the budget is
+    # never exceeded. Absolute (wins where set), else the larger of a per-pixel budget (of one
+    # training image) and a multiple of the SfM points (Taming's "multiplier" mode; a random
+    # initialisation has no SfM points and adds nothing). 0 everywhere: no budget.
     gaussian_budget: int = field(default=0, metadata={"before": 0})
     gaussian_budget_per_pixel: Optional[float] = field(default=None, metadata={"before": 0.0, "help": (
         "unset: the recipe's (3dgs: 0 = no budget, fast: 0.3)")})
+    gaussian_budget_per_sfm_point: Optional[float] = field(default=None, metadata={"before": 0.0, "help": (
+        "unset: the recipe's (3dgs: 0, fast: 36)")})
     budget_full_at: float = field(default=0.7, metadata={"before": 0.7})
+    # The budget as a ceiling rather than a target: only Gaussians over 3DGS's gradient threshold
+    # are candidates (highest first, as many as the line allows), so a budget the scene does not
+    # need leaves 3DGS's own densification as it is. Off: Taming's rule (the line is reached).
+    budget_threshold_gate: Optional[bool] = field(default=None, metadata={"before": False, "help": (
+        "unset: the recipe's (3dgs: false, fast: true)")})
     # Adam steps only the Gaussians the view touches (radius > 0): the others keep their
     # parameters and moments, as gsplat's selective Adam.
     sparse_adam: bool = field(default=False, metadata={"before": False})
@@ -279,7 +287,8 @@ class TrainConfig:
         "random_init_points": "[1, 1e8]", "init_opacity": "(0, 1)", "background": "[0, 1]",
         "log_interval_its": "[1, 1e7]", "checkpoint_interval_its": "[0, 1e7]",
         "resolution_max_downscale": "[1, 64]", "resolution_full_at": "(0, 1]", "gaussian_budget": "[0, 1e9]",
-        "gaussian_budget_per_pixel": "[0, 100]", "budget_full_at": "(0, 1]",
+        "gaussian_budget_per_pixel": "[0, 100]", "gaussian_budget_per_sfm_point": "[0, 10000]",
+        "budget_full_at": "(0, 1]",
     }
     CHOICES: ClassVar[dict] = {"backend": ("native", "reference"), "recipe": tuple(RECIPES_NAMES)}
 
@@ -289,12 +298,16 @@ class TrainConfig:
             if getattr(self, name) is None:
                 object.__setattr__(self, name, value)
 
-    def budget_for(self, width: int, height: int) -> int:
-        """The Gaussian budget for training images of ``width`` x ``height`` (0: none):
-        ``gaussian_budget`` where set, else ``gaussian_budget_per_pixel`` x the pixels."""
+    def budget_for(self, width: int, height: int, sfm_points: int = 0) -> int:
+        """The Gaussian budget for training images of ``width`` x ``height`` and a model
+        initialised from ``sfm_points`` SfM points (0: a random initialisation), 0 for none:
+        ``gaussian_budget`` where set, else the larger of ``gaussian_budget_per_pixel`` x the
+        pixels and ``gaussian_budget_per_sfm_point`` x the SfM points."""
         if self.gaussian_budget:
             return int(self.gaussian_budget)
-        return int(round(self.gaussian_budget_per_pixel * width * height))
+        per_pixel = int(round(self.gaussian_budget_per_pixel * width * height))
+        per_point = int(round(self.gaussian_budget_per_sfm_point * max(0, int(sfm_points))))
+        return max(per_pixel, per_point)
 
     def schedule(self) -> "Schedule":
         """Iteration-valued fields after scaling to ``iterations`` (see module docstring)."""
@@ -317,8 +330,10 @@ class TrainConfig:
 #: (docs/method.md §1, "Recipes"; measured in docs/benchmarks/cost_cpu.md). A value the caller
 #: sets, whatever it is, stays.
 RECIPES = {
-    "3dgs": {"iterations": 30_000, "resolution_schedule": False, "gaussian_budget_per_pixel": 0.0},
-    "fast": {"iterations": 12_000, "resolution_schedule": True, "gaussian_budget_per_pixel": 0.3},
+    "3dgs": {"iterations": 30_000, "resolution_schedule": False, "gaussian_budget_per_pixel": 0.0,
+             "gaussian_budget_per_sfm_point": 0.0, "budget_threshold_gate": False},
+    "fast": {"iterations": 12_000, "resolution_schedule": True, "gaussian_budget_per_pixel": 0.3,
+             "gaussian_budget_per_sfm_point": 36.0, "budget_threshold_gate": True},
 }
 FAST_RECIPE = RECIPES["fast"]
 

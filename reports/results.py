@@ -409,8 +409,16 @@ def _recipe_note(t: dict) -> list[str]:
     parts = [f"{t.get('iterations') or cfg.get('iterations')} iterations"]
     if cfg.get("resolution_schedule"):
         parts.append("resolution schedule")
-    if cfg.get("gaussian_budget") or cfg.get("gaussian_budget_per_pixel"):
-        parts.append(f"Gaussian budget {cfg.get('gaussian_budget') or str(cfg.get('gaussian_budget_per_pixel')) + ' per pixel'}")
+    if cfg.get("gaussian_budget") or cfg.get("gaussian_budget_per_pixel") or cfg.get("gaussian_budget_per_sfm_point"):
+        rule = [f"{cfg[k]}{unit}" for k, unit in (("gaussian_budget_per_pixel", " per pixel"),
+                                                  ("gaussian_budget_per_sfm_point", " per SfM point")) if cfg.get(k)]
+        count = cfg.get("gaussian_budget") or t.get("gaussian_budget")
+        text = f"Gaussian budget {count:,}" if isinstance(count, int) else "Gaussian budget"
+        if rule and not cfg.get("gaussian_budget"):
+            text += f" ({' or '.join(rule)}, the larger)" if len(rule) > 1 else f" ({rule[0]})"
+        if cfg.get("budget_threshold_gate"):
+            text += " as a ceiling"
+        parts.append(text)
     if cfg.get("sparse_adam"):
         parts.append("visible-only Adam")
     if cfg.get("fast_kernels"):

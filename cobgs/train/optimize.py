@@ -194,6 +194,8 @@ class Trainer:
             )
         # The device of the scene's images (cobgs.render.image moves each camera to the model's).
         self.device = scene.train[0].image.device
+        # the SfM points the model starts from (the budget may scale with them); none for a given model
+        sfm = len(scene.points) if model is None and scene.points is not None else 0
         model = model if model is not None else initial_model(scene, config, init_rng)
         self.model = model.to(self.device) if model.device != self.device else model
         self.optimizer = self._make_optimizer()
@@ -202,8 +204,8 @@ class Trainer:
         self._reset_stats()
         cam0 = scene.train[0].camera
         #: the Gaussian budget (0: none; TrainConfig.budget_for)
-        self.budget = config.budget_for(int(cam0.width), int(cam0.height))
         self._n_init = len(self.model)
+        self.budget = config.budget_for(int(cam0.width), int(cam0.height), sfm)
         self._levels: Optional[list[tuple[float, float]]] = None  # (downscale, energy kept), resolution schedule
         self._targets: dict = {}  # (view index, w, h) -> the downsampled image
 
@@ -400,12 +402,15 @@ class Trainer:
     def _budget_pick(self, grads: Tensor, big: Tensor, n0: int) -> Tensor:
         """The Gaussians to densify under the budget: highest averaged gradient first, as many
         as fit below :meth:`budget_now` (a clone adds one, a split ``split_children - 1``);
-        never-seen Gaussians (no gradient) are not candidates."""
+        never-seen Gaussians (no gradient) are not candidates, nor, under
+        ``budget_threshold_gate``, those below 3DGS's gradient threshold."""
         room = self.budget_now() - n0
         pick = torch.zeros_like(big)
         if room <= 0:
             return pick
         seen = self.grad_count > 0
+        if self.config.budget_threshold_gate:
+            seen = seen & (grads >= self.config.densify_grad_threshold_ndc)
         order = torch.argsort(torch.where(seen, grads, grads.new_full((), -1.0)), descending=True)
         order = order[seen[order]]
         cost = torch.where(big[order], self.config.split_children - 1, 1).to(torch.int64)

@@ -136,6 +136,45 @@ def test_the_budget_is_never_exceeded_and_densification_follows_it(scene):
     assert per_pixel.budget_for(64, 48) == 1536 and TrainConfig(gaussian_budget=99).budget_for(64, 48) == 99
 
 
+def test_the_budget_follows_the_sfm_points_where_they_outnumber_the_pixels():
+    """The budget is the larger of the per-pixel and the per-SfM-point allowance; a random
+    initialisation has no SfM points; an absolute budget wins."""
+    fast = TrainConfig(recipe="fast")
+    assert fast.budget_for(200, 150, 1815) == 36 * 1815 > round(0.3 * 200 * 150)  # a detailed scene, small images
+    assert fast.budget_for(995, 746, 6138) == round(0.3 * 995 * 746) > 36 * 6138  # fern at 1008x756
+    assert fast.budget_for(200, 200, 0) == 12_000  # random initialisation: the pixels only
+    assert TrainConfig(recipe="fast", gaussian_budget=500).budget_for(200, 150, 1815) == 500
+    assert TrainConfig().budget_for(200, 150, 1815) == 0  # 3dgs: none
+
+
+def test_the_trainer_counts_sfm_points_and_not_a_random_box(scene):
+    pts = torch.rand(50, 3, generator=torch.Generator().manual_seed(1)) - 0.5
+    with_points = dataclasses.replace(scene, points=pts, points_rgb=torch.full((50, 3), 0.5))
+    cfg = _cfg(gaussian_budget_per_pixel=0.01, gaussian_budget_per_sfm_point=20.0)
+    assert Trainer(with_points, cfg).budget == 1000  # 20 x 50 > 0.01 x 64 x 48
+    assert Trainer(scene, cfg).budget == round(0.01 * 64 * 48)  # 200 random points are no SfM points
+
+
+def test_a_gated_budget_is_a_ceiling(scene):
+    """Under budget_threshold_gate only Gaussians over 3DGS's threshold densify: a budget the
+    run never reaches gives the plain 3DGS run bit for bit; one it reaches caps it; with no
+    Gaussian over the threshold nothing grows (Taming's ungated rule grows to the line)."""
+    plain = train(scene, _cfg(), progress=False, evaluate_test=False)
+    roomy = train(scene, _cfg(gaussian_budget=100_000, budget_threshold_gate=True), progress=False,
+                  evaluate_test=False)
+    assert len(plain.model) > 200
+    a, b = plain.model.state_dict()["tensors"], roomy.model.state_dict()["tensors"]
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    cap = (200 + len(plain.model)) // 2
+    counts = []
+    capped = train(scene, _cfg(gaussian_budget=cap, budget_threshold_gate=True), progress=False, evaluate_test=False,
+                   callback=lambda tr, info: counts.append(len(tr.model)))
+    assert max(counts) <= cap and len(capped.model) != len(plain.model)
+    none = train(scene, _cfg(gaussian_budget=400, budget_threshold_gate=True, densify_grad_threshold_ndc=1.0),
+                 progress=False, evaluate_test=False)
+    assert len(none.model) <= 200
+
+
 def test_selective_adam_leaves_unseen_gaussians_alone():
     """Rows not visible keep parameters and moments; visible rows take Adam's step (the
     same numbers as torch's Adam when every row is visible)."""
