@@ -251,12 +251,12 @@ class TrainConfig:
     # initial points to the budget at budget_full_at of the densification window, densifying
     # the Gaussians of highest score (the averaged view-space gradient) first; the budget is
     # never exceeded. Absolute (wins where set), else the larger of a per-pixel budget (of one
-    # training image) and a multiple of the SfM points (Taming's "multiplier" mode; a random
-    # initialisation has no SfM points and adds nothing). 0 everywhere: no budget.
+    # training image) and a multiple of the initial count (Taming's "multiplier" mode: the SfM
+    # points, or the random box's random_init_points). 0 everywhere: no budget.
     gaussian_budget: int = field(default=0, metadata={"before": 0})
     gaussian_budget_per_pixel: Optional[float] = field(default=None, metadata={"before": 0.0, "help": (
         "unset: the recipe's (3dgs: 0 = no budget, fast: 0.3)")})
-    gaussian_budget_per_sfm_point: Optional[float] = field(default=None, metadata={"before": 0.0, "help": (
+    gaussian_budget_multiplier: Optional[float] = field(default=None, metadata={"before": 0.0, "help": (
         "unset: the recipe's (3dgs: 0, fast: 36)")})
     budget_full_at: float = field(default=0.7, metadata={"before": 0.7})
     # The budget as a ceiling rather than a target: only Gaussians over 3DGS's gradient threshold
@@ -287,7 +287,7 @@ class TrainConfig:
         "random_init_points": "[1, 1e8]", "init_opacity": "(0, 1)", "background": "[0, 1]",
         "log_interval_its": "[1, 1e7]", "checkpoint_interval_its": "[0, 1e7]",
         "resolution_max_downscale": "[1, 64]", "resolution_full_at": "(0, 1]", "gaussian_budget": "[0, 1e9]",
-        "gaussian_budget_per_pixel": "[0, 100]", "gaussian_budget_per_sfm_point": "[0, 10000]",
+        "gaussian_budget_per_pixel": "[0, 100]", "gaussian_budget_multiplier": "[0, 10000]",
         "budget_full_at": "(0, 1]",
     }
     CHOICES: ClassVar[dict] = {"backend": ("native", "reference"), "recipe": tuple(RECIPES_NAMES)}
@@ -298,15 +298,15 @@ class TrainConfig:
             if getattr(self, name) is None:
                 object.__setattr__(self, name, value)
 
-    def budget_for(self, width: int, height: int, sfm_points: int = 0) -> int:
-        """The Gaussian budget for training images of ``width`` x ``height`` and a model
-        initialised from ``sfm_points`` SfM points (0: a random initialisation), 0 for none:
-        ``gaussian_budget`` where set, else the larger of ``gaussian_budget_per_pixel`` x the
-        pixels and ``gaussian_budget_per_sfm_point`` x the SfM points."""
+    def budget_for(self, width: int, height: int, initial: int = 0) -> int:
+        """The Gaussian budget for training images of ``width`` x ``height`` and a model that
+        starts with ``initial`` Gaussians, 0 for none: ``gaussian_budget`` where set, else the
+        larger of ``gaussian_budget_per_pixel`` x the pixels and ``gaussian_budget_multiplier``
+        x the initial count."""
         if self.gaussian_budget:
             return int(self.gaussian_budget)
         per_pixel = int(round(self.gaussian_budget_per_pixel * width * height))
-        per_point = int(round(self.gaussian_budget_per_sfm_point * max(0, int(sfm_points))))
+        per_point = int(round(self.gaussian_budget_multiplier * max(0, int(initial))))
         return max(per_pixel, per_point)
 
     def schedule(self) -> "Schedule":
@@ -331,9 +331,9 @@ class TrainConfig:
 #: sets, whatever it is, stays.
 RECIPES = {
     "3dgs": {"iterations": 30_000, "resolution_schedule": False, "gaussian_budget_per_pixel": 0.0,
-             "gaussian_budget_per_sfm_point": 0.0, "budget_threshold_gate": False},
+             "gaussian_budget_multiplier": 0.0, "budget_threshold_gate": False},
     "fast": {"iterations": 12_000, "resolution_schedule": True, "gaussian_budget_per_pixel": 0.3,
-             "gaussian_budget_per_sfm_point": 36.0, "budget_threshold_gate": True},
+             "gaussian_budget_multiplier": 36.0, "budget_threshold_gate": True},
 }
 FAST_RECIPE = RECIPES["fast"]
 

@@ -409,9 +409,9 @@ def _recipe_note(t: dict) -> list[str]:
     parts = [f"{t.get('iterations') or cfg.get('iterations')} iterations"]
     if cfg.get("resolution_schedule"):
         parts.append("resolution schedule")
-    if cfg.get("gaussian_budget") or cfg.get("gaussian_budget_per_pixel") or cfg.get("gaussian_budget_per_sfm_point"):
+    if cfg.get("gaussian_budget") or cfg.get("gaussian_budget_per_pixel") or cfg.get("gaussian_budget_multiplier"):
         rule = [f"{cfg[k]}{unit}" for k, unit in (("gaussian_budget_per_pixel", " per pixel"),
-                                                  ("gaussian_budget_per_sfm_point", " per SfM point")) if cfg.get(k)]
+                                                  ("gaussian_budget_multiplier", " x the initial points")) if cfg.get(k)]
         count = cfg.get("gaussian_budget") or t.get("gaussian_budget")
         text = f"Gaussian budget {count:,}" if isinstance(count, int) else "Gaussian budget"
         if rule and not cfg.get("gaussian_budget"):

@@ -70,8 +70,6 @@ def _run(ctx, inputs):
         write_png(ctx.out_dir / Files.RENDERS / f"{v.name}.png",
                   render_image(model, v.camera, bg, backend=cfg.backend).clamp(0, 1).cpu().numpy())
     ev = res.eval or {}
-    cam0 = scene.train[0].camera
-    budget = cfg.budget_for(int(cam0.width), int(cam0.height), len(scene.points) if scene.points is not None else 0)
     write_json(ctx.out_dir / Files.TRAIN, {
         # (the later switches left out at their earlier values: a 3dgs run writes the same bytes as before them)
         "config": key_without_later(TrainConfig, dataclasses.asdict(cfg)),
@@ -86,7 +84,7 @@ def _run(ctx, inputs):
         "history": res.history,
         "initial_points": (int(len(scene.points)) if scene.points is not None and len(scene.points)
                            else f"random box ({cfg.random_init_points})"),
-        **({"gaussian_budget": budget} if budget else {}),  # (TrainConfig.budget_for; none: left out)
+        **({"gaussian_budget": res.budget} if res.budget else {}),  # (TrainConfig.budget_for; none: left out)
     })  # timings are in the manifest (ctx.note): a recompute gives the same bytes
     ctx.log.info("trained: %d Gaussians, held-out PSNR %s dB, %.1f s (%.3f s/it)", len(model),
                  f"{ev['psnr']:.2f}" if ev else "n/a", wall, res.s_per_it)

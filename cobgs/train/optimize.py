@@ -85,6 +85,7 @@ class TrainResult:
         adam_moments: the optimizer's final Adam state per tensor
             (:func:`cobgs.train.adam_moments.export_moments`): what COB-GS's texture stages
             continue from (``refine(..., texture_moments=...)``).
+        budget: the Gaussian budget the run kept to (0: none; :meth:`TrainConfig.budget_for`).
     """
 
     model: GaussianModel
@@ -95,6 +96,7 @@ class TrainResult:
     s_per_it: float = 0.0
     peak_rss_bytes: int = 0
     adam_moments: dict = field(default_factory=dict)
+    budget: int = 0
 
 
 # Scene readers whose images are always RGBA composited on ``Scene.background``
@@ -194,8 +196,6 @@ class Trainer:
             )
         # The device of the scene's images (cobgs.render.image moves each camera to the model's).
         self.device = scene.train[0].image.device
-        # the SfM points the model starts from (the budget may scale with them); none for a given model
-        sfm = len(scene.points) if model is None and scene.points is not None else 0
         model = model if model is not None else initial_model(scene, config, init_rng)
         self.model = model.to(self.device) if model.device != self.device else model
         self.optimizer = self._make_optimizer()
@@ -205,7 +205,7 @@ class Trainer:
         cam0 = scene.train[0].camera
         #: the Gaussian budget (0: none; TrainConfig.budget_for)
         self._n_init = len(self.model)
-        self.budget = config.budget_for(int(cam0.width), int(cam0.height), sfm)
+        self.budget = config.budget_for(int(cam0.width), int(cam0.height), self._n_init)
         self._levels: Optional[list[tuple[float, float]]] = None  # (downscale, energy kept), resolution schedule
         self._targets: dict = {}  # (view index, w, h) -> the downsampled image
 
@@ -637,4 +637,5 @@ def train(
         s_per_it=wall / max(done, 1),
         peak_rss_bytes=peak_rss_bytes(),
         adam_moments=export_moments(trainer.optimizer),
+        budget=trainer.budget,
     )

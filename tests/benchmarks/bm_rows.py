@@ -5,7 +5,7 @@ which want whole scenes, are not drawn yet.
 Run (not collected by pytest)::
 
     .venv/bin/python tests/benchmarks/bm_rows.py --cache runs/cache \\
-        [--workflow workflows/synthetic_bench.toml] \\
+        [--workflow workflows/synthetic_bench.toml] [--route "dataset masks + noise"] \\
         --rows ours,raem_paper,ngs,ngs_checked \\
         --pair ours:ngs --pair ngs_checked:ours \\
         --pair forward_coarse_fast/ours:forward_coarse/ours --train
@@ -37,9 +37,11 @@ LABELS = {"biou": "headline mBIoU", "biou_occlusion": "occlusion-aware mBIoU", "
           "iou": "mIoU"}
 
 
-def load(workflow: Path, cache: Path, sets=()) -> tuple[dict, dict]:
+def load(workflow: Path, cache: Path, sets=(), route: str = "") -> tuple[dict, dict]:
     """``(rows, trainings)``: (scene, method, object) -> the done evaluate entry's metrics.json,
-    and scene -> its done training's facts, for the tasks ``workflow`` has now."""
+    and scene -> its done training's facts, for the tasks ``workflow`` has now; with ``route``,
+    only the objects whose masks came that way (the row's ``mask_route``, as the report's
+    Masks column: "dataset masks", "dataset masks + noise", ...)."""
     from pipeline import entries, load_workflow
     from reports.collect import DESCRIPTORS, read_artifact_json
     from stages.registry import load_registry
@@ -52,7 +54,7 @@ def load(workflow: Path, cache: Path, sets=()) -> tuple[dict, dict]:
         if rec.stage == "evaluate":
             m = read_artifact_json(rec.output("metrics"), DESCRIPTORS["metrics"], rec.task.id)
             v = rec.item.values  # (not the row's names: a shared dataset entry names its twin's scene)
-            if {"scene", "method", "object"} <= set(v):
+            if {"scene", "method", "object"} <= set(v) and (not route or m["row"].get("mask_route") == route):
                 rows[(v["scene"], v["method"], v["object"])] = m
         elif rec.stage == "train":
             t = read_artifact_json(rec.output("scene"), DESCRIPTORS["scene"], rec.task.id)
@@ -90,13 +92,16 @@ def main(argv=None) -> int:
     ap.add_argument("--rows", default="", help="methods to tabulate, comma-separated (default: all)")
     ap.add_argument("--scenes", default="", help="scenes, comma-separated (default: all in the cache)")
     ap.add_argument("--pair", action="append", default=[], metavar="A:B")
+    ap.add_argument("--route", default="", help='only objects with this mask route ("dataset masks", '
+                    '"dataset masks + noise"; default: every route, which mixes them in a row\'s mean)')
     args = ap.parse_args(argv)
     bad = [spec for spec in args.pair if spec.count(":") != 1 or "" in spec.split(":")]
     if bad:
         ap.error(f"--pair takes A:B (rows, or scene/row), got {bad[0]!r}")
-    R, T = load(args.workflow, args.cache, args.set)
+    R, T = load(args.workflow, args.cache, args.set, args.route)
     if not R:
-        raise SystemExit(f"{args.cache}: no done evaluate entries of {args.workflow} with a row")
+        raise SystemExit(f"{args.cache}: no done evaluate entries of {args.workflow} with a row"
+                         + (f" and mask route {args.route!r}" if args.route else ""))
     scenes = [s for s in args.scenes.split(",") if s] or sorted({k[0] for k in R})
     rows = [r for r in args.rows.split(",") if r] or sorted({k[1] for k in R})
     if args.train:

@@ -245,10 +245,10 @@ def test_scene_notes_name_the_training_recipe():
                        "gaussian_budget_per_pixel": 0.3}, "iterations": 12000}
     assert _recipe_note(fast) == ["training recipe: fast (12000 iterations, resolution schedule, "
                                   "Gaussian budget (0.3 per pixel))"]  # an entry from before the count was written
-    fast["config"].update(gaussian_budget_per_sfm_point=36.0, budget_threshold_gate=True)
+    fast["config"].update(gaussian_budget_multiplier=36.0, budget_threshold_gate=True)
     fast["gaussian_budget"] = 65340
     assert _recipe_note(fast) == ["training recipe: fast (12000 iterations, resolution schedule, Gaussian budget "
-                                  "65,340 (0.3 per pixel or 36.0 per SfM point, the larger) as a ceiling)"]
+                                  "65,340 (0.3 per pixel or 36.0 x the initial points, the larger) as a ceiling)"]
     assert _recipe_note({"config": {"recipe": "3dgs"}, "imported": {"iteration": 7000}}) == []
     assert _recipe_note({}) == []
 

@@ -136,23 +136,28 @@ def test_the_budget_is_never_exceeded_and_densification_follows_it(scene):
     assert per_pixel.budget_for(64, 48) == 1536 and TrainConfig(gaussian_budget=99).budget_for(64, 48) == 99
 
 
-def test_the_budget_follows_the_sfm_points_where_they_outnumber_the_pixels():
-    """The budget is the larger of the per-pixel and the per-SfM-point allowance; a random
-    initialisation has no SfM points; an absolute budget wins."""
+def test_the_budget_follows_the_initial_count_where_it_outweighs_the_pixels():
+    """The budget is the larger of the per-pixel allowance and the multiplier x the initial
+    count; an absolute budget wins; 3dgs has none."""
     fast = TrainConfig(recipe="fast")
     assert fast.budget_for(200, 150, 1815) == 36 * 1815 > round(0.3 * 200 * 150)  # a detailed scene, small images
     assert fast.budget_for(995, 746, 6138) == round(0.3 * 995 * 746) > 36 * 6138  # fern at 1008x756
-    assert fast.budget_for(200, 200, 0) == 12_000  # random initialisation: the pixels only
+    assert fast.budget_for(200, 200, 0) == 12_000
     assert TrainConfig(recipe="fast", gaussian_budget=500).budget_for(200, 150, 1815) == 500
     assert TrainConfig().budget_for(200, 150, 1815) == 0  # 3dgs: none
 
 
-def test_the_trainer_counts_sfm_points_and_not_a_random_box(scene):
+def test_the_trainer_counts_its_initial_gaussians(scene):
+    """SfM points or the random box's points: the count the model starts from; train() reports
+    the budget it kept to."""
     pts = torch.rand(50, 3, generator=torch.Generator().manual_seed(1)) - 0.5
     with_points = dataclasses.replace(scene, points=pts, points_rgb=torch.full((50, 3), 0.5))
-    cfg = _cfg(gaussian_budget_per_pixel=0.01, gaussian_budget_per_sfm_point=20.0)
+    cfg = _cfg(gaussian_budget_per_pixel=0.01, gaussian_budget_multiplier=20.0)
     assert Trainer(with_points, cfg).budget == 1000  # 20 x 50 > 0.01 x 64 x 48
-    assert Trainer(scene, cfg).budget == round(0.01 * 64 * 48)  # 200 random points are no SfM points
+    assert Trainer(scene, cfg).budget == 4000  # 20 x the 200 random points
+    assert Trainer(scene, _cfg(gaussian_budget_per_pixel=2.0, gaussian_budget_multiplier=1.0)).budget == 6144
+    res = train(scene, dataclasses.replace(cfg, iterations=2), progress=False, evaluate_test=False)
+    assert res.budget == 4000 and train(scene, _cfg(iterations=2), progress=False, evaluate_test=False).budget == 0
 
 
 def test_a_gated_budget_is_a_ceiling(scene):
