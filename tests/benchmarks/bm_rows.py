@@ -9,6 +9,8 @@ Run (not collected by pytest)::
         --rows ours,raem_paper,ngs,ngs_checked \\
         --pair ours:ngs --pair ngs_checked:ours \\
         --pair forward_coarse_fast/ours:forward_coarse/ours --train
+    .venv/bin/python tests/benchmarks/bm_rows.py --cache runs/cache --workflow workflows/demo.toml \\
+        --baseline-set train.recipe=3dgs --train --pair demo/cobgs:demo@baseline/cobgs
 
 The entries read are the workflow's current ones (``pipeline.entries``: the keys its tasks have
 now), so an entry that a changed upstream made stale (a scene retrained on another SfM) is not
@@ -21,6 +23,8 @@ released mBIoU, mIoU), then each ``--pair A:B``: mean(A − B) with the report's
 views (``cobgs.evaluate.protocols.bootstrap_mean_diff``, objects weighted equally), on the views
 and objects both have. ``A`` / ``B`` are rows (methods) of one scene, or ``scene/row`` to pair
 across scenes (a scene trained with another recipe: the same views and GT masks).
+``--baseline-set`` reads the same workflow a second time under other ``--set`` values (its scenes
+named ``<scene>@baseline``), to pair a workflow against itself with one param changed.
 """
 
 from __future__ import annotations
@@ -92,6 +96,9 @@ def main(argv=None) -> int:
     ap.add_argument("--rows", default="", help="methods to tabulate, comma-separated (default: all)")
     ap.add_argument("--scenes", default="", help="scenes, comma-separated (default: all in the cache)")
     ap.add_argument("--pair", action="append", default=[], metavar="A:B")
+    ap.add_argument("--baseline-set", action="append", default=[], metavar="K=V",
+                    help="also read the workflow's entries under these --set values, as scene "
+                         "'<scene>@baseline' (pair with --pair demo/cobgs:demo@baseline/cobgs)")
     ap.add_argument("--route", default="", help='only objects with this mask route ("dataset masks", '
                     '"dataset masks + noise"; default: every route, which mixes them in a row\'s mean)')
     args = ap.parse_args(argv)
@@ -99,6 +106,10 @@ def main(argv=None) -> int:
     if bad:
         ap.error(f"--pair takes A:B (rows, or scene/row), got {bad[0]!r}")
     R, T = load(args.workflow, args.cache, args.set, args.route)
+    if args.baseline_set:
+        RB, TB = load(args.workflow, args.cache, args.baseline_set, args.route)
+        R.update({(f"{s}@baseline", m, o): v for (s, m, o), v in RB.items()})
+        T.update({f"{s}@baseline": v for s, v in TB.items()})
     if not R:
         raise SystemExit(f"{args.cache}: no done evaluate entries of {args.workflow} with a row"
                          + (f" and mask route {args.route!r}" if args.route else ""))
