@@ -498,8 +498,9 @@ def test_object_render_check_drops_what_falls_outside_the_object_alone():
 
 
 def test_refine_applies_the_object_check_only_when_asked():
-    """object_check = "visible" (the default) may only shrink the released foreground; "off"
-    is the authors' segmentation; the no-split row forces it off."""
+    """The default object_check ("per_use") may only shrink the released foreground for the
+    object alone and keeps the released one for the scene; "off" is the authors'
+    segmentation; the no-split row forces it off."""
     import dataclasses
 
     from cobgs.refine.peers import nosplit_config
@@ -514,7 +515,8 @@ def test_refine_applies_the_object_check_only_when_asked():
     assert on.config["object_check_dropped"] == int((off.foreground & ~on.foreground).sum())
     assert off.config["object_check_dropped"] == 0
     assert nosplit_config(cfg).object_check == "off"
-    assert on.foreground_in_scene is None and off.foreground_in_scene is None
+    assert RefineConfig().object_check == "per_use"
+    assert torch.equal(on.foreground_in_scene, off.foreground) and off.foreground_in_scene is None
 
 
 def test_per_use_gives_the_checked_set_alone_and_the_labels_verdict_in_the_scene(monkeypatch):

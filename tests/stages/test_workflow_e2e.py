@@ -201,18 +201,22 @@ only = "scene=tiny_b/method=cobgs"
 
 
 def test_per_use_keeps_the_object_in_the_scene_as_the_labels_say(tiny):
-    """refine.cobgs.object_check = "per_use" (docs/method.md §7): the refine entry keeps the
-    object-within-the-scene set (the labels' verdict, a superset of the checked foreground) and
-    the segment stage renders pred_visible from it; the nosplit row's keys are untouched."""
+    """refine.cobgs.object_check = "per_use" (docs/method.md §7; the default): the refine entry
+    keeps the object-within-the-scene set (the labels' verdict, a superset of the checked
+    foreground) and the segment stage renders pred_visible from it; "visible" (the check for both
+    uses) is another entry, and the nosplit row's keys are untouched by either."""
     import numpy as np
     from PIL import Image
 
     path, cache, _, _ = tiny
-    sets = ["refine.cobgs.object_check=per_use"]
-    wf, summary, log = _run(path, cache, sets=sets)
+    wf, summary, log = _run(path, cache, sets=["refine.cobgs.object_check=per_use"])
     assert summary.exit_code == 0, log
     states = _states(summary)
-    assert states[("refine", "tiny/cobgs/ball")] == "done" and states[("refine", "tiny/nosplit/ball")] == "cached"
+    assert states[("refine", "tiny/cobgs/ball")] == "cached"  # the default's entry
+    _, summary_v, log_v = _run(path, cache, sets=["refine.cobgs.object_check=visible"])
+    assert summary_v.exit_code == 0, log_v
+    states_v = _states(summary_v)
+    assert states_v[("refine", "tiny/cobgs/ball")] == "done" and states_v[("refine", "tiny/nosplit/ball")] == "cached"
     ref = _entry(wf, cache, "refine", "tiny/cobgs/ball").output("refined")
     seg = np.load(ref / "segmentation.npz")
     fg, in_scene = seg["foreground"], seg["foreground_in_scene"]
@@ -221,7 +225,8 @@ def test_per_use_keeps_the_object_in_the_scene_as_the_labels_say(tiny):
     assert not (in_scene & (mv < 0.9 - 1e-6)).any() and not ((mv > 0.9 + 1e-6) & ~in_scene).any()
     visible = _entry(wf, cache, "segment", "tiny/cobgs/ball").output("segmentation") / "pred_visible"
     assert sorted(visible.glob("*.png"))
-    default = _entry(load_workflow(path, load_registry(), []), cache, "segment", "tiny/cobgs/ball")
+    default = _entry(load_workflow(path, load_registry(), ["refine.cobgs.object_check=visible"]), cache,
+                     "segment", "tiny/cobgs/ball")
     if not (fg != in_scene).any():  # nothing dropped on this scene: the two renders agree
         for f in sorted(visible.glob("*.png")):
             other = default.output("segmentation") / "pred_visible" / f.name
