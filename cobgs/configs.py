@@ -413,15 +413,15 @@ class RefineConfig:
         backend: rasterizer backend.
         label_name: name of the label-logit extra.
         record_scores: keep every mask stage's mean scores in the result (δ sweep).
-        object_check: "per_use" (default) or "visible" (this project's addition, not the authors'): after
-            the last stage, the foreground is rendered alone in every training view and a
-            Gaussian whose votes there fall more on the mask's background than on its object
-            (pixels where something else hides the object left out) leaves the foreground
+        object_check: "visible" (this project's addition, not the authors'): after the last
+            stage, the foreground is rendered alone in every training view and a Gaussian
+            whose votes there fall more on the mask's background than on its object (pixels
+            where something else hides the object left out) leaves the foreground
             (:mod:`cobgs.refine.consistency`); "off": the released segmentation (label > 0.9);
-            "per_use" (the default): two outputs of one refinement, each for its use (docs/method.md §7):
-            the checked foreground for the object alone (extraction, the object-only
-            protocols), the released one (label > 0.9) for the object rendered within the
-            scene (``RefineResult.foreground_in_scene``, the occlusion-aware protocol).
+            "per_use" (the default): two outputs of one refinement, each for its use
+            (docs/method.md §7): the checked foreground for the object alone (extraction, the
+            object-only protocols), the released one (label > 0.9) for the object rendered
+            within the scene (``RefineResult.foreground_in_scene``, the occlusion-aware protocol).
     """
 
     scene_type: str = "forward"

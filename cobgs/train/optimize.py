@@ -203,8 +203,8 @@ class Trainer:
         self.view_queue: list[int] = []
         self._reset_stats()
         cam0 = scene.train[0].camera
-        #: the Gaussian budget (0: none; TrainConfig.budget_for)
         self._n_init = len(self.model)
+        #: the Gaussian budget (0: none; TrainConfig.budget_for, from the pixels and the initial count)
         self.budget = config.budget_for(int(cam0.width), int(cam0.height), self._n_init)
         self._levels: Optional[list[tuple[float, float]]] = None  # (downscale, energy kept), resolution schedule
         self._targets: dict = {}  # (view index, w, h) -> the downsampled image
@@ -408,11 +408,11 @@ class Trainer:
         pick = torch.zeros_like(big)
         if room <= 0:
             return pick
-        seen = self.grad_count > 0
+        candidate = self.grad_count > 0
         if self.config.budget_threshold_gate:
-            seen = seen & (grads >= self.config.densify_grad_threshold_ndc)
-        order = torch.argsort(torch.where(seen, grads, grads.new_full((), -1.0)), descending=True)
-        order = order[seen[order]]
+            candidate &= grads >= self.config.densify_grad_threshold_ndc
+        order = torch.argsort(torch.where(candidate, grads, grads.new_full((), -1.0)), descending=True)
+        order = order[candidate[order]]
         cost = torch.where(big[order], self.config.split_children - 1, 1).to(torch.int64)
         take = order[torch.cumsum(cost, 0) <= room]
         pick[take] = True
