@@ -25,6 +25,7 @@ METRICS = ("iou", "acc", "biou", "iou_released", "biou_released", "iou_occlusion
            "num_gaussians_vanilla", "object_gaussians", "refine_s", "splits", "pruned", "dropped")
 # The params section of the refine stage each method kind reads.
 _SECTIONS = {name: m.sections for name, m in REGISTRY.items()}  # the params sections it reads
+_EXTRA_STAGES = {name: m.extra_stage for name, m in REGISTRY.items() if m.extra_stage}
 
 LogHref = Callable[[Optional[TaskRecord]], Optional[str]]
 
@@ -50,6 +51,9 @@ class MethodInfo:
     raem: Optional[str] = None  # COB-GS's RAEM variant ("released", "paper", "off")
     # (BAGS, BGTR, RAEM on, object check) of a Table 5-style row (:func:`reports.paper.cobgs_switches`)
     switches: Optional[tuple] = None
+    # a stage the method adds to COB-GS's ("NG-GS": cobgs.refine.methods.RefineMethod.extra_stage);
+    # its switches are then those of the COB-GS it runs, and it is no faithful COB-GS row
+    stage: str = ""
 
     @property
     def kind_label(self) -> str:
@@ -113,9 +117,11 @@ def method_infos(data: RunData) -> dict[str, MethodInfo]:
         if r.method not in seen:
             info.kind, info.options = r.method_kind, opts
             info.paper = paper.paper_method(r.method_kind, r.refine_params)
+            info.stage = _EXTRA_STAGES.get(r.method_kind, "")
+            base = "cobgs" if info.stage else r.method_kind  # the COB-GS a stage is added to
             info.switches = ((False, False, False, "off") if r.method_kind == "nosplit"
-                             else paper.cobgs_switches(r.method_kind, r.refine_params))
-            if r.method_kind == "cobgs":
+                             else paper.cobgs_switches(base, r.refine_params))
+            if base == "cobgs":
                 info.raem = str(((r.refine_params.get("cobgs") or {}).get("raem")
                                  or (defaults.get("cobgs") or {}).get("raem") or "released"))
         seen.setdefault(r.method, set()).add(tuple(sorted(opts)))  # the same options in any order
@@ -643,7 +649,7 @@ def faithful_twins(infos: dict, ref: Optional[str]) -> list[str]:
     if mine is None or mine.switches is None or _check(mine) == "off":
         return []
     return [m for m, i in infos.items() if m != ref and i.switches is not None and _check(i) == "off"
-            and tuple(i.switches[:3]) == tuple(mine.switches[:3]) and i.raem == mine.raem]
+            and not i.stage and tuple(i.switches[:3]) == tuple(mine.switches[:3]) and i.raem == mine.raem]
 
 
 def ablation_records(by_scene: list[dict], infos: dict) -> list[dict]:
@@ -665,9 +671,9 @@ def ablation_records(by_scene: list[dict], infos: dict) -> list[dict]:
         check = _check(info)
         row = dict(rec)
         row.update(bags="✓" if sw[0] else "", bgtr="✓" if sw[1] else "", raem=raem,
-                   check="" if check == "off" else check,
+                   check="" if check == "off" else check, stage=info.stage,
                    _sort=(order[rec["_group"]], _switch_order(sw), _RAEM_ORDER.get(raem, 3), check != "off",
-                          rec["method"]))
+                          info.stage, rec["method"]))
         row["_text"] = dict(rec.get("_text") or {})
         out.append(row)
     out.sort(key=lambda r: r["_sort"])
@@ -703,7 +709,7 @@ def psnr_records(by_scene: list[dict], infos: dict, ref: Optional[str]) -> list[
             row["_title"]["joint"] = f"{ref}, its scene before RAEM"
         for r in recs:
             info = infos.get(r["method"])
-            if _switches(info) == (True, True, True) and info.raem:
+            if _switches(info) == (True, True, True) and info.raem and not info.stage:
                 key = f"raem_{info.raem}"
                 if key not in row or r["method"] == ref:
                     row[key], row["_title"][key] = finite(r.get("psnr")), r["method"]

@@ -160,7 +160,8 @@ def result_tables(data: RunData, infos: dict, logs: R.LogHref) -> dict:
     masks_col = [Column("masks", "Masks", numeric=False)] if any(r.get("masks") for r in by_scene) else []
     t_ablation = build_table(
         "t-ablation", "Ablation (paper Table 5) per scene: the three components switched on one at a time "
-                      "(no-split = none of them); headline protocol unless named",
+                      "(no-split = none of them), and the stages other methods add to COB-GS; headline protocol "
+                      "unless named",
         [Column("scene", "Scene", numeric=False), *masks_col, Column("method", "Method", numeric=False),
          Column("bags", "BAGS", numeric=False, title="boundary-adaptive Gaussian splitting"),
          Column("bgtr", "BGTR", numeric=False, title="texture stages between the mask stages"),
@@ -170,6 +171,10 @@ def result_tables(data: RunData, infos: dict, logs: R.LogHref) -> dict:
                    title="this project's object-render check (docs/method.md §7), not the paper's: the "
                          "foreground rendered alone, what falls on the masks' background leaves it")]
            if any(r.get("check") for r in arecs) else []),
+         *([Column("stage", "Added stage", numeric=False,
+                   title="a stage another method adds to COB-GS's, on the switches to its left (NG-GS: its "
+                         "NeRF-guided boundary loss in the texture stages, docs/method.md §3)")]
+           if any(r.get("stage") for r in arecs) else []),
          Column("iou", "mIoU", fmt.pct, better="max"), Column("acc", "mAcc", fmt.pct, better="max"),
          Column("biou", "mBIoU", fmt.pct, better="max"), *_protocol_cols(arecs),
          Column("psnr_delta", "ΔPSNR", lambda v: fmt.db(v, signed=True), better="max",

@@ -27,6 +27,9 @@ class RefineMethod:
     sections: tuple[str, ...] = ()
     #: alternates COB-GS's MASK / TEXTURE stages (texture moments, the stage-length warning)
     alternates: bool = False
+    #: the name of a stage this method adds to COB-GS's (whose ``cobgs`` section it also reads),
+    #: or "": the report's Table 5 shows such a method as COB-GS's switches plus that stage
+    extra_stage: str = ""
 
     def config_of(self, params: Any, scene_type: str = "") -> Any:
         """The library config of this method from the refine stage's params (its sections)."""
@@ -113,7 +116,7 @@ class NGS(CobGS):
     """NG-GS: COB-GS's stages plus the NeRF-guided boundary loss in the TEXTURE stages
     (:mod:`cobgs.refine.ngs`)."""
 
-    name, label, sections = "ngs", "NG-GS", ("cobgs", "ngs")
+    name, label, sections, extra_stage = "ngs", "NG-GS", ("cobgs", "ngs"), "NG-GS"
 
     def config_of(self, params, scene_type=""):
         return NGSRun(_scene_typed(params.cobgs, params, scene_type), params.ngs)

@@ -372,6 +372,7 @@ def test_ablation_and_psnr_tables_and_their_markdown(recorded, report):
     assert set(psnr) == {"s1", "s2"} and psnr["s1"][-1] in ("met", "not met")
     md = (report.parent / "tables.md").read_text()
     assert "| Scene | Method | BAGS | BGTR | RAEM |" in md and "Texture quality (paper Table 4)" in md
+    assert "Added stage" not in md  # no row here adds a stage to COB-GS's (NG-GS would)
     assert f"| {by_scene[('s1', 'cobgs')][3][0]} |" in md or f"**{by_scene[('s1', 'cobgs')][3][0]}**" in md
     assert (report.parent / "data" / "ablation.csv").is_file() and (report.parent / "data" / "texture_psnr.csv").is_file()
 

@@ -193,3 +193,48 @@ def test_params_recorded_before_the_object_check_existed_read_as_off():
     assert _with_later_params({"cobgs": {"object_check": "visible"}}, defaults)["cobgs"]["object_check"] == "visible"
     # a refine stage that has no such param (another program's) is left alone
     assert "object_check" not in _with_later_params({"cobgs": {}}, {"cobgs": {}})["cobgs"]
+
+
+def test_ngs_rows_join_table_5_as_cobgs_plus_its_stage():
+    """Issue 48: NG-GS's rows sit in the Table 5 section as the switches of the COB-GS they run
+    plus an 'Added stage' column; they are peers, never the checked row's faithful twin, and
+    never Table 4's RAEM column (that is COB-GS's scene)."""
+    wf = SimpleNamespace(graph=SimpleNamespace(producer={}))
+    params = {
+        "cobgs": {"method": "cobgs", "cobgs": {"raem": "released", "object_check": "off"}},
+        "raem_paper": {"method": "cobgs", "cobgs": {"raem": "paper", "object_check": "off"}},
+        "ours": {"method": "cobgs", "cobgs": {"raem": "paper", "object_check": "visible"}},
+        "no_raem": {"method": "cobgs", "cobgs": {"raem": "off", "object_check": "off"}},
+        "ngs": {"method": "ngs", "cobgs": {"raem": "released", "object_check": "off"}, "ngs": {}},
+        "ngs_checked": {"method": "ngs", "cobgs": {"raem": "paper", "object_check": "visible"}, "ngs": {}},
+    }
+    psnr = {"cobgs": 29.5, "raem_paper": 29.8, "ours": 29.8, "no_raem": 29.9, "ngs": 28.0, "ngs_checked": 28.5}
+    results = []
+    for m, p in params.items():
+        r = _res("s", m, "a", 0.8, "dataset masks", p["method"])
+        r.refine_params = p
+        r.row.update(psnr=psnr[m], psnr_before_raem=29.95, psnr_vanilla=30.0, psnr_delta=psnr[m] - 30.0)
+        results.append(r)
+    from reports.collect import SceneRecord
+
+    data = RunData(workflow=wf, cache_dir=Path("."), tasks=[], results=results,
+                   scenes={"s": SceneRecord("s", dataset={"protocol": "exact"})}, methods=list(params))
+    infos = R.method_infos(data)
+    assert infos["ngs"].stage == "NG-GS" and infos["cobgs"].stage == ""
+    assert infos["ngs"].switches == (True, True, True, "off") and infos["ngs"].raem == "released"
+    assert infos["ngs_checked"].switches == (True, True, True, "visible") and infos["ngs_checked"].raem == "paper"
+    assert infos["ngs"].paper is None and infos["ngs"].role == "peer"
+    assert R.faithful_twins(infos, "ours") == ["raem_paper"]
+    by_scene = R.scene_method_records(data, infos, lambda t: None)
+    recs = R.ablation_records(by_scene, infos)
+    assert [(r["method"], r["raem"], r["check"], r["stage"]) for r in recs] == [
+        ("no_raem", "off", "", ""), ("cobgs", "released", "", ""), ("ngs", "released", "", "NG-GS"),
+        ("raem_paper", "paper", "", ""), ("ours", "paper", "visible", ""), ("ngs_checked", "paper", "visible", "NG-GS")]
+    table4 = R.psnr_records(by_scene, infos, "ours")[0]
+    assert table4["raem_released"] == 29.5 and table4["raem_paper"] == 29.8  # not NG-GS's 28.0 / 28.5
+
+    from reports.sections import result_tables
+    from reports.tables import to_markdown
+
+    md = to_markdown(result_tables(data, infos, lambda t: None)["ablation"])
+    assert "| Added stage |" in md and "| ngs (NG-GS · " in md and "| NG-GS |" in md
