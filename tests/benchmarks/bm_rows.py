@@ -9,6 +9,8 @@ Run (not collected by pytest)::
         --rows ours,raem_paper,ngs,ngs_checked \\
         --pair ours:ngs --pair ngs_checked:ours \\
         --pair forward_coarse_fast/ours:forward_coarse/ours --train
+    .venv/bin/python tests/benchmarks/bm_rows.py --cache runs/cache --route "dataset masks" \\
+        --versus ours_per_use --rows cobgs,ngs --best-of sa3d,flashsplat,sa3d_strict
     .venv/bin/python tests/benchmarks/bm_rows.py --cache runs/cache --workflow workflows/demo.toml \\
         --baseline-set train.recipe=3dgs --train --pair demo/cobgs:demo@baseline/cobgs
 
@@ -87,6 +89,40 @@ def pair_diff(R: dict, a: tuple[str, str], b: tuple[str, str], metric: str):
     return bootstrap_mean_diff(pairs) if pairs else None
 
 
+def _mean(R: dict, scene: str, row: str, metric: str):
+    ms = [R[k]["row"][metric] for k in R if k[:2] == (scene, row)]
+    return (100 * statistics.mean(ms), len(ms)) if ms else (None, 0)
+
+
+def versus_tables(R: dict, scenes: list, ref: str, rows: list, best_of: list) -> str:
+    """Per protocol, a Markdown table: a line per scene, ``ref``'s mean, then per row (and the
+    best of ``best_of`` by headline mean, named) its mean and ``ref`` − it with the interval."""
+    out = []
+    for metric in ("biou", "biou_occlusion"):
+        cols = rows + (["best peer"] if best_of else [])
+        out += [f"\n{LABELS[metric]} (mean over objects; {ref} − row, 95 % interval over views)\n",
+                f"| scene | {ref} | " + " | ".join(cols) + " |", "|---" * (len(cols) + 2) + "|"]
+        for s in scenes:
+            m, n = _mean(R, s, ref, metric)
+            if m is None:
+                continue
+            cells = [f"{s} ({n})", f"{m:.2f}"]
+            picks = list(rows)
+            if best_of:
+                have = [(_mean(R, s, r, "biou")[0], r) for r in best_of if _mean(R, s, r, "biou")[0] is not None]
+                picks.append(max(have)[1] if have else "")
+            for i, r in enumerate(picks):
+                v, _ = _mean(R, s, r, metric) if r else (None, 0)
+                if v is None:
+                    cells.append("")
+                    continue
+                d = pair_diff(R, (s, ref), (s, r), metric)
+                name = f"{r}: " if i >= len(rows) else ""
+                cells.append(f"{name}{v:.2f}" + (f", {d['diff']:+.2f} [{d['lo']:+.2f}, {d['hi']:+.2f}]" if d else ""))
+            out.append("| " + " | ".join(cells) + " |")
+    return "\n".join(out)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--cache", type=Path, required=True)
@@ -101,6 +137,12 @@ def main(argv=None) -> int:
                          "'<scene>@baseline' (pair with --pair demo/cobgs:demo@baseline/cobgs)")
     ap.add_argument("--route", default="", help='only objects with this mask route ("dataset masks", '
                     '"dataset masks + noise"; default: every route, which mixes them in a row\'s mean)')
+    ap.add_argument("--versus", default="", metavar="REF",
+                    help="instead of the per-scene lists: one table per protocol, a line per scene, REF's "
+                         "mean and each of --rows as its mean and REF minus it [interval]")
+    ap.add_argument("--best-of", default="", metavar="ROWS",
+                    help="with --versus: one more column, per scene the row among these with the highest "
+                         "headline mean (the best peer), named")
     args = ap.parse_args(argv)
     bad = [spec for spec in args.pair if spec.count(":") != 1 or "" in spec.split(":")]
     if bad:
@@ -115,6 +157,10 @@ def main(argv=None) -> int:
                          + (f" and mask route {args.route!r}" if args.route else ""))
     scenes = [s for s in args.scenes.split(",") if s] or sorted({k[0] for k in R})
     rows = [r for r in args.rows.split(",") if r] or sorted({k[1] for k in R})
+    if args.versus:
+        print(versus_tables(R, scenes, args.versus, [r for r in rows if r != args.versus],
+                            [r for r in args.best_of.split(",") if r]))
+        return 0
     if args.train:
         print("| scene | recipe | iterations | Gaussians | held-out PSNR | train CPU s | SfM entry |")
         print("|---|---|---|---|---|---|---|")
