@@ -50,8 +50,10 @@ def target_lines(report_dir: Path) -> list[str]:
     diffs = _csv(report_dir / "data" / "differences.csv")
     psnr = _csv(report_dir / "data" / "texture_psnr.csv")
     # COB-GS rows (Table 5-style: BAGS on) are no peers: the faithful twin of a checked
-    # default is compared in its own section (check_lines)
-    cobgs_rows = {r["method"] for r in _csv(report_dir / "data" / "ablation.csv") if r.get("bags")}
+    # default is compared in its own section (check_lines). A row that adds a stage to COB-GS
+    # (NG-GS's) is another method: a peer
+    cobgs_rows = {r["method"] for r in _csv(report_dir / "data" / "ablation.csv") if r.get("bags")
+                  and not r.get("stage")}
     lines = []
     below, checked = [], 0
     for r in diffs:
