@@ -130,7 +130,9 @@ def check_lines(report_dir: Path) -> list[str]:
     with its 95 % interval (the report's differences table is the reference's)."""
     abl = [r for r in _csv(report_dir / "data" / "ablation.csv") if not r.get("stage")]  # COB-GS's own rows
     diffs = {(r["scene"], r.get("masks") or ""): r for r in _csv(report_dir / "data" / "differences.csv")}
-    ref = next((r["method"] for r in abl if r.get("config") == "defaults"), None)
+    # (the report's reference: the COB-GS row with default options; no-split's forced switches
+    # read as defaults too, but it splits nothing)
+    ref = next((r["method"] for r in abl if r.get("config") == "defaults" and r.get("bags")), None)
     checked = [r for r in abl if r.get("check")]
     if not checked:
         return []
