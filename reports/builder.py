@@ -248,6 +248,7 @@ def _write(data: RunData, root: Path, sets: list[str], turntables: int = 0, view
     record = {"format": REPORT_FORMAT, "version": 1, "workflow": run["workflow"]["path"],
               "cache_dir": run["cache_dir"], "generated": env_info["generated"], "counts": run["counts"],
               "tasks_window": {k: run[k] for k in ("started", "finished", "wall_s", "cpu_s", "hosts")},
+              "reference": ref,  # the method data/differences.csv subtracts the others from
               "by_method": _plain(tables["raw"]["by_method"]),
               "by_scene_method": _plain(tables["raw"]["by_scene_method"]),
               "failures": failures, "plots": plots}

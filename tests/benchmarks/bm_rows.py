@@ -109,7 +109,7 @@ def versus_tables(R: dict, scenes: list, ref: str, rows: list, best_of: list) ->
             cells = [f"{s} ({n})", f"{m:.2f}"]
             picks = list(rows)
             if best_of:
-                have = [(_mean(R, s, r, "biou")[0], r) for r in best_of if _mean(R, s, r, "biou")[0] is not None]
+                have = [(h, r) for r in best_of if (h := _mean(R, s, r, "biou")[0]) is not None]
                 picks.append(max(have)[1] if have else "")
             for i, r in enumerate(picks):
                 v, _ = _mean(R, s, r, metric) if r else (None, 0)
@@ -178,10 +178,8 @@ def main(argv=None) -> int:
               + " |")
         print("|---|---|---|---|---|")
         for r in have:
-            ms = [R[k]["row"] for k in R if k[:2] == (s, r)]
-            cells = [f"{100 * statistics.mean(x[m] for x in ms):.2f}" for m in ("biou", "biou_occlusion",
-                                                                                 "biou_released", "iou")]
-            print(f"| {r} ({len(ms)}) | " + " | ".join(cells) + " |")
+            means = [_mean(R, s, r, m) for m in ("biou", "biou_occlusion", "biou_released", "iou")]
+            print(f"| {r} ({means[0][1]}) | " + " | ".join(f"{v:.2f}" for v, _ in means) + " |")
         lines = []
         for spec in args.pair:
             left, right = spec.split(":", 1)

@@ -127,13 +127,11 @@ def raem_lines(report_dir: Path) -> list[str]:
 def check_lines(report_dir: Path) -> list[str]:
     """Issue 37: the object-render check (docs/method.md §7) against its faithful twin (the
     same COB-GS row with the check off), per scene and mask route: mBIoU by each protocol,
-    and, for the report's reference (the row with default options), the headline difference
+    and, for the report's reference (``report.json``'s ``reference``), the headline difference
     with its 95 % interval (the report's differences table is the reference's)."""
     abl = [r for r in _csv(report_dir / "data" / "ablation.csv") if not r.get("stage")]  # COB-GS's own rows
     diffs = {(r["scene"], r.get("masks") or ""): r for r in _csv(report_dir / "data" / "differences.csv")}
-    # (the report's reference: the COB-GS row with default options; no-split's forced switches
-    # read as defaults too, but it splits nothing)
-    ref = next((r["method"] for r in abl if r.get("config") == "defaults" and r.get("bags")), None)
+    ref = json.loads((report_dir / "report.json").read_text(encoding="utf-8")).get("reference")
     checked = [r for r in abl if r.get("check")]
     if not checked:
         return []

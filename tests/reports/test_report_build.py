@@ -375,6 +375,8 @@ def test_ablation_and_psnr_tables_and_their_markdown(recorded, report):
     assert "Added stage" not in md  # no row here adds a stage to COB-GS's (NG-GS would)
     assert f"| {by_scene[('s1', 'cobgs')][3][0]} |" in md or f"**{by_scene[('s1', 'cobgs')][3][0]}**" in md
     assert (report.parent / "data" / "ablation.csv").is_file() and (report.parent / "data" / "texture_psnr.csv").is_file()
+    # the method data/differences.csv is taken against (bm_segmentation.py reads it there)
+    assert json.loads((report.parent / "report.json").read_text())["reference"] == "cobgs"
 
 
 def _trajectory_record(scene: str, method: str, obj: str, stages=("mask", "texture", "mask", "check")) -> dict:
