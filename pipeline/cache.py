@@ -10,17 +10,27 @@ Layout (``ROOT`` is ``--cache-dir``)::
     ROOT/locks/<stage>/<key>                   one lock file per key (see locks.py)
     ROOT/refs/<workflow id>/<stage>/<item>.json  what each workflow slot last ran (for
                                                "why would it rerun" and stale status)
+    ROOT/CACHEDIR.TAG                          written when the folder becomes a cache: the
+                                               standard cache-directory tag (backup tools skip
+                                               the folder), naming cobgs
 
 An entry is written in ``tmp/`` with its manifest last, then renamed into ``entries/``
 (one atomic rename on the same filesystem). A folder in ``entries/`` without a valid
 manifest, or whose outputs are missing or changed size, is *corrupt*: reported, moved
 away and recomputed. Nothing in ``tmp/`` is ever mistaken for a finished entry.
+
+Commands that delete (``cache gc``, ``cache verify --fix``) first make the folder prove it is
+a cache (:meth:`Cache.prove`: the tag, or for a cache an older cobgs wrote, an entry whose
+manifest names its own key), and then touch only what has the shape this module gives its
+files (:func:`entry_shape_problem`: ``<stage>/<64 hex digits>`` holding only an entry's
+files); anything else under the folder is reported and left alone.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import socket
 import time
@@ -39,6 +49,21 @@ LOG = "log.txt"
 OUT = "out"
 SCRATCH = "scratch"
 _serial = count()
+
+#: The cache-directory tag (https://bford.info/cachedir/): its first line is the standard's
+#: signature, so backup tools skip the folder; the second names cobgs, so a tag another tool
+#: wrote proves nothing.
+TAG = "CACHEDIR.TAG"
+TAG_SIGNATURE = "Signature: 8a477f597d28d172789f06886806bc55"
+TAG_TEXT = (f"{TAG_SIGNATURE}\n# This file is a cache directory tag created by cobgs: this folder is a cobgs "
+            "pipeline cache.\n# `cobgs cache gc` and `cobgs cache verify --fix` remove only the entries it "
+            "wrote here.\n# For information about cache directory tags, see https://bford.info/cachedir/\n")
+#: The names the cache gives what it writes: a key is a sha256 in hex; a stage name is a
+#: Python-like identifier (pipeline.stage.NAME_RE); an entry or failure record holds its
+#: manifest, its log, its outputs and the task's scratch folder, nothing else.
+KEY_RE = re.compile(r"^[0-9a-f]{64}$")
+STAGE_RE = re.compile(r"^[a-z][a-z0-9_]*$")
+ENTRY_FILES = frozenset({"manifest.json", "log.txt", "out", "scratch"})
 
 
 @dataclass(frozen=True)
@@ -116,13 +141,58 @@ def inside(folder: Path, rel: Any) -> bool:
     return target == base or target.startswith(base + os.sep)
 
 
+#: The manifest fields readers compute with, and what each must be where present: a JSON
+#: value of another type (``"started": 1e300``, ``"host": {}``, ``"item": null``) makes the
+#: entry corrupt, never a crash in ``status``, a summary or a report.
+_SECONDS = ("started", "finished", "wall_s", "cpu_s", "cpu_children_s", "time")
+_BYTES = ("peak_rss_bytes", "children_peak_rss_bytes", "gpu_peak_bytes")
+_TEXTS = ("host", "stage", "device", "python", "package_version", "executor", "peak_rss_scope")
+_MAX_SECONDS = 1e11  # (timestamps up to the year 5138; durations as long)
+
+
+def _number(v: Any, hi: float) -> bool:
+    import math
+
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and 0 <= v <= hi
+
+
+def fields_problem(manifest: dict) -> str:
+    """What is wrong with the types of a manifest's fields ("" when nothing)."""
+    for k in _SECONDS:
+        if k in manifest and not _number(manifest[k], _MAX_SECONDS):
+            return f"{k} is {manifest[k]!r}, not a number of seconds"
+    for k in _BYTES:
+        if manifest.get(k) is not None and not (_number(manifest[k], 2.0 ** 62) and isinstance(manifest[k], int)):
+            return f"{k} is {manifest[k]!r}, not a byte count"
+    for k in _TEXTS:
+        if manifest.get(k) is not None and not isinstance(manifest[k], str):
+            return f"{k} is {manifest[k]!r}, not a string"
+    if manifest.get("node") is not None and not isinstance(manifest["node"], str):
+        return f"node is {manifest['node']!r}, not a string"
+    if "pid" in manifest and not (isinstance(manifest["pid"], int) and not isinstance(manifest["pid"], bool)):
+        return f"pid is {manifest['pid']!r}, not a process id"
+    if "version" in manifest and not isinstance(manifest["version"], (int, str)):
+        return f"version is {manifest['version']!r}"
+    for k in ("params", "dependencies"):
+        if k in manifest and not isinstance(manifest[k], dict):
+            return f"{k} is {manifest[k]!r}, not a table"
+    if "item" in manifest:
+        item = manifest["item"]
+        if not isinstance(item, dict) or not isinstance(item.get("id"), str) \
+                or not isinstance(item.get("values", {}), dict) or not isinstance(item.get("attrs", {}), dict):
+            return f"item is {item!r}, not a table with an id"
+    if "error" in manifest and not isinstance(manifest["error"], dict):
+        return f"error is {manifest['error']!r}, not a table"
+    return ""
+
+
 def manifest_problem(manifest: Any, folder: Path) -> str:
-    """What makes an entry's manifest untrustworthy ("" when nothing): a malformed
-    ``outputs`` table, or a path (output, a file of an output folder, the log) that leaves
-    the entry folder."""
+    """What makes an entry's manifest untrustworthy ("" when nothing): fields of the wrong
+    type (:func:`fields_problem`), a malformed ``outputs`` table, or a path (output, a file
+    of an output folder, the log) that leaves the entry folder."""
     if not isinstance(manifest, dict):
         return "the manifest is not a JSON object"
-    shape = outputs_problem(manifest.get("outputs"))
+    shape = fields_problem(manifest) or outputs_problem(manifest.get("outputs"))
     if shape:
         return shape
     for name, out in manifest["outputs"].items():
@@ -138,6 +208,30 @@ def manifest_problem(manifest: Any, folder: Path) -> str:
     return ""
 
 
+def entry_shape_problem(stage: str, key: str, folder: Path) -> str:
+    """Why ``folder`` (``entries/<stage>/<key>`` or ``failed/...``) is not something the cache
+    wrote ("" when it has an entry's shape): a stage name and a key of the cache's form, a real
+    folder (no link) holding only an entry's files, and a manifest, where one is readable, that
+    names this key. Deleting commands leave anything else alone."""
+    if not STAGE_RE.match(stage):
+        return f"{stage!r} is not a stage name"
+    if not KEY_RE.match(key):
+        return f"{key!r} is not a cache key (64 hex digits)"
+    if folder.is_symlink() or not folder.is_dir():
+        return "not a folder"
+    try:
+        names = set(os.listdir(folder))
+    except OSError as exc:
+        return f"cannot list it ({exc.strerror})"
+    extra = sorted(names - ENTRY_FILES)
+    if extra:
+        return f"it holds {extra[:4]}, which no entry holds"
+    m = read_json_object(folder / MANIFEST)
+    if m is not None and "key" in m and m.get("key") != key:
+        return f"its manifest names another key ({str(m.get('key'))[:16]!r})"
+    return ""
+
+
 class Cache:
     """A cache folder; every method is safe to call from several processes and hosts."""
 
@@ -148,10 +242,59 @@ class Cache:
         try:
             for sub in ("entries", "failed", "tmp", "locks", "refs"):
                 (self.root / sub).mkdir(parents=True, exist_ok=True)
+            if not self.tagged():
+                self._write_tag()
         except OSError as exc:
             raise CacheError(f"{self.root}: cannot create the cache folder: {exc}") from None
         if not os.access(self.root, os.W_OK):
             raise CacheError(f"{self.root}: the cache folder is not writable")
+
+    # -- proof of being a cache (before anything is deleted) ---------------------------
+    def tagged(self) -> bool:
+        """Whether the folder carries the tag cobgs writes when it creates a cache."""
+        try:
+            with open(self.root / TAG, "rb") as f:
+                head = f.read(4096).decode("utf-8", "replace")
+        except OSError:
+            return False
+        return head.startswith(TAG_SIGNATURE) and "cobgs" in head
+
+    def _write_tag(self) -> None:
+        tmp = self.root / f".{TAG}.{os.getpid()}.{next(_serial)}.tmp"
+        try:
+            tmp.write_text(TAG_TEXT, encoding="utf-8")
+            os.replace(tmp, self.root / TAG)
+        finally:
+            tmp.unlink(missing_ok=True)
+
+    def prove(self) -> str:
+        """Make sure the folder is a cobgs cache before a command deletes anything in it;
+        returns how it was known ("tag", or "entry" for a cache an older cobgs wrote, which
+        is then tagged).
+
+        Raises:
+            CacheError: the folder does not exist, has no ``entries/``, or carries no tag and
+                has no entry whose manifest names its own key (a user's folder that happens to
+                hold an ``entries/`` sub-folder): naming the folder; nothing was removed.
+        """
+        if not self.root.exists():
+            raise CacheError(f"cache folder {self.root} does not exist")
+        if not (self.root / "entries").is_dir():
+            raise CacheError(f"cache folder {self.root} is not a cobgs cache (no entries/ folder)")
+        if self.tagged():
+            return "tag"
+        for stage, key, folder in self.iter_entries():
+            m = read_json_object(folder / MANIFEST)
+            if not entry_shape_problem(stage, key, folder) and m is not None and m.get("key") == key \
+                    and m.get("status") == "ok":
+                try:  # a cache an older cobgs wrote, before the tag: tagged now
+                    self._write_tag()
+                except OSError:
+                    pass
+                return "entry"
+        raise CacheError(f"{self.root} is not a cobgs cache: it has no {TAG} written by cobgs, and no folder "
+                         "under entries/ is a cache entry (entries/<stage>/<64 hex digits>/manifest.json naming "
+                         "that key); nothing was removed. Give the folder `cobgs run` wrote (--cache-dir)")
 
     # -- entries -----------------------------------------------------------------------
     def entry_dir(self, stage: str, key: str) -> Path:
@@ -232,8 +375,10 @@ class Cache:
         return EntryCheck("done", manifest)
 
     def load_failed(self, stage: str, key: str) -> Optional[dict]:
-        """The failure record of a key; None when absent or unusable (not a JSON object)."""
-        return read_json_object(self.failed_dir(stage, key) / MANIFEST)
+        """The failure record of a key; None when absent or unusable (not a JSON object, or
+        fields of the wrong type)."""
+        m = read_json_object(self.failed_dir(stage, key) / MANIFEST)
+        return m if m is not None and not fields_problem(m) else None
 
     # -- writing (callers hold the entry's lock) ---------------------------------------
     def new_tmp(self, stage: str, key: str) -> Path:
@@ -259,6 +404,7 @@ class Cache:
 
     def _move_aside(self, path: Path) -> None:
         trash = self.root / "tmp" / f"trash.{path.name}.{os.getpid()}.{next(_serial)}"
+        trash.parent.mkdir(exist_ok=True)  # (a cache whose tmp/ was deleted by hand)
         os.rename(path, trash)
         shutil.rmtree(trash, ignore_errors=True)
 

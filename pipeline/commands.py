@@ -115,7 +115,7 @@ def register(sub: Any, registry_factory: RegistryFactory, package_version: Calla
     q.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE")
     q.add_argument("--dry-run", action="store_true", help="list what would be removed")
     q.add_argument("--yes", action="store_true", help="do not ask (on a terminal, gc lists what it removes "
-                   "and asks first)")
+                   "and asks first; without a terminal, removing needs --yes)")
     q.add_argument("--cache-dir", help=cache_help)
     q.set_defaults(func=_guard("cache gc", lambda a: cmd_gc(a, registry_factory)))
     q = csub.add_parser("ls", help="list cache entries")
@@ -242,6 +242,24 @@ def _require_cache(cache_dir) -> None:
         raise PipelineError(f"cache folder {root} {why}")
 
 
+def _prove_cache(cache_dir) -> None:
+    """A deleting command's first step: the folder must prove it is a cache (pipeline.cache)."""
+    from .cache import Cache
+    from .errors import CacheError
+
+    try:
+        Cache(cache_dir).prove()
+    except CacheError as exc:
+        raise PipelineError(str(exc)) from None
+
+
+def _foreign_lines(foreign: Sequence[str], stream: TextIO) -> None:
+    for line in foreign[:10]:
+        print(f"  left alone (not written by the cache): {line}", file=stream)
+    if len(foreign) > 10:
+        print(f"  left alone: {len(foreign) - 10} more", file=stream)
+
+
 def cmd_gc(args: argparse.Namespace, registry_factory: RegistryFactory,
            stream: Optional[TextIO] = None) -> int:
     stream = stream if stream is not None else sys.stdout
@@ -249,11 +267,18 @@ def cmd_gc(args: argparse.Namespace, registry_factory: RegistryFactory,
 
     cache_dir = default_cache_dir(args.cache_dir)
     _require_cache(cache_dir)
+    _prove_cache(cache_dir)
     existing = snapshot(cache_dir)  # entries committed from now on are kept (a run beside gc)
     keep = referenced_keys(args.workflows, registry_factory(), args.sets, cache_dir)
-    if not args.dry_run and not getattr(args, "yes", False) and sys.stdin is not None and sys.stdin.isatty():
-        # on a terminal: say what goes, and ask (a mistyped workflow would empty the cache)
+    if not args.dry_run and not getattr(args, "yes", False):
+        # say what goes, and ask (a mistyped workflow would empty the cache); without a terminal to
+        # ask on, removing needs --yes
         plan = collect(cache_dir, keep, dry_run=True, existing=existing)
+        interactive = sys.stdin is not None and sys.stdin.isatty()
+        if plan.removed and not interactive:
+            raise PipelineError(f"cache gc would remove {plan.removed} entries/records ({_fmt_bytes(plan.bytes)}) "
+                                f"from {Path(cache_dir).resolve()}; with no terminal to ask on, pass --yes to remove "
+                                "them, or --dry-run to list them")
         if plan.removed:
             for line in plan.lines:
                 print(f"  would remove {line}", file=stream)
@@ -267,9 +292,12 @@ def cmd_gc(args: argparse.Namespace, registry_factory: RegistryFactory,
     verb = "would remove" if args.dry_run else "removed"
     for line in report.lines:
         print(f"  {verb} {line}", file=stream)
+    _foreign_lines(report.foreign, stream)
     print(f"cache gc: kept {report.kept} entries referenced by {len(args.workflows)} "
           f"workflow(s); {verb} {report.removed} entries/records "
-          f"({_fmt_bytes(report.bytes)}) in {Path(cache_dir).resolve()}", file=stream)
+          f"({_fmt_bytes(report.bytes)}) in {Path(cache_dir).resolve()}"
+          + (f"; left {len(report.foreign)} item(s) the cache did not write" if report.foreign else ""),
+          file=stream)
     return 0
 
 
@@ -304,13 +332,20 @@ def cmd_ls(args: argparse.Namespace, stream: Optional[TextIO] = None) -> int:
 
 def cmd_verify(args: argparse.Namespace, stream: Optional[TextIO] = None) -> int:
     stream = stream if stream is not None else sys.stdout
-    from .cache import MANIFEST, Cache, manifest_problem, read_json
+    from .cache import MANIFEST, Cache, entry_shape_problem, manifest_problem, read_json
     from .hashing import tree_hash
 
     _require_cache(default_cache_dir(args.cache_dir))
+    if args.fix:
+        _prove_cache(default_cache_dir(args.cache_dir))
     cache = Cache(default_cache_dir(args.cache_dir))
     bad = total = 0
+    foreign: list[str] = []
     for stage, key, folder in cache.iter_entries():
+        why = entry_shape_problem(stage, key, folder)
+        if why:  # not something the cache wrote: never an entry, never removed
+            foreign.append(f"entries/{stage}/{key} ({why})")
+            continue
         total += 1
         problem = ""
         try:
@@ -330,7 +365,10 @@ def cmd_verify(args: argparse.Namespace, stream: Optional[TextIO] = None) -> int
                   file=stream)
             if args.fix:
                 cache.remove_entry(stage, key)
-    print(f"cache verify: {total - bad} of {total} entries match their manifests", file=stream)
+    _foreign_lines(foreign, stream)
+    print(f"cache verify: {total - bad} of {total} entries match their manifests"
+          + (f"; {len(foreign)} item(s) under entries/ are not cache entries (left alone)" if foreign else ""),
+          file=stream)
     return 1 if bad and not args.fix else 0
 
 

@@ -1,13 +1,16 @@
-"""``cache gc``: remove what no given workflow references, never what a run is writing."""
+"""``cache gc``: remove what no given workflow references, never what a run is writing,
+and never what the cache did not write (:func:`pipeline.cache.entry_shape_problem`): the
+caller proves the folder is a cache first (:meth:`pipeline.cache.Cache.prove`)."""
 
 from __future__ import annotations
 
+import re
 import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from .cache import Cache, dir_size
+from .cache import KEY_RE, STAGE_RE, Cache, dir_size, entry_shape_problem
 from .locks import pid_alive
 
 TRASH_AGE_S = 600  # a trash folder older than this was left by a killed process
@@ -19,6 +22,15 @@ class GcReport:
     removed: int = 0
     bytes: int = 0
     lines: list[str] = field(default_factory=list)
+    #: what lies in the cache folder without the shape of something the cache wrote: left alone
+    foreign: list[str] = field(default_factory=list)
+
+
+#: ``tmp/`` names the cache gives: a task's folder ``<stage>.<key>.<host>.<pid>.<n>`` and a
+#: folder moved aside before removal ``trash.<key>.<pid>.<n>``.
+_TMP_TASK = re.compile(r"^([a-z][a-z0-9_]*)\.([0-9a-f]{64})\.[^/]+\.\d+\.\d+$")
+_TMP_TRASH = re.compile(r"^trash\.[0-9a-f]{64}\.\d+\.\d+$")
+_MEMO_TMP = re.compile(r"^\.[0-9a-f]{32}\.json\.\d+\.\d+\.tmp$")
 
 
 def snapshot(cache_dir: Path) -> set[tuple[str, str, str]]:
@@ -42,6 +54,10 @@ def collect(cache_dir: Path, keep: set[tuple[str, str]], dry_run: bool = False,
             if (stage, key) in keep:
                 report.kept += kind == "entries"
                 continue
+            why = entry_shape_problem(stage, key, folder)
+            if why:
+                report.foreign.append(f"{kind}/{stage}/{key} ({why})")
+                continue
             lock = cache.lock(stage, key)
             if not lock.acquire(blocking=False):
                 continue
@@ -61,16 +77,20 @@ def collect(cache_dir: Path, keep: set[tuple[str, str]], dry_run: bool = False,
     tmp_root = cache.root / "tmp"
     if tmp_root.is_dir():
         for folder in sorted(tmp_root.iterdir()):
-            parts = folder.name.split(".")
-            if parts[0] == "trash":
+            task = _TMP_TASK.match(folder.name)
+            if folder.is_symlink() or not folder.is_dir():
+                stale = False
+            elif _TMP_TRASH.match(folder.name):
                 stale = time.time() - folder.stat().st_mtime > TRASH_AGE_S
-            elif len(parts) >= 3:
-                lock = cache.lock(parts[0], parts[1])
+            elif task:
+                lock = cache.lock(task.group(1), task.group(2))
                 stale = lock.acquire(blocking=False)
                 if stale:
                     lock.release()
             else:
                 stale = False
+            if not stale and not (task or _TMP_TRASH.match(folder.name)):
+                report.foreign.append(f"tmp/{folder.name} (not a name the cache gives)")
             if stale:
                 size = dir_size(folder)
                 report.lines.append(f"tmp/{folder.name} ({size} bytes, left by a killed run)")
@@ -81,6 +101,8 @@ def collect(cache_dir: Path, keep: set[tuple[str, str]], dry_run: bool = False,
     memo = cache.root / "fingerprints"
     if memo.is_dir():  # a memo write killed between its temporary file and the rename
         for f in sorted(memo.glob(".*.tmp")):
+            if not _MEMO_TMP.match(f.name) or f.is_symlink() or not f.is_file():
+                continue
             parts = f.name.split(".")
             pid = int(parts[-3]) if len(parts) >= 4 and parts[-3].isdigit() else 0
             try:
@@ -97,6 +119,10 @@ def collect(cache_dir: Path, keep: set[tuple[str, str]], dry_run: bool = False,
     locks_root = cache.root / "locks"
     if locks_root.is_dir() and not dry_run:
         for path in sorted(locks_root.glob("*/*")):
+            if not (STAGE_RE.match(path.parent.name) and KEY_RE.match(path.name)) \
+                    or path.is_symlink() or not path.is_file():
+                report.foreign.append(f"locks/{path.parent.name}/{path.name} (not a lock file of the cache)")
+                continue
             lock = cache.lock(path.parent.name, path.name)
             if lock.acquire(blocking=False):
                 lock.release(unlink=True)

@@ -257,7 +257,20 @@ def agrees(a: Item, b: Item) -> bool:
 MAX_VALUE_BYTES = 100
 
 
+def invisible_chars(name: str) -> list[str]:
+    """The invisible formatting characters of ``name`` (U+202E that reverses the text after
+    it, U+FEFF, zero-width spaces, line separators ...: Unicode categories Cf, Zl, Zp), as
+    ``U+XXXX``: a folder named with them reads as another name."""
+    import unicodedata
+
+    return [f"U+{ord(c):04X}" for c in name if unicodedata.category(c) in ("Cf", "Zl", "Zp")]
+
+
 def check_value_name(name: str, axis: str, source: str) -> None:
+    if isinstance(name, str) and invisible_chars(name):
+        raise WorkflowError(f"value name {name!r} holds invisible formatting characters "
+                            f"({', '.join(invisible_chars(name)[:3])}): names become folder names, which would read "
+                            "as another name", source, f"axes.{axis}")
     if isinstance(name, str) and len(name.encode("utf-8")) > MAX_VALUE_BYTES:
         raise WorkflowError(f"value name {name[:40]!r}... is {len(name.encode('utf-8'))} bytes long; at most "
                             f"{MAX_VALUE_BYTES} (names become folder and file names)", source, f"axes.{axis}")

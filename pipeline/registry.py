@@ -10,7 +10,7 @@ paths resolve relative to the workflow file and unknown keys are errors. Fields 
 from __future__ import annotations
 
 import dataclasses
-from typing import Iterable, Mapping, Optional
+from typing import Callable, Iterable, Mapping, Optional
 
 from .errors import StageSpecError
 from .graph import Graph
@@ -24,6 +24,13 @@ class Registry:
                  axis_schemas: Optional[Mapping[str, type]] = None):
         self.stages: dict[str, Stage] = {}
         self.axis_schemas: dict[str, type] = {}
+        #: optional ``device_check(device)`` raising ``ValueError`` when this machine cannot
+        #: compute on the workflow's ``device`` (a CPU-only torch asked for ``cuda``): a local
+        #: run calls it before any task that uses the device runs (the program sets it)
+        self.device_check: Optional[Callable[[str], None]] = None
+        #: names no axis value may take (lower case): the files the program writes beside the
+        #: folders values become (the program sets it)
+        self.reserved_names: frozenset[str] = frozenset()
         for stage in stages:
             self.add(stage)
         for axis, schema in (axis_schemas or {}).items():

@@ -230,6 +230,7 @@ def run_workflow(workflow: Workflow, options: RunOptions, stream: Optional[TextI
         check_tasks(plan, sel, cache)
         return dry_run(plan, sel, cache, stream, t0)
     prechecks = check_tasks(plan, sel, cache)
+    check_device(plan, sel, cache, options)
     read_only = False
     try:
         cache.ensure()
@@ -330,6 +331,24 @@ def check_tasks(plan: Plan, sel: Selection, cache: Cache) -> dict[int, dict[str,
     return waiting
 
 
+def check_device(plan: Plan, sel: Selection, cache: Cache, options: RunOptions) -> None:
+    """A local run on a device other than the CPU: the registry's ``device_check`` before any
+    task runs, when a task this run executes computes on the device (not after hours of SfM on
+    the CPU). A Ray run's workers have their own devices: not checked here."""
+    device = plan.workflow.settings.device
+    check = getattr(plan.workflow.registry, "device_check", None)
+    if device == "cpu" or check is None or options.executor != "local":
+        return
+    states = {st.task.index: st.state for st in inspect(plan, cache, with_reasons=False)}
+    if not any(plan.tasks[i].stage.uses_device and (states.get(i) != "done" or i in sel.forced)
+               for i in sel.relevant):
+        return
+    try:
+        check(device)
+    except ValueError as exc:
+        raise WorkflowError(f"settings.device = {device!r} (--set device=...): {exc}") from None
+
+
 def run_precheck(task: Task, inputs: dict[str, Path]) -> str:
     """"" when ``task``'s precheck passes with ``inputs``, else what it refused."""
     try:
@@ -391,10 +410,19 @@ class _Scheduler:
     def _write_ref(self, task: Task, key: str, status: str, hashes: Any) -> None:
         if self.read_only:
             return
-        self.cache.write_ref(self.wf.id, task.stage.name, task.item.id, ref_record(
-            key, status, task.stage.version, task.params.key_json, hashes,
-            self.wf.settings.device, task.item.id,
-            self.wf.data_fingerprints(task.item, task.params.value, task.stage.name)))
+        try:
+            self.cache.write_ref(self.wf.id, task.stage.name, task.item.id, ref_record(
+                key, status, task.stage.version, task.params.key_json, hashes,
+                self.wf.settings.device, task.item.id,
+                self.wf.data_fingerprints(task.item, task.params.value, task.stage.name)))
+        except OSError as exc:  # the history is a convenience: a full disk stops the run, said once
+            import errno
+
+            if exc.errno != errno.ENOSPC:
+                raise
+            if not self.summary.stopped:
+                self.summary.stopped = disk_full_message(self.cache.root)
+                print(f"cobgs run: {self.summary.stopped}; no new task is started", file=sys.stderr)
 
     # -- one ready task ----------------------------------------------------------------------
     def _start(self, index: int) -> bool:

@@ -31,7 +31,7 @@ Schema (every table optional except ``[axes]`` when a stage runs per item)::
 Precedence, lowest first: stage defaults, ``[params.<stage>]``, item overrides (in axis
 order, so a method's override beats its scene's), ``--set stage.param=value``. A value may
 reference environment variables as ``${NAME}`` or ``${NAME:-default}``; an unset one fails
-the load with the key that needs it. Relative ``Path`` values resolve against the workflow
+the load with the key that needs it (``$${`` is a literal ``${``). Relative ``Path`` values resolve against the workflow
 file's folder (``--set`` values against the current directory).
 """
 
@@ -50,14 +50,16 @@ from . import params as P
 from .errors import PipelineError, WorkflowError, unknown_key_hint
 from .graph import Graph
 from .hashing import FingerprintMemo, stat_fingerprint
-from .items import VALUE_RE, Axes, Axis, Item, ItemFilter, check_value_name
+from .items import MAX_VALUE_BYTES, VALUE_RE, Axes, Axis, Item, ItemFilter, check_value_name, invisible_chars
 from .registry import Registry
 from .stage import NAME_RE, Stage
 from .values import Settings
 
 TOP_KEYS = ("workflow", "settings", "params", "axes")
 WORKFLOW_KEYS = ("name", "description", "stages", "nested")
-_ENV_RE = re.compile(r"\$\{([A-Za-z_][A-Za-z0-9_]*)(?::-([^}]*))?\}")
+#: ``${NAME}`` / ``${NAME:-default}``; ``$${`` is a literal ``${`` (a folder named so: `cobgs new`
+#: writes its paths that way).
+_ENV_RE = re.compile(r"\$\$\{|\$\{([A-Za-z_][A-Za-z0-9_]*)(?::-([^}]*))?\}")
 
 
 @dataclass(frozen=True)
@@ -258,6 +260,8 @@ def expand_env(value: Any, source: str, key: str, environ: Mapping[str, str],
 def _expand(value: Any, key: str, environ: Mapping[str, str], missing: dict) -> Any:
     if isinstance(value, str):
         def sub(match: re.Match) -> str:
+            if match.group(0) == "$${":
+                return "${"
             name, default = match.group(1), match.group(2)
             got = environ.get(name)
             if got:
@@ -391,11 +395,14 @@ def load_workflow(path: os.PathLike | str, registry: Registry, sets: Sequence[st
     for k, v in (("name", name), ("description", description)):
         if not isinstance(v, str):
             raise WorkflowError(f"expected a string, got {v!r}", source, f"workflow.{k}")
-    if not VALUE_RE.match(name):  # the default report folder is runs/reports/<name>
+    where = "workflow.name" if "name" in wf else "(the file name)"
+    if not VALUE_RE.match(name) or invisible_chars(name):  # the default report folder is runs/reports/<name>
         raise WorkflowError(f"workflow name {name!r} may not be empty, start with a space or '.', "
-                            "end with a space, or contain '/', '\\', ',', '=' or a control "
-                            "character (it names the report folder)", source,
-                            "workflow.name" if "name" in wf else "(the file name)")
+                            "end with a space, or contain '/', '\\', ',', '=', a control character or an "
+                            "invisible formatting character (it names the report folder)", source, where)
+    if len(name.encode("utf-8")) > MAX_VALUE_BYTES:
+        raise WorkflowError(f"workflow name {name[:40]!r}... is {len(name.encode('utf-8'))} bytes long; at most "
+                            f"{MAX_VALUE_BYTES} (it names the report folder: runs/reports/<name>)", source, where)
 
     settings = P.build(Settings, [P.Layer(_table(raw.get("settings", {}), source, "settings"),
                                           source, base, prefix="settings"),
@@ -421,6 +428,7 @@ def load_workflow(path: os.PathLike | str, registry: Registry, sets: Sequence[st
     nested = _table(wf.get("nested", {}), source, "workflow.nested")
     axes_raw = _table(raw.get("axes", {}), source, "axes")
     axes, item_layers, key_attrs = _load_axes(axes_raw, nested, graph, registry, source, base)
+    _check_reserved(axes_raw, registry, source)
 
     levels = {}
     for stage_name in graph.order:
@@ -558,6 +566,25 @@ def _parse_only(text: Any, slot: tuple[str, str], axes: Axes, source: str) -> It
         raise WorkflowError(f"{patterns!r} selects no item holding {axis} {value.split('/')[-1]!r}; "
                             "it would never run", source, key)
     return filt
+
+
+def _check_reserved(axes_raw: Any, registry: Registry, source: str) -> None:
+    """Axis values become folder names beside the files the program writes (an export's
+    ``<scene>/train.json``, ``summary.json``): a value named like one of those files is
+    refused here, not when the export writes a folder where the file is."""
+    reserved = getattr(registry, "reserved_names", frozenset())
+    if not reserved or not isinstance(axes_raw, dict):
+        return
+    for axis, values in axes_raw.items():
+        if not isinstance(values, dict):
+            continue
+        names = list(values)
+        if any(isinstance(v, dict) and v and all(isinstance(x, dict) for x in v.values()) for v in values.values()):
+            names += [n for v in values.values() if isinstance(v, dict) for n in v]  # (nested axes)
+        for name in names:
+            if isinstance(name, str) and name.lower() in reserved:
+                raise WorkflowError(f"value name {name!r} is the name of a file cobgs writes beside the value's "
+                                    f"folder (e.g. in an export); choose another name", source, f"axes.{axis}.{name}")
 
 
 def _load_value(axis: str, value: str, table: Any, key: str, schema: Optional[type],

@@ -207,7 +207,7 @@ def read_mask_png(path: Path, width: int, height: int):
     import numpy as np
     import torch
 
-    arr = cv2.imread(os.fspath(path), cv2.IMREAD_GRAYSCALE)
+    arr = cv2.imread(os.fspath(path), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
     if arr is None:
         raise StageInputError(f"{path}: missing or unreadable mask PNG")
     m = (arr >= 128).astype(np.float32)

@@ -126,6 +126,25 @@ class MasksParams:
             if not Path(self.models_dir).is_dir():
                 raise ValueError(f"masks.models_dir {self.models_dir} does not exist "
                                  f"(source {self.source!r} needs the ONNX model folder)")
+            _check_models(self.models_dir, self.source)
+
+
+def _check_models(models_dir: Path, source: str) -> None:
+    """The model folder's manifest.json, read and checked when the workflow loads (its files
+    named, the models the source needs present): not after hours of SfM and training."""
+    from cobgs.errors import ModelError
+    from cobgs.masks.manifest import load_manifest
+
+    try:
+        manifest = load_manifest(models_dir)
+    except ModelError as exc:
+        raise ValueError(f"masks.models_dir: {exc}") from None
+    need = {"onnx": ("sam2", "gdino"), "nvos": ("sam2",), "points": ("sam2",)}[source]
+    lacking = [n for n in need if getattr(manifest, n) is None]
+    if lacking:
+        names = {"sam2": "SAM2 (`cobgs export-onnx sam2 ...`)", "gdino": "Grounding DINO (`cobgs export-onnx gdino ...`)"}
+        raise ValueError(f"masks.models_dir {models_dir}: its manifest.json has no "
+                         f"{' and no '.join(names[n] for n in lacking)}, which masks.source {source!r} needs")
 
 
 _MODELS_HELP = ("masks.source {source!r} needs masks.models_dir, which is not set: export the models "
@@ -175,7 +194,7 @@ def _run(ctx, inputs):
         if f.is_file():
             import cv2
 
-            a = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+            a = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
             areas[v.name] = int((a >= 128).sum())
     info.update(views=len(areas), train_views=len(views), area_px=areas,
                 empty=sorted(k for k, a in areas.items() if a == 0),
@@ -369,19 +388,27 @@ def _precheck(p: "MasksParams", item, inputs) -> None:
     """Click files, before the hours of SfM and training the masks task waits for: the
     object's entry when the run is planned, its frames and their sizes once the dataset
     task has listed the scene's views (Stage.precheck)."""
+    if p.source in ("files", "noisy"):
+        _precheck_mask_folder(p, item)
     if p.source != "points" or p.points_file is None:
         return
-    from cobgs.masks.clicks import OWN, check_frame_size, match_frames, read_clicks
+    from cobgs.masks.clicks import OWN, check_frame_size, locate, match_frames, read_clicks
 
     attrs = item.attrs.get("object")
     obj = (getattr(attrs, "mask", "") if attrs is not None else "") or item["object"]
     clicks = read_clicks(p.points_file)
     entry = clicks.lookup(_click_names(item, obj))
-    if "dataset" not in inputs or entry.layout != OWN:
-        return  # (SAGA-v2: the NVOS reference view, checked when the masks task runs)
+    if "dataset" not in inputs:
+        return
+    spec = read_spec(inputs["dataset"])
+    if entry.layout != OWN:
+        if spec.protocol != "nvos":
+            raise ValueError(f"{locate(clicks, entry)}: SAGA-v2 clicks belong on an NVOS task's reference view, but "
+                             f"scene {spec['scene']!r} is not an NVOS scene (kind 'nvos'); use the per-object layout "
+                             "(docs/data_formats.md)")
+        return  # (the NVOS reference view, checked when the masks task runs)
     from cobgs.data.images import probe
 
-    spec = read_spec(inputs["dataset"])
     files = _view_files(inputs["dataset"], spec)
     held = set(spec.test_views)
     train = [(v, files.get(v, "")) for v in spec.views if v not in held]
@@ -392,6 +419,28 @@ def _precheck(p: "MasksParams", item, inputs) -> None:
         if f and entry.image_size is not None:
             w, h, _ = probe(f)
             check_frame_size(clicks, entry, fc.frame, entry.image_size, (w, h), f)
+
+
+def _precheck_mask_folder(p: "MasksParams", item) -> None:
+    """An object's mask folder (``mask_dir``, or ``files_root/<object>``), when the run is
+    planned: every file stored upright (no EXIF orientation tag, :mod:`cobgs.data.images`)."""
+    attrs = item.attrs.get("object")
+    folder = getattr(attrs, "mask_dir", None) if attrs is not None else None
+    if folder is None and p.files_root is not None:
+        try:
+            folder = object_mask_folder(Path(p.files_root), item["object"])
+        except StageInputError:
+            return  # (named when the task runs)
+    if folder is None or not Path(folder).is_dir():
+        return
+    from cobgs.data.images import check_upright
+    from cobgs.errors import DataError
+
+    try:
+        check_upright(sorted(f for f in Path(folder).iterdir() if f.is_file() and f.suffix.lower() in _MASK_SUFFIXES),
+                      "mask file")
+    except DataError as exc:
+        raise ValueError(str(exc)) from None
 
 
 def _view_files(dataset_dir: Path, spec) -> dict:

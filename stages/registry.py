@@ -63,4 +63,36 @@ def load_registry(extra: Optional[Iterable[str]] = None) -> Registry:
             registry.add(stage)
         for axis, schema in getattr(module, "AXIS_SCHEMAS", {}).items():
             registry.add_axis_schema(axis, schema)
+    registry.device_check = check_device
+    registry.reserved_names = reserved_names()
     return registry
+
+
+def reserved_names() -> frozenset[str]:
+    """Every file name of the artifact catalog (``cobgs.configs.Files``: ``train.json``,
+    ``summary.json`` ...): an axis value named so would collide with it in an export, where
+    values are folders beside those files."""
+    from cobgs.configs import Files
+
+    return frozenset(v.lower() for k, v in vars(Files).items() if k.isupper() and isinstance(v, str) and "." in v)
+
+
+def check_device(device: str) -> None:
+    """Whether this machine's torch computes on ``device`` (imports torch: only called for a
+    device other than the CPU, before a run's first task on it).
+
+    Raises:
+        ValueError: a CUDA device on a torch without CUDA, or an index past the GPUs seen.
+    """
+    import torch
+
+    if not device.startswith("cuda"):
+        return
+    if not torch.cuda.is_available():
+        why = "is built without CUDA" if torch.version.cuda is None else "sees no CUDA device"
+        raise ValueError(f"this torch ({torch.__version__}) {why}; run with --set device=cpu, or install a CUDA "
+                         "build of torch on a machine with a GPU")
+    _, _, index = device.partition(":")
+    if index and int(index) >= torch.cuda.device_count():
+        raise ValueError(f"this machine has {torch.cuda.device_count()} CUDA device(s) (cuda:0 ...); "
+                         f"there is no {device}")

@@ -84,8 +84,44 @@ def build_spec(inp: BuildInput, p: DatasetConfig) -> dict:
         d = Path(spec["images"]["dir"])
         folder = d if d.is_absolute() else inp.out_dir / d
         check_upright([folder / n for n in spec["images"]["names"]], "photo")
+    if inp.kind not in ("synthetic", "nvos", "lerf_mask") and spec.get("source"):
+        check_mask_folders(Path(spec["source"]) / "masks", spec.get("views") or [],
+                           [o.mask or o.name for o in inp.objects if not o.own_masks])
     spec["reader"] = reader
     return spec
+
+
+#: How many names a message shows.
+_SHOWN = 3
+
+
+def check_mask_folders(masks_root: Path, views: list, asked: list) -> None:
+    """The scene's own ``masks/<object>/`` folders, before SfM and training: every mask file
+    stored upright (an EXIF orientation tag would turn it for one reader and not another,
+    :mod:`cobgs.data.images`), and each folder of an object the workflow asks for holding at
+    least one mask named after a photo (``masks/<object>/<photo stem>.png``).
+
+    Raises:
+        DataError: a mask with an orientation tag (naming the file and the tag).
+        InputError: an asked object's folder where no file is named after a photo (examples of
+            both names).
+    """
+    from cobgs.data.images import check_upright
+
+    if not masks_root.is_dir():
+        return
+    stems = set(views)
+    for folder in sorted(p for p in masks_root.iterdir() if p.is_dir()):
+        files = sorted(f for f in folder.iterdir() if f.is_file() and f.suffix.lower() in _MASK_SUFFIXES)
+        check_upright(files, "mask file")
+        if folder.name in asked and files and stems and not any(f.stem in stems for f in files):
+            raise InputError(f"{folder}: no mask file is named after a photo: masks are "
+                             f"masks/{folder.name}/<photo name>.png, e.g. {sorted(stems)[0]}.png for the photo "
+                             f"{sorted(stems)[0]}; the folder holds {[f.name for f in files[:_SHOWN]]}, the photos "
+                             f"are {sorted(stems)[:_SHOWN]}")
+
+
+_MASK_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp")
 
 
 def _stems(folder: Path) -> list[str]:

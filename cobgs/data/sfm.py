@@ -340,7 +340,7 @@ def undistort_masks(sfm_root: os.PathLike | str, mask_root: os.PathLike | str,
         map_x = (src[:, 0] - 0.5).reshape(uc.height, uc.width).astype(np.float32)
         map_y = (src[:, 1] - 0.5).reshape(uc.height, uc.width).astype(np.float32)
         for obj, f in files.items():
-            m = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE)
+            m = cv2.imread(str(f), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)  # as stored (data.images)
             if m is None:
                 raise DataError("unreadable mask", f)
             if m.shape != (dc.height, dc.width):

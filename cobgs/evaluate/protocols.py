@@ -333,7 +333,7 @@ def read_rgb_u8(path: os.PathLike | str) -> np.ndarray:
     import cv2
 
     p = Path(path)
-    arr = cv2.imread(os.fspath(p), cv2.IMREAD_COLOR)
+    arr = cv2.imread(os.fspath(p), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
     if arr is None:
         raise DataError("missing or unreadable image", p)
     return np.ascontiguousarray(arr[:, :, ::-1])

@@ -49,6 +49,7 @@ def detect(folder: Path) -> dict:
     imgs, bad, sizes = _survey(_images(folder / "images"))
     objects = sorted(p.name for p in (folder / "masks").iterdir()
                      if p.is_dir() and _images(p)) if (folder / "masks").is_dir() else []
+    _check_masks(folder, objects, [p.stem for p in imgs])
     size = max(sizes, key=lambda k: len(sizes[k])) if sizes else "?"
     return {"kind": kind, "why": why, "images": len(imgs), "size": size, "objects": objects,
             "unreadable": bad, "sizes": {k: len(v) for k, v in sizes.items()}}
@@ -80,6 +81,30 @@ def _survey(paths: list[Path]) -> tuple[list[Path], dict[str, str], dict[str, li
     except DataError as exc:
         raise SystemExit(f"cobgs new: {exc}") from None
     return ok, bad, sizes
+
+
+def _check_masks(folder: Path, objects: list[str], stems: list[str]) -> None:
+    """Each ``masks/<object>/`` folder, now rather than after SfM and training: its files stored
+    upright (no EXIF orientation tag, as the photos) and at least one named after a photo.
+
+    Raises:
+        SystemExit: naming the folder, the tag, or examples of both names.
+    """
+    from cobgs.data.images import check_upright
+    from cobgs.errors import DataError
+
+    have = set(stems)
+    for obj in objects:
+        files = _images(folder / "masks" / obj)
+        try:
+            check_upright(files, "mask file")
+        except DataError as exc:
+            raise SystemExit(f"cobgs new: {exc}") from None
+        if have and not any(f.stem in have for f in files):
+            raise SystemExit(f"cobgs new: {folder / 'masks' / obj}: no mask file is named after a photo; a mask "
+                             f"is masks/{obj}/<photo name>.png (e.g. {sorted(have)[0]}.png for images/"
+                             f"{sorted(have)[0]}...), but the folder holds {[f.name for f in files[:3]]} and the "
+                             f"photos are {sorted(have)[:3]}: rename the masks after their photos")
 
 
 def _name(text: str) -> str:
@@ -212,7 +237,7 @@ def workflow_text(folder: Path, info: dict, name: str, prompts: list[str], views
     why = {"forward": "a forward-facing capture: δ 0.5, 6 mask stages",
            "360": "the camera goes around the object: δ 0.8, 4 mask stages"}
     lines += ["", f"[axes.scene.{_toml_str(scene)}]", f'kind = "{info["kind"]}"',
-              f"path = {_toml_str(os.fspath(folder))}",
+              f"path = {_toml_str(os.fspath(folder).replace('${', '$${'))}",  # (a literal ${: pipeline.workflow)
               f'# scene_type = "{other}"   # if {why[other]} (default for this kind: {st_default},',
               f"#                           {why[st_default]})", "",
               "[axes.method.cobgs]", "# peers, to compare: uncomment",
@@ -268,6 +293,11 @@ def _new(args) -> int:
     folder = Path(args.folder).resolve()
     if not folder.is_dir():
         print(f"cobgs new: {folder} is not a folder", file=sys.stderr)
+        return 2
+    if args.name is not None and _name(args.name) != args.name:
+        print(f"cobgs new: --name {args.name!r}: a workflow name holds no '/', '\\', ',', '=' or control "
+              f"characters and does not start with a dot (at most 100 bytes); e.g. {_name(args.name)!r}",
+              file=sys.stderr)
         return 2
     try:
         info = detect(folder)
@@ -325,13 +355,22 @@ def _every(text: str) -> int:
     return k
 
 
+def _prompt(text: str) -> str:
+    import argparse
+
+    if not text.strip():
+        raise argparse.ArgumentTypeError("an empty text prompt finds nothing; name the object, e.g. --prompt "
+                                         "\"a red mug\"")
+    return text
+
+
 def register(sub) -> None:
     p = sub.add_parser("new", help="write a ready workflow for a folder of your own data",
                        description="Look at FOLDER (photos in images/, or a COLMAP / LLFF / "
                        "transforms.json scene; masks/<object>/ folders) and write a workflow TOML "
                        "with the choices it made as comments. Then: cobgs run, cobgs report.")
     p.add_argument("folder", help="the data folder")
-    p.add_argument("--prompt", action="append", metavar="TEXT",
+    p.add_argument("--prompt", action="append", metavar="TEXT", type=_prompt,
                    help="segment this object by text (Grounding DINO + SAM2; repeatable) instead of "
                    "masks/<object>/ files")
     p.add_argument("--name", help="workflow name (default: the folder's name)")

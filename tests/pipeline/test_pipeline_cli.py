@@ -89,7 +89,9 @@ def test_cache_commands(toy, tmp_path):
     # ...until the workflow runs again with its own settings.
     out = cobgs("cache", "gc", wf, "--cache-dir", cache, "--dry-run", check=0).stdout
     assert "would remove 5 entries" in out and "entries/evaluate/" in out
-    out = cobgs("cache", "gc", wf, "--cache-dir", cache, check=0).stdout
+    proc = cobgs("cache", "gc", wf, "--cache-dir", cache, check=2)  # no terminal to ask on: --yes
+    assert "would remove 5 entries/records" in proc.stderr and "pass --yes" in proc.stderr, proc.stderr
+    out = cobgs("cache", "gc", wf, "--cache-dir", cache, "--yes", check=0).stdout
     assert "removed 5 entries" in out and "kept 13 entries" in out
     assert "13 entries" in cobgs("cache", "ls", "--cache-dir", cache, check=0).stdout
     # Same size, different bytes: only a re-hash can tell.
@@ -154,7 +156,7 @@ def test_wrong_shaped_cache_files_are_corrupt_entries_not_crashes(toy):
     out = cobgs("run", wf, "--cache-dir", cache, check=0).stdout
     # the entries with malformed manifests are recomputed (and what depends on them)
     assert "train     alpha          done" in out and "evaluate  alpha/full     done" in out, out
-    proc = cobgs("cache", "gc", wf, "--cache-dir", cache)
+    proc = cobgs("cache", "gc", wf, "--cache-dir", cache, "--yes")
     assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
     out = cobgs("status", wf, "--cache-dir", cache, check=0).stdout
     assert out.count(" done ") == 13

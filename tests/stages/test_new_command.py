@@ -3,6 +3,8 @@ clear refusals (loose photos, no masks and no prompt, an existing file)."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -59,8 +61,31 @@ def test_prompts_select_the_text_route(tmp_path):
     assert 'source = "onnx"' in text and 'models_dir = "${COBGS_MODELS_DIR}"' in text
     assert 'prompt = "a red mug"' in text and '[axes.object."cap"."spoon"]' in text
     (tmp_path / "models").mkdir()
+    from pipeline import WorkflowError
+
+    # issue 56 M8: a models folder without manifest.json is refused when the workflow loads
+    with pytest.raises(WorkflowError, match="no manifest.json in the model folder"):
+        _load(out, {"COBGS_MODELS_DIR": str(tmp_path / "models")})
+    _manifest(tmp_path / "models", gdino=False)
+    with pytest.raises(WorkflowError, match=r"has no Grounding DINO .* which masks.source 'onnx' needs"):
+        _load(out, {"COBGS_MODELS_DIR": str(tmp_path / "models")})
+    _manifest(tmp_path / "models")
     plan = _load(out, {"COBGS_MODELS_DIR": str(tmp_path / "models")})
     assert {t.item.id for t in plan.tasks if t.stage.name == "masks"} == {"cap/a red mug", "cap/spoon"}
+
+
+def _manifest(root: Path, gdino: bool = True) -> None:
+    """A model folder's manifest.json and (empty) files: what the load-time check reads."""
+    from cobgs.masks.manifest import gdino_manifest_dict, sam2_manifest_dict, write_manifest
+
+    entries = {"sam2": sam2_manifest_dict()}
+    if gdino:
+        entries["groundingdino"] = gdino_manifest_dict((800, 800))
+    for entry in entries.values():
+        for name in entry["files"].values():
+            (root / name).parent.mkdir(parents=True, exist_ok=True)
+            (root / name).write_bytes(b"")
+    write_manifest(root, entries)
 
 
 def test_refusals_say_what_to_do(tmp_path, capsys):

@@ -341,6 +341,119 @@ def test_report_and_export_never_delete_a_folder_they_did_not_write(tiny, tmp_pa
     assert "nothing to export" in capsys.readouterr().err and not (tmp_path / "none").exists()
 
 
+def test_legacy_shaped_markers_never_let_report_or_export_delete_user_files(tiny, tmp_path, capsys):
+    """Issue 56 H3, through the command line as reproduced: a ``{"format":"cobgs-report",
+    "workflow":"x"}`` marker made everything under data/ img/ logs/ plots/ static/ count as
+    the report's, and an old export marker's ``{"file": "demo"}`` covered a thesis.tex below
+    demo/. Both are refused without --replace, naming the fix; nothing is deleted."""
+    from stages.commands.cli import main
+
+    path, cache, _, _ = tiny
+    r = tmp_path / "r"
+    (r / "data").mkdir(parents=True)
+    (r / "data" / "mydataset.bin").write_text("x")
+    (r / "report.json").write_text('{"format":"cobgs-report","workflow":"x"}')
+    assert main(["report", str(path), "--out", str(r), "--no-viewer", "--cache-dir", str(cache)]) == 2
+    err = capsys.readouterr().err
+    assert "a report of an older cobgs" in err and "--replace" in err, err
+    assert (r / "data" / "mydataset.bin").read_text() == "x"
+    m = tmp_path / "m"
+    (m / "demo").mkdir(parents=True)
+    (m / "demo" / "thesis.tex").write_text("three years")
+    (m / "export.json").write_text(json.dumps({"workflow": str(path), "cache_dir": str(cache),
+                                               "copied": [{"file": "demo"}], "missing": []}))
+    assert main(["export", str(path), "--to", str(m), "--cache-dir", str(cache)]) == 2
+    assert "an export of an older cobgs" in capsys.readouterr().err
+    assert (m / "demo" / "thesis.tex").read_text() == "three years"
+
+
+def test_a_report_checks_its_destination_again_before_the_exchange(tiny, tmp_path):
+    """Issue 56 H4, through the command line as reproduced: ``cobgs report --out t
+    --turntables 12 &``, then ``t/thesis.tex`` created while it builds, was deleted; and a
+    concurrent ``cobgs export --to`` the same folder reported success and was then replaced.
+    Now the report stops with one line and the thesis stays; the export is refused at once,
+    naming the report's process."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    REPO = Path(__file__).resolve().parents[2]
+
+    path, cache, _, _ = tiny
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    t = tmp_path / "t"
+
+    def start():
+        return subprocess.Popen([sys.executable, "-m", "stages.commands.cli", "report", str(path), "--out", str(t),
+                                 "--turntables", "12", "--no-viewer", "--cache-dir", str(cache)], cwd=REPO, env=env,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+    def building(proc) -> None:  # until the report's temporary folder exists
+        t0 = time.time()
+        while not (tmp_path / f".t.tmp-{proc.pid}").exists():
+            assert proc.poll() is None and time.time() - t0 < 120, proc.communicate()
+            time.sleep(0.05)
+
+    proc = start()
+    building(proc)
+    t.mkdir()
+    (t / "thesis.tex").write_text("mine")
+    out, err = proc.communicate(timeout=300)
+    assert proc.returncode == 2 and "did not write" in err and "Traceback" not in err, err
+    assert [p.name for p in t.iterdir()] == ["thesis.tex"] and (t / "thesis.tex").read_text() == "mine"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["t"]
+    (t / "thesis.tex").unlink()
+    t.rmdir()
+
+    proc = start()
+    building(proc)
+    exp = subprocess.run([sys.executable, "-m", "stages.commands.cli", "export", str(path), "--to", str(t),
+                          "--cache-dir", str(cache)], cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
+    assert exp.returncode == 2 and "is being written by another cobgs process" in exp.stderr, exp.stderr
+    assert f"pid {proc.pid}" in exp.stderr
+    out, err = proc.communicate(timeout=300)
+    assert proc.returncode == 0, err
+    assert json.loads((t / "report.json").read_text())["generator"] == "cobgs report"
+
+
+def test_gc_and_verify_fix_never_delete_a_folder_that_is_no_cache(tmp_path, capsys):
+    """Issue 56 H2, through the command line as reproduced: in any folder with an entries/
+    sub-folder, ``cache gc --yes`` removed a user's entries/album/vacation2024 (and failed/...,
+    locks/... folders), and ``verify --fix`` removed such folders as "unreadable". A cache now
+    proves it is one (the tag its creation writes, or an entry naming its own key), and only
+    what has an entry's shape is ever removed."""
+    REPO = Path(__file__).resolve().parents[2]
+    from stages.commands.cli import main
+
+    demo = str(REPO / "workflows" / "demo.toml")
+    u = tmp_path / "u"
+    for sub in ("entries/album/vacation2024", "failed/album/2023", "locks/notes"):
+        (u / sub).mkdir(parents=True)
+        (u / sub / "img001.jpg").write_text("p")
+
+    def tree():
+        return sorted(p.relative_to(u).as_posix() for p in u.rglob("*"))
+
+    before = tree()
+    assert main(["cache", "gc", demo, "--cache-dir", str(u), "--yes"]) == 2
+    err = capsys.readouterr().err
+    assert "is not a cobgs cache" in err and "nothing was removed" in err, err
+    assert main(["cache", "verify", "--fix", "--cache-dir", str(u)]) == 2
+    assert "is not a cobgs cache" in capsys.readouterr().err
+    assert tree() == before
+    # a real cache that also holds such a folder: the folder is named and left alone
+    from pipeline.cache import Cache
+
+    Cache(u).ensure()  # what `cobgs run --cache-dir u` does first: the tag
+    assert main(["cache", "gc", demo, "--cache-dir", str(u), "--yes"]) == 0
+    out = capsys.readouterr().out
+    assert "left alone (not written by the cache): entries/album/vacation2024" in out, out
+    assert main(["cache", "verify", "--fix", "--cache-dir", str(u)]) == 0  # (and no tmp/: M15)
+    assert "entries/album/vacation2024" in capsys.readouterr().out
+    assert set(before) <= set(tree())
+
+
 def _help(argv) -> str:
     import contextlib
 
