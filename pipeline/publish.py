@@ -196,7 +196,9 @@ def publish_folder(dest: Path, write: Callable[[Path], None], marker: str, what:
         dest.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise DestinationError(f"{what} destination {dest}: cannot create {dest.parent}: {exc.strerror}") from None
-    inside = is_mount_point(dest)  # (its parent may not be writable: a USB drive's root)
+    # a mount point cannot be renamed (and its parent may not be writable: a USB drive's root); the
+    # current folder (`--to .`) must stay the same folder for this process and the user's shell
+    inside = is_mount_point(dest) or _holds_cwd(dest)
     lock = EntryLock(dest / _INSIDE_LOCK if inside else dest.parent / f".{dest.name}.publish-lock")
     try:
         if not lock.acquire(blocking=False):
@@ -304,6 +306,16 @@ def is_mount_point(path: Path) -> bool:
     except OSError:
         pass
     return False
+
+
+def _holds_cwd(path: Path) -> bool:
+    """Whether the current folder is ``path`` or lies inside it."""
+    try:
+        cwd = os.path.realpath(os.getcwd())
+    except OSError:
+        return False
+    real = os.path.realpath(path)
+    return path.is_dir() and (cwd == real or cwd.startswith(real.rstrip(os.sep) + os.sep))
 
 
 def _unescape(text: str) -> str:

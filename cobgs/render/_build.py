@@ -345,6 +345,10 @@ def _build_checked(name: str, root: Path, final: Path, verbose: bool, spec: Buil
 
     so = final / f"{name}.so"
     cxx = compiler_identity()
+    chosen = os.environ.get("COBGS_CXX")
+    if chosen and shutil.which(chosen) is None:  # said now, not after a whole build
+        raise BuildError(f"COBGS_CXX={chosen}: no such compiler (not found on the PATH, or not executable); "
+                         "unset it or name a C++ compiler that links libstdc++ dynamically, e.g. g++")
     _compile(name, root, final, verbose, spec)
     used, switched = cxx, None
     if links_libstdcxx_statically(so):
@@ -370,9 +374,23 @@ def _build_checked(name: str, root: Path, final: Path, verbose: bool, spec: Buil
 
 
 def _write_probe(final: Path, record: dict) -> None:
+    """Write ``probe.json`` beside the library, with the library's size and sha256 (what a
+    later load checks before mapping it: a truncated library would kill the process with
+    SIGBUS, not raise)."""
+    so = next(iter(sorted(final.glob("*.so"))), None)
+    if so is not None:
+        record = {**record, "library": so.name, "library_bytes": so.stat().st_size, "library_sha256": _sha256(so)}
     tmp = final / f".{PROBE_FILE}.tmp"
     tmp.write_text(json.dumps(record, indent=1) + "\n", encoding="utf-8")
     os.replace(tmp, final / PROBE_FILE)
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
 
 
 def read_probe(final: Path) -> Optional[dict]:
@@ -384,31 +402,74 @@ def read_probe(final: Path) -> Optional[dict]:
     return rec if isinstance(rec, dict) else None
 
 
+def library_problem(so: Path) -> str:
+    """Why the cached library ``so`` must not be loaded into this process ("" when it may): no
+    probe.json (never checked), or a library whose size or sha256 is not the one recorded when
+    it was built and probed (truncated, replaced). Such a library is probed in a child process
+    or rebuilt, never mapped here."""
+    probe_path = so.parent / PROBE_FILE
+    if probe_path.exists() and not probe_path.is_file():
+        return f"{probe_path} is not a file"
+    rec = read_probe(so.parent)
+    if rec is None:
+        return "it has no probe.json (built before the checks, or damaged)"
+    if not isinstance(rec.get("library_sha256"), str):
+        return "its probe.json records no size and hash (written before they were kept)"
+    try:
+        size = so.stat().st_size
+    except OSError as exc:
+        return f"cannot read it ({exc.strerror})"
+    if size != rec.get("library_bytes"):
+        return f"it is {size} bytes, not the {rec.get('library_bytes')} recorded when it was built (truncated?)"
+    if _sha256(so) != rec["library_sha256"]:
+        return "its content is not what was built (its sha256 differs from probe.json's)"
+    return ""
+
+
 def ensure_library(name: str, root: Path, spec: BuildSpec, verbose: bool = False, force: bool = False) -> Path:
     """The checked library ``root/name/name.so``: built (and checked) if missing or
-    ``force``; a cached one never checked is probed once and rebuilt if it fails. Runs
-    under the build's file lock."""
+    ``force``; a cached one whose probe.json does not vouch for it (never checked, or its size
+    or hash changed) is probed once in a child process and rebuilt if it fails. A library that
+    passes needs no lock, so a read-only extension cache holding one serves it; anything else
+    runs under the build's file lock."""
+    final = root / name
+    so = final / f"{name}.so"
+    if not force and so.is_file() and not library_problem(so):
+        return so
     try:
         root.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise BuildError(f"cannot create the extension cache folder {root}: {exc} "
                          f"(set COBGS_EXT_DIR to a writable folder)") from exc
-    final = root / name
-    so = final / f"{name}.so"
-    with _file_lock(root / f"{name}.lock", verbose):
-        if force or not so.is_file():
+    try:
+        lock = _file_lock(root / f"{name}.lock", verbose)
+        lock.__enter__()
+    except OSError as exc:
+        why = library_problem(so) if so.is_file() else "it holds no build of this version"
+        raise BuildError(f"the extension cache {root} cannot be written ({exc.strerror}) and its library cannot be "
+                         f"used as it is: {why}. Set COBGS_EXT_DIR to a writable folder (or run `cobgs build` where "
+                         "this one is writable)") from None
+    try:
+        problem = "" if force or not so.is_file() else library_problem(so)
+        if force or not so.is_file() or (final / PROBE_FILE).exists() and not (final / PROBE_FILE).is_file():
             _build_checked(name, root, final, verbose, spec)
-        elif read_probe(final) is None:
+        elif problem:
             from ._toolchain import probe_library
 
-            probe = probe_library(so, spec.namespace)
-            if probe.ok:
+            probe = probe_library(so, spec.namespace)  # (in a child process: a bad library cannot kill us)
+            old = read_probe(final)
+            if probe.ok and old is not None and "library_sha256" not in (old or {}):
+                _write_probe(final, {**old, "probe": probe.to_json()})  # a checked build of before: hash kept now
+            elif probe.ok and old is None:
                 _write_probe(final, {"compiler": None, "libstdcxx": "not checked (built before the checks)",
                                      "probe": probe.to_json()})
             else:
-                print(f"cobgs: the cached native extension {so} fails the error probe ({probe.detail}); "
-                      "rebuilding it", file=sys.stderr, flush=True)
+                print(f"cobgs: the cached native extension {so} "
+                      + (f"fails the error probe ({probe.detail}; {problem})" if not probe.ok
+                         else f"cannot be used ({problem})") + "; rebuilding it", file=sys.stderr, flush=True)
                 _build_checked(name, root, final, verbose, spec)
+    finally:
+        lock.__exit__(None, None, None)
     return so
 
 

@@ -104,6 +104,11 @@ class Compiler:
             f"{self.name} ({self.version})"
 
 
+#: How long a compiler's ``--version`` may take (every process asks it, for the build key):
+#: a compiler wrapper that hangs costs each process this long, not a minute.
+VERSION_TIMEOUT_S = 10.0
+
+
 def compiler_identity(name: Optional[str] = None) -> Compiler:
     """The compiler ``name`` (default ``$CXX``, else ``c++``, as torch's build uses): its
     resolved path and the first line of ``--version`` ("" path where it is not found)."""
@@ -112,8 +117,10 @@ def compiler_identity(name: Optional[str] = None) -> Compiler:
     if found is None:
         return Compiler(name, "", "not found")
     try:
-        out = subprocess.run([found, "--version"], capture_output=True, text=True, timeout=60).stdout
+        out = subprocess.run([found, "--version"], capture_output=True, text=True, timeout=VERSION_TIMEOUT_S).stdout
         version = (out.strip().splitlines() or ["no --version output"])[0].strip()
+    except subprocess.TimeoutExpired:
+        version = f"--version did not answer within {VERSION_TIMEOUT_S:g} s"
     except (OSError, subprocess.SubprocessError) as exc:
         version = f"--version failed: {exc}"
     return Compiler(name, os.path.realpath(found), version)

@@ -53,19 +53,27 @@ def collect(timing: bool = True) -> dict:
     checks: dict = {}
     try:
         so = _build.load_extension()
-    except BuildError as exc:
-        rec["extension"] = {"error": str(exc)[:4000]}
-        checks["extension"] = {"ok": False, "detail": str(exc).splitlines()[0]}
+    except (BuildError, OSError) as exc:  # (an unwritable cache is a finding too: the record is printed)
+        text = str(exc) if isinstance(exc, BuildError) else f"{type(exc).__name__}: {exc}"
+        rec["extension"] = {"error": text[:4000]}
+        checks["extension"] = {"ok": False, "detail": text.splitlines()[0]}
         rec["checks"], rec["ok"] = checks, False
         return rec
     from pathlib import Path
 
+    from cobgs.render._toolchain import links_libstdcxx_statically
+
     built = _build.read_probe(Path(so).parent) or {}
+    # what the library's dynamic section says now, not what probe.json claims
+    static = links_libstdcxx_statically(Path(so))
     rec["extension"] = {"path": so, "build_key": _build.build_key()[:16], "cflags": _build._cflags(),
                         "ldflags": _build.LDFLAGS, "cuda_flags": _build.CUDA_FLAGS if plan.get("enabled") else None,
                         "built_with": built.get("compiler"), "switched_from": built.get("switched_from"),
-                        "libstdcxx": built.get("libstdcxx"),
+                        "libstdcxx": "static" if static else "dynamic",
                         "cuda_kernels": bool(plan.get("enabled"))}
+    checks["libstdcxx"] = {"ok": not static, "detail": "the library links libstdc++ statically: its C++ errors "
+                           "would not reach Python intact (rebuild: `cobgs build --force`)" if static else
+                           "linked dynamically"}
     from cobgs.render._ops import cuda_fast_path_on
 
     rec["extension"]["cuda_blend_path"] = "fast" if cuda_fast_path_on() else "exact"
@@ -140,14 +148,24 @@ def _text(rec: dict) -> str:
 
 
 def _doctor(args) -> int:
+    if args.json and args.json != "-":  # before minutes of checks: where the record goes must exist
+        folder = os.path.dirname(os.path.abspath(args.json))
+        if not os.path.isdir(folder) or os.path.isdir(args.json):
+            print(f"cobgs doctor: --json {args.json}: " + (f"the folder {folder} does not exist" if not os.path.isdir(
+                folder) else "is a folder; give the file to write"), file=sys.stderr)
+            return 2
     rec = collect(timing=not args.no_timing)
     if args.json == "-":
         print(json.dumps(rec, indent=1, default=str))
     else:
         print(_text(rec))
         if args.json:
-            with open(args.json, "w", encoding="utf-8") as f:
-                json.dump(rec, f, indent=1, default=str)
+            try:
+                with open(args.json, "w", encoding="utf-8") as f:
+                    json.dump(rec, f, indent=1, default=str)
+            except OSError as exc:
+                print(f"cobgs doctor: cannot write --json {args.json}: {exc.strerror}", file=sys.stderr)
+                return 2
             print(f"record: {args.json}")
     return 0 if rec["ok"] else 1
 

@@ -140,6 +140,61 @@ def test_a_cached_library_that_fails_the_probe_is_rebuilt(libs, tmp_path, capfd)
     assert _build.read_probe(root / good)["probe"]["ok"]
 
 
+def test_a_damaged_or_read_only_extension_cache_never_kills_the_process(libs, tmp_path, monkeypatch, capfd):
+    """Issue 56 M4 / M5 / M15: a truncated cached library was mapped and killed the process
+    with SIGBUS (probe.json vouched for it); a read-only cache holding a valid, probed build
+    could not be used (``[Errno 30]`` on the lock file); a probe.json that is a folder was a
+    traceback. probe.json now records the library's size and sha256: a library that matches
+    is served without the lock, anything else is probed in a child process or rebuilt, and an
+    unwritable cache that cannot serve says so in one line."""
+    import errno
+
+    root = tmp_path / "cache"
+    name = "cobgs_t_good"
+    (root / name).mkdir(parents=True)
+    so = root / name / f"{name}.so"
+    shutil.copy(libs["good"], so)
+    _build.ensure_library(name, root, _spec(tmp_path, name))  # probed in a child, size and hash recorded
+    rec = _build.read_probe(root / name)
+    assert rec["library_bytes"] == so.stat().st_size and len(rec["library_sha256"]) == 64
+    assert _build.library_problem(so) == ""
+
+    def read_only(path, verbose):
+        raise OSError(errno.EROFS, "Read-only file system", str(path))
+
+    monkeypatch.setattr(_build, "_file_lock", read_only)
+    assert _build.ensure_library(name, root, _spec(tmp_path, name)) == so  # M5: served as it is
+    data = so.read_bytes()
+    so.write_bytes(data[: len(data) // 2])  # M4: truncated after the build was checked
+    assert "truncated" in _build.library_problem(so)
+    with pytest.raises(BuildError, match=r"cannot be written \(Read-only file system\) and its library cannot be "
+                                         r"used as it is: it is \d+ bytes, not the \d+ recorded"):
+        _build.ensure_library(name, root, _spec(tmp_path, name))
+    so.write_bytes(data)
+    (root / name / "probe.json").unlink()
+    (root / name / "probe.json").mkdir()  # M15: a folder where the record should be
+    with pytest.raises(BuildError, match="probe.json is not a file"):
+        _build.ensure_library(name, root, _spec(tmp_path, name))
+    monkeypatch.undo()
+    shutil.rmtree(root / name / "probe.json")
+    _build._write_probe(root / name, {"probe": {"ok": True}})  # a record of the whole library ...
+    so.write_bytes(data[: len(data) // 2])  # ... which is then cut short: rebuilt, never mapped here
+    out = _build.ensure_library(name, root, _spec(tmp_path, name))
+    err = capfd.readouterr().err
+    assert "truncated?" in err and "rebuilding it" in err and _build.library_problem(out) == ""
+    assert probe_library(out, name).ok
+
+
+def test_cobgs_cxx_that_does_not_exist_is_said_before_the_build(tmp_path, monkeypatch):
+    """Issue 56 (low): ``COBGS_CXX=/nonexistent`` was reported as "no other compiler found"
+    after a whole build."""
+    monkeypatch.setenv("COBGS_CXX", "/nonexistent/g++")
+    t0 = __import__("time").perf_counter()
+    with pytest.raises(BuildError, match=r"COBGS_CXX=/nonexistent/g\+\+: no such compiler"):
+        _build.ensure_library("cobgs_t_nocxx", tmp_path / "cache", _spec(tmp_path, "cobgs_t_nocxx"))
+    assert __import__("time").perf_counter() - t0 < 5 and not list((tmp_path / "cache").rglob("*.so"))
+
+
 def test_the_compiler_enters_the_build_key(monkeypatch, tmp_path):
     real = _build.build_key()
     fake = _static_wrapper(tmp_path / "bin")

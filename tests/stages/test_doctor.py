@@ -49,3 +49,29 @@ def test_doctor_exits_non_zero_when_a_check_fails(monkeypatch, capsys):
     assert main(["doctor", "--no-timing"]) == 1
     out = capsys.readouterr().out
     assert "render cpu  FAILED" in out and "result      FAILED: render_cpu" in out
+
+
+def test_doctor_says_a_bad_json_path_first_and_prints_json_when_the_extension_is_unusable(monkeypatch, capsys,
+                                                                                          tmp_path):
+    """Issue 56 M5 / M15: ``doctor --json /nonexistent/x.json`` was a traceback after every
+    check had run; with an extension cache it could not use, ``doctor --json -`` printed no
+    JSON."""
+    import errno
+    import time
+
+    from cobgs.render import _build
+    from stages.commands.cli import main
+
+    t0 = time.perf_counter()
+    assert main(["doctor", "--json", "/nonexistent/x.json"]) == 2
+    assert "the folder /nonexistent does not exist" in capsys.readouterr().err
+    assert time.perf_counter() - t0 < 10  # before the checks
+    assert main(["doctor", "--json", str(tmp_path)]) == 2 and "is a folder" in capsys.readouterr().err
+
+    def unusable(*a, **k):
+        raise OSError(errno.EROFS, "Read-only file system", "/ro/cache/cobgs_ext.lock")
+
+    monkeypatch.setattr(_build, "load_extension", unusable)
+    assert main(["doctor", "--json", "-", "--no-timing"]) == 1
+    rec = json.loads(capsys.readouterr().out)
+    assert rec["ok"] is False and "Read-only file system" in rec["checks"]["extension"]["detail"]
