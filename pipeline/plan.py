@@ -14,7 +14,10 @@ those of its *twin* (the same item with the shared value in place of this one) a
 come from the twin's own upstream tasks is keyed as the twin (``Task.key_item``) and runs after
 it: the two have one key and one cache entry (the same SfM, the same masks), computed once,
 by the twin. Elsewhere (a training with another recipe, and everything downstream of it) the
-task is keyed as itself, so its entries are those it would have without ``shares``.
+task is keyed as itself, so its entries are those it would have without ``shares``; but where
+only the twin changed (an override added to the twin alone), the entry the twin computed for
+exactly this task's config is still served (``Task.alt_key_item``, :func:`entry_key`) rather
+than computed again.
 """
 
 from __future__ import annotations
@@ -50,6 +53,10 @@ class Task:
     #: the twin task this one is keyed as and runs after (``shares``), else None
     twin: Optional[int] = None
     key_item: Optional[Item] = None
+    #: a task of a value that shares another, not keyed as its twin (the twin's config moved
+    #: away): the twin's item, under which an entry for exactly this task's config may have been
+    #: computed while the two were the same; such an entry is served (:func:`entry_key`)
+    alt_key_item: Optional[Item] = None
 
     @property
     def id(self) -> str:
@@ -103,11 +110,14 @@ class Plan:
                     bindings.append(Binding(art, prod, sources, fan_in))
                 params = wf.params_for(name, item)
                 twin = own.get(twins[item]) if twins[item] is not None else None
+                alt = None
                 if twin is not None and not self._same_work(twin, item, params, bindings):
+                    if wf.key_attrs(twin.item, name) == wf.key_attrs(item, name):
+                        alt = twin.key_item or twin.item
                     twin = None
                 task = Task(len(self.tasks), stage, item, params, tuple(bindings),
                             twin=twin.index if twin is not None else None,
-                            key_item=twin.item if twin is not None else None)
+                            key_item=twin.item if twin is not None else None, alt_key_item=alt)
                 self.tasks.append(task)
                 ids.append(task.index)
                 own[item] = task
@@ -207,6 +217,24 @@ def task_key(task: Task, workflow: Workflow, hashes: Mapping[str, Any]) -> str:
     return sha256_text(canonical_json(key_document(task, workflow, hashes)))
 
 
+def entry_key(task: Task, workflow: Workflow, hashes: Mapping[str, Any], cache: Cache,
+              forced: bool = False) -> tuple[str, dict[str, Any], EntryCheck]:
+    """``(key, key document, check)`` of the entry a task uses: its own key, or, for a task of a
+    value that shares another whose own entry is not done, the key under the twin's item
+    (:attr:`Task.alt_key_item`) when that entry is done (computed by the twin while the two were
+    the same; a forced task always takes its own)."""
+    doc = key_document(task, workflow, hashes)
+    key = sha256_text(canonical_json(doc))
+    check = cache.check(task.stage.name, key)
+    if check.state != "done" and task.alt_key_item is not None and not forced:
+        alt_doc = {**doc, "item": task.alt_key_item.to_json()}
+        alt = sha256_text(canonical_json(alt_doc))
+        alt_check = cache.check(task.stage.name, alt)
+        if alt_check.state == "done":
+            return alt, alt_doc, alt_check
+    return key, doc, check
+
+
 # -- inspection: state of every task without running anything -------------------------
 
 @dataclass
@@ -280,8 +308,7 @@ def inspect(plan: Plan, cache: Cache, with_reasons: bool = True) -> list[TaskSta
                 st.reasons.append(f"waits on {up}{more}")
             states.append(st)
             continue
-        key = task_key(task, wf, hashes)
-        check = cache.check(task.stage.name, key)
+        key, _, check = entry_key(task, wf, hashes, cache)
         st = TaskState(task, "missing", key, check, hashes=hashes)
         if check.state == "done":
             st.state, st.manifest = "done", check.manifest

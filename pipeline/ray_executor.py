@@ -77,12 +77,14 @@ def probe_address(address: str, timeout: float = PROBE_TIMEOUT_S) -> None:
     hp = _host_port(address)
     if hp is None:
         return
+    t0 = time.monotonic()
     try:
         with socket.create_connection(hp, timeout=timeout):
             pass
     except OSError as exc:
         why = "timed out" if isinstance(exc, TimeoutError) else (exc.strerror or str(exc))
-        raise ExecutorError(f"cannot reach the Ray cluster at {address}: {why} (after {timeout:g} s); is the head "
+        took = time.monotonic() - t0
+        raise ExecutorError(f"cannot reach the Ray cluster at {address}: {why} (after {took:.1f} s); is the head "
                             "node up (`ray start --head`) and the address its GCS port (6379 by default) or its "
                             "client port (ray://HOST:10001)?") from None
 
@@ -135,11 +137,97 @@ def _connect(ray: Any, address: Optional[str]) -> None:
         signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
+#: The reaper of a local Ray instance (a separate, tiny process in its own session): while the
+#: driver lives it notes, every :data:`REAP_POLL_S`, the driver's descendants (Ray's GCS, raylet,
+#: agents, workers) with their start times; when its stdin closes without "done" (the driver was
+#: killed: SIGKILL, SIGTERM, the OOM killer), it sends SIGTERM to those still alive and to what
+#: they started, then SIGKILL after :data:`REAP_GRACE_S`. Ray's own agents otherwise outlive a
+#: killed driver by a minute or two. Only the driver's own descendants are ever signalled.
+REAP_POLL_S = 1.0
+REAP_GRACE_S = 2.0
+_REAPER = r"""
+import os, select, signal, sys, time
+for s in (signal.SIGINT, signal.SIGHUP):
+    signal.signal(s, signal.SIG_IGN)
+driver, poll, grace, me = int(sys.argv[1]), float(sys.argv[2]), float(sys.argv[3]), os.getpid()
+
+def table():
+    out = {}
+    for name in os.listdir("/proc"):
+        if name.isdigit():
+            try:
+                with open(f"/proc/{name}/stat", "rb") as f:
+                    rest = f.read().rsplit(b")", 1)[1].split()
+                out[int(name)] = (int(rest[1]), rest[19])
+            except (OSError, IndexError, ValueError):
+                pass
+    return out
+
+def below(roots, t):
+    kids = {}
+    for pid, (ppid, _) in t.items():
+        kids.setdefault(ppid, []).append(pid)
+    seen, todo = set(), list(roots)
+    while todo:
+        for c in kids.get(todo.pop(), []):
+            if c not in seen and c != me:
+                seen.add(c)
+                todo.append(c)
+    return seen
+
+known = {}
+while True:
+    ready, _, _ = select.select([0], [], [], poll)
+    if ready:
+        data = os.read(0, 64)
+        if b"done" in data:
+            sys.exit(0)
+        if not data:
+            break
+    t = table()
+    for pid in below([driver], t):
+        known[pid] = t[pid][1]
+t = table()
+alive = {pid for pid, start in known.items() if t.get(pid, (0, None))[1] == start}
+targets = alive | below(alive, t)
+for sig in (signal.SIGTERM, signal.SIGKILL):
+    for pid in targets:
+        try:
+            os.kill(pid, sig)
+        except OSError:
+            pass
+    deadline = time.monotonic() + grace
+    while sig == signal.SIGTERM and time.monotonic() < deadline:
+        t = table()
+        targets = {pid for pid in targets if pid in t}
+        if not targets:
+            sys.exit(0)
+        time.sleep(0.1)
+"""
+
+
+def start_reaper(driver: int) -> Any:
+    """The reaper of :data:`_REAPER` for ``driver``'s local Ray instance (Linux: /proc); None
+    where it cannot start (then Ray's own clean-up applies)."""
+    import os
+    import subprocess
+
+    if not os.path.isdir("/proc"):
+        return None
+    try:
+        return subprocess.Popen([sys.executable, "-c", _REAPER, str(driver), str(REAP_POLL_S), str(REAP_GRACE_S)],
+                                stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                start_new_session=True, close_fds=True)
+    except OSError:
+        return None
+
+
 class RayExecutor:
     """Submits jobs as Ray tasks; starts a local Ray instance unless one is running or an
     ``address`` (``auto``, ``ray://host:10001``, ``host:6379``) is given. An address that
     nothing listens on is refused within :data:`PROBE_TIMEOUT_S`, and connecting may take at
-    most :data:`CONNECT_TIMEOUT_S`."""
+    most :data:`CONNECT_TIMEOUT_S`. The processes of a local instance this driver started end
+    within seconds of the driver, however it ends (:data:`_REAPER`)."""
 
     name = "ray"
     submitted_state = "queued"  # Ray starts it when a node has room
@@ -148,9 +236,14 @@ class RayExecutor:
         ray = import_ray()
         self._ray = ray
         self._owned = False
+        self._reaper = None
         if not ray.is_initialized():
             if address:
                 probe_address(address)
+            import os
+
+            if not address:  # a local instance: its processes are this driver's descendants
+                self._reaper = start_reaper(os.getpid())
             _connect(ray, address)
             self._owned = True
         self._remote = ray.remote(max_retries=0)(_ray_execute)
@@ -249,3 +342,11 @@ class RayExecutor:
             self.interrupt()
         if self._owned:
             self._ray.shutdown()
+        if self._reaper is not None:  # a clean end: the reaper leaves without signalling anyone
+            try:
+                self._reaper.stdin.write(b"done\n")
+                self._reaper.stdin.close()
+                self._reaper.wait(timeout=10)
+            except (OSError, ValueError, Exception):  # noqa: BLE001 - it is gone already
+                pass
+            self._reaper = None

@@ -30,8 +30,8 @@ from .errors import CacheError, ExecutorError, WorkflowError
 from .execute import Job, JobResult, warnings_note
 from .executors import ForkExecutor, InlineExecutor
 from .items import ItemFilter, Item
-from .plan import OutputTable, Plan, Task, inspect, key_document
-from .hashing import canonical_json, sha256_text
+from .plan import OutputTable, Plan, Task, entry_key, inspect
+from .hashing import canonical_json
 from .workflow import Workflow
 
 
@@ -429,10 +429,9 @@ class _Scheduler:
         """Handle a ready task; False if it must wait for a GPU slot."""
         task = self.plan.tasks[index]
         hashes = self.table.hashes(task)
-        doc = key_document(task, self.wf, hashes)  # type: ignore[arg-type]
-        key = sha256_text(canonical_json(doc))
+        key, doc, check = entry_key(task, self.wf, hashes, self.cache,  # type: ignore[arg-type]
+                                    forced=index in self.sel.forced)
         stage = task.stage.name
-        check = self.cache.check(stage, key)
         if index not in self.sel.selected:
             if check.state == "done":
                 self.table.set(index, check.manifest["outputs"],  # type: ignore[index]

@@ -648,6 +648,33 @@ def test_a_value_that_shares_reuses_the_identical_tasks_only(toy, executions):
     assert executions.count() == {"load alpha_long": 1}
 
 
+def test_an_override_of_the_twin_alone_leaves_the_sharing_values_entry_served(toy, executions):
+    """Issue 56 M7: alpha_long's load was alpha's entry; adding an override to alpha alone
+    re-keyed alpha_long's unchanged load as its own, so it reran, although the entry for
+    exactly its config was cached. Now only alpha's load runs; alpha_long's is served from
+    the entry alpha computed while the two were the same, and keeps it when alpha returns."""
+    toy.load(text=SHARING)
+    assert toy.run().exit_code == 0
+    old = states(toy)[("load", "alpha_long")]
+    changed = SHARING.replace('[axes.scene.alpha]\nkind = "synthetic"\n',
+                              '[axes.scene.alpha]\nkind = "synthetic"\nload = { size = 5 }\n')
+    assert changed != SHARING
+    toy.load(text=changed)
+    executions.reset()
+    s = toy.run()
+    assert s.exit_code == 0, s.output
+    ran = executions.count()
+    assert ran["load alpha"] == 1 and "load alpha_long" not in ran and "train alpha_long" not in ran, ran
+    recs = states(toy)
+    assert recs[("load", "alpha_long")].state == "done" and recs[("load", "alpha_long")].key == old.key
+    assert recs[("load", "alpha")].key != old.key
+    assert "cached" in s.output.split("load      alpha_long")[1].splitlines()[0], s.output
+    # forced, the sharing value's task computes its own entry (keyed as itself)
+    executions.reset()
+    toy.run(force=("load",), only=("load",), items="alpha_long")
+    assert executions.count() == {"load alpha_long": 1}
+
+
 @pytest.mark.parametrize("value, message", [
     ('"gamma"', "expected the name of another scene value, got 'gamma'"),
     ('"alpha_long"', "expected the name of another scene value, got 'alpha_long'"),
