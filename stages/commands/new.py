@@ -133,6 +133,12 @@ def _unique_names(objects: list[str]) -> dict[str, str]:
 
 
 def _toml_str(text: str) -> str:
+    """A TOML string value: :func:`_toml_key`, with ``${`` written ``$${`` (a literal ``${``
+    for the workflow reader, which expands ``${NAME}`` in values, not in keys)."""
+    return _toml_key(text.replace("${", "$${"))
+
+
+def _toml_key(text: str) -> str:
     """A TOML basic string: backslash, quote and every control character escaped."""
     out = []
     for ch in text:
@@ -236,15 +242,15 @@ def workflow_text(folder: Path, info: dict, name: str, prompts: list[str], views
     other = "forward" if st_default == "360" else "360"
     why = {"forward": "a forward-facing capture: δ 0.5, 6 mask stages",
            "360": "the camera goes around the object: δ 0.8, 4 mask stages"}
-    lines += ["", f"[axes.scene.{_toml_str(scene)}]", f'kind = "{info["kind"]}"',
-              f"path = {_toml_str(os.fspath(folder).replace('${', '$${'))}",  # (a literal ${: pipeline.workflow)
+    lines += ["", f"[axes.scene.{_toml_key(scene)}]", f'kind = "{info["kind"]}"',
+              f"path = {_toml_str(os.fspath(folder))}",
               f'# scene_type = "{other}"   # if {why[other]} (default for this kind: {st_default},',
               f"#                           {why[st_default]})", "",
               "[axes.method.cobgs]", "# peers, to compare: uncomment",
               '# [axes.method.nosplit]\n# refine = { method = "nosplit" }', ""]
     names = _unique_names(objects)
     for obj in objects:
-        lines.append(f"[axes.object.{_toml_str(scene)}.{_toml_str(names[obj])}]")
+        lines.append(f"[axes.object.{_toml_key(scene)}.{_toml_key(names[obj])}]")
         if source == "onnx":
             lines.append(f"prompt = {_toml_str(obj)}")
         elif names[obj] != obj:  # the folder's own name, which the item name could not keep

@@ -257,3 +257,21 @@ def test_clicks_that_find_nothing_say_where_they_landed_and_keep_masks_json(mode
     info = json.loads(kept.read_text())
     assert info["clicks"]["frames"][0]["points_px"] == [[62.0, 46.0]] and info["empty"]
     assert sorted(p.name for p in kept.parent.iterdir()) == ["masks.json"]  # no mask PNG kept
+
+
+def test_saga_clicks_on_a_scene_that_is_not_nvos_stop_before_sfm(models_dir, tmp_path):
+    """Issue 56 M8: SAGA-layout clicks (NVOS reference-view clicks) on a non-NVOS scene were
+    refused only when the masks task ran, after SfM and training. The dataset task says what
+    kind the scene is; the run stops right after it."""
+    scene, _ = _square_scene(tmp_path / "scene")
+    cf = tmp_path / "saga.json"
+    cf.write_text(json.dumps({"_scale": 1, "square": [[10, 10]]}))
+    path = tmp_path / "clicks.toml"
+    path.write_text(OWN.format(models=models_dir, clicks=cf, scene=scene))
+    out = io.StringIO()
+    summary = run_workflow(load_workflow(path, load_registry(), ["train.iterations=1"]),
+                           RunOptions(cache_dir=tmp_path / "c", only=("dataset", "sfm", "train", "masks")), stream=out)
+    states = {summary.plan.tasks[j].stage.name: o.state for j, o in summary.outcomes.items()}
+    assert summary.exit_code == 1 and states == {"dataset": "done"}, (states, out.getvalue())
+    assert "SAGA-v2 clicks belong on an NVOS task's reference view" in summary.stopped
+    assert "is not an NVOS scene" in summary.stopped

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import io
 import json
+import os
 from pathlib import Path
 
 import pytest
@@ -452,6 +453,58 @@ def test_gc_and_verify_fix_never_delete_a_folder_that_is_no_cache(tmp_path, caps
     assert main(["cache", "verify", "--fix", "--cache-dir", str(u)]) == 0  # (and no tmp/: M15)
     assert "entries/album/vacation2024" in capsys.readouterr().out
     assert set(before) <= set(tree())
+
+
+def test_manifests_of_the_wrong_types_are_corrupt_and_nothing_crashes(tiny, tmp_path, capsys):
+    """Issue 56 M13: manifests that are valid JSON with fields of the wrong type (``started:
+    1e300``: OverflowError; ``host: {}``: TypeError; ``item: null``) counted as done, then
+    crashed report and summary. They are corrupt now: status says so, the report builds and
+    lists them, a run recomputes them."""
+    import shutil
+
+    from stages.commands.cli import main
+
+    path, cache, wf, _ = tiny
+    mine = tmp_path / "cache"
+    shutil.copytree(cache, mine, symlinks=True)
+    edits = {("heldout", "tiny/ball"): {"started": 1e300}, ("segment", "tiny/nosplit/ball"): {"host": {}},
+             ("refine", "tiny/cobgs/ball"): {"item": None}}
+    for (stage, item), edit in edits.items():
+        rec = next(r for r in entries(wf, mine) if r.stage == stage and r.item.id == item)
+        m = json.loads((rec.entry_dir / "manifest.json").read_text())
+        m.update(edit)
+        (rec.entry_dir / "manifest.json").write_text(json.dumps(m))
+    assert main(["status", str(path), "--cache-dir", str(mine)]) == 0
+    out = capsys.readouterr().out
+    assert out.count(" corrupt ") >= 3 and "started is 1e+300, not a number of seconds" in out, out
+    assert main(["report", str(path), "--out", str(tmp_path / "r"), "--no-viewer", "--cache-dir", str(mine)]) == 0
+    assert "Traceback" not in capsys.readouterr().err
+    assert main(["cache", "verify", "--cache-dir", str(mine)]) == 1
+    assert "host is {}, not a string" in capsys.readouterr().out
+    shutil.rmtree(mine / "tmp")  # M15: verify --fix on a cache whose tmp/ was deleted by hand
+    assert main(["cache", "verify", "--fix", "--cache-dir", str(mine)]) == 0
+    assert "(removed)" in capsys.readouterr().out
+    _, summary, log = _run(path, mine)
+    assert summary.exit_code == 0, log
+
+
+def test_export_into_the_current_folder(tiny, tmp_path, monkeypatch, capsys):
+    """Issue 56 M15: `cobgs export --to .` from an empty current folder published, then raised
+    FileNotFoundError (the folder it stood in had been swapped away). The current folder stays
+    the same folder: its content is swapped inside it."""
+    from stages.commands.cli import main
+
+    path, cache, _, _ = tiny
+    here = tmp_path / "here"
+    here.mkdir()
+    monkeypatch.chdir(here)
+    ino = os.stat(".").st_ino
+    assert main(["export", str(path), "--to", ".", "--cache-dir", str(cache)]) == 0
+    assert "Traceback" not in capsys.readouterr().err
+    assert os.getcwd() == str(here) and os.stat(".").st_ino == ino and Path("export.json").is_file()
+    assert main(["export", str(path), "--to", ".", "--cache-dir", str(cache), "--no-ply"]) == 0
+    assert not list(Path(".").rglob("*.ply")) and not any(p.name.startswith(".cobgs") for p in Path(".").iterdir())
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["here"]
 
 
 def _help(argv) -> str:
