@@ -54,6 +54,25 @@ def _guard(name: str, fn: Callable[[argparse.Namespace], int]) -> Callable[..., 
     return wrapped
 
 
+def nonempty(what: str) -> Callable[[str], str]:
+    """An argparse type: the text as given, refusing an empty or blank one (``--force ""`` from
+    a script whose variable was unset would otherwise mean "nothing")."""
+    def check(text: str) -> str:
+        if not text.strip():
+            raise argparse.ArgumentTypeError(f"it is empty; leave the option out, or give {what}")
+        return text
+    check.__name__ = what  # (argparse names the type in its messages)
+    return check
+
+
+CACHE_HELP = (f"cache folder (default: ${CACHE_ENV}, else ./{DEFAULT_CACHE} in the current directory)")
+
+
+def add_cache_dir(parser: argparse.ArgumentParser) -> None:
+    """``--cache-dir``, the same on every command that reads or writes a cache."""
+    parser.add_argument("--cache-dir", type=nonempty("a folder"), metavar="DIR", help=CACHE_HELP)
+
+
 def _csv(text: Optional[str]) -> tuple[str, ...]:
     return tuple(s.strip() for s in (text or "").split(",") if s.strip())
 
@@ -61,8 +80,6 @@ def _csv(text: Optional[str]) -> tuple[str, ...]:
 def register(sub: Any, registry_factory: RegistryFactory, package_version: Callable[[], str]
              ) -> None:
     """Add ``run``, ``status``, ``cache`` and ``stages`` to an argparse sub-parser set."""
-    cache_help = (f"cache folder (default: ${CACHE_ENV}, else ./{DEFAULT_CACHE} in the "
-                  "current directory)")
     set_help = ("override: STAGE.PARAM=VALUE, device=cuda, or axes.AXIS.VALUE.KEY=VALUE "
                 "(repeatable)")
 
@@ -70,13 +87,13 @@ def register(sub: Any, registry_factory: RegistryFactory, package_version: Calla
                        description="Run a workflow. Cached tasks are reused; the rest run "
                        "in dependency order. Exit code 1 names failed or blocked tasks.")
     p.add_argument("workflow", help="workflow TOML file")
-    p.add_argument("--only", metavar="STAGES", help="run only these stages (comma list); "
+    p.add_argument("--only", metavar="STAGES", type=nonempty("stage names"), help="run only these stages (comma list); "
                    "their upstream must already be done")
-    p.add_argument("--from", dest="from_", metavar="STAGES",
+    p.add_argument("--from", dest="from_", metavar="STAGES", type=nonempty("stage names"),
                    help="recompute these stages and every stage downstream of them")
-    p.add_argument("--items", metavar="ITEMS", help="only these items: comma list of "
+    p.add_argument("--items", metavar="ITEMS", type=nonempty("item patterns"), help="only these items: comma list of "
                    "patterns like lego, scene=lego, lego/no_*")
-    p.add_argument("--force", metavar="STAGES", help="recompute these stages even if "
+    p.add_argument("--force", metavar="STAGES", type=nonempty("stage names"), help="recompute these stages even if "
                    "cached (comma list, or 'all'); the external data they read are re-hashed, so an "
                    "edit that kept a file's size and time reruns every task that reads it")
     p.add_argument("--verify-data", action="store_true",
@@ -90,7 +107,7 @@ def register(sub: Any, registry_factory: RegistryFactory, package_version: Calla
                         "in this process)")
     p.add_argument("--executor", choices=("local", "ray"), default="local")
     p.add_argument("--address", help="Ray cluster address (default: start a local instance)")
-    p.add_argument("--cache-dir", help=cache_help)
+    add_cache_dir(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no line for cached tasks")
     p.set_defaults(func=_guard("run", lambda a: cmd_run(a, registry_factory,
                                                          package_version())))
@@ -100,12 +117,12 @@ def register(sub: Any, registry_factory: RegistryFactory, package_version: Calla
     p.add_argument("workflow")
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
                    help=set_help)
-    p.add_argument("--items", metavar="ITEMS", help="only tasks of these items")
+    p.add_argument("--items", metavar="ITEMS", type=nonempty("item patterns"), help="only tasks of these items")
     p.add_argument("--logs", action="store_true", help="print the full log of each failure")
     p.add_argument("--verify-data", action="store_true",
                    help="re-hash every external input instead of trusting file sizes and times, and list "
                         "what would rerun (reads every byte of the data; writes nothing)")
-    p.add_argument("--cache-dir", help=cache_help)
+    add_cache_dir(p)
     p.set_defaults(func=_guard("status", lambda a: cmd_status(a, registry_factory)))
 
     p = sub.add_parser("cache", help="inspect and clean the cache folder")
@@ -116,16 +133,16 @@ def register(sub: Any, registry_factory: RegistryFactory, package_version: Calla
     q.add_argument("--dry-run", action="store_true", help="list what would be removed")
     q.add_argument("--yes", action="store_true", help="do not ask (on a terminal, gc lists what it removes "
                    "and asks first; without a terminal, removing needs --yes)")
-    q.add_argument("--cache-dir", help=cache_help)
+    add_cache_dir(q)
     q.set_defaults(func=_guard("cache gc", lambda a: cmd_gc(a, registry_factory)))
     q = csub.add_parser("ls", help="list cache entries")
     q.add_argument("--stage", help="only this stage")
     q.add_argument("--failed", action="store_true", help="list failure records instead")
-    q.add_argument("--cache-dir", help=cache_help)
+    add_cache_dir(q)
     q.set_defaults(func=_guard("cache ls", cmd_ls))
     q = csub.add_parser("verify", help="re-hash every entry's outputs against its manifest")
     q.add_argument("--fix", action="store_true", help="remove entries that do not match")
-    q.add_argument("--cache-dir", help=cache_help)
+    add_cache_dir(q)
     q.set_defaults(func=_guard("cache verify", cmd_verify))
 
     p = sub.add_parser("stages", help="list the registered stages (or their params as TOML)")

@@ -403,6 +403,22 @@ def _stamp(path: Path, root: Path, what: str) -> None:
     os.replace(tmp, path)
 
 
+def check_apart(dest: Path, cache: Path, what: str) -> None:
+    """Refuse a destination inside the cache folder (``<cache>/tmp`` is the cache's to clean) or
+    one that holds the cache (replacing it would take the cache with it).
+
+    Raises:
+        DestinationError: naming both folders.
+    """
+    d, c = os.path.realpath(dest), os.path.realpath(cache)
+    if d == c or d.startswith(c.rstrip(os.sep) + os.sep):
+        raise DestinationError(f"{what} destination {dest} lies inside the cache folder {cache}, which `cobgs run` and "
+                               "`cobgs cache gc` manage; choose a folder outside it")
+    if c.startswith(d.rstrip(os.sep) + os.sep):
+        raise DestinationError(f"{what} destination {dest} holds the cache folder {cache}: replacing it would take the "
+                               "cache with it; choose another folder")
+
+
 def check_destination(dest: Path, marker: str, what: str, replace: bool = False) -> None:
     """Refuse a destination that :func:`publish_folder` must not replace (call it early, to
     fail before the work); also cleans what killed publishers left beside it.

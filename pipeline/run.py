@@ -632,10 +632,17 @@ def dry_run(plan: Plan, sel: Selection, cache: Cache, stream: TextIO, t0: float)
                 progress.line(task, "not done", note=outcome.note)
             summary.outcomes[i] = outcome
             continue
+        if task.twin is not None and task.twin in will_run and i not in sel.forced:
+            # keyed as its twin: the twin's run computes the one entry both use
+            note = f"shared: {plan.tasks[task.twin].id} computes the one entry both use"
+            progress.line(task, "shared", note=note)
+            summary.outcomes[i] = Outcome("shared", note=note)
+            continue
         if i in sel.forced:
             reasons = ["forced"]
         elif st.state == "done" and not upstream:
-            progress.line(task, "cached")
+            progress.line(task, "cached", note=f"shared with {plan.tasks[task.twin].id}" if task.twin is not None
+                          else "")
             summary.outcomes[i] = Outcome("cached")
             continue
         elif st.state == "done":
@@ -650,7 +657,9 @@ def dry_run(plan: Plan, sel: Selection, cache: Cache, stream: TextIO, t0: float)
         progress.line(task, "would run", note="; ".join(reasons))
         summary.outcomes[i] = Outcome("would run", note="; ".join(reasons))
     n = sum(1 for o in summary.outcomes.values() if o.state == "would run")
-    print(f"dry run: {n} of {len(sel.relevant)} tasks would run; nothing was executed "
-          f"(cache: {cache.root})", file=stream)
+    shared = sum(1 for o in summary.outcomes.values() if o.state == "shared")
+    print(f"dry run: {n} of {len(sel.relevant)} tasks would run"
+          + (f" ({shared} more share their twin's entry)" if shared else "")
+          + f"; nothing was executed (cache: {cache.root})", file=stream)
     summary.wall_s = time.perf_counter() - t0
     return summary

@@ -41,6 +41,7 @@ import dataclasses
 import hashlib
 import os
 import re
+import stat
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
@@ -57,6 +58,8 @@ from .values import Settings
 
 TOP_KEYS = ("workflow", "settings", "params", "axes")
 WORKFLOW_KEYS = ("name", "description", "stages", "nested")
+#: Largest workflow file read (the shipped ones are a few KiB).
+MAX_WORKFLOW_BYTES = 16 << 20
 #: ``${NAME}`` / ``${NAME:-default}``; ``$${`` is a literal ``${`` (a folder named so: `cobgs new`
 #: writes its paths that way).
 _ENV_RE = re.compile(r"\$\$\{|\$\{([A-Za-z_][A-Za-z0-9_]*)(?::-([^}]*))?\}")
@@ -336,6 +339,13 @@ def load_workflow(path: os.PathLike | str, registry: Registry, sets: Sequence[st
     environ = os.environ if environ is None else environ
     cwd = Path(os.path.abspath(cwd or os.getcwd()))
     try:
+        st = os.stat(path)
+        if not stat.S_ISREG(st.st_mode):  # /dev/zero would be read forever, a FIFO would block
+            raise WorkflowError("not a regular file (a device, a pipe or a folder?); give the workflow's "
+                                "TOML file", source)
+        if st.st_size > MAX_WORKFLOW_BYTES:
+            raise WorkflowError(f"{st.st_size / 2**20:.1f} MiB: more than the {MAX_WORKFLOW_BYTES >> 20} MiB a "
+                                "workflow file may have (it is a few KiB of TOML)", source)
         data = path.read_bytes()
     except FileNotFoundError:
         raise WorkflowError("workflow file not found", source) from None

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Iterable, Optional, Sequence
 
 from cobgs.configs import Files
-from pipeline.publish import DestinationError, check_destination, publish_folder
+from pipeline.publish import DestinationError, check_apart, check_destination, publish_folder
 
 from . import fmt, results as R
 from .collect import RunData, TaskRecord, collect
@@ -81,6 +81,10 @@ def build_report(workflow_path: os.PathLike | str, out_dir: Optional[os.PathLike
         raise ReportError(f"workflow {wf.name!r}: cache folder {cache} does not exist; run "
                           f"`cobgs run {workflow_path}` first or pass --cache-dir")
     out = Path(out_dir) if out_dir else default_out_dir(wf)
+    try:
+        check_apart(out, cache, "report")
+    except DestinationError as exc:
+        raise ReportError(str(exc)) from None
     _check_destination(out, replace)
     t0 = time.perf_counter()
     data = collect(wf, cache)

@@ -197,6 +197,13 @@ def write_png(path: Path, array) -> Path:
         a = a[:, :, ::-1]
     path.parent.mkdir(parents=True, exist_ok=True)
     if not cv2.imwrite(os.fspath(path), np.ascontiguousarray(a)):
+        import errno
+        import shutil
+
+        # libpng says nothing of why: a full disk is told apart by the space left (so that the run
+        # stops as for any full disk, rather than failing task after task)
+        if shutil.disk_usage(path.parent).free < max(1 << 20, 2 * a.nbytes):
+            raise OSError(errno.ENOSPC, "No space left on device (OpenCV could not write the PNG)", os.fspath(path))
         raise StageInputError(f"{path}: could not write PNG")
     return path
 

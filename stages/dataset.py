@@ -92,6 +92,10 @@ class SceneAttrs:
         if self.scene_type not in ("", "forward", "360"):
             raise ValueError(f"scene_type must be 'forward' or '360', got {self.scene_type!r}")
         if self.kind == "synthetic":
+            if self.path is not None or self.labels is not None:  # (unread, but walked for the data fingerprint)
+                raise ValueError(f"kind 'synthetic' is generated, not read: it takes no "
+                                 f"{'path' if self.path is not None else 'labels'}; remove it, or give the kind "
+                                 "of the data in the folder")
             return
         if self.path is None:
             raise ValueError(f"kind {self.kind!r} needs path = the data folder")

@@ -75,7 +75,9 @@ def _run(ctx, inputs):
     image_dir = spec_path(Path(inputs["dataset"]), images["dir"])
     device = "cuda" if ctx.device.startswith("cuda") else "cpu"
     if device == "cuda":
-        import pycolmap
+        from cobgs.data.pycolmap_import import import_pycolmap
+
+        pycolmap = import_pycolmap()
 
         if not pycolmap.has_cuda:  # PyPI's pycolmap wheels are CPU builds
             ctx.log.info("pycolmap %s has no CUDA: SIFT extraction and matching run on the CPU "
@@ -174,7 +176,9 @@ def _triangulate(ctx, p: SfmParams, spec: dict, inputs) -> dict:
 def _check(p: SfmParams) -> None:
     """The library's checks of the SfM options (SfmOptions, and the camera model against
     pycolmap's list), before any task runs."""
-    import pycolmap
+    from cobgs.data.pycolmap_import import import_pycolmap
+
+    pycolmap = import_pycolmap()
 
     from cobgs.data.sfm import _check_camera
 

@@ -85,7 +85,9 @@ def read_colmap(
     Returns:
         Scene with SfM ``points`` / ``points_rgb`` from the model.
     """
-    import pycolmap
+    from cobgs.data.pycolmap_import import import_pycolmap
+
+    pycolmap = import_pycolmap()
 
     if distortion not in ("auto", "undistort", "ignore"):
         raise DataError(f"distortion must be 'auto', 'undistort' or 'ignore', got {distortion!r}",

@@ -134,7 +134,9 @@ def _check_camera(pycolmap, options: SfmOptions) -> None:
 
 def _to_pinhole(rec) -> None:
     """Turn SIMPLE_PINHOLE cameras of ``rec`` into the equivalent PINHOLE, in place."""
-    import pycolmap
+    from cobgs.data.pycolmap_import import import_pycolmap
+
+    pycolmap = import_pycolmap()
 
     for cam in rec.cameras.values():
         if cam.model == pycolmap.CameraModelId.SIMPLE_PINHOLE:
@@ -163,7 +165,9 @@ def run_sfm(image_dir: os.PathLike | str, out_dir: os.PathLike | str,
             ``options.min_registered_fraction`` of the images registered; the message
             names the unregistered images.
     """
-    import pycolmap
+    from cobgs.data.pycolmap_import import import_pycolmap
+
+    pycolmap = import_pycolmap()
 
     image_dir = Path(image_dir)
     out = Path(out_dir)
@@ -314,7 +318,9 @@ def undistort_masks(sfm_root: os.PathLike | str, mask_root: os.PathLike | str,
     """
     import cv2
     import numpy as np
-    import pycolmap
+    from cobgs.data.pycolmap_import import import_pycolmap
+
+    pycolmap = import_pycolmap()
 
     from cobgs.data.scene import find_object_files
 
@@ -378,7 +384,9 @@ def triangulate_known_poses(image_dir: os.PathLike | str, cameras: Dict[str, tup
         "reprojection_error_px": e, "mean_track_length": l}`` (N may be 0).
     """
     import numpy as np
-    import pycolmap
+    from cobgs.data.pycolmap_import import import_pycolmap
+
+    pycolmap = import_pycolmap()
     from PIL import Image
 
     image_dir, work = Path(image_dir), Path(work_dir)

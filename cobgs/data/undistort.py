@@ -71,7 +71,9 @@ def undistort_view_arrays(
         (undistorted image [H', W', C] float32, undistorted binary masks [H', W'],
         (fx, fy, cx, cy, W', H') of the PINHOLE output camera).
     """
-    import pycolmap
+    from cobgs.data.pycolmap_import import import_pycolmap
+
+    pycolmap = import_pycolmap()
 
     try:
         cam = pycolmap.Camera.create_from_model_name(1, model, 1.0, int(width), int(height))

@@ -75,7 +75,7 @@ def export(workflow, cache_dir, to, stream=None, ply: bool = True, turntables: i
     benchmark's hundreds of scenes are tens of GB). ``turntables=N`` adds, per object, an
     N-frame orbit GIF of the object alone and of the scene without it
     (``turntable_object.gif``, ``turntable_removed.gif``; :mod:`cobgs.render.turntable`). A copy the destination's disk cannot
-    hold (with a margin of 64 MiB + 10 %, at most 1 GiB) is refused before anything is written,
+    hold (with a margin of 4 MiB + 10 %, at most 1 GiB) is refused before anything is written,
     saying what it needs and what is free.
 
     ``to`` is replaced as a whole (:func:`pipeline.publish.publish_folder`): a kill leaves
@@ -87,9 +87,10 @@ def export(workflow, cache_dir, to, stream=None, ply: bool = True, turntables: i
     from pathlib import Path
 
     from pipeline import entries
-    from pipeline.publish import check_destination, publish_folder
+    from pipeline.publish import check_apart, check_destination, publish_folder
 
     to = Path(os.path.abspath(to))
+    check_apart(to, Path(cache_dir), "export")
     check_destination(to, Files.EXPORT_MARKER, "export", replace=replace)
     wanted = {stage: (artifact, files, where) for stage, artifact, files, where in EXPORTS}
     plan, missing = [], []
@@ -127,7 +128,7 @@ def export(workflow, cache_dir, to, stream=None, ply: bool = True, turntables: i
     while not probe.exists():
         probe = probe.parent
     free = shutil.disk_usage(probe).free
-    spare = min(1 << 30, (64 << 20) + need // 10)  # a margin that scales with the export
+    spare = min(1 << 30, (4 << 20) + need // 10)  # a margin that scales with the export
     if need + spare > free:
         from pipeline.errors import PipelineError
 
@@ -256,7 +257,9 @@ def register(sub) -> None:
     p.add_argument("--replace", action="store_true",
                    help="replace an earlier export of cobgs even where files were added to it (they are deleted)")
     p.add_argument("--set", action="append", metavar="K=V", help="same overrides as `cobgs run`")
-    p.add_argument("--cache-dir", default=None, help="cache folder (default: $COBGS_CACHE_DIR or ./runs/cache)")
+    from pipeline.commands import add_cache_dir
+
+    add_cache_dir(p)
     p.add_argument("--no-ply", action="store_true",
                    help="metrics, masks and summary only: leave the PLYs in the cache (large workflows)")
     p.add_argument("--turntables", type=frame_count, default=0, metavar="N",

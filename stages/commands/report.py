@@ -23,7 +23,9 @@ def register(sub) -> None:
                                  "cobgs did not write, unless --replace is given")
     p.add_argument("--replace", action="store_true",
                    help="replace an earlier report of cobgs even where files were added to it (they are deleted)")
-    p.add_argument("--cache-dir", help="cache folder (default: $COBGS_CACHE_DIR, else ./runs/cache)")
+    from pipeline.commands import add_cache_dir
+
+    add_cache_dir(p)
     p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
                    help="the same overrides the run used (they select its cache entries)")
     p.add_argument("--turntables", type=frame_count, default=0, metavar="N",

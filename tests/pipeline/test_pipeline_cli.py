@@ -59,6 +59,10 @@ def test_failures_exit_non_zero_and_status_shows_the_log(toy):
     (None, ("--set", "train.iterations=x"), {}, "--set: train.iterations: expected an integer"),
     (None, ("--only", "nope"), {}, "--only: unknown stage 'nope'"),
     (None, ("--executor", "ray"), {"PYTHONWARNINGS": "ignore"}, "pip install 'cobgs[ray]'"),
+    # issue 56 (low): an empty value (a script's unset variable) was taken as "nothing"
+    (None, ("--force", ""), {}, "argument --force: it is empty"),
+    (None, ("--items", " "), {}, "argument --items: it is empty"),
+    (None, ("--cache-dir", ""), {}, "argument --cache-dir: it is empty"),
 ])
 def test_errors_are_one_clear_line(toy, text, args, env, message):
     if text is not None:
@@ -69,10 +73,10 @@ def test_errors_are_one_clear_line(toy, text, args, env, message):
         proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=cli_env(**env),
                               capture_output=True, text=True, timeout=120)
     else:
-        proc = cobgs("run", toy.path, "--cache-dir", toy.cache, *args)
+        proc = cobgs("run", toy.path, *(() if "--cache-dir" in args else ("--cache-dir", toy.cache)), *args)
     assert proc.returncode == 2, proc.stdout + proc.stderr
     assert message in proc.stderr and "Traceback" not in proc.stderr
-    assert proc.stderr.startswith("cobgs run: error: ")
+    assert proc.stderr.splitlines()[-1].startswith("cobgs run: error: ")  # (argparse prints the usage first)
 
 
 def test_cache_commands(toy, tmp_path):
@@ -242,3 +246,14 @@ def test_cache_gc_on_a_terminal_lists_and_asks(toy, tmp_path):
     assert cobgs("cache", "ls", "--cache-dir", cache, check=0).stdout.splitlines()[-1] == before
     out = cobgs("cache", "gc", other, "--cache-dir", cache, "--yes", check=0).stdout
     assert "removed" in out and "[y/N]" not in out
+
+
+def test_a_workflow_file_that_is_no_regular_file_is_refused_at_once(tmp_path):
+    """Issue 56 (low): `cobgs run /dev/zero` read forever; a FIFO blocked."""
+    import os
+
+    fifo = tmp_path / "w.toml"
+    os.mkfifo(fifo)
+    for path in ("/dev/zero", fifo, tmp_path):
+        proc = cobgs("run", path, "--cache-dir", tmp_path / "c", check=2)
+        assert "not a regular file" in proc.stderr and "Traceback" not in proc.stderr, proc.stderr

@@ -669,6 +669,15 @@ def test_an_override_of_the_twin_alone_leaves_the_sharing_values_entry_served(to
     assert recs[("load", "alpha_long")].state == "done" and recs[("load", "alpha_long")].key == old.key
     assert recs[("load", "alpha")].key != old.key
     assert "cached" in s.output.split("load      alpha_long")[1].splitlines()[0], s.output
+    # --dry-run on a fresh cache says which tasks share their twin's entry (issue 56, low)
+    import io
+
+    out = io.StringIO()
+    run_workflow(toy.load(text=SHARING), RunOptions(cache_dir=toy.folder / "fresh", dry_run=True), stream=out)
+    line = next(ln for ln in out.getvalue().splitlines() if "load" in ln and "alpha_long" in ln)
+    assert "shared: load[alpha] computes the one entry both use" in line, out.getvalue()
+    assert "more share their twin's entry" in out.getvalue()
+    toy.load(text=changed)
     # forced, the sharing value's task computes its own entry (keyed as itself)
     executions.reset()
     toy.run(force=("load",), only=("load",), items="alpha_long")

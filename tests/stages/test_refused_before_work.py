@@ -201,3 +201,24 @@ def test_plan_time_refusals(tmp_path, monkeypatch):
     with pytest.raises(WorkflowError, match=r"0001.png \(8: rotated 90 degrees counter-clockwise\)"):
         _run(path, cache)
     assert not (cache / "entries").exists() or not any((cache / "entries").iterdir())
+
+
+def test_cheap_refusals_of_the_low_items(tmp_path, capsys):
+    """Issue 56 (low): a path on a synthetic scene (its fingerprint walked `/`), a report into
+    the cache's tmp/, `--turntables 3000`, pycolmap's stack dump on SIGTERM."""
+    with pytest.raises(WorkflowError, match="kind 'synthetic' is generated, not read: it takes no path"):
+        _run(_wf(tmp_path), tmp_path / "c", ["axes.scene.tiny.path=/"])
+    cache = tmp_path / "c"
+    (cache / "tmp").mkdir(parents=True)
+    path = _wf(tmp_path)
+    assert main(["report", str(path), "--out", str(cache / "tmp" / "r"), "--cache-dir", str(cache)]) == 2
+    assert "lies inside the cache folder" in capsys.readouterr().err and not (cache / "tmp" / "r").exists()
+    assert main(["export", str(path), "--to", str(tmp_path), "--cache-dir", str(cache)]) == 2
+    assert "holds the cache folder" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["report", str(path), "--turntables", "3000"])
+    assert "from 0 (none) to 360" in capsys.readouterr().err
+    code = ("import os, signal, time\nfrom cobgs.data.pycolmap_import import import_pycolmap\nimport_pycolmap()\n"
+            "os.kill(os.getpid(), signal.SIGTERM)\ntime.sleep(5)\n")
+    r = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert r.returncode == -15 and "stack trace" not in r.stderr and "SIGTERM" not in r.stderr, r.stderr
