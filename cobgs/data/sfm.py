@@ -252,7 +252,7 @@ def run_sfm(image_dir: os.PathLike | str, out_dir: os.PathLike | str,
             raise DataError(
                 f"SfM registered {len(registered)} of {len(names)} images ({frac:.0%}), fewer "
                 f"than the required {options.min_registered_fraction:.0%}; unregistered: "
-                f"{_name_list(unregistered)}", image_dir)
+                f"{_name_list(unregistered)}{_other_sizes(image_dir, names, unregistered)}", image_dir)
         (dist / "sparse" / "0").mkdir(parents=True)
         rec.write_binary(str(dist / "sparse" / "0"))
         num_points = rec.num_points3D()
@@ -363,6 +363,30 @@ def undistort_masks(sfm_root: os.PathLike | str, mask_root: os.PathLike | str,
             written += 1
             objects.add(obj)
     return {"masks": written, "objects": sorted(objects), "resized": sorted(resized)}
+
+
+def _other_sizes(image_dir: Path, names: list, unregistered: list) -> str:
+    """"; 0007.jpg is 640x480 where the others are 1008x756 (...)" for unregistered images of
+    another size than most: the likely reason they did not register (another camera, a crop)."""
+    from collections import Counter
+
+    from cobgs.data.images import probe
+
+    sizes = {}
+    for n in names:
+        try:
+            sizes[n] = probe(Path(image_dir) / n)[:2]
+        except DataError:
+            continue
+    if not sizes:
+        return ""
+    common, _ = Counter(sizes.values()).most_common(1)[0]
+    odd = [n for n in unregistered if n in sizes and sizes[n] != common]
+    if not odd:
+        return ""
+    shown = ", ".join(f"{n} is {sizes[n][0]}x{sizes[n][1]}" for n in odd[:5])
+    return (f"; {shown} where the others are {common[0]}x{common[1]} (another camera or a crop: such a photo rarely "
+            "matches the rest; remove it, or give it its own scene)")
 
 
 def triangulate_known_poses(image_dir: os.PathLike | str, cameras: Dict[str, tuple],
