@@ -86,14 +86,23 @@ def test_failed_build_shows_the_full_compiler_log(tmp_path, monkeypatch):
 
 
 def test_second_process_waits_for_the_builder(tmp_path):
-    """A process finding the build lock held waits (and says so), then loads."""
-    _build.load_extension()  # built and cached (make test builds it first)
-    lock = _build.cache_root() / f"{_build.extension_name()}.lock"
+    """A process that must build or check the library and finds the build lock held waits
+    (and says so), then loads. (A library whose probe.json vouches for it needs no lock: a
+    copy without one, in a cache of its own, stands for a build in progress.)"""
+    import os
+    import shutil
+
+    so = Path(_build.load_extension())  # built and cached (make test builds it first)
+    ext = tmp_path / "ext"
+    shutil.copytree(so.parent, ext / so.parent.name)
+    (ext / so.parent.name / "probe.json").unlink()
+    lock = ext / f"{_build.extension_name()}.lock"
     with open(lock, "a+") as fh:
         fcntl.flock(fh, fcntl.LOCK_EX)
         child = subprocess.Popen(
             [sys.executable, "-c", "from cobgs.render import _build; print(_build.load_extension())"],
-            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO)
+            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
+            env={**os.environ, "COBGS_EXT_DIR": str(ext)})
         try:
             # Wait (at most 60 s) until the child reports that it is blocked on the lock.
             deadline = time.time() + 60

@@ -536,15 +536,18 @@ def test_export_without_plys_and_a_disk_too_small(tiny, tmp_path, monkeypatch, c
     monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(10 << 30, 9 << 30, 512 << 20))
     assert main(["export", str(path), "--to", str(tmp_path / "fits"), "--cache-dir", str(cache), "--no-ply"]) == 0
     assert main(["export", str(path), "--to", str(tmp_path / "fits2"), "--cache-dir", str(cache)]) == 0
+    # issue 56 (low): a small export (metrics and masks: well under 1 MiB) fits in 8 MiB (it asked 64 MiB spare)
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(10 << 30, 9 << 30, 8 << 20))
+    assert main(["export", str(path), "--to", str(tmp_path / "small"), "--cache-dir", str(cache), "--no-ply"]) == 0
     capsys.readouterr()
-    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(10 << 30, 9 << 30, 32 << 20))
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(10 << 30, 9 << 30, 3 << 20))
     assert main(["export", str(path), "--to", str(tmp_path / "big"), "--cache-dir", str(cache)]) == 2
     err = capsys.readouterr().err
-    assert "the export needs" in err and "32.0 MiB free; use --no-ply" in err
+    assert "the export needs" in err and "3.0 MiB free; use --no-ply" in err
     assert not (tmp_path / "big").exists()
     assert main(["export", str(path), "--to", str(tmp_path / "big"), "--cache-dir", str(cache), "--no-ply"]) == 2
     err = capsys.readouterr().err
-    assert "32.0 MiB free" in err and "--no-ply" not in err.split("free;")[1]
+    assert "3.0 MiB free" in err and "--no-ply" not in err.split("free;")[1]
 
 
 def test_export_turntables(tiny, tmp_path):
