@@ -117,7 +117,7 @@ class Result:
 
     @property
     def method_kind(self) -> str:
-        """"cobgs", "nosplit", "sa3d", "flashsplat" (from the refine params or the row)."""
+        """A name of :data:`cobgs.refine.methods.REGISTRY` (from the refine params or the row)."""
         if self.refine_params and "method" in self.refine_params:
             return str(self.refine_params["method"])
         return str((self.row or {}).get("method_kind") or (self.refine or {}).get("method") or "")

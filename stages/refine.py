@@ -26,8 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
 
-from cobgs.configs import (Files, FlashSplatConfig, NGSConfig, RefineConfig, SA3DConfig, check_params,
-                           key_without_later)
+from cobgs.configs import Files, FlashSplatConfig, NGSConfig, RefineConfig, SA3DConfig, check_params
 from cobgs.refine.methods import METHODS, method_for
 from pipeline import Resources, Stage
 
@@ -68,7 +67,7 @@ class RefineParams:
 
 
 def method_config(p: RefineParams, dataset_scene_type: str):
-    """The library config object :func:`cobgs.refine.methods.run_method` takes for ``p.method``."""
+    """The library config object ``p.method``'s :meth:`~cobgs.refine.methods.RefineMethod.run` takes."""
     return method_for(p.method).config_of(p, dataset_scene_type)
 
 
@@ -77,7 +76,7 @@ def _run(ctx, inputs):
     import torch
 
     from cobgs.train.adam_moments import MOMENTS_FILE, read_moments
-    from cobgs.refine.methods import run_method
+    from cobgs.refine.methods import RefineInputs
     from cobgs.gaussians.ply import load_ply, save_ply
 
     p: RefineParams = ctx.params
@@ -91,8 +90,8 @@ def _run(ctx, inputs):
     if all(m is None for m in masks):
         raise StageInputError(f"no mask of object {obj!r} matches a training view of {spec['scene']!r}")
     masks = [None if m is None else m.to(dev) for m in masks]
-    method = method_for(p.method)
-    config = method_config(p, spec.scene_type)
+    method = method_for(p.method)  # (the one lookup: config, schedule and run are the method's)
+    config = method.config_of(p, spec.scene_type)
     sched = method.schedule(config)
     moments = None
     moments_file = Path(inputs["scene"]) / MOMENTS_FILE
@@ -109,10 +108,9 @@ def _run(ctx, inputs):
         short = short_stage_warning(sched, len(scene.train))
         if short:  # on the task's line and in its manifest, also when reused from the cache
             ctx.warn(short)
-    result = run_method(p.method, model, scene.train, masks, scene.extent, config=config,
-                        background=trained["background"], object_name=obj,
-                        progress=lambda total, desc: ctx.progress(total=total, desc=desc),
-                        texture_moments=moments)
+    result = method.run(RefineInputs(model, scene.train, masks, scene.extent, background=trained["background"],
+                                     object_name=obj, texture_moments=moments,
+                                     progress=lambda total, desc: ctx.progress(total=total, desc=desc)), config)
     out_model = result.model.to(torch.device("cpu")) if dev.type != "cpu" else result.model
     save_ply(ctx.out_dir / Files.REFINED_PLY, out_model)
     raem = {}  # (and the object-within-the-scene set, where there is one)
@@ -153,21 +151,15 @@ def _run(ctx, inputs):
 
 
 def _key_params(params: RefineParams, full: dict) -> dict:
-    """The params that enter the key: all of them, except COB-GS fields added later while they
-    hold their earlier value (:func:`cobgs.configs.key_without_later`: ``object_check`` "off",
-    the segmentation every entry before the switch made) and ``object_check`` where it does
-    not apply (peers, the no-split row), so that adding a switch keeps every earlier entry valid."""
-    cob = key_without_later(RefineConfig, dict(full.get("cobgs") or {}))
-    if params.method not in ("cobgs", "ngs"):
-        cob.pop("object_check", None)
-    out = dict(full, cobgs=cob)
-    if params.method != "ngs":  # (a section added later: only NG-GS reads it)
-        out.pop("ngs", None)
-    return out
+    """The params that enter the key: the method's own, as the method says
+    (:meth:`cobgs.refine.methods.RefineMethod.key_params`: its name, the scene type, its
+    sections; never another method's, so tuning FlashSplat's bias recomputes no COB-GS row)."""
+    return method_for(params.method).key_params(full)
 
 
+# version 7: the key holds only the method's own sections (every refine entry before it recomputes once)
 STAGE = Stage(
-    name="refine", version=6, run=_run, inputs=("dataset", "poses", "scene", "masks"), outputs=("refined",),
+    name="refine", version=7, run=_run, inputs=("dataset", "poses", "scene", "masks"), outputs=("refined",),
     params=RefineParams, key_params=_key_params, level=("scene", "method", "object"), uses_device=True,
     resources=Resources(cpus=2),
     description="COB-GS (or an ablation row / a peer) on one object: labels, splits, refined scene",

@@ -69,7 +69,8 @@ class RefineResult:
     """The outcome of one method on one object of one scene.
 
     Attributes:
-        method: "cobgs", "nosplit", "sa3d", "flashsplat" (or a caller's label).
+        method: a name of :data:`cobgs.refine.methods.REGISTRY` ("cobgs", "nosplit", "sa3d", "flashsplat",
+            "ngs"), or a caller's label.
         object_name: the object segmented.
         model: the scene after the method (refined for COB-GS; the input scene, with a
             score extra, for label-only methods).

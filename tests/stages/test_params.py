@@ -47,6 +47,41 @@ def test_stage_params_are_the_library_configs():
     assert RefineConfig is configs.RefineConfig and TrainConfig is configs.TrainConfig  # re-exported
 
 
+def test_refine_params_are_exactly_the_methods_sections():
+    """Issue 58: the refine stage's params are the union of the registered methods' sections
+    (with their config classes) plus what every method reads; a method's key holds its own
+    sections only: changing any other section leaves it unchanged, changing its own does not."""
+    import dataclasses
+    import typing
+
+    from cobgs.refine.methods import REGISTRY, RefineMethod, SECTIONS
+    from stages.refine import STAGE, RefineParams
+
+    hints = typing.get_type_hints(RefineParams)
+    assert [f.name for f in dataclasses.fields(RefineParams)] == [*RefineMethod.COMMON, *SECTIONS]
+    for m in REGISTRY.values():
+        for sec in m.sections:
+            cls = m.config_class if len(m.sections) == 1 else typing.get_type_hints(m.config_class)[sec]
+            assert hints[sec] is cls, (m.name, sec)
+    changed = {"cobgs": {"delta": 0.61}, "sa3d": {"lr": 0.5}, "flashsplat": {"background_bias": 0.3},
+               "ngs": {"max_points": 99}}
+    assert set(changed) == set(SECTIONS)
+    for m in REGISTRY.values():
+        base = RefineParams(method=m.name)
+        key = STAGE.key_params(base, _params_json(base))
+        assert key["method"] == m.name and set(key) == {"method", "scene_type", *m.sections}
+        for sec, edit in changed.items():
+            p = dataclasses.replace(base, **{sec: dataclasses.replace(getattr(base, sec), **edit)})
+            other = STAGE.key_params(p, _params_json(p))
+            assert (other == key) == (sec not in m.sections), (m.name, sec)
+
+
+def _params_json(p) -> dict:
+    from pipeline.params import to_json
+
+    return to_json(p)
+
+
 @pytest.mark.parametrize("sets, message", [
     (["refine.cobgs.scene_type=360"], "set refine.scene_type"),
     (["sfm.options.device=cuda"], "workflow's device"),
