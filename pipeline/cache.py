@@ -50,6 +50,18 @@ OUT = "out"
 SCRATCH = "scratch"
 _serial = count()
 
+#: Where a command finds the cache: ``--cache-dir``, else ``$COBGS_CACHE_DIR``, else ``./runs/cache``.
+CACHE_ENV = "COBGS_CACHE_DIR"
+DEFAULT_CACHE = Path("runs") / "cache"
+
+
+def default_cache_dir(explicit: Optional[str] = None) -> Path:
+    """The cache folder a command uses (:data:`CACHE_ENV`)."""
+    if explicit:
+        return Path(explicit)
+    env = os.environ.get(CACHE_ENV)
+    return Path(env) if env else DEFAULT_CACHE
+
 #: The cache-directory tag (https://bford.info/cachedir/): its first line is the standard's
 #: signature, so backup tools skip the folder; the second names cobgs, so a tag another tool
 #: wrote proves nothing.

@@ -17,17 +17,9 @@ from typing import Any, Callable, Optional, Sequence, TextIO
 
 from .errors import PipelineError
 
-CACHE_ENV = "COBGS_CACHE_DIR"
-DEFAULT_CACHE = Path("runs") / "cache"
+from .cache import CACHE_ENV, DEFAULT_CACHE, default_cache_dir  # noqa: F401 (the commands' names for them)
 
 RegistryFactory = Callable[[], Any]
-
-
-def default_cache_dir(explicit: Optional[str] = None) -> Path:
-    if explicit:
-        return Path(explicit)
-    env = os.environ.get(CACHE_ENV)
-    return Path(env) if env else DEFAULT_CACHE
 
 
 def _fmt_time(ts: Optional[float]) -> str:
@@ -73,6 +65,15 @@ def add_cache_dir(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cache-dir", type=nonempty("a folder"), metavar="DIR", help=CACHE_HELP)
 
 
+SET_HELP = ("override: STAGE.PARAM=VALUE, device=cuda, or axes.AXIS.VALUE.KEY=VALUE (repeatable); commands that "
+            "read a run's results take the same overrides the run used (they select its cache entries)")
+
+
+def add_sets(parser: argparse.ArgumentParser) -> None:
+    """``--set`` (into ``args.sets``), the same on every command that loads a workflow."""
+    parser.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE", help=SET_HELP)
+
+
 def _csv(text: Optional[str]) -> tuple[str, ...]:
     return tuple(s.strip() for s in (text or "").split(",") if s.strip())
 
@@ -80,8 +81,6 @@ def _csv(text: Optional[str]) -> tuple[str, ...]:
 def register(sub: Any, registry_factory: RegistryFactory, package_version: Callable[[], str]
              ) -> None:
     """Add ``run``, ``status``, ``cache`` and ``stages`` to an argparse sub-parser set."""
-    set_help = ("override: STAGE.PARAM=VALUE, device=cuda, or axes.AXIS.VALUE.KEY=VALUE "
-                "(repeatable)")
 
     p = sub.add_parser("run", help="run a workflow: compute what is missing or stale",
                        description="Run a workflow. Cached tasks are reused; the rest run "
@@ -100,8 +99,7 @@ def register(sub: Any, registry_factory: RegistryFactory, package_version: Calla
                    help="re-hash every external input (data, mask and model folders) instead of trusting "
                         "file sizes and times; what changed reruns")
     p.add_argument("--dry-run", action="store_true", help="print what would run and why")
-    p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
-                   help=set_help)
+    add_sets(p)
     p.add_argument("-j", "--jobs", type=int, default=1,
                    help="local executor: tasks at once, each in its own process (default 1: "
                         "in this process)")
@@ -115,8 +113,7 @@ def register(sub: Any, registry_factory: RegistryFactory, package_version: Calla
     p = sub.add_parser("status", help="show every item x stage of a workflow: done / stale "
                        "/ missing / failed, with timings")
     p.add_argument("workflow")
-    p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
-                   help=set_help)
+    add_sets(p)
     p.add_argument("--items", metavar="ITEMS", type=nonempty("item patterns"), help="only tasks of these items")
     p.add_argument("--logs", action="store_true", help="print the full log of each failure")
     p.add_argument("--verify-data", action="store_true",
@@ -129,7 +126,7 @@ def register(sub: Any, registry_factory: RegistryFactory, package_version: Calla
     csub = p.add_subparsers(dest="cache_command", metavar="SUBCOMMAND", required=True)
     q = csub.add_parser("gc", help="remove entries that none of the given workflows uses")
     q.add_argument("workflows", nargs="+", help="every workflow whose results to keep")
-    q.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE")
+    add_sets(q)
     q.add_argument("--dry-run", action="store_true", help="list what would be removed")
     q.add_argument("--yes", action="store_true", help="do not ask (on a terminal, gc lists what it removes "
                    "and asks first; without a terminal, removing needs --yes)")
@@ -151,6 +148,8 @@ def register(sub: Any, registry_factory: RegistryFactory, package_version: Calla
                    "value's valid range")
     p.add_argument("--docs", metavar="FILE", help="write that text into FILE between its generated-params "
                    "markers (docs/pipeline.md)")
+    p.add_argument("--presets", action="store_true", help="list the presets an axis value may start from "
+                   "(preset = \"NAME\"), with what each sets")
     p.set_defaults(func=_guard("stages", lambda a: cmd_stages(a, registry_factory)))
 
 
@@ -438,6 +437,13 @@ def cmd_stages(args: argparse.Namespace, registry_factory: RegistryFactory,
     graph = registry.graph()
     if not graph.order:
         print("no stages are registered", file=stream)
+        return 0
+    if getattr(args, "presets", False):
+        from .hashing import canonical_json
+
+        for axis, presets in sorted(getattr(registry, "presets", {}).items()):
+            for name, table in presets.items():
+                print(f"{axis}.{name}: {canonical_json(table) if table else '(nothing: the defaults)'}", file=stream)
         return 0
     if getattr(args, "docs", None):
         n = write_params_docs(Path(args.docs), stages_toml(registry))

@@ -31,6 +31,9 @@ class Registry:
         #: names no axis value may take (lower case): the files the program writes beside the
         #: folders values become (the program sets it)
         self.reserved_names: frozenset[str] = frozenset()
+        #: named tables an axis value may start from (``preset = "NAME"``): axis -> name ->
+        #: table, resolved when a workflow loads (the program sets them)
+        self.presets: dict[str, dict[str, dict]] = {}
         for stage in stages:
             self.add(stage)
         for axis, schema in (axis_schemas or {}).items():

@@ -511,6 +511,7 @@ def _load_axes(axes_raw: dict, nested: dict, graph: Graph, registry: Registry, s
         if parent is None:
             values = {}
             for value, vt in table.items():
+                vt = _with_preset(registry, axis_name, vt, source, f"axes.{axis_name}.{value}")
                 values[value] = _load_value(axis_name, value, vt, f"axes.{axis_name}.{value}",
                                             schema, graph, source, base, item_layers, only_raw, shares_raw)
             axes.append(Axis(axis_name, values))
@@ -523,7 +524,9 @@ def _load_axes(axes_raw: dict, nested: dict, graph: Graph, registry: Registry, s
                                         f"{list(parent_values)})", source, f"axes.{axis_name}.{pv}")
                 sub = _table(sub, source, f"axes.{axis_name}.{pv}")
                 per_parent[pv] = {
-                    value: _load_value(axis_name, value, vt, f"axes.{axis_name}.{pv}.{value}",
+                    value: _load_value(axis_name, value,
+                                       _with_preset(registry, axis_name, vt, source, f"axes.{axis_name}.{pv}.{value}"),
+                                       f"axes.{axis_name}.{pv}.{value}",
                                        schema, graph, source, base, item_layers, only_raw, shares_raw, slot=pv)
                     for value, vt in sub.items()}
             axes.append(Axis(axis_name, per_parent, parent=parent))
@@ -595,6 +598,30 @@ def _check_reserved(axes_raw: Any, registry: Registry, source: str) -> None:
             if isinstance(name, str) and name.lower() in reserved:
                 raise WorkflowError(f"value name {name!r} is the name of a file cobgs writes beside the value's "
                                     f"folder (e.g. in an export); choose another name", source, f"axes.{axis}.{name}")
+
+
+def _merged(under: Mapping, over: Mapping) -> dict:
+    """``over`` laid on ``under``: tables merged key by key, any other value replaced."""
+    out = dict(under)
+    for k, v in over.items():
+        out[k] = _merged(out[k], v) if isinstance(v, Mapping) and isinstance(out.get(k), Mapping) else v
+    return out
+
+
+def _with_preset(registry: Registry, axis: str, table: Any, source: str, key: str) -> Any:
+    """An axis value's table with its ``preset = "NAME"`` resolved: the program's preset of that
+    name for this axis (``Registry.presets``) with the value's own keys laid over it. The preset's
+    name is not hashed: the tasks of ``preset = "x"`` and of the same keys written out have the
+    same cache keys."""
+    if not isinstance(table, dict) or "preset" not in table:
+        return table
+    name = table["preset"]
+    known = getattr(registry, "presets", {}).get(axis, {})
+    if not isinstance(name, str) or name not in known:
+        raise WorkflowError(f"unknown preset {name!r} for axis {axis!r}" + (unknown_key_hint(name, list(known))
+                            if isinstance(name, str) else f"; expected one of: {', '.join(sorted(known)) or 'none'}"),
+                            source, f"{key}.preset")
+    return _merged(known[name], {k: v for k, v in table.items() if k != "preset"})
 
 
 def _load_value(axis: str, value: str, table: Any, key: str, schema: Optional[type],

@@ -69,7 +69,7 @@ def build_report(workflow_path: os.PathLike | str, out_dir: Optional[os.PathLike
             of cobgs is always refused (:func:`pipeline.publish.check_destination`).
     """
     from pipeline import load_workflow
-    from pipeline.commands import default_cache_dir
+    from pipeline.cache import default_cache_dir
 
     if registry is None:
         raise ReportError("build_report needs the stage registry (the command layer hands it in: "

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import importlib
 import os
+from pathlib import Path
 from typing import Iterable, Optional
 
 from pipeline import PipelineError, Registry, Stage
@@ -65,8 +66,38 @@ def load_registry(extra: Optional[Iterable[str]] = None) -> Registry:
             registry.add_axis_schema(axis, schema)
     registry.device_check = check_device
     registry.reserved_names = reserved_names()
+    registry.presets = load_presets()
     return registry
 
+
+#: The presets workflows refer to by name (``[axes.method.X] preset = "NAME"``): one file.
+PRESETS_FILE = Path(__file__).resolve().parent / "presets.toml"
+
+
+def load_presets(path: Path = PRESETS_FILE) -> dict[str, dict[str, dict]]:
+    """``{axis: {name: table}}`` from :data:`PRESETS_FILE` (each top-level table an axis, each of
+    its tables a preset). A preset may hold stage overrides and attributes, not the workflow's
+    own ``only`` / ``shares`` / ``preset``.
+
+    Raises:
+        PipelineError: the file is not such TOML (naming it and the preset).
+    """
+    import tomllib
+
+    try:
+        raw = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (OSError, tomllib.TOMLDecodeError) as exc:
+        raise PipelineError(f"{path}: cannot read the presets: {exc}") from None
+    out: dict[str, dict[str, dict]] = {}
+    for axis, presets in raw.items():
+        if not isinstance(presets, dict) or not all(isinstance(t, dict) for t in presets.values()):
+            raise PipelineError(f"{path}: [{axis}] must hold one table per preset")
+        for name, table in presets.items():
+            bad = sorted({"only", "shares", "preset"} & set(table))
+            if bad:
+                raise PipelineError(f"{path}: preset {axis}.{name} sets {bad}, which only a workflow's own value may")
+        out[axis] = presets
+    return out
 
 def reserved_names() -> frozenset[str]:
     """Every file name of the artifact catalog (``cobgs.configs.Files``: ``train.json``,

@@ -180,9 +180,9 @@ def _check(p: SfmParams) -> None:
 
     pycolmap = import_pycolmap()
 
-    from cobgs.data.sfm import _check_camera
+    from cobgs.data.sfm import check_camera
 
-    _check_camera(pycolmap, p.options)
+    check_camera(pycolmap, p.options)
 
 
 STAGE = Stage(

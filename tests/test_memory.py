@@ -1,4 +1,4 @@
-"""cobgs._memory: the glibc thresholds that keep per-iteration tensors from page-faulting."""
+"""cobgs.memory: the glibc thresholds that keep per-iteration tensors from page-faulting."""
 
 import subprocess
 import sys
@@ -6,7 +6,7 @@ import textwrap
 
 import pytest
 
-from cobgs import _memory
+from cobgs import memory
 
 
 def _run(code: str, **env) -> str:
@@ -24,7 +24,7 @@ def _run(code: str, **env) -> str:
 # Allocate and free a 64 MiB block 20 times, count minor page faults (fresh process).
 _FAULTS = """
     import resource, ctypes
-    from cobgs._memory import retain_freed_memory
+    from cobgs.memory import retain_freed_memory
     print(retain_freed_memory(), end=" ")
     libc = ctypes.CDLL("libc.so.6")
     libc.malloc.restype = ctypes.c_void_p
@@ -53,8 +53,8 @@ def test_freed_blocks_are_reused_instead_of_faulted_in_again():
 
 
 def test_idempotent_and_reported(monkeypatch):
-    first = _memory.retain_freed_memory()
-    assert _memory.retain_freed_memory() is first
+    first = memory.retain_freed_memory()
+    assert memory.retain_freed_memory() is first
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc mallopt, /proc")
@@ -64,7 +64,7 @@ def test_task_peak_excludes_memory_an_earlier_task_freed_but_the_allocator_kept(
     # peak would include it.
     out = _run("""
         import ctypes
-        from cobgs._memory import retain_freed_memory
+        from cobgs.memory import retain_freed_memory
         from pipeline.measure import Meter
         assert retain_freed_memory()
         libc = ctypes.CDLL("libc.so.6")

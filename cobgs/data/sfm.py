@@ -119,7 +119,7 @@ def _matching_options(pycolmap, options: SfmOptions, threads: int):
     return matching
 
 
-def _check_camera(pycolmap, options: SfmOptions) -> None:
+def check_camera(pycolmap, options: SfmOptions) -> None:
     """Raise InputError for an unknown camera model or a wrong number of its parameters."""
     try:
         probe = pycolmap.Camera.create_from_model_name(1, options.camera_model, 1.0, 2, 2)
@@ -181,7 +181,7 @@ def run_sfm(image_dir: os.PathLike | str, out_dir: os.PathLike | str,
         names = all_names
     if len(names) < 2:
         raise DataError(f"SfM needs at least 2 images, got {len(names)}", image_dir)
-    _check_camera(pycolmap, options)
+    check_camera(pycolmap, options)
     _prepare_out(out)
     threads = options.threads()
     device = pycolmap.Device.cuda if options.device == "cuda" else pycolmap.Device.cpu

@@ -20,7 +20,7 @@ SSIM_C2 = 0.03**2
 
 
 @functools.lru_cache(maxsize=8)
-def _gauss_1d(size: int, sigma: float, dtype: torch.dtype, device: str) -> Tensor:
+def gauss_1d(size: int, sigma: float, dtype: torch.dtype, device: str) -> Tensor:
     x = torch.arange(size, dtype=torch.float64) - (size // 2)
     g = torch.exp(-(x**2) / (2.0 * sigma**2))
     return (g / g.sum()).to(dtype=dtype, device=device)
@@ -37,10 +37,10 @@ def _to_nchw(img: Tensor, name: str) -> Tensor:
 def _blur(t: Tensor, g: Tensor) -> Tensor:
     """Separable zero-padded Gaussian blur of every channel of [B, K, H, W]."""
     if not (torch.is_grad_enabled() and t.requires_grad):
-        from cobgs.render import _ops
+        from cobgs.render import ops
 
-        if _ops.serves(t.device):  # the native op, when the rasterizer already loaded it
-            return _ops.gauss_blur(t, g)
+        if ops.serves(t.device):  # the native op, when the rasterizer already loaded it
+            return ops.gauss_blur(t, g)
     k, n = t.shape[1], g.shape[0]
     pad = n // 2
     t = F.conv2d(t, g.view(1, 1, n, 1).expand(k, 1, n, 1), padding=(pad, 0), groups=k)
@@ -71,9 +71,9 @@ def ssim_map(img: Tensor, ref: Tensor, window: int = SSIM_WINDOW, sigma: float =
     Returns:
         [B, C, H, W] SSIM values.
     """
-    _check_pair(img, ref)
+    check_pair(img, ref)
     x, y = _to_nchw(img, "img").contiguous(), _to_nchw(ref, "ref").contiguous()
-    g = _gauss_1d(window, sigma, x.dtype, str(x.device))
+    g = gauss_1d(window, sigma, x.dtype, str(x.device))
     _, _, a1, a2, b1, b2 = _ssim_terms(x, y, g)
     return (a1 * a2) / (b1 * b2)
 
@@ -123,9 +123,9 @@ class _NativeMeanSSIM(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x: Tensor, y: Tensor, g: Tensor) -> Tensor:
-        from cobgs.render import _ops
+        from cobgs.render import ops
 
-        mean, grad = _ops.ssim_mean_grad(x.detach(), y.detach(), g)
+        mean, grad = ops.ssim_mean_grad(x.detach(), y.detach(), g)
         ctx.save_for_backward(grad)
         return mean
 
@@ -135,7 +135,7 @@ class _NativeMeanSSIM(torch.autograd.Function):
         return grad_out * grad, None, None
 
 
-def _check_pair(img: Tensor, ref: Tensor) -> None:
+def check_pair(img: Tensor, ref: Tensor) -> None:
     if img.shape != ref.shape:
         raise InputError(f"img and ref must have the same shape, got {list(img.shape)} and {list(ref.shape)}")
 
@@ -148,14 +148,14 @@ def ssim(img: Tensor, ref: Tensor) -> Tensor:
     :class:`_NativeMeanSSIM`, on the CPU and CUDA once the extension is loaded); otherwise plain
     autograd.
     """
-    _check_pair(img, ref)
+    check_pair(img, ref)
     if ref.requires_grad or not img.requires_grad:
         return ssim_map(img, ref).mean()
     x, y = _to_nchw(img, "img").contiguous(), _to_nchw(ref, "ref").contiguous()
-    g = _gauss_1d(SSIM_WINDOW, SSIM_SIGMA, x.dtype, str(x.device))
+    g = gauss_1d(SSIM_WINDOW, SSIM_SIGMA, x.dtype, str(x.device))
     if y.dtype == x.dtype:
-        from cobgs.render import _ops
+        from cobgs.render import ops
 
-        if _ops.serves(x.device):  # the native fused op, when the rasterizer already loaded it
+        if ops.serves(x.device):  # the native fused op, when the rasterizer already loaded it
             return _NativeMeanSSIM.apply(x, y, g)
     return _MeanSSIM.apply(x, y, g)

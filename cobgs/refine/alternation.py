@@ -78,7 +78,7 @@ from cobgs.refine.scores import (
 )
 from cobgs.refine.split import boundary_split, raem_prune_mask, split_candidates
 from cobgs.render.image import render
-from cobgs._memory import retain_freed_memory
+from cobgs.memory import retain_freed_memory
 from cobgs.configs import FOREGROUND_LABEL, NGSConfig, RefineConfig
 
 __all__ = [
@@ -146,7 +146,7 @@ class Refiner:
             raise InputError(f"got {len(masks)} masks for {len(views)} views (one per view, None = none)")
         if not (isinstance(extent, (int, float)) and math.isfinite(extent) and extent > 0):
             raise InputError(f"extent must be a positive number, got {extent!r}")
-        retain_freed_memory()  # process-wide: see cobgs/_memory.py
+        retain_freed_memory()  # process-wide: see cobgs/memory.py
         self.model = model
         self.views = list(views)
         self.config = c = config

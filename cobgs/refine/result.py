@@ -17,7 +17,7 @@ from typing import Optional
 import torch
 from torch import Tensor
 
-from cobgs._memory import release_free_memory
+from cobgs.memory import release_free_memory
 from cobgs.errors import InputError
 from cobgs.gaussians.model import GaussianModel
 

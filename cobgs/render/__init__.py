@@ -2,8 +2,8 @@
 
 * :mod:`~cobgs.render.rasterize`: ``rasterize`` (the public entry, also ``cobgs.rasterize``);
 * :mod:`~cobgs.render.reference`: the pure-PyTorch oracle of every formula and cut-off;
-* :mod:`~cobgs.render._ops`: the native ops' wrappers (autograd, fake kernels), and
-  :mod:`~cobgs.render._build` / :mod:`~cobgs.render._toolchain`: their build and its checks;
+* :mod:`~cobgs.render.ops`: the native ops' wrappers (autograd, fake kernels), and
+  :mod:`~cobgs.render.build` / :mod:`~cobgs.render.toolchain`: their build and its checks;
 * :mod:`~cobgs.render.camera`, :mod:`~cobgs.gaussians.sh`: cameras and SH colours;
 * :mod:`~cobgs.render.image`: a model rendered at a camera; :mod:`~cobgs.render.turntable`:
   orbit GIFs; :mod:`~cobgs.render.splat_pack`: the report viewer's packed Gaussians;

@@ -44,13 +44,13 @@ def render(
     dev = model.device
     cam = camera.to(dev)
     if features is None:
-        from cobgs.render import _ops
+        from cobgs.render import ops
 
-        if backend == "native" and (dev.type == "cpu" or _ops.serves(dev)):
+        if backend == "native" and (dev.type == "cpu" or ops.serves(dev)):
             # One native op instead of ~60 small ATen ops (and their autograd nodes).
 
             deg = model.active_sh_degree if sh_degree is None else int(sh_degree)
-            features = _ops.sh_colors(model.data["means"], model.data["sh0"],
+            features = ops.sh_colors(model.data["means"], model.data["sh0"],
                                       model.data["shN"], cam.center, deg)
         else:
             features = model.colors(cam.center, degree=sh_degree)

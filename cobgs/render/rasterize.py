@@ -101,9 +101,9 @@ def rasterize(
     if backend == "reference":
         return rasterize_reference(means, quats, scales, opacities, features, viewmat, K,
                                    width, height, background, pixel_labels, num_labels)
-    from cobgs.render import _ops
+    from cobgs.render import ops
 
-    return _ops.rasterize_native(means, quats, scales, opacities, features, viewmat, K,
+    return ops.rasterize_native(means, quats, scales, opacities, features, viewmat, K,
                                  width, height, background, pixel_labels, num_labels)
 
 
@@ -155,13 +155,13 @@ def _validate(means, quats, scales, opacities, features, viewmat, K, width, heig
         if name in ("viewmat", "K") and not value.dtype.is_floating_point:
             raise InputError(f"{name} must be a floating-point tensor, got {value.dtype}")
     if backend == "native" and means.device.type != "cpu":
-        from cobgs.render import _ops
+        from cobgs.render import ops
 
-        _ops.check_serves(means.device)  # CUDA kernels built, or a clear error
+        ops.check_serves(means.device)  # CUDA kernels built, or a clear error
 
     with torch.no_grad():
         if not _seen(("camera",), (viewmat, K)):
-            _check_camera(viewmat, K)
+            check_camera(viewmat, K)
             _passed(("camera",), (viewmat, K))
         if pixel_labels is not None:
             if pixel_labels.dtype.is_floating_point or pixel_labels.dtype.is_complex or \
@@ -202,7 +202,7 @@ def _passed(what: tuple, tensors: tuple) -> None:
         _PASSED[tensors[0]] = (_key(what, tensors), tensors[1:])
 
 
-def _check_camera(viewmat: Tensor, K: Tensor) -> None:
+def check_camera(viewmat: Tensor, K: Tensor) -> None:
     # One copy to the host for both.
     cam = torch.cat([viewmat[3].double(), K.double().flatten()]).cpu()
     last_row, k = cam[:4], cam[4:].reshape(3, 3)

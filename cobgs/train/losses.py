@@ -6,7 +6,7 @@ import torch
 from torch import Tensor
 
 from cobgs.errors import InputError
-from cobgs.evaluate.ssim import SSIM_SIGMA, SSIM_WINDOW, _check_pair, _gauss_1d, ssim
+from cobgs.evaluate.ssim import SSIM_SIGMA, SSIM_WINDOW, check_pair, gauss_1d, ssim
 
 def l1_loss(img: Tensor, ref: Tensor) -> Tensor:
     """Mean absolute error (scalar)."""
@@ -23,10 +23,10 @@ class _NativePhotometricLoss(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, img: Tensor, ref: Tensor, ssim_weight: float) -> Tensor:
-        from cobgs.render import _ops
+        from cobgs.render import ops
 
-        g = _gauss_1d(SSIM_WINDOW, SSIM_SIGMA, img.dtype, str(img.device))
-        l1, s, grad = _ops.photometric_loss_grad(img.detach(), ref.detach(), g, ssim_weight)
+        g = gauss_1d(SSIM_WINDOW, SSIM_SIGMA, img.dtype, str(img.device))
+        l1, s, grad = ops.photometric_loss_grad(img.detach(), ref.detach(), g, ssim_weight)
         ctx.save_for_backward(grad)
         return (1.0 - ssim_weight) * l1 + ssim_weight * (1.0 - s)
 
@@ -47,12 +47,12 @@ def photometric_loss(img: Tensor, ref: Tensor, ssim_weight: float = 0.2) -> Tens
         img: [H, W, C] or [B, H, W, C] render.
         ref: the ground truth, same shape.
     """
-    _check_pair(img, ref)
+    check_pair(img, ref)
     if (img.requires_grad and not ref.requires_grad
             and img.dim() in (3, 4) and ref.dtype == img.dtype and ref.device == img.device
             and img.dtype in (torch.float32, torch.float64) and 0.0 <= ssim_weight <= 1.0):
-        from cobgs.render import _ops
+        from cobgs.render import ops
 
-        if _ops.serves(img.device):
+        if ops.serves(img.device):
             return _NativePhotometricLoss.apply(img, ref, float(ssim_weight))
     return (1.0 - ssim_weight) * l1_loss(img, ref) + ssim_weight * (1.0 - ssim(img, ref))

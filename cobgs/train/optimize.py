@@ -54,7 +54,7 @@ import torch
 from torch import Tensor
 
 from cobgs._atomic import write_bytes_atomic
-from cobgs._memory import retain_freed_memory
+from cobgs.memory import retain_freed_memory
 from cobgs.train.adam_moments import export_moments
 from cobgs.data.scene import Scene, View
 from cobgs.configs import TrainConfig
@@ -176,7 +176,7 @@ class Trainer:
     def __init__(self, scene: Scene, config: TrainConfig = TrainConfig(), model: Optional[GaussianModel] = None):
         if not scene.train:
             raise InputError("the scene has no training views")
-        retain_freed_memory()  # process-wide: see cobgs/_memory.py
+        retain_freed_memory()  # process-wide: see cobgs/memory.py
         self.scene = scene
         self.config = config
         self.sched = config.schedule()
@@ -287,11 +287,11 @@ class Trainer:
     def step(self) -> dict:
         """One optimisation iteration; returns ``{"loss", "psnr", "image"}`` of the view.
         With ``TrainConfig.fast_kernels`` (native backend, CPU), its forward and backward
-        passes take the CPU kernels' fast path (:func:`cobgs.render._ops.cpu_fast_path`)."""
+        passes take the CPU kernels' fast path (:func:`cobgs.render.ops.cpu_fast_path`)."""
         c = self.config
         if not (c.fast_kernels and c.backend == "native" and self.device.type == "cpu"):
             return self._step()
-        from cobgs.render._ops import cpu_fast_path
+        from cobgs.render.ops import cpu_fast_path
 
         with cpu_fast_path(True):
             return self._step()

@@ -77,8 +77,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print(f"cobgs: error: {clash}", file=sys.stderr)
         return 2
     # Large per-iteration tensors reuse freed memory instead of page-faulting fresh
-    # mmaps (cobgs/_memory.py: about 10 % of a training iteration).
-    from cobgs._memory import retain_freed_memory
+    # mmaps (cobgs/memory.py: about 10 % of a training iteration).
+    from cobgs.memory import retain_freed_memory
 
     retain_freed_memory()
     parser = build_parser()

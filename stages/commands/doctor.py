@@ -2,7 +2,7 @@
 
 It prints the compiler, torch, CUDA and nvcc versions, the native extension's path and how it
 was built, then checks: the extension's error probe (a C++ error must reach Python as a
-``RuntimeError`` holding its numbers, :mod:`cobgs.render._toolchain`), a small render on every
+``RuntimeError`` holding its numbers, :mod:`cobgs.render.toolchain`), a small render on every
 device against the pure-PyTorch reference (:func:`cobgs.render.selfcheck.parity`), and the
 forward + backward time of one 100k-Gaussian render per device. Exit code 1 when any check
 fails; ``--json FILE`` (``-``: standard output) writes the same as one JSON record.
@@ -22,8 +22,8 @@ def collect(timing: bool = True) -> dict:
 
     from cobgs import __version__
     from cobgs.errors import BuildError
-    from cobgs.render import _build
-    from cobgs.render._toolchain import compiler_identity, probe_library
+    from cobgs.render import build
+    from cobgs.render.toolchain import compiler_identity, probe_library
     from cobgs.render.selfcheck import parity, timing as time_render
 
     rec: dict = {"cobgs": __version__, "python": platform.python_version(),
@@ -43,16 +43,16 @@ def collect(timing: bool = True) -> dict:
     except Exception as exc:  # noqa: BLE001 - a broken driver is a finding, not a crash
         rec["gpus_error"] = f"{type(exc).__name__}: {exc}"
     try:
-        plan = _build.cuda_plan()
+        plan = build.cuda_plan()
     except BuildError as exc:  # COBGS_CUDA=1 with a piece missing: the build below says it too
         plan = {"enabled": False, "reason": str(exc)}
     rec["cuda_plan"] = plan
-    home = _build._cuda_home()
-    rec["nvcc"] = {"path": str(home / "bin" / "nvcc"), "version": _build._nvcc_version(str(home / "bin" / "nvcc"))} \
+    home = build.cuda_home()
+    rec["nvcc"] = {"path": str(home / "bin" / "nvcc"), "version": build.nvcc_version(str(home / "bin" / "nvcc"))} \
         if home else None
     checks: dict = {}
     try:
-        so = _build.load_extension()
+        so = build.load_extension()
     except (BuildError, OSError) as exc:  # (an unwritable cache is a finding too: the record is printed)
         text = str(exc) if isinstance(exc, BuildError) else f"{type(exc).__name__}: {exc}"
         rec["extension"] = {"error": text[:4000]}
@@ -61,20 +61,20 @@ def collect(timing: bool = True) -> dict:
         return rec
     from pathlib import Path
 
-    from cobgs.render._toolchain import links_libstdcxx_statically
+    from cobgs.render.toolchain import links_libstdcxx_statically
 
-    built = _build.read_probe(Path(so).parent) or {}
+    built = build.read_probe(Path(so).parent) or {}
     # what the library's dynamic section says now, not what probe.json claims
     static = links_libstdcxx_statically(Path(so))
-    rec["extension"] = {"path": so, "build_key": _build.build_key()[:16], "cflags": _build._cflags(),
-                        "ldflags": _build.LDFLAGS, "cuda_flags": _build.CUDA_FLAGS if plan.get("enabled") else None,
+    rec["extension"] = {"path": so, "build_key": build.build_key()[:16], "cflags": build.cflags(),
+                        "ldflags": build.LDFLAGS, "cuda_flags": build.CUDA_FLAGS if plan.get("enabled") else None,
                         "built_with": built.get("compiler"), "switched_from": built.get("switched_from"),
                         "libstdcxx": "static" if static else "dynamic",
                         "cuda_kernels": bool(plan.get("enabled"))}
     checks["libstdcxx"] = {"ok": not static, "detail": "the library links libstdc++ statically: its C++ errors "
                            "would not reach Python intact (rebuild: `cobgs build --force`)" if static else
                            "linked dynamically"}
-    from cobgs.render._ops import cuda_fast_path_on
+    from cobgs.render.ops import cuda_fast_path_on
 
     rec["extension"]["cuda_blend_path"] = "fast" if cuda_fast_path_on() else "exact"
     probe = probe_library(so)

@@ -181,11 +181,11 @@ def _run(args) -> int:
     import sys
 
     from pipeline import PipelineError, load_workflow
-    from pipeline.commands import default_cache_dir
+    from pipeline.cache import default_cache_dir
     from stages.registry import load_registry
 
     try:
-        wf = load_workflow(args.workflow, load_registry(), args.set or [])
+        wf = load_workflow(args.workflow, load_registry(), args.sets)
     except PipelineError as exc:
         print(f"cobgs export: {exc}", file=sys.stderr)
         return 2
@@ -256,9 +256,9 @@ def register(sub) -> None:
                         "export that holds files cobgs did not write, unless --replace is given")
     p.add_argument("--replace", action="store_true",
                    help="replace an earlier export of cobgs even where files were added to it (they are deleted)")
-    p.add_argument("--set", action="append", metavar="K=V", help="same overrides as `cobgs run`")
-    from pipeline.commands import add_cache_dir
+    from pipeline.commands import add_cache_dir, add_sets
 
+    add_sets(p)
     add_cache_dir(p)
     p.add_argument("--no-ply", action="store_true",
                    help="metrics, masks and summary only: leave the PLYs in the cache (large workflows)")

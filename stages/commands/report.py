@@ -23,11 +23,10 @@ def register(sub) -> None:
                                  "cobgs did not write, unless --replace is given")
     p.add_argument("--replace", action="store_true",
                    help="replace an earlier report of cobgs even where files were added to it (they are deleted)")
-    from pipeline.commands import add_cache_dir
+    from pipeline.commands import add_cache_dir, add_sets
 
+    add_sets(p)
     add_cache_dir(p)
-    p.add_argument("--set", dest="sets", action="append", default=[], metavar="KEY=VALUE",
-                   help="the same overrides the run used (they select its cache entries)")
     p.add_argument("--turntables", type=frame_count, default=0, metavar="N",
                    help="per method and object, N-frame orbit GIFs of the object alone and of the scene "
                         "without it (rendered on the CPU while building; 0 = none)")

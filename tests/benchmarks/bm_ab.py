@@ -59,7 +59,7 @@ def child(args) -> int:
     torch.set_num_threads(args.threads)
     # The variant's cobgs first: bm_train_iter puts this checkout's root on sys.path.
     import cobgs
-    from cobgs.render import _ops
+    from cobgs.render import ops
     from cobgs.train.optimize import Trainer, load_model
     from cobgs.configs import TrainConfig
 
@@ -80,17 +80,17 @@ def child(args) -> int:
     with torch.no_grad():
         d = m.data
         feats = m.colors(cam.center).detach().contiguous()
-        m2, con, dep, radii = _ops.project(d["means"].detach(), d["quats"].detach(), m.scales.detach(),
+        m2, con, dep, radii = ops.project(d["means"].detach(), d["quats"].detach(), m.scales.detach(),
                                           cam.viewmat, cam.K, w, h)
         op = m.opacities.detach().contiguous()
     ops_out = {}
 
     def binning():
-        ops_out["bin"] = _ops.bin_tiles_tight(m2, radii, dep, con, op, w, h)
+        ops_out["bin"] = ops.bin_tiles_tight(m2, radii, dep, con, op, w, h)
 
     def fwd():
         off, ids, prep = ops_out["bin"]
-        ops_out["fwd"] = _ops.blend(m2, con, op, feats, bg, off, ids, w, h, prep=prep)
+        ops_out["fwd"] = ops.blend(m2, con, op, feats, bg, off, ids, w, h, prep=prep)
 
     g = torch.Generator().manual_seed(0)
     v_img = torch.randn(h, w, feats.shape[1], generator=g) * 1e-3

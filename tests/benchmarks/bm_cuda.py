@@ -103,7 +103,7 @@ def bench_kernels(args) -> None:
     stages render); gsplat renders the channel alone."""
     import itertools
 
-    from cobgs.render._ops import cuda_fast_path
+    from cobgs.render.ops import cuda_fast_path
 
     rows = []
     for channels, path in itertools.product([int(c) for c in args.channels.split(",")], args.paths.split(",")):
@@ -279,7 +279,7 @@ def bench_fern(args) -> None:
     from cobgs.data.colmap import read_colmap
     from cobgs.gaussians.ply import save_ply
     from cobgs.refine.alternation import refine
-    from cobgs.render._ops import cuda_fast_path
+    from cobgs.render.ops import cuda_fast_path
     from cobgs.train.optimize import train
 
     out = Path(args.out)

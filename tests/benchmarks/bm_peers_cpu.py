@@ -18,7 +18,7 @@ Peers:
   ``_rasterize_to_pixels`` (gsplat 1.5.3) finds the (Gaussian, pixel) pairs with a CUDA
   kernel (``rasterize_to_indices_in_range`` from ``_wrapper``), so the whole render cannot run
   without CUDA: the script records that, and times the part that is PyTorch — projection and
-  sorted tile intersection, forward — beside ours (``cobgs.render._ops.project`` + ``bin_tiles``).
+  sorted tile intersection, forward — beside ours (``cobgs.render.ops.project`` + ``bin_tiles``).
 * **taichi-splatting** on Taichi's CPU backend: every release on PyPI (0.7.0–0.13.0) builds a
   CUDA library (radix sort, prefix sum) when imported and depends on ``taichi-nightly``,
   which is not on PyPI; it cannot run on a machine without CUDA. The script says so and
@@ -106,11 +106,11 @@ def gsplat_torch(leaves, width, height):
 
 
 def ours_binning(tensors, width, height):
-    from cobgs.render import _ops
+    from cobgs.render import ops
 
     means, quats, scales, opacities, features, viewmat, K = tensors
-    means2d, conics, depths, radii = _ops.project(means, quats, scales, viewmat, K, width, height)
-    return _ops.bin_tiles(means2d, radii, depths, width, height)
+    means2d, conics, depths, radii = ops.project(means, quats, scales, viewmat, K, width, height)
+    return ops.bin_tiles(means2d, radii, depths, width, height)
 
 
 def gsplat_binning(tensors, width, height):

@@ -92,9 +92,9 @@ def main(argv=None) -> int:
     if args.scene != "bm" and args.ply is None:
         args.ply = Path("/tmp/cobgs_bm_train") / f"{args.scene}.ply"
     torch.set_num_threads(args.threads)
-    from cobgs.render import _ops
+    from cobgs.render import ops
 
-    _ops.ensure_loaded()
+    ops.ensure_loaded()
     means, quats, scales, op, feat, vm, K, w, h, gi, ga, trainer = view_tensors(args)
     P = torch.ops.cobgs
     bg = torch.zeros(feat.shape[1])

@@ -44,7 +44,7 @@ achieved / floor says how far the kernels are from compute-bound. CPU time is co
 with FLOPs / peak-per-thread.
 
 Targets (issue 10): forward + backward <= 60 ms wall (2 threads, 504x378, 100k).
-The CPU fast path (issue 45: fused multiply-adds, ``cobgs.render._ops.cpu_fast_path``) is
+The CPU fast path (issue 45: fused multiply-adds, ``cobgs.render.ops.cpu_fast_path``) is
 timed in the same loop, one run of each path per repetition, and printed as ratios.
 """
 
@@ -189,15 +189,15 @@ def main(argv=None) -> int:
     # Warm-up (also builds/loads the extension) and scene statistics.
     _, _, out = run_once(tensors, "native", gi, ga, labels=torch.zeros(H, W, dtype=torch.int32))
     vis = out.radii > 0
-    from cobgs.render import _ops
+    from cobgs.render import ops
 
-    tile_offsets, flat_ids = _ops.bin_tiles(out.means2d, out.radii, out.depths, W, H)
+    tile_offsets, flat_ids = ops.bin_tiles(out.means2d, out.radii, out.depths, W, H)
     contributions = int(out.label_counts.sum())
     evaluated = count_evaluated(out.means2d.detach().double(), out.conics.detach().double(),
                                 tensors[3], tile_offsets, flat_ids, W, H)
     print(f"scene: N = {args.n}, {W}x{H}, seed {args.seed}, threads {args.threads}, "
           f"OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}, torch {torch.__version__}")
-    _, tight_ids, _ = _ops.bin_tiles_tight(out.means2d, out.radii, out.depths, out.conics,
+    _, tight_ids, _ = ops.bin_tiles_tight(out.means2d, out.radii, out.depths, out.conics,
                                            tensors[3].detach(), W, H)
     print(f"  visible {int(vis.sum())}, mean radius {out.radii[vis].float().mean():.2f} px, "
           f"tile-list entries {flat_ids.numel()} (3-sigma boxes; the tight lists rasterize "
@@ -215,7 +215,7 @@ def main(argv=None) -> int:
         nat_f.append(f)
         nat_b.append(b)
         # The CPU fast path (fused multiply-adds, issue 45), interleaved with the exact one.
-        with _ops.cpu_fast_path(True):
+        with ops.cpu_fast_path(True):
             f, b, _ = run_once(tensors, "native", gi, ga)
         fast_f.append(f)
         fast_b.append(b)
@@ -228,7 +228,7 @@ def main(argv=None) -> int:
     print(f"native    forward {nf:8.1f} ms   backward {nb:8.1f} ms   total {nf + nb:8.1f} ms"
           f"   (median of {args.reps}, wall)")
     ff_, fb_ = median_ms(fast_f), median_ms(fast_b)
-    with _ops.cpu_fast_path(True):
+    with ops.cpu_fast_path(True):
         _, _, out_fast = run_once(tensors, "native", gi, ga, backward=False)
     _, _, out_exact = run_once(tensors, "native", gi, ga, backward=False)
     diff = float((out_fast.image - out_exact.image).abs().max())

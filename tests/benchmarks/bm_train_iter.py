@@ -79,17 +79,17 @@ def load_scene(kind: str, sfm_dir: Path):
 def scene_cost(model, camera, background) -> str:
     """What a view of the model costs the blend: tile-list entries per pixel, how far the
     pixels get down their lists (last contributor's rank) and how opaque they end up."""
-    from cobgs.render import _ops
+    from cobgs.render import ops
 
     with torch.no_grad():
         d = model.data
         feats = model.colors(camera.center).detach()
-        m2, con, dep, radii = _ops.project(d["means"].detach(), d["quats"].detach(), model.scales.detach(),
+        m2, con, dep, radii = ops.project(d["means"].detach(), d["quats"].detach(), model.scales.detach(),
                                           camera.viewmat, camera.K, camera.width, camera.height)
-        full = _ops.bin_tiles(m2, radii, dep, camera.width, camera.height)[1].numel()
-        off, ids, prep = _ops.bin_tiles_tight(m2, radii, dep, con, model.opacities.detach(),
+        full = ops.bin_tiles(m2, radii, dep, camera.width, camera.height)[1].numel()
+        off, ids, prep = ops.bin_tiles_tight(m2, radii, dep, con, model.opacities.detach(),
                                               camera.width, camera.height)
-        _, trans, n_contrib, _, _ = _ops.blend(m2, con, model.opacities.detach(), feats, background,
+        _, trans, n_contrib, _, _ = ops.blend(m2, con, model.opacities.detach(), feats, background,
                                                off, ids, camera.width, camera.height, None, 2, prep)
     n_tiles = off.numel() - 1
     return (f"view {camera.name}: {int((radii > 0).sum())} Gaussians in view, "
@@ -203,7 +203,7 @@ def main(argv=None) -> int:
         probes.append(probe.run())
 
     # The parts, on the same views, with the trainer's own model and optimizer.
-    from cobgs.render import _ops
+    from cobgs.render import ops
     from cobgs.render.image import render
 
     model, opt = trainer.model, trainer.optimizer
@@ -211,8 +211,8 @@ def main(argv=None) -> int:
     for _, view in seen:
         cam = view.camera
         with Clock() as c_sh:
-            if hasattr(_ops, "sh_colors"):  # as render() does
-                feats = _ops.sh_colors(model.data["means"], model.data["sh0"],
+            if hasattr(ops, "sh_colors"):  # as render() does
+                feats = ops.sh_colors(model.data["means"], model.data["sh0"],
                                        model.data["shN"], cam.center, model.active_sh_degree)
             else:  # an older checkout (before the native SH op), for comparisons
                 feats = model.colors(cam.center)

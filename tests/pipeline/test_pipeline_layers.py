@@ -151,3 +151,69 @@ def test_cobgs_subpackages_form_layers():
     assert not bad, "\n".join(bad)
     assert set(COBGS_LAYERS) == {p.name for p in (REPO / "cobgs").iterdir()
                                  if p.is_dir() and (p / "__init__.py").is_file()}
+
+
+def _private(part: str) -> bool:
+    return part.startswith("_") and not (part.startswith("__") and part.endswith("__"))
+
+
+def private_imports(*packages: str) -> list[str]:
+    """Every import of a private name (a module or a name starting with ``_``) from a package
+    that is not the importer's own nor one of its ancestors (issue 58: what a subpackage keeps
+    private is its own; what a package shares with all its subpackages, such as
+    ``cobgs/_atomic.py``, sits in the package itself)."""
+    files = {_module_name(f): f for p in packages for f in sorted((REPO / p).rglob("*.py"))}
+
+    def home(mod: str) -> str:
+        parts = mod.split(".")
+        return mod if files[mod].name == "__init__.py" else ".".join(parts[:-1])
+
+    found = []
+    for mod, f in files.items():
+        here = home(mod)
+        base_parts = mod.split(".") if f.name == "__init__.py" else mod.split(".")[:-1]
+        for node in ast.walk(ast.parse(f.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = node.module or ""
+                if node.level:
+                    base = ".".join(base_parts[: len(base_parts) - node.level + 1] + ([node.module] if node.module else []))
+                names = [f"{base}.{a.name}" for a in node.names]
+            else:
+                continue
+            for full in names:
+                parts = full.split(".")
+                k = len(parts)
+                while k and ".".join(parts[:k]) not in files:
+                    k -= 1
+                if not k or parts[0] not in packages:
+                    continue
+                owner = home(".".join(parts[:k]))
+                if here == owner or here.startswith(owner + "."):
+                    continue  # its own package, or an ancestor's shared helpers
+                if any(_private(p) for p in parts[len(owner.split(".")):]):
+                    found.append(f"{f.relative_to(REPO)}:{node.lineno} imports {full}")
+    return found
+
+
+def test_no_private_name_is_imported_from_another_subpackage():
+    """Issue 58 item 7: train/losses.py took evaluate.ssim's _check_pair / _gauss_1d,
+    stages/sfm.py data.sfm's _check_camera, the commands render._build; what another
+    subpackage needs is public in its module."""
+    assert private_imports(*PACKAGES) == []
+
+
+def test_the_private_import_finder_finds_one(tmp_path, monkeypatch):
+    import sys
+
+    pkg = tmp_path / "pkg"
+    for sub in ("a", "b"):
+        (pkg / sub).mkdir(parents=True)
+        (pkg / sub / "__init__.py").write_text("")
+    (pkg / "__init__.py").write_text("")
+    (pkg / "_shared.py").write_text("def _h(): pass\n")
+    (pkg / "a" / "m.py").write_text("def _x(): pass\n")
+    (pkg / "b" / "n.py").write_text("from pkg.a.m import _x\nfrom pkg._shared import _h\nfrom ..a import m\n")
+    monkeypatch.setattr(sys.modules[__name__], "REPO", tmp_path)
+    assert private_imports("pkg") == ["pkg/b/n.py:1 imports pkg.a.m._x"]

@@ -12,7 +12,7 @@ import math
 import pytest
 import torch
 
-from cobgs.render import _ops
+from cobgs.render import ops
 from cobgs.render import reference as ref
 
 W, H = 70, 45
@@ -20,7 +20,7 @@ W, H = 70, 45
 
 @pytest.fixture(scope="module", autouse=True)
 def _loaded():
-    _ops.ensure_loaded()
+    ops.ensure_loaded()
 
 
 def scene(dtype, n=400, seed=0):
@@ -37,7 +37,7 @@ def scene(dtype, n=400, seed=0):
     features = rnd(n, 3)
     viewmat = torch.eye(4, dtype=dtype)
     K = torch.tensor([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1]], dtype=dtype)
-    m2, conics, depths, radii = _ops.project(means, quats, scales, viewmat, K, W, H)
+    m2, conics, depths, radii = ops.project(means, quats, scales, viewmat, K, W, H)
     return m2, conics, depths, radii, opacities, features
 
 
@@ -48,8 +48,8 @@ def lists(offsets, ids):
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_tight_lists_are_the_reachable_part_of_the_3sigma_lists(dtype):
     m2, conics, depths, radii, opacities, _ = scene(dtype)
-    off, ids = _ops.bin_tiles(m2, radii, depths, W, H)
-    t_off, t_ids, prep = _ops.bin_tiles_tight(m2, radii, depths, conics, opacities, W, H)
+    off, ids = ops.bin_tiles(m2, radii, depths, W, H)
+    t_off, t_ids, prep = ops.bin_tiles_tight(m2, radii, depths, conics, opacities, W, H)
     full, tight = lists(off, ids), lists(t_off, t_ids)
     assert t_ids.numel() < 0.8 * ids.numel()  # the scene has plenty to drop
     tiles_x = (W + 15) // 16
@@ -75,11 +75,11 @@ def test_blend_on_tight_lists_is_bit_identical(dtype):
     m2, conics, depths, radii, opacities, features = scene(dtype)
     bg = torch.tensor([0.2, 0.5, 0.9], dtype=dtype)
     labels = torch.randint(-1, 3, (H, W), generator=torch.Generator().manual_seed(1), dtype=torch.int32)
-    off, ids = _ops.bin_tiles(m2, radii, depths, W, H)
-    t_off, t_ids, prep = _ops.bin_tiles_tight(m2, radii, depths, conics, opacities, W, H)
-    a = _ops.blend(m2, conics, opacities, features, bg, off, ids, W, H, labels, 3)
+    off, ids = ops.bin_tiles(m2, radii, depths, W, H)
+    t_off, t_ids, prep = ops.bin_tiles_tight(m2, radii, depths, conics, opacities, W, H)
+    a = ops.blend(m2, conics, opacities, features, bg, off, ids, W, H, labels, 3)
     for p in (None, prep):
-        b = _ops.blend(m2, conics, opacities, features, bg, t_off, t_ids, W, H, labels, 3, prep=p)
+        b = ops.blend(m2, conics, opacities, features, bg, t_off, t_ids, W, H, labels, 3, prep=p)
         for k in (0, 1, 3, 4):  # image, transmittance, label counts, label weights
             assert torch.equal(a[k], b[k]), k
     # Backward: the same gradients, with and without the shared records.
@@ -87,7 +87,7 @@ def test_blend_on_tight_lists_is_bit_identical(dtype):
     v_img = torch.randn(H, W, 3, generator=g, dtype=dtype)
     v_tr = torch.randn(H, W, generator=g, dtype=dtype)
     ga = torch.ops.cobgs.blend_bwd(m2, conics, opacities, features, bg, off, ids, a[1], a[2], v_img, v_tr)
-    b = _ops.blend(m2, conics, opacities, features, bg, t_off, t_ids, W, H, prep=prep)
+    b = ops.blend(m2, conics, opacities, features, bg, t_off, t_ids, W, H, prep=prep)
     for p in (None, prep):
         gb = torch.ops.cobgs.blend_bwd(m2, conics, opacities, features, bg, t_off, t_ids, b[1], b[2],
                                        v_img, v_tr, p)
@@ -98,8 +98,8 @@ def test_blend_on_tight_lists_is_bit_identical(dtype):
 def test_rasterize_native_matches_reference_through_the_tight_path():
     m2, conics, depths, radii, opacities, features = scene(torch.float64, n=150, seed=3)
     bg = torch.zeros(3, dtype=torch.float64)
-    off, ids, prep = _ops.bin_tiles_tight(m2, radii, depths, conics, opacities, W, H)
-    img, trans, *_ = _ops.blend(m2, conics, opacities, features, bg, off, ids, W, H, prep=prep)
+    off, ids, prep = ops.bin_tiles_tight(m2, radii, depths, conics, opacities, W, H)
+    img, trans, *_ = ops.blend(m2, conics, opacities, features, bg, off, ids, W, H, prep=prep)
     r_off, r_ids = ref.bin_tiles_reference(m2, radii, depths, W, H)
     r_img, r_trans, *_ = ref.blend_reference(m2, conics, opacities, features, bg, r_off, r_ids, W, H)
     torch.testing.assert_close(img, r_img, rtol=1e-9, atol=1e-9)
@@ -115,26 +115,26 @@ def test_opcheck_bin_tiles_tight():
 def test_bad_prep_is_refused_with_a_clear_error():
     m2, conics, depths, radii, opacities, features = scene(torch.float32, n=30)
     bg = torch.zeros(3)
-    off, ids, prep = _ops.bin_tiles_tight(m2, radii, depths, conics, opacities, W, H)
+    off, ids, prep = ops.bin_tiles_tight(m2, radii, depths, conics, opacities, W, H)
     with pytest.raises(RuntimeError, match="prep"):
-        _ops.blend(m2, conics, opacities, features, bg, off, ids, W, H, prep=prep[:-1].clone())
+        ops.blend(m2, conics, opacities, features, bg, off, ids, W, H, prep=prep[:-1].clone())
     with pytest.raises(RuntimeError, match="prep"):
-        _ops.blend(m2, conics, opacities, features, bg, off, ids, W, H, prep=prep.view(torch.int8))
+        ops.blend(m2, conics, opacities, features, bg, off, ids, W, H, prep=prep.view(torch.int8))
     # float64 inputs need float64 records (a different size)
     m2d, cod, opd = m2.double(), conics.double(), opacities.double()
     with pytest.raises(RuntimeError, match="prep"):
-        _ops.blend(m2d, cod, opd, features.double(), bg.double(), off, ids, W, H, prep=prep)
+        ops.blend(m2d, cod, opd, features.double(), bg.double(), off, ids, W, H, prep=prep)
 
 
 def test_autograd_through_blend_with_prep_matches_without():
     m2, conics, depths, radii, opacities, features = scene(torch.float64, n=60, seed=4)
     bg = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
-    t_off, t_ids, prep = _ops.bin_tiles_tight(m2, radii, depths, conics, opacities, W, H)
+    t_off, t_ids, prep = ops.bin_tiles_tight(m2, radii, depths, conics, opacities, W, H)
     w = torch.randn(H, W, 3, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
     grads = []
     for p in (None, prep):
         leaves = [t.clone().requires_grad_() for t in (m2, conics, opacities, features, bg)]
-        img, trans, *_ = _ops.blend(*leaves, t_off, t_ids, W, H, prep=p)
+        img, trans, *_ = ops.blend(*leaves, t_off, t_ids, W, H, prep=p)
         ((img * w).sum() + trans.sum()).backward()
         grads.append([t.grad for t in leaves])
     for a, b in zip(*grads):

@@ -12,13 +12,13 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from cobgs.render import _ops
-from cobgs.evaluate.ssim import _gauss_1d
+from cobgs.render import ops
+from cobgs.evaluate.ssim import gauss_1d
 
 
 @pytest.fixture(scope="module", autouse=True)
 def _loaded():
-    _ops.ensure_loaded()
+    ops.ensure_loaded()
 
 
 def conv_blur(t, g):
@@ -32,19 +32,19 @@ def conv_blur(t, g):
 @pytest.mark.parametrize("shape", [(1, 15, 37, 53), (2, 3, 5, 4), (1, 1, 1, 30)])
 def test_matches_conv2d(dtype, tol, shape):
     x = torch.rand(shape, generator=torch.Generator().manual_seed(0), dtype=dtype)
-    g = _gauss_1d(11, 1.5, dtype, "cpu")
-    nat = _ops.gauss_blur(x, g)
+    g = gauss_1d(11, 1.5, dtype, "cpu")
+    nat = ops.gauss_blur(x, g)
     ref = conv_blur(x, g)
     torch.testing.assert_close(nat, ref, rtol=0, atol=tol * ref.abs().max().item())
     # An asymmetric kernel: a cross-correlation, as conv2d.
     h = torch.arange(1.0, 6.0, dtype=dtype)
-    torch.testing.assert_close(_ops.gauss_blur(x, h), conv_blur(x, h), rtol=0,
+    torch.testing.assert_close(ops.gauss_blur(x, h), conv_blur(x, h), rtol=0,
                                atol=tol * 50 * x.abs().max().item())
 
 
 def test_opcheck_and_errors():
     x = torch.rand(1, 2, 6, 7, dtype=torch.float64)
-    g = _gauss_1d(3, 1.0, torch.float64, "cpu")
+    g = gauss_1d(3, 1.0, torch.float64, "cpu")
     torch.library.opcheck(torch.ops.cobgs.gauss_blur, (x, g))
     with pytest.raises(RuntimeError, match="odd length"):
         torch.ops.cobgs.gauss_blur(x, torch.ones(4, dtype=torch.float64))
@@ -75,8 +75,8 @@ def test_fused_ssim_op_matches_the_python_analytic_path(dtype, tol):
     g = torch.Generator().manual_seed(4)
     x = torch.rand(2, 3, 23, 31, generator=g, dtype=torch.float64).to(dtype)  # batch of 2
     y = torch.rand(2, 3, 23, 31, generator=g, dtype=torch.float64).to(dtype)
-    w = _gauss_1d(SSIM_WINDOW, SSIM_SIGMA, dtype, "cpu")
-    mean, grad = _ops.ssim_mean_grad(x, y, w)
+    w = gauss_1d(SSIM_WINDOW, SSIM_SIGMA, dtype, "cpu")
+    mean, grad = ops.ssim_mean_grad(x, y, w)
     xr = x.clone().requires_grad_()
     ref = _MeanSSIM.apply(xr, y, w)  # the pure-PyTorch analytic forward and backward
     ref.backward()
@@ -91,13 +91,13 @@ def test_fused_ssim_op_does_not_depend_on_the_thread_count(dtype):
     g = torch.Generator().manual_seed(5)
     x = torch.rand(2, 3, 41, 45, generator=g, dtype=dtype)
     y = (x + 0.1 * torch.randn(x.shape, generator=g, dtype=dtype)).clamp(0, 1)
-    w = _gauss_1d(11, 1.5, dtype, "cpu")
+    w = gauss_1d(11, 1.5, dtype, "cpu")
     before = torch.get_num_threads()
     try:
         outs = []
         for threads in (1, 2, 3):
             torch.set_num_threads(threads)
-            outs.append(_ops.ssim_mean_grad(x, y, w))
+            outs.append(ops.ssim_mean_grad(x, y, w))
     finally:
         torch.set_num_threads(before)
     for mean, grad in outs[1:]:
@@ -108,7 +108,7 @@ def test_fused_ssim_op_does_not_depend_on_the_thread_count(dtype):
 def test_fused_ssim_opcheck_and_errors():
     x = torch.rand(1, 3, 9, 11, dtype=torch.float64)
     y = torch.rand(1, 3, 9, 11, dtype=torch.float64)
-    w = _gauss_1d(5, 1.0, torch.float64, "cpu")
+    w = gauss_1d(5, 1.0, torch.float64, "cpu")
     torch.library.opcheck(torch.ops.cobgs.ssim_mean_grad, (x, y, w))
     with pytest.raises(RuntimeError, match="y must have the shape of x"):
         torch.ops.cobgs.ssim_mean_grad(x, y[:, :2], w)
@@ -142,8 +142,8 @@ def test_fused_photometric_loss_matches_autograd(dtype, tol, shape, lam):
     img = torch.rand(shape, generator=g, dtype=torch.float64).to(dtype)
     ref = torch.rand(shape, generator=g, dtype=torch.float64).to(dtype)
     ref.view(-1)[::5] = img.view(-1)[::5]
-    w = _gauss_1d(SSIM_WINDOW, SSIM_SIGMA, dtype, "cpu")
-    l1, s, grad = _ops.photometric_loss_grad(img, ref, w, lam)
+    w = gauss_1d(SSIM_WINDOW, SSIM_SIGMA, dtype, "cpu")
+    l1, s, grad = ops.photometric_loss_grad(img, ref, w, lam)
     loss, ref_grad = _photometric_reference(img, ref, lam)
     torch.testing.assert_close((1 - lam) * l1 + lam * (1 - s), loss, rtol=0, atol=tol)
     torch.testing.assert_close(l1, (img - ref).abs().mean(), rtol=0, atol=tol)
@@ -157,9 +157,9 @@ def test_fused_photometric_ssim_part_is_the_planar_ops_bit_for_bit():
     g = torch.Generator().manual_seed(7)
     img = torch.rand(2, 29, 35, 3, generator=g)
     ref = torch.rand(2, 29, 35, 3, generator=g)
-    w = _gauss_1d(11, 1.5, torch.float32, "cpu")
-    _, s, grad = _ops.photometric_loss_grad(img, ref, w, 1.0)
-    mean, planar = _ops.ssim_mean_grad(img.permute(0, 3, 1, 2).contiguous(),
+    w = gauss_1d(11, 1.5, torch.float32, "cpu")
+    _, s, grad = ops.photometric_loss_grad(img, ref, w, 1.0)
+    mean, planar = ops.ssim_mean_grad(img.permute(0, 3, 1, 2).contiguous(),
                                        ref.permute(0, 3, 1, 2).contiguous(), w)
     assert torch.equal(grad, -planar.permute(0, 2, 3, 1))
     torch.testing.assert_close(s, mean, rtol=0, atol=1e-6)
@@ -169,13 +169,13 @@ def test_fused_photometric_does_not_depend_on_the_thread_count():
     g = torch.Generator().manual_seed(8)
     img = torch.rand(53, 61, 3, generator=g)
     ref = torch.rand(53, 61, 3, generator=g)
-    w = _gauss_1d(11, 1.5, torch.float32, "cpu")
+    w = gauss_1d(11, 1.5, torch.float32, "cpu")
     before = torch.get_num_threads()
     try:
         outs = []
         for threads in (1, 2, 3):
             torch.set_num_threads(threads)
-            outs.append(_ops.photometric_loss_grad(img, ref, w, 0.2))
+            outs.append(ops.photometric_loss_grad(img, ref, w, 0.2))
     finally:
         torch.set_num_threads(before)
     for out in outs[1:]:
@@ -204,7 +204,7 @@ def test_photometric_loss_takes_the_fused_path_and_agrees():
 def test_fused_photometric_opcheck_and_errors():
     img = torch.rand(9, 11, 3, dtype=torch.float64)
     ref = torch.rand(9, 11, 3, dtype=torch.float64)
-    w = _gauss_1d(5, 1.0, torch.float64, "cpu")
+    w = gauss_1d(5, 1.0, torch.float64, "cpu")
     torch.library.opcheck(torch.ops.cobgs.photometric_loss_grad, (img, ref, w, 0.2))
     with pytest.raises(RuntimeError, match="ref must have the shape of img"):
         torch.ops.cobgs.photometric_loss_grad(img, ref[:, :5].contiguous(), w, 0.2)

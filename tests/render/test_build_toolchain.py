@@ -1,7 +1,7 @@
 """A C++ error must be a Python error, whatever compiler builds the extension (issue 46).
 
 Small one-op libraries go through the same checked build as the rasterizer
-(``cobgs.render._build.ensure_library``): a compiler wrapper that links libstdc++ statically
+(``cobgs.render.build.ensure_library``): a compiler wrapper that links libstdc++ statically
 (``g++ -static-libstdc++``, as a cluster's portable-binary wrapper does) must be replaced by
 one that links it dynamically, or the build must fail saying how to fix it; the error probe
 must catch a library whose error path drops the numbers (g++ 12 with -static-libstdc++ here)
@@ -21,8 +21,8 @@ from pathlib import Path
 import pytest
 
 from cobgs.errors import BuildError
-from cobgs.render import _build
-from cobgs.render._toolchain import links_libstdcxx_statically, needed_libraries, probe_library
+from cobgs.render import build
+from cobgs.render.toolchain import links_libstdcxx_statically, needed_libraries, probe_library
 
 REPO = Path(__file__).resolve().parents[2]
 GXX = shutil.which("g++")
@@ -43,10 +43,10 @@ TORCH_LIBRARY(%s, m) { m.def("error_probe(int n) -> int", &error_probe); }
 """
 
 
-def _spec(tmp: Path, namespace: str, abort: bool = False, ldflags=()) -> _build.BuildSpec:
+def _spec(tmp: Path, namespace: str, abort: bool = False, ldflags=()) -> build.BuildSpec:
     src = tmp / f"{namespace}.cpp"
     src.write_text(PROBE_CPP % ("if (n != 0) std::abort();" if abort else "", namespace))
-    return _build.BuildSpec((str(src),), ("-O0",), tuple(ldflags), namespace=namespace)
+    return build.BuildSpec((str(src),), ("-O0",), tuple(ldflags), namespace=namespace)
 
 
 def _static_wrapper(folder: Path) -> Path:
@@ -66,7 +66,7 @@ def libs(tmp_path_factory):
     out = {}
     for name, kw in (("good", {}), ("static", {"ldflags": ("-static-libstdc++",)}), ("aborts", {"abort": True})):
         ns = f"cobgs_t_{name}"
-        _build._compile(ns, root, root / ns, False, _spec(root, ns, **kw))
+        build._compile(ns, root, root / ns, False, _spec(root, ns, **kw))
         out[name] = root / ns / f"{ns}.so"
     return out
 
@@ -96,11 +96,11 @@ def test_a_static_compiler_is_replaced_saying_so(tmp_path, monkeypatch, capfd):
     fake = _static_wrapper(tmp_path / "bin")
     monkeypatch.setenv("CXX", str(fake))
     monkeypatch.delenv("COBGS_CXX", raising=False)
-    so = _build.ensure_library("cobgs_t_switch", tmp_path / "cache", _spec(tmp_path, "cobgs_t_switch"))
+    so = build.ensure_library("cobgs_t_switch", tmp_path / "cache", _spec(tmp_path, "cobgs_t_switch"))
     err = capfd.readouterr().err
     assert f"{fake}" in err and "links libstdc++ statically" in err and "building again with c++" in err, err
     assert not links_libstdcxx_statically(so)
-    rec = _build.read_probe(so.parent)
+    rec = build.read_probe(so.parent)
     assert rec["probe"]["ok"] and str(fake) in rec["switched_from"] and rec["libstdcxx"] == "dynamic"
 
 
@@ -112,7 +112,7 @@ def test_without_another_compiler_the_build_fails_with_the_fix(tmp_path, monkeyp
     monkeypatch.setenv("CXX", str(fake))
     monkeypatch.delenv("COBGS_CXX", raising=False)
     with pytest.raises(BuildError) as err:
-        _build.ensure_library("cobgs_t_nofix", tmp_path / "cache", _spec(tmp_path, "cobgs_t_nofix"))
+        build.ensure_library("cobgs_t_nofix", tmp_path / "cache", _spec(tmp_path, "cobgs_t_nofix"))
     msg = str(err.value)
     assert f"$CXX = {fake}" in msg and "links libstdc++ statically" in msg and "CXX=g++ cobgs build" in msg
     version = subprocess.run([GXX, "--version"], capture_output=True, text=True).stdout.splitlines()[0]
@@ -127,17 +127,17 @@ def test_a_cached_library_that_fails_the_probe_is_rebuilt(libs, tmp_path, capfd)
     name = "cobgs_t_static"
     (root / name).mkdir(parents=True)
     shutil.copy(libs["static"], root / name / f"{name}.so")
-    so = _build.ensure_library(name, root, _spec(tmp_path, name))
+    so = build.ensure_library(name, root, _spec(tmp_path, name))
     err = capfd.readouterr().err
     assert "fails the error probe" in err and "rebuilding it" in err, err
-    assert not links_libstdcxx_statically(so) and _build.read_probe(root / name)["probe"]["ok"]
+    assert not links_libstdcxx_statically(so) and build.read_probe(root / name)["probe"]["ok"]
     good = "cobgs_t_good"
     (root / good).mkdir()
     shutil.copy(libs["good"], root / good / f"{good}.so")
     before = (root / good / f"{good}.so").stat().st_mtime_ns
-    _build.ensure_library(good, root, _spec(tmp_path, good))
+    build.ensure_library(good, root, _spec(tmp_path, good))
     assert (root / good / f"{good}.so").stat().st_mtime_ns == before  # passed: kept, not rebuilt
-    assert _build.read_probe(root / good)["probe"]["ok"]
+    assert build.read_probe(root / good)["probe"]["ok"]
 
 
 def test_a_damaged_or_read_only_extension_cache_never_kills_the_process(libs, tmp_path, monkeypatch, capfd):
@@ -154,34 +154,34 @@ def test_a_damaged_or_read_only_extension_cache_never_kills_the_process(libs, tm
     (root / name).mkdir(parents=True)
     so = root / name / f"{name}.so"
     shutil.copy(libs["good"], so)
-    _build.ensure_library(name, root, _spec(tmp_path, name))  # probed in a child, size and hash recorded
-    rec = _build.read_probe(root / name)
+    build.ensure_library(name, root, _spec(tmp_path, name))  # probed in a child, size and hash recorded
+    rec = build.read_probe(root / name)
     assert rec["library_bytes"] == so.stat().st_size and len(rec["library_sha256"]) == 64
-    assert _build.library_problem(so) == ""
+    assert build.library_problem(so) == ""
 
     def read_only(path, verbose):
         raise OSError(errno.EROFS, "Read-only file system", str(path))
 
-    monkeypatch.setattr(_build, "_file_lock", read_only)
-    assert _build.ensure_library(name, root, _spec(tmp_path, name)) == so  # M5: served as it is
+    monkeypatch.setattr(build, "_file_lock", read_only)
+    assert build.ensure_library(name, root, _spec(tmp_path, name)) == so  # M5: served as it is
     data = so.read_bytes()
     so.write_bytes(data[: len(data) // 2])  # M4: truncated after the build was checked
-    assert "truncated" in _build.library_problem(so)
+    assert "truncated" in build.library_problem(so)
     with pytest.raises(BuildError, match=r"cannot be written \(Read-only file system\) and its library cannot be "
                                          r"used as it is: it is \d+ bytes, not the \d+ recorded"):
-        _build.ensure_library(name, root, _spec(tmp_path, name))
+        build.ensure_library(name, root, _spec(tmp_path, name))
     so.write_bytes(data)
     (root / name / "probe.json").unlink()
     (root / name / "probe.json").mkdir()  # M15: a folder where the record should be
     with pytest.raises(BuildError, match="probe.json is not a file"):
-        _build.ensure_library(name, root, _spec(tmp_path, name))
+        build.ensure_library(name, root, _spec(tmp_path, name))
     monkeypatch.undo()
     shutil.rmtree(root / name / "probe.json")
-    _build._write_probe(root / name, {"probe": {"ok": True}})  # a record of the whole library ...
+    build._write_probe(root / name, {"probe": {"ok": True}})  # a record of the whole library ...
     so.write_bytes(data[: len(data) // 2])  # ... which is then cut short: rebuilt, never mapped here
-    out = _build.ensure_library(name, root, _spec(tmp_path, name))
+    out = build.ensure_library(name, root, _spec(tmp_path, name))
     err = capfd.readouterr().err
-    assert "truncated?" in err and "rebuilding it" in err and _build.library_problem(out) == ""
+    assert "truncated?" in err and "rebuilding it" in err and build.library_problem(out) == ""
     assert probe_library(out, name).ok
 
 
@@ -191,23 +191,23 @@ def test_cobgs_cxx_that_does_not_exist_is_said_before_the_build(tmp_path, monkey
     monkeypatch.setenv("COBGS_CXX", "/nonexistent/g++")
     t0 = __import__("time").perf_counter()
     with pytest.raises(BuildError, match=r"COBGS_CXX=/nonexistent/g\+\+: no such compiler"):
-        _build.ensure_library("cobgs_t_nocxx", tmp_path / "cache", _spec(tmp_path, "cobgs_t_nocxx"))
+        build.ensure_library("cobgs_t_nocxx", tmp_path / "cache", _spec(tmp_path, "cobgs_t_nocxx"))
     assert __import__("time").perf_counter() - t0 < 5 and not list((tmp_path / "cache").rglob("*.so"))
 
 
 def test_the_compiler_enters_the_build_key(monkeypatch, tmp_path):
-    real = _build.build_key()
+    real = build.build_key()
     fake = _static_wrapper(tmp_path / "bin")
     monkeypatch.setenv("CXX", str(fake))
-    assert _build.build_key() != real
+    assert build.build_key() != real
     monkeypatch.delenv("CXX")
     monkeypatch.setenv("COBGS_CXX", GXX)
-    assert _build.build_key() != real
+    assert build.build_key() != real
 
 
 def test_the_rasterizer_extension_passes_its_own_probe():
-    so = Path(_build.load_extension())
-    rec = _build.read_probe(so.parent)
+    so = Path(build.load_extension())
+    rec = build.read_probe(so.parent)
     assert rec is not None and rec["probe"]["ok"], rec
     assert probe_library(so).ok
     import torch

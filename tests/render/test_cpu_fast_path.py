@@ -1,6 +1,6 @@
 """The CPU blending kernels' fast path (issue 45 item 2; csrc/common/cpu_isa.h): versions of the
 float32 blend forward / backward compiled with fused multiply-adds, used while
-``cobgs.render._ops.cpu_fast_path`` is on (``TrainConfig.fast_kernels`` turns it on for the
+``cobgs.render.ops.cpu_fast_path`` is on (``TrainConfig.fast_kernels`` turns it on for the
 training steps; ``COBGS_CPU_FAST=1`` at load). The exact path stays the default.
 
 Stated tolerances, which a user can rely on:
@@ -48,7 +48,7 @@ def _cpu_has_fma() -> bool:
 
 
 def _fast(on: bool):
-    from cobgs.render._ops import cpu_fast_path
+    from cobgs.render.ops import cpu_fast_path
 
     return cpu_fast_path(on)
 
@@ -114,7 +114,7 @@ def test_float64_ignores_the_switch():
 def test_the_training_step_turns_the_path_on_and_off_again():
     """fast_kernels acts inside Trainer.step only: after a step the setting is what it was."""
     from cobgs.configs import TrainConfig
-    from cobgs.render._ops import cpu_fast_path_on
+    from cobgs.render.ops import cpu_fast_path_on
     from cobgs.train.optimize import Trainer
     from refine_fixtures import tiny_scene
 

@@ -39,17 +39,17 @@ W, H = 157, 93  # not multiples of 16: edge tiles
 def _cuda_kernels():
     if not torch.cuda.is_available():
         pytest.skip("no CUDA device")
-    from cobgs.render import _build, _ops
+    from cobgs.render import build, ops
 
-    _ops.ensure_loaded()
-    if not _ops.serves(torch.device("cuda")):
-        pytest.skip(f"extension built without CUDA kernels: {_build.cuda_plan().get('reason')}")
+    ops.ensure_loaded()
+    if not ops.serves(torch.device("cuda")):
+        pytest.skip(f"extension built without CUDA kernels: {build.cuda_plan().get('reason')}")
 
 
 @pytest.fixture(autouse=True)
 def _exact_path():
     """The exact blending path for every test (the fast-path tests switch inside)."""
-    from cobgs.render._ops import cuda_fast_path
+    from cobgs.render.ops import cuda_fast_path
 
     with cuda_fast_path(False):
         yield
@@ -393,12 +393,12 @@ def test_device_camera_checks_are_remembered_until_the_camera_changes():
 # -- blur / SSIM / photometric loss ---------------------------------------------------------
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_blur_ssim_and_photometric_loss_match_the_cpu_ops(dtype):
-    from cobgs.evaluate.ssim import _gauss_1d
+    from cobgs.evaluate.ssim import gauss_1d
 
     g = torch.Generator().manual_seed(7)
     x = torch.rand(2, 3, 45, 61, generator=g, dtype=dtype)
     y = torch.rand(2, 3, 45, 61, generator=g, dtype=dtype)
-    w = _gauss_1d(11, 1.5, dtype, "cpu")
+    w = gauss_1d(11, 1.5, dtype, "cpu")
     d = dict(x=x, y=y, w=w, xl=x.permute(0, 2, 3, 1).contiguous(),
              yl=y.permute(0, 2, 3, 1).contiguous())
     cpu, gpu = both(lambda t: (ops().gauss_blur(t["x"], t["w"]),
@@ -501,7 +501,7 @@ FAST_GRAD_REL = 1e-4
 
 
 def _fast_and_exact(run, d):
-    from cobgs.render._ops import cuda_fast_path
+    from cobgs.render.ops import cuda_fast_path
 
     gd = to(d, "cuda")
     with cuda_fast_path(False):
@@ -539,7 +539,7 @@ def test_fast_path_training_within_stated_bounds():
     same views) within 0.1 dB of the exact path. (COB-GS's mIoU / mBIoU on the demo and lego
     with device=cuda, both paths: tests/benchmarks/gpu_check.sh.)"""
     from cobgs.data.scene import make_scene
-    from cobgs.render._ops import cuda_fast_path
+    from cobgs.render.ops import cuda_fast_path
     from cobgs.train.optimize import train
 
     views = _orbit_views(_ground_truth("cuda"), 16, 160, 120, "cuda")

@@ -1,4 +1,4 @@
-"""The torch.library ops behind cobgs.rasterize (cobgs/render/_ops.py): registration and per-op
+"""The torch.library ops behind cobgs.rasterize (cobgs/render/ops.py): registration and per-op
 gradients.
 
 ``torch.library.opcheck`` checks each op's schema (no undeclared mutation or aliasing),
@@ -12,7 +12,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from cobgs.render import _ops
+from cobgs.render import ops
 from cobgs.render import reference as ref
 
 W, H = 20, 14
@@ -20,7 +20,7 @@ W, H = 20, 14
 
 @pytest.fixture(scope="module", autouse=True)
 def _loaded():
-    _ops.ensure_loaded()
+    ops.ensure_loaded()
 
 
 def small_scene(seed=0, n=12, dtype=torch.float64):
@@ -41,8 +41,8 @@ def small_scene(seed=0, n=12, dtype=torch.float64):
 
 def projected(dtype=torch.float64):
     means, quats, scales, opacities, features, viewmat, K = small_scene(dtype=dtype)
-    m2, conics, depths, radii = _ops.project(means, quats, scales, viewmat, K, W, H)
-    offsets, ids = _ops.bin_tiles(m2, radii, depths, W, H)
+    m2, conics, depths, radii = ops.project(means, quats, scales, viewmat, K, W, H)
+    offsets, ids = ops.bin_tiles(m2, radii, depths, W, H)
     return m2, conics, depths, radii, opacities, features, offsets, ids
 
 
@@ -56,7 +56,7 @@ def test_opcheck_project(dtype):
 
 def test_opcheck_project_bwd():
     means, quats, scales, _, _, viewmat, K = small_scene()
-    _, _, _, radii = _ops.project(means, quats, scales, viewmat, K, W, H)
+    _, _, _, radii = ops.project(means, quats, scales, viewmat, K, W, H)
     n = means.shape[0]
     args = (means, quats, scales, viewmat, K, W, H, radii, torch.randn(n, 2, dtype=torch.float64),
             torch.randn(n, 3, dtype=torch.float64), torch.randn(n, dtype=torch.float64))
@@ -83,7 +83,7 @@ def test_opcheck_blend(with_labels, dtype):
 def test_opcheck_blend_bwd():
     m2, conics, _, _, opacities, features, offsets, ids = projected()
     bg = torch.rand(3, dtype=torch.float64)
-    _, trans, n_contrib, _, _ = _ops.blend(m2, conics, opacities, features, bg, offsets, ids,
+    _, trans, n_contrib, _, _ = ops.blend(m2, conics, opacities, features, bg, offsets, ids,
                                            W, H)
     args = (m2, conics, opacities, features, bg, offsets, ids, trans, n_contrib,
             torch.randn(H, W, 3, dtype=torch.float64), torch.randn(H, W, dtype=torch.float64))
@@ -94,7 +94,7 @@ def test_gradcheck_project():
     means, quats, scales, _, _, viewmat, K = small_scene(n=5)
 
     def fn(means, quats, scales):
-        m2, conics, depths, _ = _ops.project(means, quats, scales, viewmat, K, W, H)
+        m2, conics, depths, _ = ops.project(means, quats, scales, viewmat, K, W, H)
         return m2, conics, depths
 
     inputs = tuple(t.clone().requires_grad_() for t in (means, quats, scales))
@@ -110,7 +110,7 @@ def test_gradcheck_project_through_the_jacobian_clamp():
     scales = scales * 4  # large enough to stay on screen (not culled) despite the offset
 
     def fn(means, quats, scales):
-        m2, conics, _, radii = _ops.project(means, quats, scales, viewmat, K, W, H)
+        m2, conics, _, radii = ops.project(means, quats, scales, viewmat, K, W, H)
         assert (radii > 0).all()
         return m2, conics
 
@@ -125,7 +125,7 @@ def test_gradcheck_blend():
                        generator=torch.Generator().manual_seed(1))
 
     def fn(m2, conics, opacities, features, bg):
-        image, trans, *_ = _ops.blend(m2, conics, opacities, features, bg, offsets, ids, W, H)
+        image, trans, *_ = ops.blend(m2, conics, opacities, features, bg, offsets, ids, W, H)
         # 20 random linear combinations of all outputs (see test_rasterize's gradcheck).
         return proj @ torch.cat([image.flatten(), trans.flatten()])
 
@@ -136,16 +136,16 @@ def test_gradcheck_blend():
 def test_ops_match_reference_functions():
     """Each native op against the reference function it mirrors (float64)."""
     means, quats, scales, opacities, features, viewmat, K = small_scene(n=30)
-    nat = _ops.project(means, quats, scales, viewmat, K, W, H)
+    nat = ops.project(means, quats, scales, viewmat, K, W, H)
     rf = ref.project_reference(means, quats, scales, viewmat, K, W, H)
     for a, b in zip(nat, rf):
         torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
     m2, conics, depths, radii = nat
-    offsets, ids = _ops.bin_tiles(m2, radii, depths, W, H)
+    offsets, ids = ops.bin_tiles(m2, radii, depths, W, H)
     r_off, r_ids = ref.bin_tiles_reference(m2, radii, depths, W, H)
     assert torch.equal(offsets, r_off) and torch.equal(ids, r_ids)
     bg = torch.rand(3, dtype=torch.float64)
-    image, trans, n_contrib, _, _ = _ops.blend(m2, conics, opacities, features, bg, offsets,
+    image, trans, n_contrib, _, _ = ops.blend(m2, conics, opacities, features, bg, offsets,
                                                ids, W, H)
     r_image, r_trans, _, _ = ref.blend_reference(m2, conics, opacities, features, bg, offsets,
                                                  ids, W, H)
@@ -173,7 +173,7 @@ def test_bin_tiles_depth_sort_on_many_gaussians(dtype):
     try:
         for threads in (1, 2, 3):
             torch.set_num_threads(threads)
-            off, ids = _ops.bin_tiles(m2, radii, depths, 320, 240)
+            off, ids = ops.bin_tiles(m2, radii, depths, 320, 240)
             assert torch.equal(off, r_off) and torch.equal(ids, r_ids), threads
     finally:
         torch.set_num_threads(before)
@@ -193,7 +193,7 @@ def test_bin_tiles_names_the_first_bad_depth():
     depths[25_000] = 0.0
     with pytest.raises(RuntimeError, match=r"depths\[20001\] of a visible Gaussian must be "
                                            r"positive and finite"):
-        _ops.bin_tiles(m2, radii, depths, 320, 240)
+        ops.bin_tiles(m2, radii, depths, 320, 240)
     depths[20_001] = 1.0
     with pytest.raises(RuntimeError, match=r"depths\[25000\]"):
         torch.ops.cobgs.bin_tiles_tight(m2, radii, depths, torch.tensor([[0.5, 0.0, 0.5]]).expand(n, 3).contiguous(),
@@ -209,7 +209,7 @@ def test_thread_count_does_not_change_results():
     try:
         for threads in (1, 2):
             torch.set_num_threads(threads)
-            out = _ops.blend(m2, conics, opacities, features, bg, offsets, ids, W, H)
+            out = ops.blend(m2, conics, opacities, features, bg, offsets, ids, W, H)
             g = torch.ops.cobgs.blend_bwd(m2, conics, opacities, features, bg, offsets, ids,
                                           out[1], out[2], torch.ones(H, W, 3), torch.ones(H, W))
             results.append((out[0], *g))
@@ -232,12 +232,12 @@ def test_simd_dispatch_is_bitwise_identical(tmp_path):
 import sys, torch
 sys.path.insert(0, {str(Path(__file__).parent)!r})
 from test_ops import projected, W, H, _hard_projection_inputs
-from cobgs.render import _ops
+from cobgs.render import ops
 m2, conics, _, _, opacities, features, offsets, ids = projected(torch.float32)
 bg = torch.full((3,), 0.25)
 labels = torch.randint(-1, 3, (H, W), generator=torch.Generator().manual_seed(0),
                        dtype=torch.int32)
-out = _ops.blend(m2, conics, opacities, features, bg, offsets, ids, W, H, labels, 3)
+out = ops.blend(m2, conics, opacities, features, bg, offsets, ids, W, H, labels, 3)
 g = torch.Generator().manual_seed(1)
 grads = torch.ops.cobgs.blend_bwd(m2, conics, opacities, features, bg, offsets, ids, out[1],
                                   out[2], torch.randn(H, W, 3, generator=g),
@@ -253,13 +253,13 @@ col = torch.ops.cobgs.sh_colors(pm, torch.randn(len(pm), 1, 3, generator=g), shN
                                 torch.zeros(3), 3)
 shg = torch.ops.cobgs.sh_colors_bwd(pm, torch.randn(len(pm), 1, 3, generator=g), shN,
                                     torch.zeros(3), 3, torch.randn(col.shape, generator=g))
-from cobgs.evaluate.ssim import _gauss_1d
+from cobgs.evaluate.ssim import gauss_1d
 blurs = []
 for dt in (torch.float32, torch.float64):  # widths: lane blocks plus a tail, and under 8
     for shape in ((2, 3, 29, 37), (1, 2, 13, 5)):
         xs = torch.rand(shape, generator=g, dtype=dt)
         ys = torch.rand(shape, generator=g, dtype=dt)
-        w = _gauss_1d(11, 1.5, dt, "cpu")
+        w = gauss_1d(11, 1.5, dt, "cpu")
         blurs += [*torch.ops.cobgs.ssim_mean_grad(xs, ys, w), torch.ops.cobgs.gauss_blur(xs, w),
                   *torch.ops.cobgs.photometric_loss_grad(xs.permute(0, 2, 3, 1).contiguous(),
                                                          ys.permute(0, 2, 3, 1).contiguous(), w,

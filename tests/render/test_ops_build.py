@@ -1,4 +1,4 @@
-"""Building and loading the native extension (cobgs/render/_build.py)."""
+"""Building and loading the native extension (cobgs/render/build.py)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from cobgs.render import _build
+from cobgs.render import build
 from cobgs.errors import BuildError
 
 REPO = Path(__file__).resolve().parents[2]
@@ -31,7 +31,7 @@ def test_import_and_reference_work_without_a_compiler(tmp_path):
     code = """
 import sys, torch
 import cobgs
-assert "cobgs.render._ops" not in sys.modules, "import cobgs must not load the extension"
+assert "cobgs.render.ops" not in sys.modules, "import cobgs must not load the extension"
 args = (torch.zeros(1, 3) + torch.tensor([0., 0., 2.]), torch.tensor([[1., 0, 0, 0]]),
         torch.full((1, 3), 0.1), torch.tensor([0.5]), torch.ones(1, 3), torch.eye(4),
         torch.tensor([[10., 0, 4], [0, 10, 4], [0, 0, 1]]), 8, 8)
@@ -52,31 +52,31 @@ except cobgs.BuildError as exc:
 
 def copy_sources(tmp_path: Path) -> Path:
     dst = tmp_path / "csrc"
-    shutil.copytree(_build.CSRC, dst)
+    shutil.copytree(build.CSRC, dst)
     return dst
 
 
 def test_build_key_follows_the_sources(tmp_path, monkeypatch):
-    real = _build.build_key()
+    real = build.build_key()
     src = copy_sources(tmp_path)
-    monkeypatch.setattr(_build, "CSRC", src)
-    assert _build.build_key() == real  # depends on relative paths and contents only
+    monkeypatch.setattr(build, "CSRC", src)
+    assert build.build_key() == real  # depends on relative paths and contents only
     header = src / "common" / "gs_math.h"
     header.write_text(header.read_text() + "\n// changed\n")
-    changed = _build.build_key()
+    changed = build.build_key()
     assert changed != real
     (src / "extra_cpu.cpp").write_text("// new file\n")
-    assert _build.build_key() not in (real, changed)
+    assert build.build_key() not in (real, changed)
 
 
 def test_failed_build_shows_the_full_compiler_log(tmp_path, monkeypatch):
     src = tmp_path / "csrc"
     src.mkdir()
     (src / "broken_cpu.cpp").write_text('#error "cobgs-test: deliberately broken source"\n')
-    monkeypatch.setattr(_build, "CSRC", src)
+    monkeypatch.setattr(build, "CSRC", src)
     monkeypatch.setenv("COBGS_EXT_DIR", str(tmp_path / "cache"))
     with pytest.raises(BuildError) as info:
-        _build.load_extension(force=True)
+        build.load_extension(force=True)
     msg = str(info.value)
     assert "building the native rasterizer failed" in msg
     assert "cobgs-test: deliberately broken source" in msg  # the compiler's own message
@@ -92,15 +92,15 @@ def test_second_process_waits_for_the_builder(tmp_path):
     import os
     import shutil
 
-    so = Path(_build.load_extension())  # built and cached (make test builds it first)
+    so = Path(build.load_extension())  # built and cached (make test builds it first)
     ext = tmp_path / "ext"
     shutil.copytree(so.parent, ext / so.parent.name)
     (ext / so.parent.name / "probe.json").unlink()
-    lock = ext / f"{_build.extension_name()}.lock"
+    lock = ext / f"{build.extension_name()}.lock"
     with open(lock, "a+") as fh:
         fcntl.flock(fh, fcntl.LOCK_EX)
         child = subprocess.Popen(
-            [sys.executable, "-c", "from cobgs.render import _build; print(_build.load_extension())"],
+            [sys.executable, "-c", "from cobgs.render import build; print(build.load_extension())"],
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=REPO,
             env={**os.environ, "COBGS_EXT_DIR": str(ext)})
         try:
@@ -144,18 +144,18 @@ def test_wheel_carries_the_sources_and_builds_from_them(tmp_path):
                    check=True, capture_output=True, timeout=300)
     (wheel,) = wheel_dir.glob("cobgs-*.whl")
     names = set(zipfile.ZipFile(wheel).namelist())
-    sources = [p.relative_to(_build.CSRC).as_posix() for p in _build._source_files()]
+    sources = [p.relative_to(build.CSRC).as_posix() for p in build._source_files()]
     assert sources and all(f"cobgs/_csrc/{s}" in names for s in sources)
 
     site = tmp_path / "site"
     with zipfile.ZipFile(wheel) as z:
         z.extractall(site)
-    code = ("import cobgs.render._build as b; print(b.CSRC); print(b.build_key())")
+    code = ("import cobgs.render.build as b; print(b.CSRC); print(b.build_key())")
     env = {**os.environ, "PYTHONPATH": str(site)}
     out = subprocess.run([sys.executable, "-c", code], env=env, cwd=tmp_path, capture_output=True,
                          text=True, timeout=120, check=True).stdout.split()
     assert out[0] == str((site / "cobgs" / "_csrc").resolve())
-    assert out[1] == _build.build_key()
+    assert out[1] == build.build_key()
 
 
 def test_cuda_plan_says_why_the_cuda_kernels_are_left_out(monkeypatch):
@@ -164,30 +164,30 @@ def test_cuda_plan_says_why_the_cuda_kernels_are_left_out(monkeypatch):
     import torch
 
     monkeypatch.setenv("COBGS_CUDA", "0")
-    plan = _build.cuda_plan()
+    plan = build.cuda_plan()
     assert plan == {"enabled": False, "reason": "disabled by COBGS_CUDA=0"}
     monkeypatch.setenv("COBGS_CUDA", "auto")
-    plan = _build.cuda_plan()
+    plan = build.cuda_plan()
     if torch.version.cuda is None:
         assert not plan["enabled"] and "built without CUDA" in plan["reason"]
         monkeypatch.setenv("COBGS_CUDA", "1")
         with pytest.raises(BuildError, match="COBGS_CUDA=1 asks for the CUDA kernels, but this "
                                              "torch .* is built without CUDA"):
-            _build.cuda_plan()
+            build.cuda_plan()
 
 
 def test_cuda_plan_enters_the_build_key(monkeypatch):
     """A CUDA build and a CPU-only build of the same sources are different libraries."""
-    monkeypatch.setattr(_build, "cuda_plan", lambda: {"enabled": False, "reason": "x"})
-    cpu_only = _build.build_key()
-    monkeypatch.setattr(_build, "cuda_plan", lambda: {
+    monkeypatch.setattr(build, "cuda_plan", lambda: {"enabled": False, "reason": "x"})
+    cpu_only = build.build_key()
+    monkeypatch.setattr(build, "cuda_plan", lambda: {
         "enabled": True, "nvcc": "/x/nvcc", "cuda_home": "/x", "nvcc_version": "13.0",
-        "arch": "9.0", "flags": _build.CUDA_FLAGS})
-    with_cuda = _build.build_key()
-    monkeypatch.setattr(_build, "cuda_plan", lambda: {
+        "arch": "9.0", "flags": build.CUDA_FLAGS})
+    with_cuda = build.build_key()
+    monkeypatch.setattr(build, "cuda_plan", lambda: {
         "enabled": True, "nvcc": "/x/nvcc", "cuda_home": "/x", "nvcc_version": "13.0",
-        "arch": "8.6;9.0", "flags": _build.CUDA_FLAGS})
-    assert len({cpu_only, with_cuda, _build.build_key()}) == 3
+        "arch": "8.6;9.0", "flags": build.CUDA_FLAGS})
+    assert len({cpu_only, with_cuda, build.build_key()}) == 3
 
 
 def test_cuda_home_is_found_through_a_wrapper_script(tmp_path, monkeypatch):
@@ -204,9 +204,9 @@ def test_cuda_home_is_found_through_a_wrapper_script(tmp_path, monkeypatch):
     (wrapper / "nvcc").chmod(0o755)
     monkeypatch.delenv("CUDA_PATH", raising=False)
     monkeypatch.setenv("CUDA_HOME", str(home))
-    assert _build._cuda_home() == home
+    assert build.cuda_home() == home
     monkeypatch.delenv("CUDA_HOME")
     monkeypatch.setenv("PATH", str(wrapper))
-    found = _build._cuda_home()
+    found = build.cuda_home()
     assert found != wrapper.parent  # never the wrapper's parent folder
     assert found is None or (found / "include" / "cuda_runtime.h").is_file()

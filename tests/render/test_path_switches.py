@@ -23,9 +23,9 @@ SWITCHES = {
 
 
 def _switch(kind):
-    from cobgs.render import _ops
+    from cobgs.render import ops
 
-    return getattr(_ops, f"{kind}_fast_path"), getattr(_ops, f"{kind}_fast_path_on")
+    return getattr(ops, f"{kind}_fast_path"), getattr(ops, f"{kind}_fast_path_on")
 
 
 @pytest.mark.parametrize("kind, value, fast", [(k, v, f) for k, (_, table) in SWITCHES.items()
@@ -36,7 +36,7 @@ def test_the_environment_picks_the_path_at_load(kind, value, fast):
     if value is not None:
         env[var] = value
     env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")])
-    code = f"from cobgs.render._ops import {kind}_fast_path_on; print({kind}_fast_path_on())"
+    code = f"from cobgs.render.ops import {kind}_fast_path_on; print({kind}_fast_path_on())"
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == str(fast)

@@ -178,18 +178,18 @@ def test_everything_culled():
 
 
 def test_tile_lists_equal_reference():
-    from cobgs.render import _ops
+    from cobgs.render import ops
 
     scene = make_scene(7, 500, 70, 45)
     for dtype in (torch.float64, torch.float32):
         s = {k: (v.to(dtype) if torch.is_tensor(v) else v) for k, v in scene.items()}
-        m2, _, depths, radii = _ops.project(s["means"], s["quats"], s["scales"], s["viewmat"],
+        m2, _, depths, radii = ops.project(s["means"], s["quats"], s["scales"], s["viewmat"],
                                             s["K"], 70, 45)
         # Equal depths must keep index order: duplicate some depths exactly.
         vis = torch.nonzero(radii > 0).flatten()
         depths = depths.clone()
         depths[vis[1::5]] = depths[vis[0::5]][: vis[1::5].numel()]
-        off_n, ids_n = _ops.bin_tiles(m2, radii, depths, 70, 45)
+        off_n, ids_n = ops.bin_tiles(m2, radii, depths, 70, 45)
         off_r, ids_r = ref.bin_tiles_reference(m2, radii, depths, 70, 45)
         assert torch.equal(off_n, off_r) and torch.equal(ids_n, ids_r)
         assert ids_n.numel() > 500
@@ -400,9 +400,9 @@ def test_bad_backend():
 
 def test_native_ops_reject_bad_tensors_with_named_errors():
     """Direct torch.ops calls (bypassing the Python checks) fail cleanly, naming the tensor."""
-    from cobgs.render import _ops
+    from cobgs.render import ops
 
-    _ops.ensure_loaded()
+    ops.ensure_loaded()
     s = _good()
     with pytest.raises(RuntimeError, match=r"quats must have shape \[5, 4\]"):
         torch.ops.cobgs.project(s["means"], s["quats"][:, :3].contiguous(), s["scales"],

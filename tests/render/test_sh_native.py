@@ -11,13 +11,13 @@ from __future__ import annotations
 import pytest
 import torch
 
-from cobgs.render import _ops
+from cobgs.render import ops
 from cobgs.gaussians.sh import num_coeffs, sh_to_color
 
 
 @pytest.fixture(scope="module", autouse=True)
 def _loaded():
-    _ops.ensure_loaded()
+    ops.ensure_loaded()
 
 
 def sh_inputs(n=40, degree_max=3, dtype=torch.float64, seed=0, channels=3):
@@ -45,7 +45,7 @@ def test_forward_and_gradients_match_python(degree):
     inputs = sh_inputs()
     nat_in = [t.clone().requires_grad_(i < 3) for i, t in enumerate(inputs)]
     ref_in = [t.clone().requires_grad_(i < 3) for i, t in enumerate(inputs)]
-    nat = _ops.sh_colors(*nat_in, degree)
+    nat = ops.sh_colors(*nat_in, degree)
     ref = python_colors(*ref_in, degree)
     assert (ref == 0).any() or degree == 0  # the clamp is exercised
     torch.testing.assert_close(nat, ref, rtol=1e-12, atol=1e-12)
@@ -62,7 +62,7 @@ def test_forward_and_gradients_match_python(degree):
 
 def test_float32_and_other_channel_counts():
     means, sh0, shN, center = sh_inputs(n=300, dtype=torch.float32, channels=2)
-    nat = _ops.sh_colors(means, sh0, shN, center, 3)
+    nat = ops.sh_colors(means, sh0, shN, center, 3)
     ref = python_colors(means.double(), sh0.double(), shN.double(), center.double(), 3)
     assert nat.dtype == torch.float32 and nat.shape == (300, 2)
     torch.testing.assert_close(nat.double(), ref, rtol=0, atol=1e-5 * ref.abs().max().item())
@@ -74,7 +74,7 @@ def test_gradcheck_and_opcheck():
     sh0 = sh0.abs() + 4.0
     inputs = (means.requires_grad_(), sh0.requires_grad_(), shN.requires_grad_())
     assert torch.autograd.gradcheck(
-        lambda m, a, b: _ops.sh_colors(m, a, b, center, 3), inputs, eps=1e-6, atol=1e-7,
+        lambda m, a, b: ops.sh_colors(m, a, b, center, 3), inputs, eps=1e-6, atol=1e-7,
         rtol=1e-5)
     torch.library.opcheck(torch.ops.cobgs.sh_colors,
                           (means.detach(), sh0.detach(), shN.detach(), center, 2))

@@ -59,7 +59,7 @@ def test_doctor_says_a_bad_json_path_first_and_prints_json_when_the_extension_is
     import errno
     import time
 
-    from cobgs.render import _build
+    from cobgs.render import build
     from stages.commands.cli import main
 
     t0 = time.perf_counter()
@@ -71,7 +71,7 @@ def test_doctor_says_a_bad_json_path_first_and_prints_json_when_the_extension_is
     def unusable(*a, **k):
         raise OSError(errno.EROFS, "Read-only file system", "/ro/cache/cobgs_ext.lock")
 
-    monkeypatch.setattr(_build, "load_extension", unusable)
+    monkeypatch.setattr(build, "load_extension", unusable)
     assert main(["doctor", "--json", "-", "--no-timing"]) == 1
     rec = json.loads(capsys.readouterr().out)
     assert rec["ok"] is False and "Read-only file system" in rec["checks"]["extension"]["detail"]

@@ -40,3 +40,67 @@ def test_a_byte_order_mark_is_read(tmp_path):
     wf = tmp_path / "w.toml"
     wf.write_bytes(b"\xef\xbb\xbf" + DEMO.read_bytes())
     assert load_workflow(wf, load_registry()).name == "demo"
+
+
+def _presets_workflow(tmp_path, methods: str) -> Path:
+    wf = tmp_path / "w.toml"
+    wf.write_text('[workflow]\nnested = { object = "scene" }\n[axes.scene.s]\nkind = "synthetic"\n'
+                  f'{methods}\n[axes.object.s.ball]\n')
+    return wf
+
+
+def test_every_method_preset_builds_and_equals_its_table_written_out(tmp_path):
+    """Issue 58 item 6: the method presets live in one file (stages/presets.toml); a workflow's
+    ``preset = "NAME"`` gives exactly the tasks the table written out gives (the name is not
+    hashed: the same cache keys), and keys of the value's own are laid over the preset's."""
+    import tomllib
+
+    from pipeline import Plan, WorkflowError, load_workflow
+    from pipeline.hashing import canonical_json
+    from stages.registry import PRESETS_FILE, load_registry
+
+    reg = load_registry()
+    presets = reg.presets["method"]
+    assert presets == tomllib.loads(PRESETS_FILE.read_text())["method"] and len(presets) >= 10
+
+    def written_out(table: dict) -> str:
+        return "\n".join(f"{k} = {_toml(v)}" for k, v in table.items())
+
+    by_preset = "\n".join(f'[axes.method.{n}]\npreset = "{n}"' for n in presets)
+    explicit = "\n".join(f"[axes.method.{n}]\n{written_out(t)}" for n, t in presets.items())
+    plans = [Plan(load_workflow(_presets_workflow(tmp_path, text), reg)) for text in (by_preset, explicit)]
+    docs = [{t.id: canonical_json([t.params.key_json, t.item.to_json()]) for t in p.tasks} for p in plans]
+    assert docs[0] == docs[1] and len(docs[0]) > 3 * len(presets)
+    over = Plan(load_workflow(_presets_workflow(tmp_path, '[axes.method.x]\npreset = "ngs"\n'
+                                                          'refine = { cobgs = { delta = 0.3 } }'), reg))
+    p = over.find("refine", "s/x/ball").params.value
+    assert p.method == "ngs" and p.cobgs.raem == "released" and p.cobgs.delta == 0.3
+    with pytest.raises(WorkflowError, match=r"axes.method.x.preset: unknown preset 'ngs_checkd' .*did you mean "
+                                            r"'ngs_checked'"):
+        load_workflow(_presets_workflow(tmp_path, '[axes.method.x]\npreset = "ngs_checkd"'), reg)
+
+
+def _toml(v) -> str:
+    if isinstance(v, dict):
+        return "{ " + ", ".join(f"{k} = {_toml(x)}" for k, x in v.items()) + " }"
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return f'"{v}"'
+    return repr(v)
+
+
+def test_shipped_workflows_refer_to_presets_rather_than_copy_them():
+    """A row a preset holds is written once: no shipped workflow repeats a preset's table."""
+    import tomllib
+
+    from stages.registry import load_registry
+
+    presets = load_registry().presets["method"]
+    copies = []
+    for wf in sorted((DEMO.parent).glob("*.toml")):
+        methods = tomllib.loads(wf.read_text()).get("axes", {}).get("method", {})
+        for name, table in methods.items():
+            if "preset" not in table and table and any(table == t for t in presets.values()):
+                copies.append(f"{wf.name}: {name}")
+    assert copies == []

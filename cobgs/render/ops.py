@@ -1,6 +1,6 @@
 """Thin wrappers over ``torch.ops.cobgs.*``: loading, autograd and fake registration.
 
-The C++ library (``csrc/``, built by :mod:`cobgs.render._build` on first use) defines the op
+The C++ library (``csrc/``, built by :mod:`cobgs.render.build` on first use) defines the op
 schemas and CPU kernels; this module adds what is registered from Python:
 
 * autograd for ``project``, ``blend`` and ``sh_colors`` via
@@ -19,7 +19,7 @@ from typing import Optional, Tuple
 import torch
 from torch import Tensor
 
-from cobgs.render import _build
+from cobgs.render import build
 from cobgs.render.reference import NEAR_PLANE, TILE_SIZE, RasterOutput
 
 _lock = threading.Lock()
@@ -34,7 +34,7 @@ def ensure_loaded() -> None:
     with _lock:
         if _ready:
             return
-        _build.load_extension()
+        build.load_extension()
         _register()
         _ready = True
 
@@ -289,7 +289,7 @@ def serves(device: torch.device) -> bool:
     if device.type == "cuda":
         global _cuda_kernels
         if _cuda_kernels is None:
-            _cuda_kernels = _build.has_cuda_kernels()
+            _cuda_kernels = build.has_cuda_kernels()
         return _cuda_kernels
     return False
 
@@ -306,7 +306,7 @@ def check_serves(device: torch.device) -> None:
     if serves(device):
         return
     if device.type == "cuda":
-        plan = _build.cuda_plan()
+        plan = build.cuda_plan()
         raise InputError(f"the native backend has no CUDA kernels in this build "
                          f"({plan.get('reason', 'built without them')}); rebuild with "
                          f"`cobgs build --force` once that is fixed, or use "

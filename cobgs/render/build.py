@@ -26,7 +26,7 @@ first use and loads the library, which registers the ``torch.ops.cobgs.*`` ops.
 * **Failures:** the compiler runs in a child process; its complete output is attached to
   the :class:`~cobgs.errors.BuildError`. ``import cobgs`` never needs the extension;
   ``cobgs.rasterize(..., backend="reference")`` works without one.
-* **A C++ error must be a Python error** (:mod:`cobgs.render._toolchain`). After linking,
+* **A C++ error must be a Python error** (:mod:`cobgs.render.toolchain`). After linking,
   the library's dynamic section is read: a compiler that linked libstdc++ statically (the
   library would crash or lose the numbers of its messages on its first error) is replaced
   once by one that links it dynamically (``$COBGS_CXX``, else ``c++`` / ``g++`` on the PATH),
@@ -75,7 +75,7 @@ LDFLAGS = ["-fopenmp"]
 CUDA_FLAGS = ["-O3", "--fmad=false", "--expt-relaxed-constexpr", "-lineinfo"]
 
 
-def _cflags() -> List[str]:
+def cflags() -> List[str]:
     """CFLAGS, plus -DCOBGS_PROFILE when $COBGS_PROFILE is set (phase timers and pair
     counters printed at exit, csrc/common/prof_cpu.h; a separate cached build)."""
     flag = os.environ.get("COBGS_PROFILE", "")
@@ -108,7 +108,7 @@ _TRUE = ("1", "on", "yes", "true", "required")
 _FALSE = ("0", "off", "no", "false")
 
 
-def _cuda_home() -> Optional[Path]:
+def cuda_home() -> Optional[Path]:
     """The CUDA toolkit folder: $CUDA_HOME / $CUDA_PATH, else the one holding the nvcc on
     the PATH (its real location; a wrapper script on the PATH is looked through to
     /usr/local/cuda), else /usr/local/cuda. None when none holds bin/nvcc and
@@ -125,7 +125,7 @@ def _cuda_home() -> Optional[Path]:
     return None
 
 
-def _nvcc_version(nvcc: str) -> Optional[str]:
+def nvcc_version(nvcc: str) -> Optional[str]:
     try:
         out = subprocess.run([nvcc, "--version"], capture_output=True, text=True,
                              timeout=60).stdout
@@ -175,9 +175,9 @@ def cuda_plan() -> dict:
     elif torch.version.cuda is None:
         reason = f"this torch ({torch.__version__}) is built without CUDA"
     else:
-        home = _cuda_home()
+        home = cuda_home()
         nvcc = str(home / "bin" / "nvcc") if home else None
-        version = _nvcc_version(nvcc) if nvcc else None
+        version = nvcc_version(nvcc) if nvcc else None
         arch = os.environ.get("TORCH_CUDA_ARCH_LIST", "").strip() or _visible_archs()
         if nvcc is None:
             reason = (f"no CUDA toolkit found (torch is built with CUDA {torch.version.cuda}; "
@@ -208,7 +208,7 @@ def build_key() -> str:
     for path in _source_files():
         h.update(str(path.relative_to(CSRC)).encode() + b"\0" + path.read_bytes() + b"\0")
     h.update(json.dumps({
-        "cflags": _cflags(), "ldflags": LDFLAGS, "torch": torch.__version__,
+        "cflags": cflags(), "ldflags": LDFLAGS, "torch": torch.__version__,
         "python": list(sys.version_info[:2]), "machine": platform.machine(),
         "cxx": _compiler_key(),
         # $CC is nvcc's host compiler (torch passes it as -ccbin).
@@ -219,7 +219,7 @@ def build_key() -> str:
 
 
 def _compiler_key() -> dict:
-    from ._toolchain import compiler_identity
+    from .toolchain import compiler_identity
 
     cxx = compiler_identity()
     key = {"name": cxx.name, "path": cxx.path, "version": cxx.version}
@@ -289,7 +289,7 @@ class BuildSpec:
 def _rasterizer_spec() -> BuildSpec:
     plan = cuda_plan()
     suffixes = (".cpp", ".cu") if plan["enabled"] else (".cpp",)
-    return BuildSpec(tuple(str(p) for p in _source_files() if p.suffix in suffixes), tuple(_cflags()),
+    return BuildSpec(tuple(str(p) for p in _source_files() if p.suffix in suffixes), tuple(cflags()),
                      tuple(LDFLAGS), plan)
 
 
@@ -340,7 +340,7 @@ def _build_checked(name: str, root: Path, final: Path, verbose: bool, spec: Buil
     libstdc++ is rebuilt once with a compiler that links it dynamically; the error probe
     must pass. Writes ``probe.json`` (what was built with what, and the probe) beside the
     library; a library failing either check is removed and :class:`BuildError` raised."""
-    from ._toolchain import compiler_identity, dynamic_compiler, links_libstdcxx_statically, probe_library, \
+    from .toolchain import compiler_identity, dynamic_compiler, links_libstdcxx_statically, probe_library, \
         static_message
 
     so = final / f"{name}.so"
@@ -454,7 +454,7 @@ def ensure_library(name: str, root: Path, spec: BuildSpec, verbose: bool = False
         if force or not so.is_file() or (final / PROBE_FILE).exists() and not (final / PROBE_FILE).is_file():
             _build_checked(name, root, final, verbose, spec)
         elif problem:
-            from ._toolchain import probe_library
+            from .toolchain import probe_library
 
             probe = probe_library(so, spec.namespace)  # (in a child process: a bad library cannot kill us)
             old = read_probe(final)
