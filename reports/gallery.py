@@ -18,7 +18,7 @@ from .pictures import MethodPictures, PictureSet, compose, read_mask, read_rgb, 
 
 #: segment's mask folder per ``mask_render`` of an evaluate row: the overlay must show the
 #: mask that was scored (exact protocol: the visible mask; NVOS / LERF-mask: object only)
-MASK_FOLDERS = {"visible": "pred_visible", "object_only": "pred_masks"}
+MASK_FOLDERS = {"visible": Files.PRED_VISIBLE, "object_only": Files.PRED_MASKS}
 
 
 def scored_mask_folder(row: Optional[dict]) -> str:
@@ -104,8 +104,8 @@ def picture_sets(data: RunData, infos: dict, root: Path, turntables: int = 0) ->
                 f = Path(r.segment_dir) / scored_mask_folder(r.row) / f"{view}.png"
                 if f.is_file():
                     preds[m] = read_mask(f)
-                for kind in ("object", "removed"):
-                    f = Path(r.segment_dir) / kind / f"{view}.png"
+                for kind, folder in (("object", Files.OBJECT_RENDERS), ("removed", Files.REMOVED_RENDERS)):
+                    f = Path(r.segment_dir) / folder / f"{view}.png"
                     if f.is_file():
                         renders.setdefault(m, {})[kind] = read_rgb(f)
             if m not in preds:

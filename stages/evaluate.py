@@ -131,7 +131,7 @@ def _run(ctx, inputs):
     if protocol == "exact":
         gts = {n: (v.masks[obj].cpu().numpy() if obj in v.masks else None) for n, v in test.items()}
         amodal = _amodal_gts(spec, Path(inputs["dataset"]), obj, gts)
-        visible = _read_preds(seg_dir / "pred_visible", list(test))
+        visible = _read_preds(seg_dir / Files.PRED_VISIBLE, list(test))
         kw = dict(skip_empty_gt=p.skip_empty_gt, boundary_ratio=p.boundary_ratio)
         occ = E.exact_scores(visible, gts, **kw)
         rel = E.exact_scores(preds, gts, **kw)
@@ -169,11 +169,11 @@ def _run(ctx, inputs):
         details.update(per_view={}, skipped={})
 
     refs = {n: v.image.cpu().numpy() for n, v in test.items()}
-    refined = {n: E.read_rgb_u8(seg_dir / "render" / f"{n}.png") for n in test}
+    refined = {n: E.read_rgb_u8(seg_dir / Files.SCENE_RENDERS / f"{n}.png") for n in test}
     vanilla = {n: E.read_rgb_u8(Path(inputs["scene"]) / Files.RENDERS / f"{n}.png") for n in test}
     pr = E.psnr_scores(refined, refs) if refs else {"psnr": float("nan"), "per_view": {}}
     pv = E.psnr_scores(vanilla, refs) if refs else {"psnr": float("nan"), "per_view": {}}
-    pre_dir = seg_dir / "render_before_raem"
+    pre_dir = seg_dir / Files.BEFORE_RAEM_RENDERS
     pb = pr
     if pre_dir.is_dir() and refs:
         pb = E.psnr_scores({n: E.read_rgb_u8(pre_dir / f"{n}.png") for n in test}, refs)

@@ -105,11 +105,6 @@ class MasksParams:
         if self.files_root is not None and not Path(self.files_root).is_dir():
             raise ValueError(f"masks.files_root {self.files_root} does not exist (a folder with one "
                              f"folder of mask images per object, named after the object)")
-        if not 0 <= self.files_threshold < 255:
-            raise ValueError(f"files_threshold must be in 0..254 (a mask pixel is one with some "
-                             f"channel above it), got {self.files_threshold}")
-        if self.source not in SOURCES:
-            raise ValueError(f"source must be one of {list(SOURCES)}, got {self.source!r}")
         # Checked when the workflow is planned, before any task runs (fail fast: the
         # masks stage comes after hours of training on a real scene).
         if self.source == "points":

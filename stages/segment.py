@@ -100,15 +100,15 @@ def _run(ctx, inputs):
         mask = render_object_mask(result, v.camera, threshold=p.mask_threshold, backend=p.backend)
         write_png(ctx.out_dir / Files.PRED_MASKS / f"{v.name}.png", mask.cpu().numpy())
         visible = visible_object_mask(in_scene, v.camera, threshold=p.mask_threshold, backend=p.backend)
-        write_png(ctx.out_dir / "pred_visible" / f"{v.name}.png", visible.cpu().numpy())
-        write_png(ctx.out_dir / "render" / f"{v.name}.png",
+        write_png(ctx.out_dir / Files.PRED_VISIBLE / f"{v.name}.png", visible.cpu().numpy())
+        write_png(ctx.out_dir / Files.SCENE_RENDERS / f"{v.name}.png",
                   render_image(model, v.camera, bg, backend=p.backend).clamp(0, 1).cpu().numpy())
         if before_raem is not None:
-            write_png(ctx.out_dir / "render_before_raem" / f"{v.name}.png",
+            write_png(ctx.out_dir / Files.BEFORE_RAEM_RENDERS / f"{v.name}.png",
                       render_image(before_raem, v.camera, bg, backend=p.backend).clamp(0, 1).cpu().numpy())
-        write_png(ctx.out_dir / "object" / f"{v.name}.png",
+        write_png(ctx.out_dir / Files.OBJECT_RENDERS / f"{v.name}.png",
                   render_object_rgb(result, v.camera, bg, backend=p.backend).clamp(0, 1).cpu().numpy())
-        write_png(ctx.out_dir / "removed" / f"{v.name}.png",
+        write_png(ctx.out_dir / Files.REMOVED_RENDERS / f"{v.name}.png",
                   render_removed_rgb(result, v.camera, bg, backend=p.backend).clamp(0, 1).cpu().numpy())
     render_s = time.perf_counter() - t0
     out = {"method": info["method"], "object": info["object"], "scene": ctx.item["scene"],
@@ -117,9 +117,9 @@ def _run(ctx, inputs):
            "mask_threshold": method_threshold(result, p.mask_threshold),
            "background_gaussians": len(rest_model), "views": [v.name for v in views],
            "files": {"object": Files.OBJECT_PLY, "background": Files.BACKGROUND_PLY, Files.PRED_MASKS: Files.PRED_MASKS,
-                     "pred_visible": "pred_visible",
-                     "render": "render", "object_renders": "object", "removed_renders": "removed",
-                     **({"render_before_raem": "render_before_raem"} if before_raem is not None else {})}}
+                     "pred_visible": Files.PRED_VISIBLE, "render": Files.SCENE_RENDERS,
+                     "object_renders": Files.OBJECT_RENDERS, "removed_renders": Files.REMOVED_RENDERS,
+                     **({"render_before_raem": Files.BEFORE_RAEM_RENDERS} if before_raem is not None else {})}}
     write_json(ctx.out_dir / Files.SEGMENT, out)
     # (timings in the manifest only: the artifact is the same bytes on a recompute)
     ctx.note(object_gaussians=len(obj_model), background_gaussians=len(rest_model), extract_ms=extract_ms,

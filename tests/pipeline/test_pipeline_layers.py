@@ -121,7 +121,7 @@ def test_arrows_between_packages_point_one_way():
 #: The subpackages of cobgs/, lowest first: a module may import modules of its own subpackage
 #: and of those listed before it, and the package's top-level modules (configs, errors, ...),
 #: which import no subpackage. (ARCHITECTURE.md; issue 47.)
-COBGS_LAYERS = ("gaussians", "render", "data", "evaluate", "masks", "train", "refine")
+COBGS_LAYERS = ("configs", "gaussians", "render", "data", "evaluate", "masks", "train", "refine")
 
 
 def _layer_violations() -> list[str]:

@@ -1,4 +1,4 @@
-"""Stage params are the library's own config classes (cobgs/configs.py, torch-free):
+"""Stage params are the library's own config classes (cobgs/configs/, torch-free):
 checked where they are set, and importing the stages or building the CLI imports no torch."""
 
 from __future__ import annotations

@@ -1,0 +1,185 @@
+"""The baseline training's config, its recipes and its resolved schedule (cobgs.train)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import ClassVar, Optional
+
+
+from .checks import check_params
+
+
+# -- baseline training (cobgs.train.optimize) ---------------------------------------------------------
+RECIPES_NAMES = ("3dgs", "fast")  # (the recipes' values: RECIPES, below the class)
+@dataclass(frozen=True)
+class TrainConfig:
+    """Every knob of the baseline optimisation (defaults: the 3DGS paper's)."""
+
+    iterations: Optional[int] = field(default=None, metadata={"help": (
+        "unset: the recipe's (3dgs: the paper's 30 000; fast: 12 000); the shipped workflows "
+        "and `cobgs new` set 7000, the 3DGS short schedule (compressed by scale_schedule)")})
+    seed: int = 0
+    # Schedule scaling (see the module docstring).
+    scale_schedule: bool = True
+    scale_densify_interval: bool = False
+    reference_iterations: int = 30_000
+    # Spherical harmonics.
+    sh_degree: int = 3
+    sh_degree_interval_its: int = 1_000
+    # Learning rates (Adam, eps 1e-15). Position lr is multiplied by the scene extent.
+    position_lr_init: float = 1.6e-4
+    position_lr_final: float = 1.6e-6
+    position_lr_decay_its: int = 30_000
+    sh0_lr: float = 2.5e-3
+    shN_lr: float = 2.5e-3 / 20.0
+    opacity_lr: float = 0.025
+    scaling_lr: float = 5e-3
+    rotation_lr: float = 1e-3
+    adam_eps: float = 1e-15
+    ssim_weight: float = 0.2
+    # Densification.
+    densify_from_its: int = 500
+    densify_until_its: int = 15_000
+    densify_interval_its: int = 100
+    densify_grad_threshold_ndc: float = 2e-4
+    dense_scale_fraction: float = 0.01  # clone if max scale <= this x extent, else split
+    split_children: int = 2
+    split_scale_divisor: float = 1.6
+    prune_min_opacity: float = 0.005
+    prune_max_world_scale_fraction: float = 0.1  # x extent, after the first opacity reset
+    prune_max_screen_radius_px: float = 0.0  # 0 = off (see the module docstring)
+    max_gaussians: int = 0  # 0 = unlimited; otherwise densification stops adding
+    opacity_reset_interval_its: int = 3_000
+    opacity_reset_value: float = 0.01
+    # Initialisation.
+    random_init_points: int = 100_000
+    init_opacity: float = 0.1
+    # Rendering / bookkeeping.
+    background: Optional[tuple[float, float, float]] = None  # None: the scene's
+    # A fresh uniform-random background colour every iteration (3DGS's ``--random_background``):
+    # a fully opaque capture can then no longer be fitted by letting a fixed black
+    # background show through semi-transparent layers; only for opaque photographs
+    # (not RGBA-composited scenes, whose targets contain the fixed background).
+    random_background: bool = False
+    backend: str = "native"
+    log_interval_its: int = 10
+    checkpoint_interval_its: int = 0  # 0 = only at the end (when a folder is given)
+    # -- the recipe and the switches of the fast one (docs/method.md §1, "Recipes") --------------
+    # Fields added after the first cache entries were written carry metadata "before": the
+    # value every run had before the field existed; the train stage's key leaves a field out
+    # while it holds that value (cobgs.configs.key_without_later), so earlier entries stay valid.
+    recipe: str = field(default="3dgs", metadata={"before": "3dgs", "help": (
+        '"3dgs": the paper\'s schedule as written; "fast": RECIPES["fast"] for the fields left '
+        "unset (iterations, resolution_schedule, the budget's fields)")})
+    # DashGaussian-style resolution schedule: render at 1/d of the image size, d chosen so that
+    # the share of the images' spectral energy below the rendered Nyquist grows linearly from
+    # what 1/resolution_max_downscale holds to all of it at resolution_full_at x iterations.
+    resolution_schedule: Optional[bool] = field(default=None, metadata={"before": False, "help": (
+        "unset: the recipe's (3dgs: false, fast: true)")})
+    resolution_max_downscale: float = field(default=4.0, metadata={"before": 4.0})
+    resolution_full_at: float = field(default=0.5, metadata={"before": 0.5})
+    # Taming-3DGS-style budget: densification follows a count that grows linearly from the
+    # initial points to the budget at budget_full_at of the densification window, densifying
+    # the Gaussians of highest score (the averaged view-space gradient) first; the budget is
+    # never exceeded. Absolute (wins where set), else the larger of a per-pixel budget (of one
+    # training image) and a multiple of the initial count (Taming's "multiplier" mode: the SfM
+    # points, or the random box's random_init_points). 0 everywhere: no budget.
+    gaussian_budget: int = field(default=0, metadata={"before": 0})
+    gaussian_budget_per_pixel: Optional[float] = field(default=None, metadata={"before": 0.0, "help": (
+        "unset: the recipe's (3dgs: 0 = no budget, fast: 0.3)")})
+    gaussian_budget_multiplier: Optional[float] = field(default=None, metadata={"before": 0.0, "help": (
+        "unset: the recipe's (3dgs: 0, fast: 36)")})
+    budget_full_at: float = field(default=0.7, metadata={"before": 0.7})
+    # The budget as a ceiling rather than a target: only Gaussians over 3DGS's gradient threshold
+    # are candidates (highest first, as many as the line allows), so a budget the scene does not
+    # need leaves 3DGS's own densification as it is. Off: Taming's rule (the line is reached).
+    budget_threshold_gate: Optional[bool] = field(default=None, metadata={"before": False, "help": (
+        "unset: the recipe's (3dgs: false, fast: true)")})
+    # Adam steps only the Gaussians the view touches (radius > 0): the others keep their
+    # parameters and moments, as gsplat's selective Adam.
+    sparse_adam: bool = field(default=False, metadata={"before": False})
+    # The CPU blending kernels' fast path in the training steps (fused multiply-adds; images and
+    # gradients within tests/render/test_cpu_fast_path.py's tolerances of the exact kernels,
+    # no longer bit-identical to them or to CUDA). Evaluation, refinement and export keep the
+    # exact kernels. CUDA has its own switch (COBGS_CUDA_EXACT).
+    fast_kernels: bool = field(default=False, metadata={"before": False})
+
+    RANGES: ClassVar[dict] = {
+        "iterations": "[1, 1e7]", "seed": "[0, 2147483647]", "reference_iterations": "[1, 1e7]",
+        "sh_degree": "[0, 3]", "sh_degree_interval_its": "[1, 1e7]",
+        "position_lr_init": "(0, 1]", "position_lr_final": "(0, 1]", "position_lr_decay_its": "[1, 1e7]",
+        "sh0_lr": "[0, 1]", "shN_lr": "[0, 1]", "opacity_lr": "[0, 1]", "scaling_lr": "[0, 1]",
+        "rotation_lr": "[0, 1]", "adam_eps": "(0, 0.001]", "ssim_weight": "[0, 1]",
+        "densify_from_its": "[0, 1e7]", "densify_until_its": "[0, 1e7]", "densify_interval_its": "[1, 1e7]",
+        "densify_grad_threshold_ndc": "(0, 1]", "dense_scale_fraction": "[0, 1]", "split_children": "[1, 16]",
+        "split_scale_divisor": "[1, 100]", "prune_min_opacity": "[0, 1)",
+        "prune_max_world_scale_fraction": "(0, inf]", "prune_max_screen_radius_px": "[0, inf]",
+        "max_gaussians": "[0, 1e9]", "opacity_reset_interval_its": "[1, 1e7]", "opacity_reset_value": "(0, 1)",
+        "random_init_points": "[1, 1e8]", "init_opacity": "(0, 1)", "background": "[0, 1]",
+        "log_interval_its": "[1, 1e7]", "checkpoint_interval_its": "[0, 1e7]",
+        "resolution_max_downscale": "[1, 64]", "resolution_full_at": "(0, 1]", "gaussian_budget": "[0, 1e9]",
+        "gaussian_budget_per_pixel": "[0, 100]", "gaussian_budget_multiplier": "[0, 10000]",
+        "budget_full_at": "(0, 1]",
+    }
+    CHOICES: ClassVar[dict] = {"backend": ("native", "reference"), "recipe": tuple(RECIPES_NAMES)}
+
+    def __post_init__(self):
+        check_params(self)
+        for name, value in RECIPES[self.recipe].items():  # what the caller left unset: the recipe's
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, value)
+
+    def budget_for(self, width: int, height: int, initial: int = 0) -> int:
+        """The Gaussian budget for training images of ``width`` x ``height`` and a model that
+        starts with ``initial`` Gaussians, 0 for none: ``gaussian_budget`` where set, else the
+        larger of ``gaussian_budget_per_pixel`` x the pixels and ``gaussian_budget_multiplier``
+        x the initial count."""
+        if self.gaussian_budget:
+            return int(self.gaussian_budget)
+        per_pixel = int(round(self.gaussian_budget_per_pixel * width * height))
+        per_point = int(round(self.gaussian_budget_multiplier * max(0, int(initial))))
+        return max(per_pixel, per_point)
+
+    def schedule(self) -> "Schedule":
+        """Iteration-valued fields after scaling to ``iterations`` (see module docstring)."""
+        f = self.iterations / self.reference_iterations if self.scale_schedule else 1.0
+
+        def s(v: int) -> int:
+            return max(1, int(round(v * f)))
+
+        return Schedule(
+            sh_degree_interval=s(self.sh_degree_interval_its),
+            position_lr_decay=s(self.position_lr_decay_its),
+            densify_from=s(self.densify_from_its),
+            densify_until=s(self.densify_until_its),
+            densify_interval=s(self.densify_interval_its) if self.scale_densify_interval else self.densify_interval_its,
+            opacity_reset_interval=s(self.opacity_reset_interval_its),
+        )
+
+
+#: The values a recipe gives the :class:`TrainConfig` fields the caller leaves unset (None)
+#: (docs/method.md §1, "Recipes"; measured in docs/benchmarks/cost_cpu.md). A value the caller
+#: sets, whatever it is, stays.
+RECIPES = {
+    "3dgs": {"iterations": 30_000, "resolution_schedule": False, "gaussian_budget_per_pixel": 0.0,
+             "gaussian_budget_multiplier": 0.0, "budget_threshold_gate": False},
+    "fast": {"iterations": 12_000, "resolution_schedule": True, "gaussian_budget_per_pixel": 0.3,
+             "gaussian_budget_multiplier": 36.0, "budget_threshold_gate": True},
+}
+FAST_RECIPE = RECIPES["fast"]
+
+
+
+
+@dataclass(frozen=True)
+class Schedule:
+    """Resolved iteration counts of one run (see :meth:`TrainConfig.schedule`)."""
+
+    sh_degree_interval: int
+    position_lr_decay: int
+    densify_from: int
+    densify_until: int
+    densify_interval: int
+    opacity_reset_interval: int
+
+
