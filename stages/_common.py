@@ -143,7 +143,9 @@ def load_scene(dataset_dir: Path, poses_dir: Optional[Path]):
         kw = {}
         if rd.get("background") is not None:
             kw["background"] = tuple(rd["background"])
-        if rd["format"] != "blender":
+        from cobgs.data.formats import scene_format
+
+        if not scene_format(rd["format"]).own_split:
             kw["test_names"] = test or None
             kw["test_every"] = 0
         if rd.get("distortion"):

@@ -8,7 +8,7 @@ scenes, the generated scene itself. External data is only read: the spec points 
 absolute path (an edit that keeps file times: ``cobgs status --verify-data``).
 
 Kinds:
-  synthetic  cobgs.data.synthetic preset (exact masks; exact-GT protocol)
+  synthetic  cobgs.data.synth.scene preset (exact masks; exact-GT protocol)
   transforms NeRF-style transforms.json with masks/<object>/ (exact-GT protocol when masks)
   blender    NeRF-synthetic (alpha = object mask "object"; exact-GT protocol)
   llff       poses_bounds.npy + images_<k>/ (no masks)
@@ -26,7 +26,7 @@ from pathlib import Path
 from typing import Optional, Union
 
 from cobgs.configs import DatasetConfig, Files
-from cobgs.data.build import KINDS  # (torch-free)
+from cobgs.data.build import kinds  # (torch-free)
 from pipeline import Resources, Stage
 
 from ._common import StageInputError, write_json
@@ -37,7 +37,7 @@ class SceneAttrs:
     """Attributes of a ``scene`` axis value: what the data is and where it lives.
 
     Attributes:
-        kind: one of :data:`KINDS`.
+        kind: one of :func:`cobgs.data.build.kinds` (the builders' and every posed layout).
         path: the data folder (every kind but ``synthetic``); relative paths resolve
             against the workflow file; checked when the workflow loads (fail fast). For
             ``kind = "nvos"`` a missing ``<path>`` is also looked for as
@@ -81,8 +81,8 @@ class SceneAttrs:
                 raise ValueError(f"trained: {exc}") from exc
         if self.trained_iteration < 0:
             raise ValueError(f"trained_iteration must be >= 0, got {self.trained_iteration}")
-        if self.kind not in KINDS:
-            raise ValueError(f"kind must be one of {list(KINDS)}, got {self.kind!r}")
+        if self.kind not in kinds():
+            raise ValueError(f"kind must be one of {list(kinds())}, got {self.kind!r}")
         if not isinstance(self.task, str):
             if self.kind != "nvos" or not self.task:
                 raise ValueError("a list of tasks (several NVOS tasks on one scene) needs kind 'nvos' and "
@@ -156,7 +156,7 @@ def _run(ctx, inputs):
 def _check(p: DatasetConfig) -> None:
     """A synthetic preset the generator knows, before any task runs (the check needs the
     generator's modules: numpy and friends)."""
-    from cobgs.data.synth_presets import PRESETS
+    from cobgs.data.synth.presets import PRESETS
 
     if p.preset not in PRESETS:
         raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {p.preset!r}")

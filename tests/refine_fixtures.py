@@ -108,15 +108,15 @@ def synthetic_surface_points(preset: str, seed: int, views, n_points: int, rng_s
     """Surface points of a synthetic scene seen by ``views``: the "perfect SfM" start.
 
     Rays through random pixels of the training views are cast against the generator's
-    exact geometry (:func:`cobgs.data.synth_render.make_caster`); each hit becomes a
+    exact geometry (:func:`cobgs.data.synth.render.make_caster`); each hit becomes a
     point coloured by the image pixel it came from. ``preset``, ``seed`` and
     ``overrides`` (e.g. ``width_px``) must be those the scene was generated with.
 
     Returns:
         (xyz [P, 3] float32, rgb [P, 3] float32), P <= n_points (misses dropped).
     """
-    from cobgs.data.synth_render import make_caster
-    from cobgs.data.synthetic import build_scene
+    from cobgs.data.synth.render import make_caster
+    from cobgs.data.synth.scene import build_scene
 
     _, geometry, _ = build_scene(preset, seed, **overrides)
     caster = make_caster(geometry)

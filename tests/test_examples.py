@@ -15,7 +15,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 def test_segment_object_example(tmp_path):
     from cobgs.data.readers import read_scene
-    from cobgs.data.synthetic import generate_scene
+    from cobgs.data.synth.scene import generate_scene
     from cobgs.gaussians.model import GaussianModel
     from cobgs.gaussians.ply import load_ply, save_ply
     from cobgs.train.optimize import train

@@ -2,13 +2,11 @@
 
 :func:`build_spec` fills the scene's record (:class:`cobgs.data.spec.DatasetSpec`): its views
 and held-out views, objects, protocol, the folder SfM reads, how later stages read the
-scene. Kinds:
+scene. Kinds: each posed layout of :data:`cobgs.data.formats.FORMATS`, read by its reader
+(transforms.json, NeRF-synthetic / Blender with its alpha as the mask of "object", LLFF, a COLMAP
+model; masks/<object>/ where the data has them), and the kinds built here:
 
-  synthetic  cobgs.data.synthetic preset, generated into ``out_dir/scene`` (exact masks)
-  transforms NeRF-style transforms.json with masks/<object>/ (exact-GT protocol when masks)
-  blender    NeRF-synthetic (alpha = object mask "object"; exact-GT protocol)
-  llff       poses_bounds.npy + images_<k>/ (no masks)
-  colmap     a COLMAP model + images/ (masks/<object>/ optional)
+  synthetic  cobgs.data.synth.scene preset, generated into ``out_dir/scene`` (exact masks)
   images     a folder of images without poses (SfM required)
   nvos       an LLFF scene + the NVOS labels folder (NVOS protocol; target view held out)
   lerf_mask  a LERF-mask scene (LERF-mask protocol; split from images_train/)
@@ -26,14 +24,22 @@ from pathlib import Path
 from typing import Optional, Union
 
 from cobgs.configs import DatasetConfig
+from cobgs.data.formats import FORMATS, scene_format
 from cobgs.data.spec import FORMAT as SPEC_FORMAT, VERSION as SPEC_VERSION
 from cobgs.errors import InputError
 
 log = logging.getLogger(__name__)
 
-KINDS = ("synthetic", "transforms", "blender", "llff", "colmap", "images", "nvos", "lerf_mask")
-_POSED_FORMATS = {"transforms": "transforms", "blender": "blender", "llff": "llff", "colmap": "colmap",
-                  "nvos": None, "lerf_mask": "colmap"}
+#: The reader format of the kinds built otherwise than from a posed layout: None where the scene
+#: has no poses of its own (SfM finds them) or its builder sets it (NVOS: the LLFF copy's).
+_BUILT_FORMATS = {"synthetic": None, "images": None, "nvos": None, "lerf_mask": "colmap"}
+def kinds() -> tuple[str, ...]:
+    """Every dataset kind: the builders' and each posed layout of :data:`cobgs.data.formats.FORMATS`
+    (a new layout is a new kind, with no line here)."""
+    return ("synthetic", *FORMATS, "images", "nvos", "lerf_mask")
+
+
+KINDS = kinds()  # (the shipped ones; a layout registered later: kinds())
 _IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
 
@@ -70,7 +76,8 @@ def build_spec(inp: BuildInput, p: DatasetConfig) -> dict:
     """
     spec: dict = {"format": SPEC_FORMAT, "version": SPEC_VERSION, "scene": inp.scene, "kind": inp.kind,
                   "protocol": "none", "objects": [], "sfm_downscale": 1.0}
-    reader: dict = {"format": _POSED_FORMATS.get(inp.kind), "path": None, "downscale": p.downscale,
+    reader: dict = {"format": inp.kind if inp.kind in FORMATS else _BUILT_FORMATS.get(inp.kind), "path": None,
+                    "downscale": p.downscale,
                     "background": None if p.background is None else list(p.background)}
     if inp.kind != "synthetic":
         root = Path(inp.path).resolve()
@@ -177,15 +184,16 @@ def _sfm_images_as_views(out_dir: Path, scene, sfm_dir: Path) -> Path:
     return Path(out.name)
 
 
-def _check_blender_objects(inp: "BuildInput", root: Path, have: list) -> None:
-    """A NeRF-synthetic scene's objects come from the images' alpha channel (``object``) or
-    ``masks/<object>/`` folders; an object the workflow asks for that neither gives fails
-    here, in the first task, naming the folder (objects with a text prompt are exempt)."""
+def _check_alpha_objects(inp: "BuildInput", root: Path, have: list, alpha: str) -> None:
+    """The objects of a layout whose images' alpha channel is an object's mask (NeRF-synthetic:
+    ``object``) come from that channel or ``masks/<object>/`` folders; an object the workflow
+    asks for that neither gives fails here, in the first task, naming the folder (objects with
+    a text prompt are exempt)."""
     for obj in inp.objects:
         name = obj.mask or obj.name
         if name in have or obj.own_masks:
             continue
-        why = ", ".join(w for w in ("its images have no alpha channel" if "object" not in have else "",
+        why = ", ".join(w for w in ("its images have no alpha channel" if alpha not in have else "",
                                     f"it has masks of {have} only" if have else "") if w)
         raise InputError(f"object {obj.name!r} of scene {inp.scene!r}: {root} gives no "
                               f"mask of {name!r} ({why}, and there is no masks/{name}/ folder); add "
@@ -196,7 +204,7 @@ def _check_blender_objects(inp: "BuildInput", root: Path, have: list) -> None:
 
 def _build_synthetic(inp: "BuildInput", p: DatasetConfig, spec: dict, reader: dict) -> None:
     """A synthetic scene, generated into the artifact (exact GT, amodal masks)."""
-    from cobgs.data.synthetic import generate_scene
+    from cobgs.data.synth.scene import generate_scene
 
     out = generate_scene(inp.out_dir / "scene", p.preset, p.seed, progress=False,
                          width_px=p.width_px or None, height_px=p.height_px or None,
@@ -308,7 +316,8 @@ def _build_posed(inp: "BuildInput", p: DatasetConfig, spec: dict, reader: dict) 
     kept = set(_subset(all_views, p))
     test = [v.name for v in scene.test if v.name in kept]
     with_gt = sorted({k for v in scene.test for k in v.masks})
-    if inp.kind == "blender":
+    fmt = scene_format(reader["format"], root)
+    if not fmt.images_folder:
         spec["has_poses"], spec["images"] = True, None
     else:
         sfm_dir, post = _sfm_images(root, p)
@@ -317,14 +326,13 @@ def _build_posed(inp: "BuildInput", p: DatasetConfig, spec: dict, reader: dict) 
                                                                 if Path(n).stem in kept]}
         spec["sfm_downscale"] = post
     have = sorted({k for v in scene.views for k in v.masks})
-    if inp.kind == "blender":
-        _check_blender_objects(inp, root, have)
-        if have == ["object"] and not (root / "masks").is_dir():
+    if fmt.alpha_object:
+        _check_alpha_objects(inp, root, have, fmt.alpha_object)
+        if have == [fmt.alpha_object] and not (root / "masks").is_dir():
             # one object, nothing in front of it: the alpha matte is its whole silhouette
-            spec["amodal"] = {"source": "visible", "objects": ["object"]}
+            spec["amodal"] = {"source": "visible", "objects": [fmt.alpha_object]}
     spec.update(views=sorted(kept), test_views=test, objects=have,
-                protocol="exact" if with_gt else "none",
-                scene_type=inp.scene_type or ("360" if inp.kind == "blender" else "forward"))
+                protocol="exact" if with_gt else "none", scene_type=inp.scene_type or fmt.scene_type)
 
 
 _BUILDERS = {"synthetic": _build_synthetic, "images": _build_images, "nvos": _build_nvos,

@@ -11,20 +11,16 @@ from cobgs.data.scene import Scene
 
 
 def detect_format(path: os.PathLike | str) -> str:
-    """"blender", "transforms", "colmap" or "llff", from the files present in ``path``."""
-    from cobgs.data.layout import detect_layout
+    """The layout of ``path`` (:data:`cobgs.data.formats.FORMATS`), from the files present."""
+    from cobgs.data.formats import detect, layouts_expected
 
     root = Path(path)
     if not root.is_dir():
         raise DataError("scene folder not found", root)
-    found = detect_layout(root)
+    found = detect(root)
     if found is not None:
         return found
-    raise DataError(
-        "unrecognised scene layout (expected transforms_train.json, transforms.json, a "
-        "COLMAP model in sparse/0/, or poses_bounds.npy)",
-        root,
-    )
+    raise DataError(f"unrecognised scene layout (expected {layouts_expected()})", root)
 
 
 def read_scene(
@@ -37,43 +33,21 @@ def read_scene(
     format: Optional[str] = None,
     distortion: str = "auto",
 ) -> Scene:
-    """Read any supported scene folder.
+    """Read any supported scene folder (:data:`cobgs.data.formats.FORMATS`).
 
     Args:
         path: scene folder.
         downscale: divide the image size by this (LLFF: must be an integer with an
             ``images_<k>/`` folder, or ``images/`` is resized).
-        test_every: hold out every k-th view (ignored by Blender scenes, which have
-            their own test split).
+        test_every: hold out every k-th view (ignored by layouts with their own test split).
         test_names: explicit held-out views (stems or file names).
         background: compositing colour for RGBA images (Blender default: white).
         format: force a reader instead of detecting it.
         distortion: COLMAP scenes: "auto", "undistort" or "ignore" (see
             :func:`cobgs.data.colmap.read_colmap`).
     """
-    fmt = format or detect_format(path)
-    if fmt == "blender":
-        from cobgs.data.blender import read_blender
+    from cobgs.data.formats import scene_format
 
-        if test_names is not None:
-            raise DataError("Blender scenes use transforms_test.json; test_names is not supported", path)
-        kw = {} if background is None else {"background": background}
-        return read_blender(path, downscale=downscale, **kw)
-    if fmt == "transforms":
-        from cobgs.data.transforms import read_transforms
-
-        kw = {} if background is None else {"background": background}
-        return read_transforms(path, downscale=downscale, test_every=test_every, test_names=test_names, **kw)
-    if fmt == "colmap":
-        from cobgs.data.colmap import read_colmap
-
-        return read_colmap(path, downscale=downscale, test_every=test_every, test_names=test_names,
-                           distortion=distortion)
-    if fmt == "llff":
-        from cobgs.data.llff import read_llff
-
-        k = int(round(downscale))
-        if abs(downscale - k) > 1e-9:
-            raise DataError(f"LLFF downscale must be an integer, got {downscale}", path)
-        return read_llff(path, downscale=k, test_every=test_every, test_names=test_names)
-    raise DataError(f"unknown scene format {fmt!r} (expected blender, transforms, colmap, llff)", path)
+    fmt = scene_format(format or detect_format(path), path)
+    return fmt.read(path, downscale=downscale, test_every=None if fmt.own_split else test_every,
+                    test_names=test_names, background=background, distortion=distortion)

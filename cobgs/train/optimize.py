@@ -99,9 +99,6 @@ class TrainResult:
     budget: int = 0
 
 
-# Scene readers whose images are always RGBA composited on ``Scene.background``
-# (``transforms`` scenes may be opaque photographs or RGBA: the user decides).
-_COMPOSITED_KINDS = ("blender",)
 
 
 def spectral_energy_kept(images: Sequence[Tensor], downscales: Sequence[float]) -> list[float]:
@@ -188,7 +185,11 @@ class Trainer:
         self.split_rng = torch.Generator().manual_seed(config.seed + 1)
         init_rng = torch.Generator().manual_seed(config.seed + 2)
         self.bg_rng = torch.Generator().manual_seed(config.seed + 3)
-        if config.random_background and scene.kind in _COMPOSITED_KINDS:
+        # layouts whose images are always RGBA composited on ``Scene.background`` (cobgs.data.formats;
+        # ``transforms`` scenes may be opaque photographs or RGBA: the user decides)
+        from cobgs.data.formats import FORMATS
+
+        if config.random_background and scene.kind in FORMATS and FORMATS[scene.kind].composited:
             raise InputError(
                 f"TrainConfig.random_background needs opaque photographs, but this {scene.kind!r} scene's "
                 f"images were composited on the fixed background {tuple(scene.background)}: "

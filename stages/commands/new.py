@@ -27,16 +27,11 @@ def _images(folder: Path) -> list[Path]:
 
 def detect(folder: Path) -> dict:
     """What the folder holds: kind, why, image count and size, mask objects."""
-    from cobgs.data.layout import detect_layout  # the readers' own detector (standard library only)
+    from cobgs.data.formats import FORMATS, detect  # the readers' own detector (standard library only)
 
-    layout = detect_layout(folder)
-    why_of = {"blender": "transforms_train.json (NeRF-synthetic layout) found; its posed views are "
-                         "triangulated for the initial points",
-              "transforms": "transforms.json (NeRF / nerfstudio cameras) found",
-              "colmap": "a COLMAP model (sparse/0) found: its cameras and points are used",
-              "llff": "poses_bounds.npy (LLFF poses) found; points come from triangulation"}
+    layout = detect(folder)
     if layout is not None:
-        kind, why = layout, why_of[layout]
+        kind, why = layout, FORMATS[layout].found
     elif _images(folder / "images"):
         kind, why = "images", "photos in images/ and no cameras: SfM (pycolmap) will find them"
     elif _images(folder):
@@ -238,7 +233,9 @@ def workflow_text(folder: Path, info: dict, name: str, prompts: list[str], views
     lines += ["[params.masks]", f'source = "{source}"']
     if source == "onnx":
         lines.append('models_dir = "${COBGS_MODELS_DIR}"')
-    st_default = "360" if info["kind"] in ("images", "blender") else "forward"  # as the dataset stage
+    from cobgs.data.formats import FORMATS
+
+    st_default = FORMATS[info["kind"]].scene_type if info["kind"] in FORMATS else "360"  # as the dataset stage
     other = "forward" if st_default == "360" else "360"
     why = {"forward": "a forward-facing capture: δ 0.5, 6 mask stages",
            "360": "the camera goes around the object: δ 0.8, 4 mask stages"}

@@ -38,7 +38,7 @@ def _size(text: str):
 
 
 def _synth(args) -> int:
-    from cobgs.data.synthetic import generate_scene
+    from cobgs.data.synth.scene import generate_scene
 
     w, h = args.size if args.size else (None, None)
     t0 = time.perf_counter()

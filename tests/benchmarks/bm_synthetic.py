@@ -24,7 +24,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO))
 
-from cobgs.data.synthetic import PRESETS, generate_scene  # noqa: E402
+from cobgs.data.synth.scene import PRESETS, generate_scene  # noqa: E402
 from cobgs.data.sfm import run_sfm  # noqa: E402
 from cobgs.configs import SfmOptions
 

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from cobgs.data.synthetic import generate_scene
+from cobgs.data.synth.scene import generate_scene
 from cobgs.errors import DataError, InputError
 from cobgs.data.sfm import SfmResult, run_sfm
 from cobgs.configs import SfmOptions
@@ -142,8 +142,8 @@ def test_triangulation_with_known_poses_lands_on_the_surfaces(demo, tmp_path):
     with the given cameras held fixed gives points in the scene's own frame, on its
     surfaces: each point's depth in a view agrees with the generator's exact first-hit
     depth at the pixel it projects to."""
-    from cobgs.data.synth_render import make_caster
-    from cobgs.data.synthetic import build_scene
+    from cobgs.data.synth.render import make_caster
+    from cobgs.data.synth.scene import build_scene
     from cobgs.data.sfm import triangulate_known_poses
 
     meta = json.loads((demo / "scene.json").read_text())

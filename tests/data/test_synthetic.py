@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from cobgs.errors import InputError
-from cobgs.data import synthetic
-from cobgs.data.synth_primitives import Box, Cylinder, Plane, Sphere, rotation_from_euler_deg
+from cobgs.data.synth import scene as synthetic
+from cobgs.data.synth.primitives import Box, Cylinder, Plane, Sphere, rotation_from_euler_deg
 
 # Small enough to render in ~1 s, large enough that every object spans many pixels.
 SMALL = dict(width_px=120, height_px=90, num_views=9, supersampling=2)
@@ -91,7 +91,7 @@ def _surface_samples(obj: dict, n: int, rng) -> tuple[np.ndarray, np.ndarray]:
 def test_layout_and_metadata(scene_dir):
     tf = json.loads((scene_dir / "transforms.json").read_text())
     meta = json.loads((scene_dir / "scene.json").read_text())
-    assert meta["generator"] == "cobgs.data.synthetic" and meta["version"] == 1
+    assert meta["generator"] == "cobgs.data.synth.scene" and meta["version"] == 1
     assert meta["preset"] == "demo" and meta["seed"] == 3 and meta["trajectory"] == "forward"
     assert meta["image_size"] == [120, 90] and meta["supersampling"] == 2
     names = [o["name"] for o in meta["objects"]]
@@ -139,8 +139,8 @@ def test_masks_follow_majority_of_subsamples(scene_dir):
 def test_amodal_masks_hold_the_visible_ones(scene_dir):
     """amodal/<object>/ holds the held-out views only: the whole silhouette (occluders
     ignored) contains the visible mask, and is larger where something hides the object."""
-    from cobgs.data.synth_render import SynthScene, render_view
-    from cobgs.data.synthetic import build_scene
+    from cobgs.data.synth.render import SynthScene, render_view
+    from cobgs.data.synth.scene import build_scene
     import dataclasses as dc
 
     meta = json.loads((scene_dir / "scene.json").read_text())
@@ -385,7 +385,7 @@ def test_render_workers_end_with_a_killed_parent(tmp_path):
     import sys
     import time
 
-    code = ("from cobgs.data.synthetic import generate_scene\n"
+    code = ("from cobgs.data.synth.scene import generate_scene\n"
             f"generate_scene({str(tmp_path / 'scene')!r}, 'forward', seed=0, num_views=60, "
             "workers=2, progress=False)\n")
     proc = subprocess.Popen([sys.executable, "-c", code], start_new_session=True)

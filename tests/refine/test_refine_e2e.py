@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from cobgs.data.readers import read_scene
-from cobgs.data.synthetic import generate_scene
+from cobgs.data.synth.scene import generate_scene
 from cobgs.gaussians.model import GaussianModel
 from cobgs.refine.methods import run_method
 from cobgs.refine.alternation import masks_for

@@ -14,7 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from cobgs.data.synthetic import generate_scene
+from cobgs.data.synth.scene import generate_scene
 
 
 def make(out, k1: float = -0.12, seed: int = 1, views: int = 16, w: int = 320, h: int = 240) -> Path:

@@ -141,8 +141,8 @@ def surface_points(scene: Path, step: int = 8, limit: int = 4000) -> tuple[np.nd
     """Points on the surfaces a synthetic scene's cameras see ([N, 3] float, [N, 3] uint8
     colours from the images): rays through every ``step``-th pixel of every view, cast
     against the scene the generator rebuilds from ``scene.json``; at most ``limit``."""
-    from cobgs.data.synth_render import make_caster
-    from cobgs.data.synthetic import build_scene
+    from cobgs.data.synth.render import make_caster
+    from cobgs.data.synth.scene import build_scene
 
     meta = json.loads((scene / "scene.json").read_text())
     w, h = meta["image_size"]
@@ -269,7 +269,7 @@ def nvos_published(out: Path, layout: str, num_views: int = 12, factor: int = 4,
     size, as COB-GS releases its masks). The horns tasks segment two objects of one scene
     (ball, can); the others the ball. Returns (scenes, labels, released)."""
     from cobgs.data.nvos import NVOS_TASKS
-    from cobgs.data.synthetic import generate_scene
+    from cobgs.data.synth.scene import generate_scene
 
     scenes, labels, released = out / "scenes", out / "labels", out / "released"
     by_scene: dict[str, list[str]] = {}
@@ -297,7 +297,7 @@ def lerf_mask_published(out: Path, num_views: int = 12, workers: int = 1) -> Pat
     one synthetic scene each (other seeds); the prompts take the synthetic objects in turn
     (ball, can, crate, ball, ...), so several prompts share an object's masks."""
     from cobgs.data.lerf_mask import LERF_PROMPTS
-    from cobgs.data.synthetic import generate_scene
+    from cobgs.data.synth.scene import generate_scene
 
     objects = ("ball", "can", "crate")
     for seed, (scene_name, prompts) in enumerate(LERF_PROMPTS.items(), start=10):

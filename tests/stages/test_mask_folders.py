@@ -10,7 +10,7 @@ def test_mask_of_another_aspect_refused(tmp_path):
     import numpy as np
 
     from cobgs.data.images import same_aspect
-    from stages.masks import _folder_masks
+    from cobgs.masks.sources import folder_masks as _folder_masks
 
     class V:
         def __init__(self, name, w, h):
@@ -20,9 +20,9 @@ def test_mask_of_another_aspect_refused(tmp_path):
     folder.mkdir()
     cv2.imwrite(str(folder / "a.png"), np.full((160, 120), 255, np.uint8))  # 120x160: transposed
     cv2.imwrite(str(folder / "b.png"), np.full((240, 320), 255, np.uint8))  # 320x240: 2x, same aspect
-    from stages._common import StageInputError
+    from cobgs.errors import InputError
 
-    with pytest.raises(StageInputError, match=r"a\.png: 120x160 px, but view 'a' is 160x120: another aspect"):
+    with pytest.raises(InputError, match=r"a\.png: 120x160 px, but view 'a' is 160x120: another aspect"):
         _folder_masks([V("a", 160, 120)], folder, 0)
     out, info = _folder_masks([V("b", 160, 120)], folder, 0)
     assert out["b"].shape == (120, 160) and info["resized_nearest"] == ["b"]
@@ -32,8 +32,8 @@ def test_mask_of_another_aspect_refused(tmp_path):
 def test_huge_mask_png_named(tmp_path):
     import zlib
 
-    from stages._common import StageInputError
-    from stages.masks import _folder_masks
+    from cobgs.errors import DataError
+    from cobgs.masks.sources import folder_masks as _folder_masks
 
     class V:
         name, width, height = "a", 20000, 20000
@@ -52,5 +52,5 @@ def test_huge_mask_png_named(tmp_path):
     folder = tmp_path / "m"
     folder.mkdir()
     (folder / "a.png").write_bytes(png)
-    with pytest.raises(StageInputError, match=r"mask file .*a\.png: cannot read it as an image .*decompression bomb"):
+    with pytest.raises(DataError, match=r"a\.png: cannot read it as an image .*decompression bomb"):
         _folder_masks([V()], folder, 0)

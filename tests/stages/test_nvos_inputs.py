@@ -40,7 +40,7 @@ mask = "ball"
 
 @pytest.fixture(scope="module")
 def synth(tmp_path_factory):
-    from cobgs.data.synthetic import generate_scene
+    from cobgs.data.synth.scene import generate_scene
 
     return generate_scene(tmp_path_factory.mktemp("synth") / "s", "demo", seed=0, num_views=8, workers=1,
                           progress=False)

@@ -65,7 +65,7 @@ def _over_segments_but_finds_the_object(metrics: dict) -> None:
 
 @pytest.mark.slow
 def test_nvos_and_lerf_mask_workflows(tmp_path):
-    from cobgs.data.synthetic import generate_scene
+    from cobgs.data.synth.scene import generate_scene
     from pipeline import entries
 
     scene = generate_scene(tmp_path / "synth", "demo", 0, num_views=16, progress=False)
@@ -218,7 +218,7 @@ def test_nvos_on_the_published_llff_copies_with_released_masks(tmp_path, layout)
     images_2/image000.png ...; NeX: 14-column poses_bounds + hwf_cxcy.npy), the target view
     is held out, and the released masks (<view>.JPG at full size) train the object: dataset
     -> ... -> evaluate, with the route and the reader's decisions in the artifacts."""
-    from cobgs.data.synthetic import generate_scene
+    from cobgs.data.synth.scene import generate_scene
 
     scene = generate_scene(tmp_path / "synth", "demo", seed=0, num_views=12, workers=1)
     llff, labels = to_nvos(scene, tmp_path / "nvos", "synthball", "ball", target="0008",

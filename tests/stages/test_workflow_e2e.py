@@ -1055,7 +1055,7 @@ def test_a_posed_scene_without_points_is_triangulated(tmp_path):
     """A transforms.json scene with poses but no point cloud: the SfM stage (not running
     SfM: the poses are given) triangulates points with those poses, training starts from
     them, and sfm.json / train.json say so; sfm.triangulate = false keeps the random box."""
-    from cobgs.data.synthetic import generate_scene
+    from cobgs.data.synth.scene import generate_scene
 
     scene = generate_scene(tmp_path / "scene", "demo", seed=2, num_views=12, workers=1, progress=False)
     wf_path = tmp_path / "posed.toml"
@@ -1084,7 +1084,7 @@ def test_nerf_synthetic_layout_with_mask_folders(tmp_path):
 
     import cv2
 
-    from cobgs.data.synthetic import generate_scene
+    from cobgs.data.synth.scene import generate_scene
 
     src = generate_scene(tmp_path / "synth", "demo", seed=3, num_views=8, workers=1, progress=False)
     tf = json.loads((src / "transforms.json").read_text())
@@ -1131,7 +1131,7 @@ def test_nerf_synthetic_layout_with_mask_folders(tmp_path):
 def test_a_single_posed_image_falls_back_to_the_random_box(tmp_path):
     """Triangulation needs two posed images; with one the SfM stage says so and keeps the
     random box instead of failing."""
-    from cobgs.data.synthetic import generate_scene
+    from cobgs.data.synth.scene import generate_scene
 
     scene = generate_scene(tmp_path / "scene", "demo", seed=2, num_views=2, workers=1, progress=False)
     tf = json.loads((scene / "transforms.json").read_text())
@@ -1213,7 +1213,7 @@ def test_an_edit_that_keeps_size_and_time_is_found_by_force_and_verify_data(tmp_
     import cv2
     import numpy as np
 
-    from cobgs.data.synthetic import generate_scene
+    from cobgs.data.synth.scene import generate_scene
     from stages.commands.cli import main
 
     scene = generate_scene(tmp_path / "scene", "demo", seed=2, num_views=8, workers=1, progress=False)

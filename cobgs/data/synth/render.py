@@ -14,9 +14,9 @@ from typing import Dict, Tuple
 import numpy as np
 
 from cobgs.errors import InputError
-from cobgs.data.synth_cameras import PinholeCamera
-from cobgs.data.synth_primitives import T_MIN, Primitive, rowdot
-from cobgs.data.synth_textures import Texture, _lattice, evaluate
+from cobgs.data.synth.cameras import PinholeCamera
+from cobgs.data.synth.primitives import T_MIN, Primitive, rowdot
+from cobgs.data.synth.textures import Texture, _lattice, evaluate
 
 RGB = Tuple[float, float, float]
 

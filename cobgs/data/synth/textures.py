@@ -1,7 +1,7 @@
 """Procedural solid textures for the synthetic scene generator.
 
 Every texture is a function of a 3D *texture coordinate* (the hit point in the primitive's
-local frame, see :mod:`cobgs.data.synth_primitives`), so textures move with their object
+local frame, see :mod:`cobgs.data.synth.primitives`), so textures move with their object
 and need no UV unwrapping. Randomness comes from a per-texture lattice table drawn from the
 texture's seed: the same seed gives bit-identical colours on every run.
 """
@@ -136,7 +136,7 @@ def evaluate(tex: Texture, q: np.ndarray, table: np.ndarray | None = None) -> np
         table = _lattice(tex.seed)
     cols = np.asarray(tex.colors, dtype=np.float64)
     s = q / tex.scale
-    # NaN marks the coordinate along a flat face's normal (see synth_primitives); putting
+    # NaN marks the coordinate along a flat face's normal (see synth.primitives); putting
     # it mid-cell keeps the planar slice away from cell boundaries, where checker parity
     # would flicker with rounding and dots would be cut to slivers.
     s = np.where(np.isnan(s), 0.5, s)

@@ -25,11 +25,11 @@ import numpy as np
 
 from cobgs._atomic import build_folder_atomic
 from cobgs.errors import DataError, InputError
-from cobgs.data.synth_cameras import PinholeCamera, intrinsics_from_fov, opencv_to_opengl
-from cobgs.data.synth_presets import BUILDERS, PRESETS, SynthPreset
-from cobgs.data.synth_render import RenderedView, SynthScene, make_caster, render_view, silhouette_hits
+from cobgs.data.synth.cameras import PinholeCamera, intrinsics_from_fov, opencv_to_opengl
+from cobgs.data.synth.presets import BUILDERS, PRESETS, SynthPreset
+from cobgs.data.synth.render import RenderedView, SynthScene, make_caster, render_view, silhouette_hits
 
-GENERATOR = "cobgs.data.synthetic"
+GENERATOR = "cobgs.data.synth.scene"
 FORMAT_VERSION = 1
 
 __all__ = ["PRESETS", "SynthPreset", "build_scene", "generate_scene", "render_scene_view",

@@ -15,10 +15,10 @@ from typing import Callable, Dict, List, Tuple
 import numpy as np
 
 from cobgs.errors import InputError
-from cobgs.data.synth_cameras import forward_facing, orbit
-from cobgs.data.synth_primitives import Box, Cylinder, Plane, Sphere, rotation_from_euler_deg
-from cobgs.data.synth_render import SynthScene, SceneObject
-from cobgs.data.synth_textures import Texture
+from cobgs.data.synth.cameras import forward_facing, orbit
+from cobgs.data.synth.primitives import Box, Cylinder, Plane, Sphere, rotation_from_euler_deg
+from cobgs.data.synth.render import SynthScene, SceneObject
+from cobgs.data.synth.textures import Texture
 
 
 @dataclass(frozen=True)
