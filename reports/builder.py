@@ -20,7 +20,8 @@ from typing import Iterable, Optional, Sequence
 from cobgs.configs import Files
 from pipeline.publish import DestinationError, check_apart, check_destination, publish_folder
 
-from . import fmt, results as R
+from . import fmt, methods, plotdata
+from .methods import reference_of
 from .collect import RunData, TaskRecord, collect
 from .errors import ReportError
 from .gallery import picture_sets
@@ -144,7 +145,7 @@ class _Logs:
 def _plots(data: RunData, infos: dict, by_method: list[dict], by_scene: list[dict], root: Path) -> dict:
     from . import plots as P
 
-    ref = R.reference_method(infos)
+    ref = reference_of(infos)
     methods = [r["method"] for r in by_method]
     colors = P.method_colors(data.methods, ref)
     out: dict = dict.fromkeys(("iou_biou", "psnr", "time", "delta_sweep", "scores", "scores_skipped", "incomplete"))
@@ -162,12 +163,12 @@ def _plots(data: RunData, infos: dict, by_method: list[dict], by_scene: list[dic
     if P.psnr(root / "plots/psnr.svg", methods, [fmt.finite(r.get("psnr")) for r in by_method], vanilla, colors,
               labels):
         out["psnr"] = "plots/psnr.svg"
-    bars, stages = R.stage_time_bars(data)
+    bars, stages = plotdata.stage_time_bars(data)
     if P.time_breakdown(root / "plots/time.svg", bars, stages):
         out["time"] = "plots/time.svg"
-    if P.delta_sweep(root / "plots/delta_sweep.svg", R.delta_groups(data, infos), R.FIXED_DELTA):
+    if P.delta_sweep(root / "plots/delta_sweep.svg", plotdata.delta_groups(data, infos), plotdata.FIXED_DELTA):
         out["delta_sweep"] = "plots/delta_sweep.svg"
-    panels, skipped = R.score_panels(data, ref)
+    panels, skipped = plotdata.score_panels(data, ref)
     if P.score_curves(root / "plots/scores.svg", panels):
         out["scores"] = "plots/scores.svg"
         out["scores_skipped"] = skipped
@@ -209,8 +210,8 @@ def _write(data: RunData, root: Path, sets: list[str], turntables: int = 0, view
     from .viewer import DEFAULT_MAX_MB, viewer_sets
 
     logs = _Logs(root)
-    infos = R.method_infos(data)
-    ref = R.reference_method(infos)
+    infos = methods.method_infos(data)
+    ref = reference_of(infos)
     tables = result_tables(data, infos, logs)
     pictures = picture_sets(data, infos, root, turntables)
     viewers = viewer_sets(data, pictures, root, DEFAULT_MAX_MB if viewer_mb is None else viewer_mb) if viewer else {}

@@ -11,7 +11,8 @@ from cobgs.configs import Files
 from pathlib import Path
 from typing import Optional
 
-from . import fmt, results as R
+from . import fmt
+from .methods import reference_of
 from .collect import RunData
 from .pictures import MethodPictures, PictureSet, compose, read_mask, read_rgb, slug
 
@@ -49,7 +50,7 @@ def _turntables(data: RunData, ps: PictureSet, rs: dict, scene, root: Path, base
 def picture_sets(data: RunData, infos: dict, root: Path, turntables: int = 0) -> list[PictureSet]:
     """The picture grid of every scene x object; ``turntables`` > 0 adds orbit GIFs with
     that many frames per method (rendered here, on the CPU: opt-in for large reports)."""
-    ref = R.reference_method(infos)
+    ref = reference_of(infos)
     cameras: dict = {}
     order = ([ref] if ref else []) + [m for m in data.methods if m != ref]
     sets = []

@@ -7,7 +7,8 @@ from __future__ import annotations
 
 from typing import Optional
 
-from . import fmt, results as R
+from . import fmt, ablation, plotdata, records
+from .methods import reference_of
 from .collect import RunData
 from .tables import Column, Table, build_table
 
@@ -80,9 +81,9 @@ def _quoted(key: str, label: str, pct: bool = True) -> Column:
                   title="quoted from the paper, not measured here")
 
 
-def result_tables(data: RunData, infos: dict, logs: R.LogHref) -> dict:
-    by_method, notes = R.method_records(data, infos, logs)
-    by_scene = R.scene_method_records(data, infos, logs)
+def result_tables(data: RunData, infos: dict, logs: records.LogHref) -> dict:
+    by_method, notes = records.method_records(data, infos, logs)
+    by_scene = records.scene_method_records(data, infos, logs)
     paper_m = [c for c in (_quoted("paper_iou", "paper mIoU"), _quoted("paper_acc", "paper mAcc"))
                if any(c.key in r for r in by_method)]
     paper_s = [c for c in (_quoted("paper_iou", "paper mIoU"), _quoted("paper_biou", "paper mBIoU"),
@@ -108,7 +109,7 @@ def result_tables(data: RunData, infos: dict, logs: R.LogHref) -> dict:
          Column("method", "Method", numeric=False),
          Column("objects", "Objects", fmt.count)] + _cols_metrics(by_scene) + paper_s + [status], by_scene,
         group_by="_group", notes=[n for n in notes if paper_s])
-    recs = R.object_records(data, infos, logs)
+    recs = records.object_records(data, infos, logs)
     for r in recs:  # best values per (scene, object): objects differ too much to compare across
         r["_group"] = f"{r['scene']}/{r['object']}"
     t_object = build_table(
@@ -143,9 +144,9 @@ def result_tables(data: RunData, infos: dict, logs: R.LogHref) -> dict:
          Column("status", "Training", numeric=False),
          Column("notes", "Notes", numeric=False, wrap=True,
                 title="the training recipe, and what the reader decided about the data: distortion "
-                      "read as a pinhole, images matched to poses by sorted order, ...")], R.scene_records(data))
-    ref = R.reference_method(infos)
-    drecs, compared = R.difference_records(data, infos, ref)
+                      "read as a pinhole, images matched to poses by sorted order, ...")], records.scene_records(data))
+    ref = reference_of(infos)
+    drecs, compared = records.difference_records(data, infos, ref)
     t_diff = build_table(
         "t-diff", f"mBIoU of {ref} minus each peer's (and the faithful COB-GS row's where {ref} is a variant of it), per scene (headline protocol; points, 95 % interval from "
                   "resampling the held-out views of each object)",
@@ -156,7 +157,7 @@ def result_tables(data: RunData, infos: dict, logs: R.LogHref) -> dict:
         drecs if compared else [],
         notes=["An interval entirely below 0 means the reference is significantly below that method on the "
                "scene; entirely above, significantly above."]) if compared else None
-    arecs = R.ablation_records(by_scene, infos)
+    arecs = ablation.ablation_records(by_scene, infos)
     masks_col = [Column("masks", "Masks", numeric=False)] if any(r.get("masks") for r in by_scene) else []
     t_ablation = build_table(
         "t-ablation", "Ablation (paper Table 5) per scene: the three components switched on one at a time "
@@ -182,7 +183,7 @@ def result_tables(data: RunData, infos: dict, logs: R.LogHref) -> dict:
          Column("num_gaussians", "Gaussians", fmt.count)], arecs, group_by="_group",
         notes=["The paper's Table 5 (NVOS, mIoU / mAcc): none 91.2 / 98.3, BAGS 91.9 / 98.5, BAGS + BGTR "
                "91.9 / 98.4, all three 92.1 / 98.6 — another dataset, quoted for the trend only."]) if arecs else None
-    precs = R.psnr_records(by_scene, infos, ref)
+    precs = ablation.psnr_records(by_scene, infos, ref)
     d = lambda v: fmt.db(v, signed=True)  # noqa: E731
     t_psnr = build_table(
         "t-psnr", "Texture quality (paper Table 4) per scene: held-out PSNR (dB) of the vanilla scene and after "
@@ -208,7 +209,7 @@ def result_tables(data: RunData, infos: dict, logs: R.LogHref) -> dict:
                     **({"ablation": arecs} if arecs else {}), **({"texture_psnr": precs} if precs else {})}}
 
 
-def detail_tables(data: RunData, ref: Optional[str], logs: R.LogHref) -> tuple[Table, Table]:
+def detail_tables(data: RunData, ref: Optional[str], logs: records.LogHref) -> tuple[Table, Table]:
     """The per-stage statistics of the reference method's refinement, and every task."""
     stage_table = build_table(
         "t-refine-stages", f"Refinement stages of {ref}: ambiguous Gaussians and splits per stage",
@@ -219,8 +220,8 @@ def detail_tables(data: RunData, ref: Optional[str], logs: R.LogHref) -> tuple[T
          Column("ambiguous_large", "Ambiguous, splittable", fmt.count), Column("split", "Split", fmt.count),
          Column("pruned", "Pruned", fmt.count),
          Column("loss", "Mean loss", lambda v: "" if fmt.finite(v) is None else f"{v:.4f}"),
-         Column("wall_s", "Time", fmt.seconds)], R.refine_stage_records(data, ref))
-    tasks = R.task_records(data, logs)
+         Column("wall_s", "Time", fmt.seconds)], plotdata.refine_stage_records(data, ref))
+    tasks = records.task_records(data, logs)
     task_table = build_table(
         "t-tasks", "Every task of the workflow: state, cache key, cost",
         [Column("order", "#", fmt.count), Column("stage", "Stage", numeric=False),

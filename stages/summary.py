@@ -31,9 +31,7 @@ from pipeline import Resources, Stage
 from ._common import read_json, write_json
 
 # (results only: timings come from the manifests, into timings.csv / scenes.csv)
-METRICS = ("iou", "acc", "biou", "iou_released", "acc_released", "biou_released", "iou_occlusion", "acc_occlusion",
-           "biou_occlusion", "psnr", "psnr_before_raem", "psnr_vanilla", "psnr_delta", "psnr_delta_before_raem",
-           "num_gaussians", "object_gaussians")
+from cobgs.evaluate.protocols import METRICS  # noqa: E402 (torch-free)
 
 
 @dataclass(frozen=True)

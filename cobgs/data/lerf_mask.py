@@ -32,13 +32,6 @@ LERF_PROMPTS: dict[str, tuple[str, ...]] = {
                 "plate", "sheep", "spoon handle", "stuffed bear", "tea in a glass"),
 }
 
-#: The paper's numbers on this protocol (percent): scene -> (mIoU, mBIoU) of COB-GS.
-LERF_PAPER_RESULTS: dict[str, tuple[float, float]] = {
-    "figurines": (76.3, 73.9),
-    "ramen": (78.1, 69.2),
-    "teatime": (77.2, 72.8),
-}
-
 _IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 
 

@@ -36,14 +36,6 @@ NVOS_TASKS: dict[str, tuple[str, str, str]] = {
     "trex": ("trex", "DJI_20200223_163619_411", "DJI_20200223_163607_906"),
 }
 
-#: The paper's numbers on this protocol (percent), quoted for reports: method -> (mIoU, mAcc).
-NVOS_PAPER_RESULTS: dict[str, tuple[float, float]] = {
-    "cobgs": (92.1, 98.6),
-    "flashsplat": (91.8, 98.6),
-    "saga": (90.9, 98.3),
-    "sa3d": (90.7, 98.3),
-}
-
 _IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
 
 

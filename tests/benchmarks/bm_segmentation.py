@@ -49,11 +49,9 @@ def target_lines(report_dir: Path) -> list[str]:
     """Issue 21's targets, read from the report's data files (one line per verdict)."""
     diffs = _csv(report_dir / "data" / "differences.csv")
     psnr = _csv(report_dir / "data" / "texture_psnr.csv")
-    # COB-GS rows (Table 5-style: BAGS on) are no peers: the faithful twin of a checked
-    # default is compared in its own section (check_lines). A row that adds a stage to COB-GS
-    # (NG-GS's) is another method: a peer
-    cobgs_rows = {r["method"] for r in _csv(report_dir / "data" / "ablation.csv") if r.get("bags")
-                  and not r.get("stage")}
+    # COB-GS's own rows are no peers (the report's role: its faithful twin is compared in its own
+    # section, check_lines); a row that adds a stage to COB-GS (NG-GS's) is another method: a peer
+    cobgs_rows = {r["method"] for r in _csv(report_dir / "data" / "ablation.csv") if r.get("role") != "peer"}
     lines = []
     below, checked = [], 0
     for r in diffs:
@@ -137,10 +135,9 @@ def check_lines(report_dir: Path) -> list[str]:
         return []
     out = ["| scene | masks | checked row | faithful row | mBIoU faithful → checked | released protocol | "
            "occlusion-aware | checked − faithful, headline [95 %] |", "|---|---|---|---|---:|---:|---:|---:|"]
-    for c in checked:
+    for c in checked:  # (its faithful twin as the report names it: reports.ablation.faithful_twins)
         twin = next((r for r in abl if r["scene"] == c["scene"] and r.get("masks") == c.get("masks")
-                     and not r.get("check") and r.get("bags") and r.get("bgtr") and r.get("raem") == c.get("raem")),
-                    None)
+                     and r["method"] == c.get("twin")), None)
         if twin is None:
             continue
         cells = []

@@ -296,7 +296,8 @@ def test_delta_sweep_points_are_the_recorded_counts(recorded):
 
     from pipeline import load_workflow
     from reports.collect import collect
-    from reports.results import FIXED_DELTA, delta_groups, method_infos
+    from reports.methods import method_infos
+    from reports.plotdata import FIXED_DELTA, delta_groups
 
     data = collect(load_workflow(recorded.workflow, recorded.registry, []), recorded.cache)
     groups = dict(delta_groups(data, method_infos(data)))

@@ -10,7 +10,7 @@ import pytest
 
 from reports import fmt, paper
 from reports.pictures import FN_RGB, FP_RGB, crop_window, overlay, slug
-from reports.results import options_of
+from reports.methods import options_of
 from reports.tables import Column, best_indices, build_table
 
 
@@ -228,7 +228,7 @@ def test_psnr_plot_stems_start_at_each_methods_own_vanilla(tmp_path):
 
 def test_scene_notes_say_when_training_started_from_a_random_box():
     """Issue 38 M10: the report says when a scene's training started from a random box."""
-    from reports.results import _init_note
+    from reports.records import _init_note
 
     assert "random box (100000)" in _init_note({"initial_points": "random box (100000)"})[0]
     assert _init_note({"initial_points": 1234}) == [] and _init_note({}) == []
@@ -237,7 +237,7 @@ def test_scene_notes_say_when_training_started_from_a_random_box():
 def test_scene_notes_name_the_training_recipe():
     """Issue 45: the scene table says which recipe trained each scene (a 3dgs train.json leaves
     the field out; a scene trained elsewhere gets no recipe note)."""
-    from reports.results import _recipe_note
+    from reports.records import _recipe_note
 
     assert _recipe_note({"config": {"iterations": 30000}, "iterations": 30000}) == [
         "training recipe: 3dgs (the paper's schedule, 30000 iterations)"]

@@ -7,7 +7,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from reports import results as R
+from reports import ablation, methods, records
 from reports.collect import Result, RunData, _oracle_results
 
 
@@ -21,7 +21,7 @@ def test_scenes_mixing_mask_routes_get_one_row_per_route():
                _res("s", "cobgs", "a_noisy", 0.5, "dataset masks + noise"),
                _res("t", "cobgs", "a", 0.8, "dataset masks")]
     data = RunData(workflow=None, cache_dir=Path("."), tasks=[], results=results, scenes={}, methods=["cobgs"])
-    recs = R.scene_method_records(data, {}, lambda t: None)
+    recs = records.scene_method_records(data, {}, lambda t: None)
     by = {(r["scene"], r["masks"]): r for r in recs}
     assert set(by) == {("s", "dataset masks"), ("s", "dataset masks + noise"), ("t", None)}
     assert by[("s", "dataset masks")]["biou"] == pytest.approx(0.8)
@@ -46,7 +46,7 @@ def test_flashsplat_oracle_copies_the_best_bias_per_scene():
 
 
 def test_difference_to_each_peer_with_a_view_bootstrap_interval():
-    from reports.results import MethodInfo
+    from reports.methods import MethodInfo
 
     def res(method, obj, vals, kind):
         r = _res("s", method, obj, sum(vals) / len(vals), "m", kind)
@@ -60,7 +60,7 @@ def test_difference_to_each_peer_with_a_view_bootstrap_interval():
                    methods=["cobgs", "fs", "same"])
     infos = {"cobgs": MethodInfo("cobgs", kind="cobgs", role="reference"),
              "fs": MethodInfo("fs", kind="flashsplat"), "same": MethodInfo("same", kind="sa3d")}
-    recs, used = R.difference_records(data, infos, "cobgs")
+    recs, used = records.difference_records(data, infos, "cobgs")
     assert used == ["fs", "same"] and len(recs) == 1
     rec = recs[0]
     # means over views per object, then over objects: a 0.85 - 0.55, b 0.75 - 0.533..
@@ -70,7 +70,7 @@ def test_difference_to_each_peer_with_a_view_bootstrap_interval():
 
 
 def _infos(ours: bool = False):
-    from reports.results import MethodInfo
+    from reports.methods import MethodInfo
 
     def cob(name, paper_sw, raem, options=(), role="variant", check="off"):
         return MethodInfo(name, kind="cobgs", options=list(options), role=role,
@@ -118,8 +118,8 @@ def _table_data(ours: bool = False):
 
 def test_ablation_table_follows_the_paper_rows_per_scene_and_route():
     data, infos = _table_data(), _infos()
-    by_scene = R.scene_method_records(data, infos, lambda t: None)
-    recs = R.ablation_records(by_scene, infos)
+    by_scene = records.scene_method_records(data, infos, lambda t: None)
+    recs = ablation.ablation_records(by_scene, infos)
     groups = list(dict.fromkeys((r["scene"], r["masks"]) for r in recs))
     assert groups == [("s", "exact"), ("s", "noisy"), ("t", None)]
     first = [r for r in recs if (r["scene"], r["masks"]) == ("s", "exact")]
@@ -130,13 +130,13 @@ def test_ablation_table_follows_the_paper_rows_per_scene_and_route():
     noisy = {r["method"]: r["biou"] for r in recs if r["masks"] == "noisy"}
     assert noisy["cobgs"] == pytest.approx(0.7) and noisy["nosplit"] == pytest.approx(0.6)
     # a workflow with one switch setting only has no ablation to show
-    assert R.ablation_records([r for r in by_scene if r["method"] == "cobgs"], infos) == []
+    assert ablation.ablation_records([r for r in by_scene if r["method"] == "cobgs"], infos) == []
 
 
 def test_psnr_table_is_table_4_with_the_scene_before_raem():
     data, infos = _table_data(), _infos()
-    by_scene = R.scene_method_records(data, infos, lambda t: None)
-    recs = {(r["scene"], r["masks"]): r for r in R.psnr_records(by_scene, infos, "cobgs")}
+    by_scene = records.scene_method_records(data, infos, lambda t: None)
+    recs = {(r["scene"], r["masks"]): r for r in ablation.psnr_records(by_scene, infos, "cobgs")}
     assert set(recs) == {("s", "exact"), ("s", "noisy"), ("t", None)}
     r = recs[("t", None)]
     assert r["vanilla"] == 30.0 and r["mask_only"] == 29.0 and r["joint"] == 29.95
@@ -146,14 +146,14 @@ def test_psnr_table_is_table_4_with_the_scene_before_raem():
     for res in data.results:
         if res.method == "cobgs" and res.scene == "t":
             res.row["psnr_before_raem"] = 29.85
-    by_scene = R.scene_method_records(data, infos, lambda t: None)
-    r = {(x["scene"], x["masks"]): x for x in R.psnr_records(by_scene, infos, "cobgs")}[("t", None)]
+    by_scene = records.scene_method_records(data, infos, lambda t: None)
+    r = {(x["scene"], x["masks"]): x for x in ablation.psnr_records(by_scene, infos, "cobgs")}[("t", None)]
     assert r["target"] == "not met" and r["_class"]["target"] == ["failed"]
 
 
 def test_a_method_run_on_part_of_the_workflow_is_never_best_by_method():
     data, infos = _table_data(), _infos()
-    recs = {r["method"]: r for r in R.method_records(data, infos, lambda t: None)[0]}
+    recs = {r["method"]: r for r in records.method_records(data, infos, lambda t: None)[0]}
     assert recs["delta_0.3"]["_nobest"] and not recs["cobgs"]["_nobest"]
     assert recs["delta_0.3"]["_text"]["scenes"] == "1" and recs["cobgs"]["_text"]["scenes"] == "2"
 
@@ -169,16 +169,19 @@ def test_the_checked_variant_sits_beside_its_faithful_row():
     assert cobgs_switches("cobgs", params) == (True, True, True, "visible")
     assert paper_method("cobgs", {"method": "cobgs", "cobgs": {"raem": "paper"}}) == ("cobgs", (True, True, True))
     data, infos = _table_data(ours=True), _infos(ours=True)
-    assert R.faithful_twins(infos, "ours") == ["raem_paper"]
-    assert R.faithful_twins(infos, "cobgs") == []  # a faithful reference has no twin
-    by_scene = R.scene_method_records(data, infos, lambda t: None)
-    first = [r for r in R.ablation_records(by_scene, infos) if (r["scene"], r["masks"]) == ("s", "exact")]
+    assert ablation.faithful_twins(infos, "ours") == ["raem_paper"]
+    assert ablation.faithful_twins(infos, "cobgs") == []  # a faithful reference has no twin
+    by_scene = records.scene_method_records(data, infos, lambda t: None)
+    first = [r for r in ablation.ablation_records(by_scene, infos) if (r["scene"], r["masks"]) == ("s", "exact")]
     assert [(r["method"], r["check"]) for r in first][-2:] == [("raem_paper", ""), ("ours", "visible")]
-    recs, used = R.difference_records(data, infos, "ours")
+    # issue 58: the twin and the role are written once, by the report (bm_segmentation.py reads them)
+    assert [(r["method"], r["twin"], r["role"]) for r in first][-2:] == [("raem_paper", "", "variant"),
+                                                                          ("ours", "raem_paper", "reference")]
+    recs, used = records.difference_records(data, infos, "ours")
     assert "raem_paper" in used and "cobgs" not in used and "no_raem" not in used
     rec = next(r for r in recs if r["scene"] == "t")
     assert rec["d:raem_paper"] == pytest.approx(2.0)
-    psnr = {(r["scene"], r["masks"]): r for r in R.psnr_records(by_scene, infos, "ours")}
+    psnr = {(r["scene"], r["masks"]): r for r in ablation.psnr_records(by_scene, infos, "ours")}
     assert psnr[("t", None)]["raem_paper"] == 29.8  # the check leaves the scene as it was
 
 
@@ -219,18 +222,18 @@ def test_ngs_rows_join_table_5_as_cobgs_plus_its_stage():
 
     data = RunData(workflow=wf, cache_dir=Path("."), tasks=[], results=results,
                    scenes={"s": SceneRecord("s", dataset={"protocol": "exact"})}, methods=list(params))
-    infos = R.method_infos(data)
+    infos = methods.method_infos(data)
     assert infos["ngs"].stage == "NG-GS" and infos["cobgs"].stage == ""
     assert infos["ngs"].switches == (True, True, True, "off") and infos["ngs"].raem == "released"
     assert infos["ngs_checked"].switches == (True, True, True, "visible") and infos["ngs_checked"].raem == "paper"
     assert infos["ngs"].paper is None and infos["ngs"].role == "peer"
-    assert R.faithful_twins(infos, "ours") == ["raem_paper"]
-    by_scene = R.scene_method_records(data, infos, lambda t: None)
-    recs = R.ablation_records(by_scene, infos)
+    assert ablation.faithful_twins(infos, "ours") == ["raem_paper"]
+    by_scene = records.scene_method_records(data, infos, lambda t: None)
+    recs = ablation.ablation_records(by_scene, infos)
     assert [(r["method"], r["raem"], r["check"], r["stage"]) for r in recs] == [
         ("no_raem", "off", "", ""), ("cobgs", "released", "", ""), ("ngs", "released", "", "NG-GS"),
         ("raem_paper", "paper", "", ""), ("ours", "paper", "visible", ""), ("ngs_checked", "paper", "visible", "NG-GS")]
-    table4 = R.psnr_records(by_scene, infos, "ours")[0]
+    table4 = ablation.psnr_records(by_scene, infos, "ours")[0]
     assert table4["raem_released"] == 29.5 and table4["raem_paper"] == 29.8  # not NG-GS's 28.0 / 28.5
 
     from reports.sections import result_tables

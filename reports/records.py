@@ -1,152 +1,24 @@
-"""From collected run data to the report's records: method descriptions, the result tables
-(by method, by scene x method, by object), the quoted paper numbers beside them, and the
-data of the plots. Numbers are averaged exactly as the summary stage does
-(:func:`cobgs.evaluate.protocols.aggregate`: over objects within a scene, then over scenes).
-"""
+"""The report's result records: by object, by scene x method, by method (with the quoted
+paper numbers beside them), by scene, the tasks, and the differences against the reference.
+Numbers are averaged exactly as the summary stage does (:func:`cobgs.evaluate.protocols.aggregate`:
+over objects within a scene, then over scenes)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Optional
+
+from cobgs.data.spec import DatasetSpec
+from cobgs.evaluate.protocols import METRICS, aggregate
 
 from . import paper
 from .collect import Result, RunData, TaskRecord
 from .fmt import finite
 
-from cobgs.configs import NOSPLIT_SWITCHES, Files
-from cobgs.refine.methods import REGISTRY
-from cobgs.data.spec import DatasetSpec
-from cobgs.evaluate.protocols import ORACLE_METHOD
-
-KIND_LABELS = {name: m.label for name, m in REGISTRY.items()}  # (cobgs.refine.methods)
-METRICS = ("iou", "acc", "biou", "iou_released", "biou_released", "iou_occlusion", "biou_occlusion", "psnr",
-           "psnr_before_raem", "psnr_vanilla", "psnr_delta", "psnr_delta_before_raem", "num_gaussians",
-           "num_gaussians_vanilla", "object_gaussians", "refine_s", "splits", "pruned", "dropped")
-# The params section of the refine stage each method kind reads.
-_SECTIONS = {name: m.sections for name, m in REGISTRY.items()}  # the params sections it reads
-_EXTRA_STAGES = {name: m.extra_stage for name, m in REGISTRY.items() if m.extra_stage}
+from .ablation import faithful_twins
+from .methods import MethodInfo
 
 LogHref = Callable[[Optional[TaskRecord]], Optional[str]]
-
-
-@dataclass
-class MethodInfo:
-    """A method axis value as the report names it.
-
-    Attributes:
-        name: the axis value.
-        kind: the refine stage's ``method`` param (cobgs, nosplit, sa3d, flashsplat).
-        options: params that differ from the refine stage's defaults (``bgtr=false``).
-        role: "reference" (the COB-GS run the others are compared with), "variant"
-            (another COB-GS configuration: ablation rows, δ sweeps) or "peer".
-        paper: the paper's method it is (:func:`reports.paper.paper_method`), or None.
-    """
-
-    name: str
-    kind: str = ""
-    options: list[str] = field(default_factory=list)
-    role: str = "peer"
-    paper: Optional[tuple] = None
-    raem: Optional[str] = None  # COB-GS's RAEM variant ("released", "paper", "off")
-    # (BAGS, BGTR, RAEM on, object check) of a Table 5-style row (:func:`reports.paper.cobgs_switches`)
-    switches: Optional[tuple] = None
-    # a stage the method adds to COB-GS's ("NG-GS": cobgs.refine.methods.RefineMethod.extra_stage);
-    # its switches are then those of the COB-GS it runs, and it is no faithful COB-GS row
-    stage: str = ""
-
-    @property
-    def kind_label(self) -> str:
-        return KIND_LABELS.get(self.kind, self.kind or "?")
-
-    @property
-    def config(self) -> str:
-        return ", ".join(self.options) if self.options else "defaults"
-
-
-def _flat(d, prefix: str = "") -> dict:
-    out = {}
-    for k, v in (d or {}).items():
-        key = f"{prefix}{k}"
-        if isinstance(v, dict):
-            out.update(_flat(v, key + "."))
-        else:
-            out[key] = v
-    return out
-
-
-def _value_text(v) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    return "none" if v is None else str(v)
-
-
-def refine_defaults(workflow) -> dict:
-    """The refine stage's default params as JSON (what an option differs from)."""
-    from pipeline.params import to_json
-
-    stage = workflow.graph.producer.get("refined")
-    if stage is None:
-        return {}
-    return to_json(workflow.stages[stage].params())
-
-
-# The no-split row forces COB-GS's switches off whatever the params say (cobgs.configs.NOSPLIT_SWITCHES)
-_FORCED = {"nosplit": tuple(f"cobgs.{k}" for k in NOSPLIT_SWITCHES)}
-
-
-def options_of(kind: str, params: Optional[dict], defaults: dict) -> list[str]:
-    if not params:
-        return []
-    sections = _SECTIONS.get(kind, ())
-    got, base = _flat(params), _flat(defaults)
-    keep = [k for k in got if k not in ("method",) + _FORCED.get(kind, ())
-            and (k.split(".")[0] in sections or "." not in k)]
-    return [f"{k.split('.', 1)[-1]}={_value_text(got[k])}" for k in keep if got[k] != base.get(k)]
-
-
-def method_infos(data: RunData) -> dict[str, MethodInfo]:
-    defaults = refine_defaults(data.workflow)
-    infos = {m: MethodInfo(m) for m in data.methods}
-    seen: dict[str, set] = {}
-    for r in data.results:
-        info = infos.setdefault(r.method, MethodInfo(r.method))
-        if r.refine_params is None:
-            continue
-        opts = options_of(r.method_kind, r.refine_params, defaults)
-        if r.method not in seen:
-            info.kind, info.options = r.method_kind, opts
-            info.paper = paper.paper_method(r.method_kind, r.refine_params)
-            info.stage = _EXTRA_STAGES.get(r.method_kind, "")
-            base = "cobgs" if info.stage else r.method_kind  # the COB-GS a stage is added to
-            info.switches = ((False, False, False, "off") if r.method_kind == "nosplit"
-                             else paper.cobgs_switches(base, r.refine_params))
-            if base == "cobgs":
-                info.raem = str(((r.refine_params.get("cobgs") or {}).get("raem")
-                                 or (defaults.get("cobgs") or {}).get("raem") or "released"))
-        seen.setdefault(r.method, set()).add(tuple(sorted(opts)))  # the same options in any order
-    for m, variants in seen.items():
-        if len(variants) > 1:  # per-scene overrides: say so rather than pick one
-            infos[m].options = infos[m].options + ["(varies by scene)"]
-            infos[m].paper = infos[m].switches = None
-    if ORACLE_METHOD in infos:
-        picks = sorted({str((r.row or {}).get("oracle_choice")) for r in data.results if r.method == ORACLE_METHOD})
-        infos[ORACLE_METHOD] = MethodInfo(ORACLE_METHOD, kind="flashsplat", options=[
-            "best background bias per scene, chosen on the held-out GT (an oracle in its favour; "
-            f"picked: {', '.join(picks)})"])
-    ref = reference_method(infos)
-    for m, info in infos.items():
-        info.role = "reference" if m == ref else ("variant" if info.kind in ("cobgs", "nosplit") else "peer")
-    return infos
-
-
-def reference_method(infos: dict[str, MethodInfo]) -> Optional[str]:
-    """The COB-GS item with default options, else the first COB-GS item, else the first."""
-    for pick in (lambda i: i.kind == "cobgs" and not i.options, lambda i: i.kind == "cobgs", lambda i: True):
-        for m, info in infos.items():
-            if info.kind and pick(info):
-                return m
-    return next(iter(infos), None)
 
 
 # -- result records ----------------------------------------------------------------------
@@ -190,10 +62,13 @@ def _status(results: list[Result], log_href: LogHref) -> tuple[str, list[str], O
     return text, cls, log_href(task) if p.state == "failed" else None, f"{p.stage}[{p.item_id}]: {p.message}"
 
 
-def _aggregate(rows: list[dict], by: tuple[str, ...]) -> list[dict]:
-    from cobgs.evaluate.protocols import aggregate
+#: What the report averages: the result metrics (:data:`cobgs.evaluate.protocols.METRICS`, as the
+#: summary stage) and the refinement's counts and times.
+RECORD_FIELDS = (*METRICS, "num_gaussians_vanilla", "refine_s", "splits", "pruned", "dropped")
 
-    return aggregate(rows, METRICS, by=by, within="scene", over="object")
+
+def _aggregate(rows: list[dict], by: tuple[str, ...]) -> list[dict]:
+    return aggregate(rows, RECORD_FIELDS, by=by, within="scene", over="object")
 
 
 def _rows(results: list[Result]) -> list[dict]:
@@ -448,109 +323,6 @@ def _train_s(sc, t: dict) -> Optional[float]:
     return finite((m.get("extra") or {}).get("train_s", t.get("wall_s")))
 
 
-# -- plot data ---------------------------------------------------------------------------
-def stage_time_bars(data: RunData) -> tuple[list[tuple[str, dict]], list[str]]:
-    """[(label, {stage: wall s})]: one bar for the stages shared by every method, one per
-    method (its own tasks), and the order of the stages."""
-    wf = data.workflow
-    shared: dict = {}
-    per: dict = {m: {} for m in data.methods}
-    for t in data.tasks:
-        if t.state != "done" or not t.manifest:
-            continue
-        w = finite(t.manifest.get("wall_s")) or 0.0
-        m = t.values.get("method")
-        target = per.setdefault(m, {}) if m is not None else shared
-        target[t.stage] = target.get(t.stage, 0.0) + w
-    bars = [("shared by all methods", shared)] if shared else []
-    bars += [(m, per[m]) for m in data.methods if per.get(m)]
-    return bars, list(wf.graph.order)
-
-
-FIXED_DELTA = 0.5  # the paper's forward-facing δ: one yardstick for every run of a sweep
-
-
-def delta_groups(data: RunData, infos: dict) -> list[tuple[str, list[tuple]]]:
-    """COB-GS results that differ only in δ, per scene x object: the paper's Fig. 7.
-
-    Returns:
-        [(label, [(δ, ambiguous under the run's own δ, total Gaussians, ambiguous under
-        :data:`FIXED_DELTA` at the last mask stage or None)])]; empty without a sweep. The
-        own-δ count grows with δ by construction (a higher bar flags more), so the fixed
-        yardstick is what shows whether more splitting left fewer ambiguous Gaussians.
-    """
-    import numpy as np
-
-    groups: dict[tuple, dict] = {}
-    for r in data.results:
-        if not r.ok or r.refine is None or infos.get(r.method, MethodInfo(r.method)).kind != "cobgs":
-            continue
-        d = finite(r.refine.get("delta"))
-        if d is None:
-            continue
-        opts = tuple(o for o in infos[r.method].options if not o.startswith("delta="))
-        amb = finite(r.refine.get("ambiguous_final"))
-        if amb is None or amb < 0:
-            masks = [s for s in r.refine.get("stages") or [] if s.get("kind") == "mask" and s.get("ambiguous", -1) >= 0]
-            amb = float(masks[-1]["ambiguous"]) if masks else None
-        total = finite(r.refine.get("num_gaussians_end"))
-        if amb is None or total is None:
-            continue
-        fixed = None
-        f = Path(r.refine_dir) / Files.STAGE_SCORES if r.refine_dir else None
-        if f is not None and f.is_file():
-            with np.load(f) as z:
-                last = max(z.files, key=lambda k: int(k.rsplit("_", 1)[-1]), default=None)
-                if last is not None and z[last].size:
-                    fixed = float(np.count_nonzero(z[last] < FIXED_DELTA))
-        groups.setdefault((r.scene, r.object, opts), {})[d] = (d, amb, total, fixed)
-    out = []
-    for (scene, obj, opts), pts in groups.items():
-        if len(pts) >= 2:
-            label = f"{scene} / {obj}" + (f" ({', '.join(opts)})" if opts else "")
-            out.append((label, list(pts.values())))
-    return out
-
-
-def score_panels(data: RunData, method: Optional[str], limit: int = 4):
-    """Stage-mean scores of every mask stage of ``method``'s results (stage_scores.npz)."""
-    import numpy as np
-
-    panels, skipped = [], 0
-    for r in data.results:
-        if r.method != method or not r.ok or r.refine_dir is None:
-            continue
-        f = Path(r.refine_dir) / Files.STAGE_SCORES
-        if not f.is_file():
-            continue
-        if len(panels) >= limit:
-            skipped += 1
-            continue
-        with np.load(f) as z:
-            names = sorted(z.files, key=lambda k: int(k.split("_")[-1]) if k.split("_")[-1].isdigit() else 0)
-            curves = [(f"mask stage {i + 1}", z[k]) for i, k in enumerate(names) if z[k].size]
-        panels.append((f"{r.scene} / {r.object}", curves, finite((r.refine or {}).get("delta"))))
-    return panels, skipped
-
-
-def refine_stage_records(data: RunData, method: Optional[str]) -> list[dict]:
-    """The per-stage statistics refine.json records for ``method`` (ambiguous, splits, ...)."""
-    recs = []
-    for r in data.results:
-        if r.method != method or r.refine is None:
-            continue
-        walls = _refine_note(r).get("stage_wall_s") or []
-        for i, s in enumerate(r.refine.get("stages") or []):
-            amb = s.get("ambiguous", -1)
-            large = s.get("ambiguous_large", -1)
-            recs.append({"scene": r.scene, "object": r.object, "index": s.get("index"), "kind": s.get("kind"),
-                         "iterations": s.get("iterations"), "g_start": s.get("gaussians_start"),
-                         "g_end": s.get("gaussians_end"), "ambiguous": amb if amb is not None and amb >= 0 else None,
-                         "ambiguous_large": large if large is not None and large >= 0 else None,
-                         "split": s.get("split"), "pruned": s.get("pruned"), "loss": s.get("mean_loss"),
-                         "wall_s": walls[i] if i < len(walls) else s.get("wall_s")})
-    return recs
-
 
 def task_records(data: RunData, log_href: LogHref) -> list[dict]:
     recs = []
@@ -620,108 +392,3 @@ def difference_records(data: RunData, infos: dict, ref: Optional[str]) -> tuple[
     return recs, used
 
 
-# -- paper Tables 5 and 4 at benchmark scale ---------------------------------------------
-def _switch_order(sw: tuple) -> tuple:
-    """none, BAGS, BAGS + BGTR, all three (the paper's rows); other combinations by count."""
-    return (sum(sw), tuple(not x for x in sw))
-
-
-_RAEM_ORDER = {"off": 0, "released": 1, "paper": 2}
-
-
-def _switches(info: Optional[MethodInfo]) -> Optional[tuple]:
-    """(BAGS, BGTR, RAEM) of a Table 5 row: COB-GS and its switch ablations, no-split = none
-    (with or without the object-render check: :func:`_check`)."""
-    if info is None or info.switches is None:
-        return None
-    return tuple(info.switches[:3])
-
-
-def _check(info: Optional[MethodInfo]) -> str:
-    """The object-render check of a Table 5-style row ("off" / "visible")."""
-    return str(info.switches[3]) if info is not None and info.switches is not None else "off"
-
-
-def faithful_twins(infos: dict, ref: Optional[str]) -> list[str]:
-    """The faithful COB-GS rows the reference is the checked variant of: all three switches
-    on, the same RAEM, object check off (docs/method.md §7: our variant beside the faithful)."""
-    mine = infos.get(ref) if ref else None
-    if mine is None or mine.switches is None or _check(mine) == "off":
-        return []
-    return [m for m, i in infos.items() if m != ref and i.switches is not None and _check(i) == "off"
-            and not i.stage and tuple(i.switches[:3]) == tuple(mine.switches[:3]) and i.raem == mine.raem]
-
-
-def ablation_records(by_scene: list[dict], infos: dict) -> list[dict]:
-    """Paper Table 5 per scene (and mask route): the rows that switch BAGS, BGTR and RAEM on
-    and off (the no-split row = none of them), in the paper's order, each RAEM variant apart.
-
-    Rows are the per scene x method records (:func:`scene_method_records`), so the numbers
-    are the same as in the results table; only the selection, order and switch columns are
-    new. Best values are marked within a scene and route.
-    """
-    order = {g: i for i, g in enumerate(dict.fromkeys(r["_group"] for r in by_scene))}
-    out = []
-    for rec in by_scene:
-        info = infos.get(rec["method"])
-        sw = _switches(info)
-        if sw is None:
-            continue
-        raem = "off" if not sw[2] else (info.raem or "released")
-        check = _check(info)
-        row = dict(rec)
-        row.update(bags="✓" if sw[0] else "", bgtr="✓" if sw[1] else "", raem=raem,
-                   check="" if check == "off" else check, stage=info.stage,
-                   _sort=(order[rec["_group"]], _switch_order(sw), _RAEM_ORDER.get(raem, 3), check != "off",
-                          info.stage, rec["method"]))
-        row["_text"] = dict(rec.get("_text") or {})
-        out.append(row)
-    out.sort(key=lambda r: r["_sort"])
-    return out if len({r["_sort"][1] for r in out}) >= 2 else []
-
-
-def psnr_records(by_scene: list[dict], infos: dict, ref: Optional[str]) -> list[dict]:
-    """Paper Table 4 per scene (and mask route): held-out PSNR of the vanilla scene, after the
-    mask stages alone (BAGS, no BGTR: "M.O"), after mask + texture stages before RAEM (the
-    reference's scene before its final pruning: "M.O+T.O", the paper's measurement), and after
-    each RAEM variant. Means over the scene's objects, like every per-scene number.
-
-    The paper's "texture only" column (texture stages without splitting) has no row in
-    our ablations: left out rather than approximated.
-    """
-    groups: dict[str, list[dict]] = {}
-    for rec in by_scene:
-        groups.setdefault(rec["_group"], []).append(rec)
-    out = []
-    for g, recs in groups.items():
-        by_m = {r["method"]: r for r in recs}
-        row: dict = {"scene": recs[0]["scene"], "masks": recs[0].get("masks"), "_title": {}, "_text": {}}
-        vanilla = next((finite(r.get("psnr_vanilla")) for r in recs if finite(r.get("psnr_vanilla")) is not None),
-                       None)
-        row["vanilla"] = vanilla
-        for r in recs:
-            sw = _switches(infos.get(r["method"]))
-            if sw == (True, False, False) and "mask_only" not in row:
-                row["mask_only"], row["_title"]["mask_only"] = finite(r.get("psnr")), f"{r['method']}"
-        mine = by_m.get(ref) if ref else None
-        if mine is not None:
-            row["joint"] = finite(mine.get("psnr_before_raem"))
-            row["_title"]["joint"] = f"{ref}, its scene before RAEM"
-        for r in recs:
-            info = infos.get(r["method"])
-            if _switches(info) == (True, True, True) and info.raem and not info.stage:
-                key = f"raem_{info.raem}"
-                if key not in row or r["method"] == ref:
-                    row[key], row["_title"][key] = finite(r.get("psnr")), r["method"]
-        if vanilla is None or all(row.get(k) is None for k in ("mask_only", "joint")):
-            continue
-        for k in ("mask_only", "joint", "raem_released", "raem_paper"):
-            if row.get(k) is not None:
-                row[f"d_{k}"] = row[k] - vanilla
-        if row.get("joint") is not None:
-            ok = row["joint"] >= vanilla - 0.1
-            row["target"] = "met" if ok else "not met"
-            row["_class"] = {"target": ["ok" if ok else "failed"]}
-            row["_title"]["target"] = f"before-RAEM PSNR {row['joint'] - vanilla:+.3f} dB vs vanilla (bar −0.1 dB)"
-        out.append(row)
-    return out
