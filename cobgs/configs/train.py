@@ -95,6 +95,14 @@ class TrainConfig:
     # need leaves 3DGS's own densification as it is. Off: Taming's rule (the line is reached).
     budget_threshold_gate: Optional[bool] = field(default=None, metadata={"before": False, "help": (
         "unset: the recipe's (3dgs: false, fast: true)")})
+    # Densification that does not depend on the render size (issue 57). densify_grad_rescale: the
+    # view-space gradient of a render at 1/d counts d times (a coarse render's gradients are
+    # smaller: fewer Gaussians cross 3DGS's 2e-4 threshold while the renders are small, and the
+    # run ends with fewer). budget_schedule "resolution": the budget's count grows with the
+    # share of full-resolution pixels rendered (1/d^2; all of it once the renders are full
+    # size), DashGaussian's primitive schedule, instead of the line over the iterations.
+    densify_grad_rescale: bool = field(default=False, metadata={"before": False})
+    budget_schedule: str = field(default="line", metadata={"before": "line"})
     # Adam steps only the Gaussians the view touches (radius > 0): the others keep their
     # parameters and moments, as gsplat's selective Adam.
     sparse_adam: bool = field(default=False, metadata={"before": False})
@@ -121,7 +129,8 @@ class TrainConfig:
         "gaussian_budget_per_pixel": "[0, 100]", "gaussian_budget_multiplier": "[0, 10000]",
         "budget_full_at": "(0, 1]",
     }
-    CHOICES: ClassVar[dict] = {"backend": ("native", "reference"), "recipe": tuple(RECIPES_NAMES)}
+    CHOICES: ClassVar[dict] = {"backend": ("native", "reference"), "recipe": tuple(RECIPES_NAMES),
+                               "budget_schedule": ("line", "resolution")}
 
     def __post_init__(self):
         check_params(self)

@@ -259,10 +259,14 @@ class Trainer:
 
     def budget_now(self) -> int:
         """The count the budget allows at this iteration: a line from the initial count to
-        the budget at ``budget_full_at`` of the densification window."""
+        the budget at ``budget_full_at`` of the densification window; with ``budget_schedule =
+        "resolution"``, the share of full-resolution pixels the iteration renders (1/d^2)."""
         s, c = self.sched, self.config
-        span = max(1.0, c.budget_full_at * (s.densify_until - s.densify_from))
-        t = min(1.0, max(0.0, (self.iteration - s.densify_from) / span))
+        if c.budget_schedule == "resolution":
+            t = 1.0 / self.downscale() ** 2
+        else:
+            span = max(1.0, c.budget_full_at * (s.densify_until - s.densify_from))
+            t = min(1.0, max(0.0, (self.iteration - s.densify_from) / span))
         return int(round(self._n_init + (self.budget - self._n_init) * t)) if self.budget > self._n_init else self.budget
 
     def _reset_stats(self) -> None:
@@ -320,7 +324,8 @@ class Trainer:
 
         with torch.no_grad():
             if it < s.densify_until:
-                self._accumulate(out.radii, out.means2d.grad, camera.width, camera.height)
+                self._accumulate(out.radii, out.means2d.grad, camera.width, camera.height,
+                                 d if c.densify_grad_rescale else 1.0)
             if c.sparse_adam:
                 self.optimizer.step(visible=out.radii > 0)
             else:
@@ -339,14 +344,16 @@ class Trainer:
             "resolution": (int(camera.width), int(camera.height)),
         }
 
-    def _accumulate(self, radii: Tensor, grad2d: Optional[Tensor], width: int, height: int) -> None:
+    def _accumulate(self, radii: Tensor, grad2d: Optional[Tensor], width: int, height: int,
+                    factor: float = 1.0) -> None:
         if grad2d is None:
             return
         # Dense masked updates (no boolean indexing: nonzero() is a large share of a CPU
         # iteration at 100k Gaussians). Culled Gaussians have radius 0 and zero gradient.
         vis = (radii > 0).to(self.grad_count.dtype)
-        # The 2e-4 threshold is in NDC units: x_pix = ((x_ndc + 1) W - 1) / 2.
-        scale = torch.tensor([width / 2.0, height / 2.0], dtype=grad2d.dtype, device=grad2d.device)
+        # The 2e-4 threshold is in NDC units: x_pix = ((x_ndc + 1) W - 1) / 2 (times ``factor``:
+        # TrainConfig.densify_grad_rescale's d for a render at 1/d).
+        scale = torch.tensor([factor * width / 2.0, factor * height / 2.0], dtype=grad2d.dtype, device=grad2d.device)
         self.grad_accum += (grad2d * scale).norm(dim=-1) * vis
         self.grad_count += vis
         torch.maximum(self.max_radii, radii.to(self.max_radii.dtype), out=self.max_radii)

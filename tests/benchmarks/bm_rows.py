@@ -27,6 +27,12 @@ and objects both have. ``A`` / ``B`` are rows (methods) of one scene, or ``scene
 across scenes (a scene trained with another recipe: the same views and GT masks).
 ``--baseline-set`` reads the same workflow a second time under other ``--set`` values (its scenes
 named ``<scene>@baseline``), to pair a workflow against itself with one param changed.
+
+``--boundary`` adds, per scene and object (issue 57: what COB-GS's boundaries depend on, on the
+trained scene before any refinement; :mod:`cobgs.evaluate.boundary`): the Gaussians whose
+3-sigma footprint crosses the object's mask boundary in a training view (count, median
+footprint radius, world size and opacity), and the held-out renders' PSNR in a 3-pixel band
+around the object's visible mask edge beside the whole image's.
 """
 
 from __future__ import annotations
@@ -71,6 +77,61 @@ def load(workflow: Path, cache: Path, sets=(), route: str = "") -> tuple[dict, d
                 "psnr": (t.get("eval") or {}).get("psnr"), "cpu_s": man.get("cpu_s"),
                 "wall_s": man.get("wall_s"), "sfm": (man.get("inputs", {}).get("poses") or {}).get("key", "")[:12]}
     return rows, trainings
+
+
+def boundary_rows(workflow: Path, cache: Path, sets=(), scenes=(), band_px: int = 3) -> list[dict]:
+    """Per scene (of ``scenes``, all when empty) x object with masks: the boundary measures of the
+    scene's trained baseline (module docstring)."""
+    import numpy as np
+
+    from cobgs.configs import Files
+    from cobgs.evaluate.boundary import band_psnr, edge_band, straddling_gaussians
+    from cobgs.gaussians.ply import load_ply
+    from pipeline import entries, load_workflow
+    from stages._common import load_scene, read_mask_png
+    from stages.registry import load_registry
+
+    wf = load_workflow(workflow, load_registry(), list(sets))
+    done: dict = {}
+    for rec in entries(wf, cache):
+        if rec.state == "done" and rec.stage in ("dataset", "sfm", "train", "masks"):
+            done[(rec.stage, rec.item.id)] = rec
+    out = []
+    for (stage, sid), rec in sorted(done.items()):
+        if stage != "train" or (scenes and sid not in scenes) or ("dataset", sid) not in done:
+            continue
+        poses = done[("sfm", sid)].output("poses") if ("sfm", sid) in done else None
+        scene = load_scene(done[("dataset", sid)].output("dataset"), poses)
+        model = load_ply(rec.output("scene") / Files.SCENE_PLY)
+        renders = rec.output("scene") / Files.RENDERS
+        for (st, oid), mrec in sorted(done.items()):
+            if st != "masks" or not oid.startswith(sid + "/"):
+                continue
+            obj = oid.split("/", 1)[1]
+            folder = mrec.output("masks")
+            masks = [read_mask_png(folder / f"{v.name}.png", v.width, v.height).numpy()
+                     if (folder / f"{v.name}.png").is_file() else None for v in scene.train]
+            st_ = straddling_gaussians(model, [v.camera for v in scene.train], masks)
+            name = (mrec.item.attrs.get("object") and getattr(mrec.item.attrs["object"], "mask", "")) or obj
+            band, whole = [], []
+            for v in scene.test:
+                gt = v.masks.get(name)
+                f = renders / f"{v.name}.png"
+                if gt is None or not f.is_file():
+                    continue
+                import cv2
+
+                render = cv2.imread(str(f), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)[:, :, ::-1]
+                ref = (v.image.clamp(0, 1).numpy() * 255.0).round().astype(np.uint8)
+                b = edge_band(gt.numpy(), band_px)
+                if b.any():
+                    band.append(band_psnr(render, ref, b))
+                    whole.append(band_psnr(render, ref))
+            out.append({"scene": sid, "object": obj, "gaussians": st_["gaussians"], "straddling": st_["straddling"],
+                        "radius_px": st_["radius_px_median"], "scale": st_["scale_median"],
+                        "opacity": st_["opacity_median"], "band_psnr": float(np.mean(band)) if band else float("nan"),
+                        "psnr": float(np.mean(whole)) if whole else float("nan"), "views": len(band)})
+    return out
 
 
 def _side(spec: str, scene: str) -> tuple[str, str]:
@@ -129,6 +190,9 @@ def main(argv=None) -> int:
     ap.add_argument("--workflow", type=Path, default=Path(__file__).resolve().parents[2] / "workflows" / "synthetic_bench.toml")
     ap.add_argument("--set", action="append", default=[], metavar="K=V", help="as cobgs run --set")
     ap.add_argument("--train", action="store_true", help="each scene's training (recipe, Gaussians, PSNR, SfM entry)")
+    ap.add_argument("--boundary", action="store_true",
+                    help="per scene and object: the Gaussians straddling the mask boundary and the held-out PSNR "
+                         "in a 3-pixel band around the mask edge (issue 57; cobgs.evaluate.boundary)")
     ap.add_argument("--rows", default="", help="methods to tabulate, comma-separated (default: all)")
     ap.add_argument("--scenes", default="", help="scenes, comma-separated (default: all in the cache)")
     ap.add_argument("--pair", action="append", default=[], metavar="A:B")
@@ -147,6 +211,16 @@ def main(argv=None) -> int:
     bad = [spec for spec in args.pair if spec.count(":") != 1 or "" in spec.split(":")]
     if bad:
         ap.error(f"--pair takes A:B (rows, or scene/row), got {bad[0]!r}")
+    if args.boundary:
+        rows = boundary_rows(args.workflow, args.cache, args.set, [s for s in args.scenes.split(",") if s])
+        print("| scene | object | Gaussians | straddling | median footprint px | median size | median opacity | "
+              "band PSNR (3 px) | whole PSNR | views |")
+        print("|---|---|---|---|---|---|---|---|---|---|")
+        for r in rows:
+            print(f"| {r['scene']} | {r['object']} | {r['gaussians']:,} | {r['straddling']:,} | {r['radius_px']:.1f} | "
+                  f"{r['scale']:.4f} | {r['opacity']:.2f} | {r['band_psnr']:.2f} | {r['psnr']:.2f} | {r['views']} |")
+        if not args.train and not args.pair and not args.versus:
+            return 0
     R, T = load(args.workflow, args.cache, args.set, args.route)
     if args.baseline_set:
         RB, TB = load(args.workflow, args.cache, args.baseline_set, args.route)

@@ -212,3 +212,35 @@ def test_a_fast_training_runs_end_to_end_and_resumes_identically(scene, tmp_path
     assert resumed.iterations == 60
     for k in ("means", "sh0", "opacity_logits"):
         assert torch.equal(resumed.model.data[k], whole.model.data[k]), k
+
+
+def test_densification_that_does_not_depend_on_the_render_size(scene):
+    """Issue 57 item 2, each switch on its own. densify_grad_rescale: a render at 1/d adds d x its
+    view-space gradient to the densification statistics (off: as 3DGS; full-size steps alike);
+    budget_schedule "resolution": the budget's count follows the share of full-resolution pixels
+    (1/d^2), all of it once the renders are full size. Both hold their earlier value in the key."""
+    base = _cfg(resolution_schedule=True, resolution_max_downscale=2.0, resolution_full_at=0.5)
+    stats = {}
+    for rescale in (False, True):
+        torch.manual_seed(0)
+        tr = Trainer(scene, dataclasses.replace(base, densify_grad_rescale=rescale))
+        d = tr.downscale(1)
+        assert d > 1.0
+        tr.step()
+        stats[rescale] = tr.grad_accum.clone()
+    assert stats[False].abs().sum() > 0
+    assert torch.allclose(stats[True], stats[False] * d, rtol=1e-5, atol=1e-12)
+    sched = Trainer(scene, dataclasses.replace(base, gaussian_budget=1000, budget_schedule="resolution"))
+    line = Trainer(scene, dataclasses.replace(base, gaussian_budget=1000))
+    n0 = len(sched.model)
+    sched.iteration = line.iteration = 1
+    d1 = sched.downscale()
+    assert sched.budget_now() == round(n0 + (1000 - n0) / d1 ** 2) != line.budget_now()
+    sched.iteration = 40  # full size from resolution_full_at x iterations on
+    assert sched.downscale() == 1.0 and sched.budget_now() == 1000
+    for cfg in (TrainConfig(), TrainConfig(recipe="fast")):
+        full = dataclasses.asdict(cfg)
+        assert "densify_grad_rescale" not in key_without_later(TrainConfig, full)
+        assert "budget_schedule" not in key_without_later(TrainConfig, full)
+    on = dataclasses.asdict(TrainConfig(recipe="fast", densify_grad_rescale=True, budget_schedule="resolution"))
+    assert {"densify_grad_rescale", "budget_schedule"} <= set(key_without_later(TrainConfig, on))
