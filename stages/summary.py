@@ -31,7 +31,7 @@ from pipeline import Resources, Stage
 from ._common import read_json, write_json
 
 # (results only: timings come from the manifests, into timings.csv / scenes.csv)
-from cobgs.evaluate.protocols import METRICS  # noqa: E402 (torch-free)
+from cobgs.evaluate.names import METRICS  # noqa: E402 (imports nothing)
 
 
 @dataclass(frozen=True)

@@ -85,6 +85,7 @@ def _run(ctx, inputs):
         "initial_points": (int(len(scene.points)) if scene.points is not None and len(scene.points)
                            else f"random box ({cfg.random_init_points})"),
         **({"gaussian_budget": res.budget} if res.budget else {}),  # (TrainConfig.budget_for; none: left out)
+        **({"stopped_at_plateau": res.stopped_at} if res.stopped_at else {}),  # (TrainConfig.stop_at_plateau)
     })  # timings are in the manifest (ctx.note): a recompute gives the same bytes
     ctx.log.info("trained: %d Gaussians, held-out PSNR %s dB, %.1f s (%.3f s/it)", len(model),
                  f"{ev['psnr']:.2f}" if ev else "n/a", wall, res.s_per_it)

@@ -103,6 +103,12 @@ class TrainConfig:
     # size), DashGaussian's primitive schedule, instead of the line over the iterations.
     densify_grad_rescale: bool = field(default=False, metadata={"before": False})
     budget_schedule: str = field(default="line", metadata={"before": "line"})
+    # Stop once the training loss has flattened (issue 57 item 4): after densification has ended
+    # and the renders are full size, the mean loss of each window of plateau_window_its iterations
+    # is compared with the previous window's; a relative gain below stop_at_plateau ends the run
+    # (train.json records where). 0: run every iteration, as 3DGS.
+    stop_at_plateau: float = field(default=0.0, metadata={"before": 0.0})
+    plateau_window_its: int = field(default=500, metadata={"before": 500})
     # Adam steps only the Gaussians the view touches (radius > 0): the others keep their
     # parameters and moments, as gsplat's selective Adam.
     sparse_adam: bool = field(default=False, metadata={"before": False})
@@ -127,7 +133,7 @@ class TrainConfig:
         "log_interval_its": "[1, 1e7]", "checkpoint_interval_its": "[0, 1e7]",
         "resolution_max_downscale": "[1, 64]", "resolution_full_at": "(0, 1]", "gaussian_budget": "[0, 1e9]",
         "gaussian_budget_per_pixel": "[0, 100]", "gaussian_budget_multiplier": "[0, 10000]",
-        "budget_full_at": "(0, 1]",
+        "budget_full_at": "(0, 1]", "stop_at_plateau": "[0, 1]", "plateau_window_its": "[10, 1e6]",
     }
     CHOICES: ClassVar[dict] = {"backend": ("native", "reference"), "recipe": tuple(RECIPES_NAMES),
                                "budget_schedule": ("line", "resolution")}

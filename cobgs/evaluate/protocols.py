@@ -41,6 +41,7 @@ from typing import Iterable, Mapping, Optional, Sequence
 import numpy as np
 
 from cobgs.errors import DataError, InputError
+from cobgs.evaluate.names import METRICS  # noqa: F401 (the one list: summary and report read it)
 
 __all__ = [
     "MaskScores",
@@ -337,13 +338,6 @@ def read_rgb_u8(path: os.PathLike | str) -> np.ndarray:
     if arr is None:
         raise DataError("missing or unreadable image", p)
     return np.ascontiguousarray(arr[:, :, ::-1])
-
-
-#: The numbers of a result row that are averaged (over objects within a scene, then over scenes): the
-#: summary stage's tables and the report's (which adds the refinement's counts and times) read this.
-METRICS = ("iou", "acc", "biou", "iou_released", "acc_released", "biou_released", "iou_occlusion", "acc_occlusion",
-           "biou_occlusion", "psnr", "psnr_before_raem", "psnr_vanilla", "psnr_delta", "psnr_delta_before_raem",
-           "num_gaussians", "object_gaussians")
 
 
 def aggregate(rows: Sequence[Mapping], metrics: Sequence[str], by: Sequence[str] = ("method",),

@@ -97,6 +97,7 @@ class TrainResult:
     peak_rss_bytes: int = 0
     adam_moments: dict = field(default_factory=dict)
     budget: int = 0
+    stopped_at: int = 0  # the iteration a loss plateau ended the run at (TrainConfig.stop_at_plateau), 0: none
 
 
 
@@ -606,6 +607,7 @@ def train(
         bar = tqdm(total=config.iterations, initial=start, desc="train", dynamic_ncols=True)
     t0 = time.perf_counter()
     ema_loss = None
+    plateau = _Plateau(config, trainer)
     while trainer.iteration < config.iterations:
         info = trainer.step()
         it = trainer.iteration
@@ -629,6 +631,8 @@ def train(
             bar.update(1)
         if checkpoint_dir is not None and config.checkpoint_interval_its > 0 and it % config.checkpoint_interval_its == 0:
             trainer.save_checkpoint(Path(checkpoint_dir) / f"ckpt_{it}.pt")
+        if plateau.flat(info["loss"]):
+            break
     wall = time.perf_counter() - t0
     if bar is not None:
         bar.close()
@@ -646,4 +650,32 @@ def train(
         peak_rss_bytes=peak_rss_bytes(),
         adam_moments=export_moments(trainer.optimizer),
         budget=trainer.budget,
+        stopped_at=plateau.stopped_at,
     )
+
+
+class _Plateau:
+    """TrainConfig.stop_at_plateau: whether the training loss has flattened (the mean of the
+    last window of ``plateau_window_its`` iterations gains less than the threshold, relative to
+    the window before), counted only once densification has ended and the renders are full size."""
+
+    def __init__(self, config: TrainConfig, trainer: "Trainer"):
+        self.config, self.trainer = config, trainer
+        self.window: list[float] = []
+        self.previous: Optional[float] = None
+        self.stopped_at = 0
+
+    def flat(self, loss: float) -> bool:
+        c, tr = self.config, self.trainer
+        if c.stop_at_plateau <= 0 or tr.iteration < tr.sched.densify_until or tr.downscale() != 1.0:
+            return False
+        self.window.append(loss)
+        if len(self.window) < c.plateau_window_its:
+            return False
+        mean = sum(self.window) / len(self.window)
+        self.window = []
+        prev, self.previous = self.previous, mean
+        if prev is not None and prev > 0 and (prev - mean) / prev < c.stop_at_plateau:
+            self.stopped_at = tr.iteration
+            return True
+        return False

@@ -244,3 +244,17 @@ def test_densification_that_does_not_depend_on_the_render_size(scene):
         assert "budget_schedule" not in key_without_later(TrainConfig, full)
     on = dataclasses.asdict(TrainConfig(recipe="fast", densify_grad_rescale=True, budget_schedule="resolution"))
     assert {"densify_grad_rescale", "budget_schedule"} <= set(key_without_later(TrainConfig, on))
+
+
+def test_a_flat_loss_stops_the_run_and_says_where(scene):
+    """Issue 57 item 4: stop_at_plateau ends the run once the loss of a window gains less than the
+    threshold over the previous one, counted only after densification and at full size; off (0),
+    every iteration runs, as 3DGS."""
+    cfg = _cfg(iterations=400, plateau_window_its=20)
+    full = train(scene, cfg, progress=False, evaluate_test=False)
+    assert full.iterations == 400 and full.stopped_at == 0
+    flat = train(scene, dataclasses.replace(cfg, stop_at_plateau=0.5), progress=False, evaluate_test=False)
+    # the first two windows from the end of densification (it 50) are 50-69 and 70-89: no 50 % gain
+    assert flat.stopped_at == flat.iterations == 89
+    a, b = full.model.state_dict()["tensors"], flat.model.state_dict()["tensors"]
+    assert a["means"].shape != b["means"].shape or not torch.equal(a["means"], b["means"])  # (a shorter run)
