@@ -5,6 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import ClassVar, Optional
 
+from cobgs.errors import InputError
 
 from .checks import check_params
 
@@ -109,6 +110,11 @@ class TrainConfig:
     # (train.json records where). 0: run every iteration, as 3DGS.
     stop_at_plateau: float = field(default=0.0, metadata={"before": 0.0})
     plateau_window_its: int = field(default=500, metadata={"before": 500})
+    # The rasterizer of the training steps (issue 60): "ours" (cobgs.render), or "gsplat" (its
+    # ``rasterization``, CUDA only, an optional extra: `pip install gsplat`), for users who trust
+    # gsplat and for measuring ours against it on the same trainer, data and schedule. Evaluation,
+    # refinement and label counts stay ours. Refused, in one line, where gsplat is not importable.
+    rasterizer: str = field(default="ours", metadata={"before": "ours"})
     # Adam steps only the Gaussians the view touches (radius > 0): the others keep their
     # parameters and moments, as gsplat's selective Adam.
     sparse_adam: bool = field(default=False, metadata={"before": False})
@@ -136,10 +142,16 @@ class TrainConfig:
         "budget_full_at": "(0, 1]", "stop_at_plateau": "[0, 1]", "plateau_window_its": "[10, 1e6]",
     }
     CHOICES: ClassVar[dict] = {"backend": ("native", "reference"), "recipe": tuple(RECIPES_NAMES),
-                               "budget_schedule": ("line", "resolution")}
+                               "budget_schedule": ("line", "resolution"), "rasterizer": ("ours", "gsplat")}
 
     def __post_init__(self):
         check_params(self)
+        if self.rasterizer == "gsplat":  # (importable is all this torch-free module can check; the device: Trainer)
+            import importlib.util
+
+            if importlib.util.find_spec("gsplat") is None:
+                raise InputError("TrainConfig.rasterizer = 'gsplat' needs gsplat, which is not installed "
+                                 "(pip install gsplat, on a machine with CUDA); 'ours' needs nothing more")
         for name, value in RECIPES[self.recipe].items():  # what the caller left unset: the recipe's
             if getattr(self, name) is None:
                 object.__setattr__(self, name, value)

@@ -210,6 +210,12 @@ class Trainer:
         self.budget = config.budget_for(int(cam0.width), int(cam0.height), self._n_init)
         self._levels: Optional[list[tuple[float, float]]] = None  # (downscale, energy kept), resolution schedule
         self._targets: dict = {}  # (view index, w, h) -> the downsampled image
+        #: a cobgs.train.profile.PhaseTimer timing each step's phases, or None (no cost)
+        self.timer = None
+        if config.rasterizer == "gsplat":
+            from cobgs.train.gsplat_backend import check_gsplat
+
+            check_gsplat(self.device)
 
     # -- pieces -----------------------------------------------------------------------------
     def _make_optimizer(self) -> torch.optim.Optimizer:
@@ -302,6 +308,20 @@ class Trainer:
         with cpu_fast_path(True):
             return self._step()
 
+    def _phase(self, name: str):
+        """The timer's context for a phase of the step (cobgs.train.profile), or nothing."""
+        from cobgs.train.profile import no_phase
+
+        return self.timer.phase(name) if self.timer is not None else no_phase(name)
+
+    def _render(self, camera, bg):
+        """The forward pass: ours, or gsplat's ``rasterization`` (TrainConfig.rasterizer)."""
+        if self.config.rasterizer == "gsplat":
+            from cobgs.train.gsplat_backend import render_gsplat
+
+            return render_gsplat(self.model, camera, bg)
+        return render(self.model, camera, bg, backend=self.config.backend)
+
     def _step(self) -> dict:
         c, s = self.config, self.sched
         self.iteration += 1
@@ -316,30 +336,40 @@ class Trainer:
             camera = camera.scaled(d)
             target = self._target(index, view, int(camera.width), int(camera.height))
         bg = torch.rand(3, generator=self.bg_rng) if c.random_background else self.background
-        out = render(self.model, camera, bg, backend=c.backend)
-        if it < s.densify_until:  # the densification statistics read its gradient
-            out.means2d.retain_grad()
-        img = out.image
-        loss = photometric_loss(img, target, c.ssim_weight)
-        loss.backward()
+        with self._phase("render"):
+            out = self._render(camera, bg)
+            if it < s.densify_until:  # the densification statistics read its gradient
+                out.means2d.retain_grad()
+            img = out.image
+        with self._phase("loss"):
+            loss = photometric_loss(img, target, c.ssim_weight)
+        with self._phase("backward"):
+            loss.backward()
 
         with torch.no_grad():
             if it < s.densify_until:
-                self._accumulate(out.radii, out.means2d.grad, camera.width, camera.height,
-                                 d if c.densify_grad_rescale else 1.0)
-            if c.sparse_adam:
-                self.optimizer.step(visible=out.radii > 0)
-            else:
-                self.optimizer.step()
-            self.optimizer.zero_grad(set_to_none=True)
+                with self._phase("stats"):
+                    self._accumulate(out.radii, out.means2d.grad, camera.width, camera.height,
+                                     d if c.densify_grad_rescale else 1.0)
+            with self._phase("optimizer"):
+                if c.sparse_adam:
+                    self.optimizer.step(visible=out.radii > 0)
+                else:
+                    self.optimizer.step()
+                self.optimizer.zero_grad(set_to_none=True)
             if it < s.densify_until:
-                if it > s.densify_from and it % s.densify_interval == 0:
-                    self.densify_and_prune()
-                if it % s.opacity_reset_interval == 0 or (self.white_background and it == s.densify_from):
-                    self.reset_opacity()
-            mse = torch.mean((img.detach().clamp(0, 1) - target) ** 2).item()
+                with self._phase("densify"):
+                    if it > s.densify_from and it % s.densify_interval == 0:
+                        self.densify_and_prune()
+                    if it % s.opacity_reset_interval == 0 or (self.white_background and it == s.densify_from):
+                        self.reset_opacity()
+            with self._phase("sync"):
+                mse = torch.mean((img.detach().clamp(0, 1) - target) ** 2).item()
+                loss_value = float(loss.detach())
+        if self.timer is not None:
+            self.timer.steps += 1
         return {
-            "loss": float(loss.detach()),
+            "loss": loss_value,
             "psnr": 10.0 * math.log10(1.0 / max(mse, 1e-12)),
             "image": img.detach(),
             "resolution": (int(camera.width), int(camera.height)),

@@ -274,6 +274,18 @@ def _unpack_fern(path: Path, images_dir: Path):
                  source=pack["source"], kind="colmap", notes=list(pack["notes"]))
 
 
+def _profile_since(whole: dict, before: dict) -> dict:
+    """The step profile of the steps between two reports of one timer (cobgs.train.profile)."""
+    steps = whole["steps"] - before["steps"]
+    ms = {p: v["ms_per_step"] * whole["steps"] - before["phases"][p]["ms_per_step"] * before["steps"]
+          for p, v in whole["phases"].items()}
+    total = sum(ms.values())
+    return {"steps": steps, "device": whole["device"], "ms_per_step": total / max(steps, 1),
+            "phases": {p: {"ms_per_step": t / max(steps, 1), "share": t / total if total else 0.0,
+                           "calls": whole["phases"][p]["calls"] - before["phases"][p]["calls"]}
+                       for p, t in ms.items()}}
+
+
 def bench_fern(args) -> None:
     from cobgs.configs import RefineConfig, SfmOptions, TrainConfig
     from cobgs.data.colmap import read_colmap
@@ -285,7 +297,11 @@ def bench_fern(args) -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     report = {"gpu": gpu_name(), "torch": torch.__version__, "path": args.path,
-              "recipe": args.recipe, "iterations": args.iterations}
+              "recipe": args.recipe, "iterations": args.iterations, "rasterizer": args.rasterizer}
+    if args.rasterizer == "gsplat":
+        import gsplat
+
+        report["gsplat"] = gsplat.__version__
     print(f"GPU: {report['gpu']}; CUDA blending path: {args.path}", flush=True)
     t = time.perf_counter()
     if args.scene is not None:
@@ -309,14 +325,22 @@ def bench_fern(args) -> None:
     kw = {"iterations": args.iterations} if args.iterations else {}
     if args.recipe != "3dgs":
         kw["recipe"] = args.recipe
-    cfg = TrainConfig(log_interval_its=1000, **kw)
+    cfg = TrainConfig(log_interval_its=1000, rasterizer=args.rasterizer, **kw)
     its = cfg.iterations
     report["iterations"] = its
     torch.cuda.reset_peak_memory_stats()
     t0 = time.perf_counter()
     last = [t0]
 
+    from cobgs.train.profile import PhaseTimer
+
+    timers = {}
+
     def progress(trainer, info):
+        if args.profile_last and trainer.iteration == 1:
+            timers["timer"] = trainer.timer = PhaseTimer(dev)
+        if args.profile_last and trainer.iteration == max(1, its - args.profile_last):
+            timers["before_last"] = trainer.timer.report()  # (one synchronisation)
         if trainer.iteration % 1000 == 0:
             torch.cuda.synchronize()
             now = time.perf_counter()
@@ -334,6 +358,14 @@ def bench_fern(args) -> None:
         report["num_gaussians"] = len(res.model)
         report["train_psnr_last"] = res.history[-1]["psnr"] if res.history else None
         report["train_history"] = res.history
+        if timers:
+            whole = timers["timer"].report()
+            report["profile"] = {"whole": whole}
+            if "before_last" in timers:
+                report["profile"]["last"] = _profile_since(whole, timers["before_last"])
+            for k, rep in report["profile"].items():
+                print(f"step profile ({k}, {rep['steps']} steps): {rep['ms_per_step']:.2f} ms/step: "
+                      + ", ".join(f"{p} {v['ms_per_step']:.2f}" for p, v in rep["phases"].items()), flush=True)
         print(f"train: {report['train_s']:.1f} s, {len(res.model)} Gaussians, peak GPU memory "
               f"{report['train_peak_gpu_mem'] / 2**30:.2f} GiB", flush=True)
     if scene.test:  # held-out PSNR, rendered with the exact path for both trainings
@@ -392,6 +424,12 @@ def main() -> None:
     f.add_argument("--iterations", type=int, default=0, help="0: the recipe's (3dgs: 30 000)")
     f.add_argument("--recipe", default="3dgs", help="TrainConfig.recipe")
     f.add_argument("--path", choices=("exact", "fast"), default="exact", help="the CUDA blending path")
+    f.add_argument("--rasterizer", choices=("ours", "gsplat"), default="ours",
+                   help="TrainConfig.rasterizer of the training steps (gsplat: its rasterization; evaluation and "
+                        "refinement stay ours)")
+    f.add_argument("--profile-last", type=int, default=2000,
+                   help="the step profile (CUDA events per phase, cobgs.train.profile) of the whole run and of its "
+                        "last N iterations, once the model has grown (0: no profile)")
     f.add_argument("--save-ply", action="store_true", help="write fern.ply (for COBGS_TRAINED_PLY)")
     f.add_argument("--out", required=True)
     pk = sub.add_parser("pack-fern", help="(any machine) write an SfM'd scene for fern --scene")

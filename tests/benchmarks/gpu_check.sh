@@ -2,7 +2,9 @@
 # The whole GPU check in one command (issue 49): build, CUDA parity tests (exact and fast
 # paths), the kernel benchmark against gsplat (both paths, 4 channels and 1 channel with
 # label counts), and, while time is left, fern trained for 30k iterations on the fast path
-# and then on the exact path (held-out PSNR of both, COB-GS refinement after each).
+# with its step profile (CUDA events per phase, issue 60), then with gsplat's rasterizer on
+# the same trainer (TrainConfig.rasterizer = "gsplat"), then on the exact path (held-out PSNR
+# of each, COB-GS refinement after each).
 #
 #   tests/benchmarks/gpu_check.sh OUT [--wheels DIR] [--fern-scene PT --fern-images DIR]
 #                                     [--budget-s 570] [--fern-iterations 30000]
@@ -17,10 +19,10 @@
 # --budget-s: wall-clock budget of the whole check; a step that cannot finish in what is
 #   left is skipped (fern) or stopped at the deadline, and says so.
 #
-# Every result goes to OUT as it is made (no more than 7 files): gpu_check.log (everything),
-# summary.md, parity.txt, gsplat_build.log, bm_cuda_kernels.json, fern_fast.json,
-# fern_exact.json. Exit status: 0 when every step that ran passed, 1 otherwise, 2 on usage
-# errors, 3 without a CUDA device.
+# Every result goes to OUT as it is made (8 files, what the GPU machine returns): gpu_check.log
+# (everything), summary.md, parity.txt, gsplat_build.log, bm_cuda_kernels.json, fern_fast.json,
+# fern_gsplat.json, fern_exact.json. Exit status: 0 when every step that ran passed, 1
+# otherwise, 2 on usage errors, 3 without a CUDA device.
 set -u -o pipefail
 
 OUT=${1:-}
@@ -136,16 +138,22 @@ step "kernels (bm_cuda.py kernels --reps 30: 100k / 1M, 4 ch / 1 ch + labels, ex
   "$(( $(left) > 240 ? 240 : $(left) - 30 ))" \
   "$PY" tests/benchmarks/bm_cuda.py kernels --reps 30 --out "$OUT"
 
-fern() {  # path
-  local path=$1 need=$2
-  if [ -z "$FERN_SCENE" ]; then row "fern ($path path)" "skipped: no --fern-scene" "-"; return; fi
-  if [ "$(left)" -lt "$need" ]; then row "fern ($path path)" "skipped: $(left) s left" "-"; return; fi
-  step "fern $FERN_ITERS its, $path path (+ held-out PSNR, COB-GS refinement)" "$(( $(left) - 5 ))" \
+fern() {  # path need [rasterizer]
+  local path=$1 need=$2 rast=${3:-ours}
+  local tag=$path
+  [ "$rast" = gsplat ] && tag=gsplat
+  if [ -z "$FERN_SCENE" ]; then row "fern ($tag)" "skipped: no --fern-scene" "-"; return; fi
+  if [ "$(left)" -lt "$need" ]; then row "fern ($tag)" "skipped: $(left) s left" "-"; return; fi
+  if [ "$rast" = gsplat ] && ! "$PY" -c "import gsplat" >/dev/null 2>&1; then
+    row "fern (gsplat rasterizer)" "skipped: gsplat not importable" "-"; return; fi
+  step "fern $FERN_ITERS its, $path path, rasterizer $rast (+ step profile, held-out PSNR, COB-GS refinement)" \
+    "$(( $(left) - 5 ))" \
     "$PY" tests/benchmarks/bm_cuda.py fern --scene "$FERN_SCENE" --images-dir "$FERN_IMAGES" \
-    --iterations "$FERN_ITERS" --path "$path" --out "/tmp/gpu_check_fern_$path"
-  [ -f "/tmp/gpu_check_fern_$path/bm_cuda_fern.json" ] && cp "/tmp/gpu_check_fern_$path/bm_cuda_fern.json" "$OUT/fern_$path.json"
+    --iterations "$FERN_ITERS" --path "$path" --rasterizer "$rast" --out "/tmp/gpu_check_fern_$tag"
+  [ -f "/tmp/gpu_check_fern_$tag/bm_cuda_fern.json" ] && cp "/tmp/gpu_check_fern_$tag/bm_cuda_fern.json" "$OUT/fern_$tag.json"
 }
 fern fast 60
+fern fast 60 gsplat
 fern exact 60
 
 # The summary: every number with the GPU's and gsplat's names.
@@ -171,18 +179,29 @@ if k.exists():
         print(f"| {r['n']:,} | {ch} | {r['path']} | {r['ours_ms']:.2f} [{r['ours_min_ms']:.2f}] | "
               f"{num(r.get('gsplat_ms'), '.2f')} | {num(r.get('ratio'), '.3f')} | "
               f"{r['ours_fwd_ms']:.2f} | {num(r.get('fwd_ratio'), '.3f')} |")
-rows = [json.loads((out / f"fern_{p}.json").read_text()) for p in ("fast", "exact")
+rows = [json.loads((out / f"fern_{p}.json").read_text()) for p in ("fast", "gsplat", "exact")
         if (out / f"fern_{p}.json").exists()]
 if rows:
     print(f"\n## fern ({rows[0]['gpu']})\n")
-    print("| path | iterations | train s | Gaussians | held-out PSNR | train PSNR (last log) | refine s | peak GPU GiB |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("| path | rasterizer | iterations | train s | s / 1000 its | Gaussians | held-out PSNR | train PSNR (last log) | "
+          "refine s | peak GPU GiB |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for r in rows:
         mem = r.get("train_peak_gpu_mem")
-        print(f"| {r['path']} | {r['iterations']} | {num(r.get('train_s'), '.1f')} | "
+        rast = r.get("rasterizer", "ours") + (f" {r['gsplat']}" if r.get("gsplat") else "")
+        per = r["train_s"] / r["iterations"] * 1000 if r.get("train_s") and r.get("iterations") else None
+        print(f"| {r['path']} | {rast} | {r['iterations']} | {num(r.get('train_s'), '.1f')} | {num(per, '.2f')} | "
               f"{num(r.get('num_gaussians'), ',')} | {num(r.get('test_psnr'), '.3f')} | "
               f"{num(r.get('train_psnr_last'), '.2f')} | {num(r.get('refine_s'), '.1f')} | "
               f"{num(mem / 2**30 if mem else None, '.2f')} |")
+    for r in rows:
+        for k, rep in (r.get("profile") or {}).items():
+            print(f"\n### step profile: {r['path']} path, rasterizer {r.get('rasterizer', 'ours')}, {k} "
+                  f"({rep['steps']} steps, {rep['ms_per_step']:.2f} ms / step; CUDA events per phase)\n")
+            print("| phase | ms / step | share |")
+            print("|---|---|---|")
+            for p, v in rep["phases"].items():
+                print(f"| {p} | {v['ms_per_step']:.3f} | {100 * v['share']:.1f} % |")
 EOF
 say "done in $(($(date +%s) - START)) s; summary:"
 cat "$SUMMARY" | tee -a "$LOG"

@@ -258,3 +258,47 @@ def test_a_flat_loss_stops_the_run_and_says_where(scene):
     assert flat.stopped_at == flat.iterations == 89
     a, b = full.model.state_dict()["tensors"], flat.model.state_dict()["tensors"]
     assert a["means"].shape != b["means"].shape or not torch.equal(a["means"], b["means"])  # (a shorter run)
+
+
+def test_the_step_profile_times_every_phase(scene):
+    """Issue 60 item 1: a PhaseTimer on a trainer times each phase of each step (on the CPU by the
+    clock; on CUDA by events, read once); the phases add up to the step's time; without a timer the
+    trainer runs as before."""
+    from cobgs.train.profile import PHASES, PhaseTimer
+
+    tr = Trainer(scene, _cfg(iterations=30))
+    tr.timer = PhaseTimer("cpu")
+    for _ in range(30):
+        tr.step()
+    rep = tr.timer.report()
+    assert rep["steps"] == 30 and set(rep["phases"]) == set(PHASES)
+    for p in ("render", "loss", "backward", "stats", "optimizer", "sync"):
+        assert rep["phases"][p]["calls"] == 30 and rep["phases"][p]["ms_per_step"] > 0, p
+    assert rep["phases"]["densify"]["calls"] == 30  # (a densification every 10th step, timed in every)
+    assert rep["ms_per_step"] == pytest.approx(sum(v["ms_per_step"] for v in rep["phases"].values()))
+    assert sum(v["share"] for v in rep["phases"].values()) == pytest.approx(1.0)
+    plain = Trainer(scene, _cfg(iterations=30))
+    assert plain.timer is None and plain.step()["loss"] > 0
+
+
+def test_the_gsplat_rasterizer_is_refused_where_it_cannot_run(scene, tmp_path, monkeypatch):
+    """Issue 60 item 2: `train.rasterizer = "gsplat"` without gsplat is one clear line, when the
+    config is made (so a workflow refuses it when it loads); with gsplat importable, a scene on the
+    CPU is refused by the trainer (gsplat has no CPU kernels)."""
+    import importlib.util
+    import sys
+
+    from cobgs.errors import InputError
+
+    if importlib.util.find_spec("gsplat") is None:
+        with pytest.raises(InputError, match=r"rasterizer = 'gsplat' needs gsplat, which is not installed"):
+            TrainConfig(rasterizer="gsplat")
+    fake = tmp_path / "site" / "gsplat"
+    fake.mkdir(parents=True)
+    (fake / "__init__.py").write_text("__version__ = '0'\n")
+    monkeypatch.syspath_prepend(str(tmp_path / "site"))
+    monkeypatch.delitem(sys.modules, "gsplat", raising=False)
+    cfg = _cfg(rasterizer="gsplat")
+    with pytest.raises(InputError, match="runs on CUDA only"):
+        Trainer(scene, cfg)
+    assert "rasterizer" not in key_without_later(TrainConfig, dataclasses.asdict(TrainConfig()))
