@@ -104,6 +104,18 @@ class TrainConfig:
     # size), DashGaussian's primitive schedule, instead of the line over the iterations.
     densify_grad_rescale: bool = field(default=False, metadata={"before": False})
     budget_schedule: str = field(default="line", metadata={"before": "line"})
+    # A budget that follows the scene (issue 57 item 3). budget_schedule "growth": until
+    # budget_probe_at of the densification window, 3DGS's own rule densifies (no ceiling); the
+    # count it grew to there, extrapolated linearly over the whole window, becomes the budget
+    # (at least the count reached), and the line runs from there to it at budget_full_at.
+    # budget_edge_exempt k > 0: a Gaussian whose averaged gradient is at least k x 3DGS's
+    # threshold (the strongest edges) densifies even where the ceiling leaves no room.
+    budget_probe_at: float = field(default=0.25, metadata={"before": 0.25})
+    budget_edge_exempt: float = field(default=0.0, metadata={"before": 0.0})
+    # Full-resolution random crops instead of whole frames late in the run (issue 57 item 4):
+    # once densification has ended and the renders are full size, each step renders and fits a
+    # random crop of crop_fraction of each side of the frame (1: whole frames, as 3DGS).
+    crop_fraction: float = field(default=1.0, metadata={"before": 1.0})
     # Stop once the training loss has flattened (issue 57 item 4): after densification has ended
     # and the renders are full size, the mean loss of each window of plateau_window_its iterations
     # is compared with the previous window's; a relative gain below stop_at_plateau ends the run
@@ -140,9 +152,10 @@ class TrainConfig:
         "resolution_max_downscale": "[1, 64]", "resolution_full_at": "(0, 1]", "gaussian_budget": "[0, 1e9]",
         "gaussian_budget_per_pixel": "[0, 100]", "gaussian_budget_multiplier": "[0, 10000]",
         "budget_full_at": "(0, 1]", "stop_at_plateau": "[0, 1]", "plateau_window_its": "[10, 1e6]",
+        "budget_probe_at": "(0, 1)", "budget_edge_exempt": "[0, 1e6]", "crop_fraction": "[0.05, 1]",
     }
     CHOICES: ClassVar[dict] = {"backend": ("native", "reference"), "recipe": tuple(RECIPES_NAMES),
-                               "budget_schedule": ("line", "resolution"), "rasterizer": ("ours", "gsplat")}
+                               "budget_schedule": ("line", "resolution", "growth"), "rasterizer": ("ours", "gsplat")}
 
     def __post_init__(self):
         check_params(self)

@@ -143,6 +143,18 @@ class Camera:
         S = torch.tensor([[sx, 0.0, 0.0], [0.0, sy, 0.0], [0.0, 0.0, 1.0]], dtype=self.K.dtype, device=self.K.device)
         return replace(self, K=S @ self.K, width=int(width), height=int(height))
 
+    def cropped(self, x0: int, y0: int, width: int, height: int) -> "Camera":
+        """The same camera for the ``width`` x ``height`` window of its image whose top-left
+        pixel is ``(x0, y0)``: the principal point moves, the focal lengths stay."""
+        if not (0 <= x0 and 0 <= y0 and 0 < width and 0 < height
+                and x0 + width <= self.width and y0 + height <= self.height):
+            raise InputError(f"Camera {self.name!r}: crop ({x0}, {y0}) {width}x{height} is outside "
+                             f"its {self.width}x{self.height} image")
+        K = self.K.clone()
+        K[0, 2] -= x0
+        K[1, 2] -= y0
+        return replace(self, K=K, width=int(width), height=int(height))
+
     def to(self, device) -> "Camera":
         return replace(self, K=self.K.to(device), viewmat=self.viewmat.to(device))
 

@@ -208,6 +208,9 @@ class Trainer:
         self._n_init = len(self.model)
         #: the Gaussian budget (0: none; TrainConfig.budget_for, from the pixels and the initial count)
         self.budget = config.budget_for(int(cam0.width), int(cam0.height), self._n_init)
+        #: budget_schedule "growth": (window share, count) where the budget was measured, None before
+        self.budget_probe: Optional[tuple[float, int]] = None
+        self.crop_rng = torch.Generator().manual_seed(config.seed + 4)
         self._levels: Optional[list[tuple[float, float]]] = None  # (downscale, energy kept), resolution schedule
         self._targets: dict = {}  # (view index, w, h) -> the downsampled image
         #: a cobgs.train.profile.PhaseTimer timing each step's phases, or None (no cost)
@@ -264,17 +267,43 @@ class Trainer:
             self._targets[key] = t
         return t
 
+    def _crop(self, camera, target: Tensor):
+        """A random crop of ``crop_fraction`` of each side of the frame: its camera and image."""
+        f = self.config.crop_fraction
+        w, h = max(1, int(round(camera.width * f))), max(1, int(round(camera.height * f)))
+        x0 = int(torch.randint(0, int(camera.width) - w + 1, (1,), generator=self.crop_rng))
+        y0 = int(torch.randint(0, int(camera.height) - h + 1, (1,), generator=self.crop_rng))
+        return camera.cropped(x0, y0, w, h), target[y0:y0 + h, x0:x0 + w].contiguous()
+
     def budget_now(self) -> int:
         """The count the budget allows at this iteration: a line from the initial count to
         the budget at ``budget_full_at`` of the densification window; with ``budget_schedule =
         "resolution"``, the share of full-resolution pixels the iteration renders (1/d^2)."""
         s, c = self.sched, self.config
+        start = self._n_init
         if c.budget_schedule == "resolution":
             t = 1.0 / self.downscale() ** 2
+        elif c.budget_schedule == "growth" and self.budget_probe is not None:
+            t0, start = self.budget_probe
+            t = min(1.0, max(0.0, (self.window_share() - t0) / max(1e-9, c.budget_full_at - t0)))
         else:
             span = max(1.0, c.budget_full_at * (s.densify_until - s.densify_from))
             t = min(1.0, max(0.0, (self.iteration - s.densify_from) / span))
-        return int(round(self._n_init + (self.budget - self._n_init) * t)) if self.budget > self._n_init else self.budget
+        return int(round(start + (self.budget - start) * t)) if self.budget > start else self.budget
+
+    def window_share(self) -> float:
+        """How far this iteration is into the densification window, 0 to 1."""
+        s = self.sched
+        return min(1.0, max(0.0, (self.iteration - s.densify_from) / max(1, s.densify_until - s.densify_from)))
+
+    def _probe_growth(self, n: int) -> None:
+        """budget_schedule "growth": once budget_probe_at of the window has passed, the count 3DGS's
+        rule grew to, extrapolated linearly over the whole window, becomes the budget."""
+        t = self.window_share()
+        if t < self.config.budget_probe_at or t <= 0:
+            return
+        self.budget_probe = (t, n)
+        self.budget = max(n, int(round(self._n_init + (n - self._n_init) / t)))
 
     def _reset_stats(self) -> None:
         n, dev = len(self.model), self.model.device
@@ -335,6 +364,8 @@ class Trainer:
         if d != 1.0:
             camera = camera.scaled(d)
             target = self._target(index, view, int(camera.width), int(camera.height))
+        elif c.crop_fraction < 1.0 and it >= s.densify_until:
+            camera, target = self._crop(camera, target)
         bg = torch.rand(3, generator=self.bg_rng) if c.random_background else self.background
         with self._phase("render"):
             out = self._render(camera, bg)
@@ -400,8 +431,13 @@ class Trainer:
         grads = self.grad_accum / self.grad_count.clamp_min(1)
         grads[self.grad_count == 0] = 0.0
         big = m.scales.max(dim=1).values > c.dense_scale_fraction * self.extent
-        if self.budget:
+        growth = c.budget_schedule == "growth"
+        if growth and self.budget_probe is None:
+            self._probe_growth(n0)
+        if self.budget and not (growth and self.budget_probe is None):
             hot = self._budget_pick(grads, big, n0)
+            if c.budget_edge_exempt > 0:  # the strongest edges densify past the ceiling
+                hot |= grads >= c.budget_edge_exempt * c.densify_grad_threshold_ndc
         else:
             hot = grads >= c.densify_grad_threshold_ndc
         clone = hot & ~big
@@ -476,6 +512,8 @@ class Trainer:
             "view_rng": self.view_rng.get_state(),
             "split_rng": self.split_rng.get_state(),
             "bg_rng": self.bg_rng.get_state(),
+            "crop_rng": self.crop_rng.get_state(),
+            "budget": (self.budget, self.budget_probe),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -500,6 +538,11 @@ class Trainer:
         self.split_rng.set_state(state["split_rng"])
         if "bg_rng" in state:  # absent in checkpoints written before random_background existed
             self.bg_rng.set_state(state["bg_rng"])
+        if "crop_rng" in state:  # absent before crop_fraction / budget_schedule "growth"
+            self.crop_rng.set_state(state["crop_rng"])
+            self.budget, self.budget_probe = state["budget"][0], state["budget"][1]
+            if self.budget_probe is not None:
+                self.budget_probe = (float(self.budget_probe[0]), int(self.budget_probe[1]))
 
     def save_checkpoint(self, path: os.PathLike | str) -> Path:
         """Write the full state atomically (temporary file + rename)."""

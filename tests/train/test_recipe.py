@@ -302,3 +302,69 @@ def test_the_gsplat_rasterizer_is_refused_where_it_cannot_run(scene, tmp_path, m
     with pytest.raises(InputError, match="runs on CUDA only"):
         Trainer(scene, cfg)
     assert "rasterizer" not in key_without_later(TrainConfig, dataclasses.asdict(TrainConfig()))
+
+
+def test_a_budget_measured_from_the_scenes_own_growth(scene):
+    """Issue 57 item 3, budget_schedule "growth": until budget_probe_at of the densification window
+    3DGS's rule densifies unbounded (bit for bit the plain run's counts), then the count it reached,
+    extrapolated linearly over the window, is the budget, never exceeded afterwards, with the line
+    starting from the probed count. Held in the key only when set."""
+    plain_counts, counts = [], []
+    train(scene, _cfg(), progress=False, evaluate_test=False,
+          callback=lambda tr, info: plain_counts.append(len(tr.model)))
+    probes = []
+
+    def note(tr, info):
+        counts.append(len(tr.model))
+        probes.append((tr.iteration, tr.budget_probe, tr.budget))
+
+    train(scene, _cfg(budget_schedule="growth", budget_probe_at=0.4), progress=False, evaluate_test=False, callback=note)
+    first = next(i for i, (_, p, _) in enumerate(probes) if p is not None)
+    it, (t, n), budget = probes[first]
+    # densification every 10th step from 5 on, window 5..50: the first at a share >= 0.4 is it 30
+    assert it == 30 and t == pytest.approx(25 / 45) and n == plain_counts[it - 2]  # (the count before it)
+    assert counts[:it - 1] == plain_counts[:it - 1]
+    assert budget == max(n, round(200 + (n - 200) / t))
+    assert max(counts[it:]) <= budget
+    assert "budget_schedule" in key_without_later(TrainConfig, dataclasses.asdict(TrainConfig(budget_schedule="growth")))
+    for name in ("budget_probe_at", "budget_edge_exempt", "crop_fraction"):
+        assert name not in key_without_later(TrainConfig, dataclasses.asdict(TrainConfig(recipe="fast")))
+
+
+def test_the_strongest_edges_densify_past_the_ceiling(scene):
+    """Issue 57 item 3, budget_edge_exempt k: under a budget with no room at all, only Gaussians whose
+    averaged gradient is at least k x the threshold densify; 0 (off): nothing grows."""
+    tight = dict(gaussian_budget=1, budget_threshold_gate=True)
+    none = train(scene, _cfg(**tight), progress=False, evaluate_test=False)
+    assert len(none.model) <= 200
+    edges = train(scene, _cfg(**tight, budget_edge_exempt=2.0), progress=False, evaluate_test=False)
+    assert len(edges.model) > 200
+    everything = train(scene, _cfg(), progress=False, evaluate_test=False)  # 3DGS: every Gaussian over 1x
+    assert len(edges.model) < len(everything.model)
+
+
+def test_late_steps_fit_random_full_resolution_crops(scene):
+    """Issue 57 item 4, crop_fraction: once densification has ended and the renders are full size,
+    each step renders a crop of that fraction of each side; the cropped camera renders exactly the
+    window of the full render. Before, whole frames (bit for bit the plain run)."""
+    from cobgs.errors import InputError
+
+    res = []
+    tr = Trainer(scene, _cfg(crop_fraction=0.5))
+    plain = Trainer(scene, _cfg())
+    for _ in range(60):
+        a, b = tr.step(), plain.step()
+        res.append(a["resolution"])
+        if tr.iteration < 50:
+            assert torch.equal(a["image"], b["image"])
+    assert set(res[:49]) == {(64, 48)} and set(res[49:]) == {(32, 24)}
+    cam = scene.train[0].camera
+    with torch.no_grad():
+        full = render(tr.model, cam, torch.zeros(3)).image
+        part = render(tr.model, cam.cropped(10, 7, 32, 24), torch.zeros(3)).image
+    # (not bit for bit: the EWA projection clamps a Gaussian's offset to 1.3x the field of view,
+    # which the crop narrows, as in 3DGS and gsplat; a few Gaussians outside the window move)
+    diff = (part - full[7:31, 10:42]).abs()
+    assert diff.max() < 5e-3 and diff.mean() < 1e-4
+    with pytest.raises(InputError, match="outside"):
+        cam.cropped(40, 0, 32, 24)
