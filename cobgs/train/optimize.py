@@ -39,6 +39,7 @@ state and the densification statistics, so a resumed run continues bit-identical
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 import dataclasses
 import io
 import math
@@ -134,6 +135,36 @@ def resolution_levels(images: Sequence[Tensor], max_downscale: float) -> list[tu
     return [(d, min(1.0, e)) for d, e in zip(ds, kept)]
 
 
+class StepInfo(Mapping):
+    """What one training step returns: ``loss`` and ``psnr`` (floats), ``image``, ``resolution``.
+    The loss and the MSE stay on the device until a float is asked for (or :meth:`read`), so a
+    CUDA step waits on no host synchronisation unless somebody looks."""
+
+    _KEYS = ("loss", "psnr", "image", "resolution")
+
+    def __init__(self, loss: Tensor, mse: Tensor, image: Tensor, resolution: tuple[int, int]):
+        self.loss_tensor, self._mse = loss, mse
+        self._values = {"image": image, "resolution": resolution}
+
+    def read(self) -> "StepInfo":
+        if "loss" not in self._values:
+            mse = float(self._mse)
+            self._values["loss"] = float(self.loss_tensor)
+            self._values["psnr"] = 10.0 * math.log10(1.0 / max(mse, 1e-12))
+        return self
+
+    def __getitem__(self, key: str):
+        if key in ("loss", "psnr"):
+            self.read()
+        return self._values[key]
+
+    def __iter__(self):
+        return iter(self._KEYS)
+
+    def __len__(self) -> int:
+        return len(self._KEYS)
+
+
 def expon_lr(step: int, lr_init: float, lr_final: float, max_steps: int) -> float:
     """Log-linear interpolation from ``lr_init`` (step 0) to ``lr_final`` (``max_steps``)."""
     t = min(max(step / max_steps, 0.0), 1.0)
@@ -215,6 +246,9 @@ class Trainer:
         self._targets: dict = {}  # (view index, w, h) -> the downsampled image
         #: a cobgs.train.profile.PhaseTimer timing each step's phases, or None (no cost)
         self.timer = None
+        #: step() leaves its loss and PSNR on the device until read (StepInfo): no host
+        #: synchronisation per iteration on CUDA (train() reads them at its log interval)
+        self.lazy_stats = self.device.type == "cuda"
         if config.rasterizer == "gsplat":
             from cobgs.train.gsplat_backend import check_gsplat
 
@@ -395,16 +429,13 @@ class Trainer:
                     if it % s.opacity_reset_interval == 0 or (self.white_background and it == s.densify_from):
                         self.reset_opacity()
             with self._phase("sync"):
-                mse = torch.mean((img.detach().clamp(0, 1) - target) ** 2).item()
-                loss_value = float(loss.detach())
+                mse = torch.mean((img.detach().clamp(0, 1) - target) ** 2)
+                info = StepInfo(loss.detach(), mse, img.detach(), (int(camera.width), int(camera.height)))
+                if not self.lazy_stats:
+                    info.read()
         if self.timer is not None:
             self.timer.steps += 1
-        return {
-            "loss": loss_value,
-            "psnr": 10.0 * math.log10(1.0 / max(mse, 1e-12)),
-            "image": img.detach(),
-            "resolution": (int(camera.width), int(camera.height)),
-        }
+        return info
 
     def _accumulate(self, radii: Tensor, grad2d: Optional[Tensor], width: int, height: int,
                     factor: float = 1.0) -> None:
@@ -681,15 +712,28 @@ def train(
     t0 = time.perf_counter()
     ema_loss = None
     plateau = _Plateau(config, trainer)
+    checked = start  # (lazy statistics: the iteration of the last finite check)
     while trainer.iteration < config.iterations:
         info = trainer.step()
         it = trainer.iteration
-        if not math.isfinite(info["loss"]):
-            raise DivergenceError(f"training diverged at iteration {it}: loss {info['loss']} "
-                                  f"({len(trainer.model)} Gaussians); nothing is saved")
-        if it % config.log_interval_its == 0 or it == config.iterations:
+        log_now = it % config.log_interval_its == 0 or it == config.iterations
+        if trainer.lazy_stats:
+            # on the device, read at the log interval: a non-finite loss stays non-finite in the mean
+            loss_t = info.loss_tensor.double()
+            ema_loss = loss_t if ema_loss is None else 0.9 * ema_loss + 0.1 * loss_t
+            if log_now:
+                ema_loss = float(ema_loss)
+                if not math.isfinite(ema_loss):
+                    raise DivergenceError(f"training diverged between iterations {checked + 1} and {it}: a loss "
+                                          f"of {ema_loss} ({len(trainer.model)} Gaussians); nothing is saved")
+                checked = it
+        else:
+            if not math.isfinite(info["loss"]):
+                raise DivergenceError(f"training diverged at iteration {it}: loss {info['loss']} "
+                                      f"({len(trainer.model)} Gaussians); nothing is saved")
+            ema_loss = info["loss"] if ema_loss is None else 0.9 * ema_loss + 0.1 * info["loss"]
+        if log_now:
             check_model_finite(trainer.model, f"training at iteration {it}")
-        ema_loss = info["loss"] if ema_loss is None else 0.9 * ema_loss + 0.1 * info["loss"]
         if callback is not None:
             callback(trainer, info)
         if it % config.log_interval_its == 0 or it == config.iterations:
@@ -704,7 +748,7 @@ def train(
             bar.update(1)
         if checkpoint_dir is not None and config.checkpoint_interval_its > 0 and it % config.checkpoint_interval_its == 0:
             trainer.save_checkpoint(Path(checkpoint_dir) / f"ckpt_{it}.pt")
-        if plateau.flat(info["loss"]):
+        if plateau.flat(info.loss_tensor if trainer.lazy_stats else info["loss"]):
             break
     wall = time.perf_counter() - t0
     if bar is not None:
@@ -734,19 +778,21 @@ class _Plateau:
 
     def __init__(self, config: TrainConfig, trainer: "Trainer"):
         self.config, self.trainer = config, trainer
-        self.window: list[float] = []
+        self.window = 0.0  # the window's sum (a device tensor under lazy statistics: read once per window)
+        self.count = 0
         self.previous: Optional[float] = None
         self.stopped_at = 0
 
-    def flat(self, loss: float) -> bool:
+    def flat(self, loss) -> bool:
         c, tr = self.config, self.trainer
         if c.stop_at_plateau <= 0 or tr.iteration < tr.sched.densify_until or tr.downscale() != 1.0:
             return False
-        self.window.append(loss)
-        if len(self.window) < c.plateau_window_its:
+        self.window = self.window + (loss.double() if isinstance(loss, Tensor) else loss)
+        self.count += 1
+        if self.count < c.plateau_window_its:
             return False
-        mean = sum(self.window) / len(self.window)
-        self.window = []
+        mean = float(self.window) / self.count
+        self.window, self.count = 0.0, 0
         prev, self.previous = self.previous, mean
         if prev is not None and prev > 0 and (prev - mean) / prev < c.stop_at_plateau:
             self.stopped_at = tr.iteration

@@ -368,3 +368,43 @@ def test_late_steps_fit_random_full_resolution_crops(scene):
     assert diff.max() < 5e-3 and diff.mean() < 1e-4
     with pytest.raises(InputError, match="outside"):
         cam.cropped(40, 0, 32, 24)
+
+
+def test_lazy_step_statistics_give_the_same_run_without_a_sync_per_step(scene):
+    """Issue 60 item 3 (no host synchronisation per iteration): with lazy statistics (on by default
+    on CUDA) a step's loss and PSNR stay on the device until read; the run, its history and its
+    plateau stop are those of the eager run, and a non-finite loss still stops it at the next
+    log interval, naming the iterations between which it happened."""
+    from cobgs.errors import DivergenceError
+    from cobgs.train.optimize import StepInfo
+
+    cfg = _cfg(iterations=120, stop_at_plateau=0.01, plateau_window_its=20)
+    runs = {}
+    for lazy in (False, True):
+        def force(tr, info, lazy=lazy):
+            assert tr.lazy_stats == lazy
+        orig = Trainer.__init__
+
+        def init(self, *a, lazy=lazy, **k):
+            orig(self, *a, **k)
+            self.lazy_stats = lazy
+        Trainer.__init__ = init
+        try:
+            runs[lazy] = train(scene, cfg, progress=False, evaluate_test=False, callback=force)
+            tr = Trainer(scene, cfg)
+            info = tr.step()
+            assert isinstance(info, StepInfo) and ("loss" in info._values) == (not lazy)
+            assert info["loss"] > 0 and "loss" in info._values and set(info) == {"loss", "psnr", "image", "resolution"}
+            if lazy:
+                def poison(trainer, info):
+                    if trainer.iteration == 7:
+                        with torch.no_grad():
+                            trainer.model.data["sh0"][:] = float("nan")
+                with pytest.raises(DivergenceError, match=r"between iterations (1|6) and 10|iteration 10: non-finite"):
+                    train(scene, _cfg(), progress=False, evaluate_test=False, callback=poison)
+        finally:
+            Trainer.__init__ = orig
+    a, b = runs[False], runs[True]
+    assert a.history == b.history and a.stopped_at == b.stopped_at and a.iterations == b.iterations
+    ta, tb = a.model.state_dict()["tensors"], b.model.state_dict()["tensors"]
+    assert all(torch.equal(ta[k], tb[k]) for k in ta)
