@@ -97,6 +97,12 @@ class RefineConfig:
     label_name: str = LABEL
     record_scores: bool = True
     object_check: str = field(default="per_use", metadata={"before": "off"})  # entries before it: no check
+    # The check's votes discounted where the masks are least reliable (issue 59 item 2): pixels
+    # within this many pixels of a mask's edge are left out of the check, as hidden pixels are.
+    # A Gaussian whose every pixel is near an edge (a thin or tiny object under noisy masks) then
+    # keeps its label's verdict rather than being removed on the edge's say-so. 0: every pixel
+    # votes (the check as measured in issue 48).
+    object_check_edge_px: int = field(default=0, metadata={"before": 0})
 
     RANGES: ClassVar[dict] = {
         "delta": "[0, 1]", "mask_stages": "[1, 100]", "stage_length_views": "(0, 100]",
@@ -104,7 +110,7 @@ class RefineConfig:
         "raem_footprint_px": "[0, 1e4]", "mask_lambda": "[0, 1000]", "label_lr": "(0, 10]",
         "adam_eps": "(0, 0.001]", "position_lr": "[0, 1]", "sh0_lr": "[0, 1]", "shN_lr": "[0, 1]",
         "opacity_lr": "[0, 1]", "scaling_lr": "[0, 1]", "rotation_lr": "[0, 1]", "ssim_weight": "[0, 1]",
-        "seed": "[0, 2147483647]",
+        "seed": "[0, 2147483647]", "object_check_edge_px": "[0, 64]",
     }
     CHOICES: ClassVar[dict] = {"backend": ("native", "reference"), "label_name": (LABEL,),
                                "scene_type": tuple(SCENE_DEFAULTS), "raem": RAEM_VARIANTS,

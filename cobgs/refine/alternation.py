@@ -418,7 +418,8 @@ def refine(
         checked = 0
         in_scene = None
         if config.object_check in ("visible", "per_use"):
-            kept = object_render_check(m, fg, r.views, r.pixel_labels, config.mask_lambda, config.backend)
+            kept = object_render_check(m, fg, r.views, r.pixel_labels, config.mask_lambda, config.backend,
+                                       edge_px=config.object_check_edge_px)
             checked = int((fg & ~kept).sum())
             if config.object_check == "per_use":  # the object within the scene: the labels' verdict
                 in_scene = fg

@@ -54,9 +54,24 @@ def _mask_render(model: GaussianModel, values: Tensor, view: View, backend: str)
     return out.image[..., 0]
 
 
+def edge_band(labels: Tensor, radius: int) -> Tensor:
+    """[H, W] bool: the pixels within ``radius`` pixels (a square neighbourhood) of an edge
+    between object (1) and background (0) pixels of ``labels`` (ignored pixels, −1, are neither)."""
+    if radius <= 0:
+        return torch.zeros(labels.shape, dtype=torch.bool, device=labels.device)
+    k = 2 * radius + 1
+    pool = torch.nn.functional.max_pool2d
+
+    def grow(m: Tensor) -> Tensor:
+        return pool(m[None, None].float(), k, stride=1, padding=radius)[0, 0] > 0
+
+    obj, bg = labels == 1, labels == 0
+    return (grow(obj) & grow(bg)) & (obj | bg)
+
+
 def object_render_check(model: GaussianModel, foreground: Tensor, views: Sequence[View],
                         pixel_labels: Sequence[Tensor], mask_lambda: float = 1.0,
-                        backend: str = "native") -> Tensor:
+                        backend: str = "native", edge_px: int = 0) -> Tensor:
     """The foreground after the object-render check (module docstring).
 
     Args:
@@ -65,6 +80,8 @@ def object_render_check(model: GaussianModel, foreground: Tensor, views: Sequenc
         views: the training views; pixel_labels: their masks as pixel labels (1 object,
             0 background, −1 ignored; :func:`cobgs.refine.scores.pixel_labels_from_mask`).
         mask_lambda: λ of the mask loss (the weight of background votes).
+        edge_px: pixels within this distance of a mask edge are left out of the votes
+            (``RefineConfig.object_check_edge_px``; 0: none).
 
     Returns:
         [N] bool: ``foreground`` without the Gaussians the check outvotes.
@@ -82,6 +99,8 @@ def object_render_check(model: GaussianModel, foreground: Tensor, views: Sequenc
         visible = _mask_render(model, fg_values, v, backend) > 0.5  # the object as the scene shows it
         q = lab.clone()
         q[(q == 0) & alone & ~visible] = -1  # hidden behind something else: the mask says nothing here
+        if edge_px > 0:  # near the mask's edge: the mask is least reliable there
+            q[edge_band(lab, edge_px)] = -1
         checked.append(q)
     w = label_votes(obj, views, checked, 2, backend)
     out = foreground.clone()

@@ -497,6 +497,38 @@ def test_object_render_check_drops_what_falls_outside_the_object_alone():
     assert not object_render_check(model, torch.zeros(n, dtype=torch.bool), [view], px).any()
 
 
+def test_the_check_leaves_the_mask_edges_out_when_asked():
+    """Issue 59 item 2 candidate (RefineConfig.object_check_edge_px): pixels within r of a mask
+    edge cast no vote in the object-render check. A Gaussian on the background side of the edge,
+    within r, is removed by the plain check and keeps its verdict with the band; one far from the
+    edge is judged as before; the band is the pixels within r of both labels, never ignored ones."""
+    import torch
+
+    from cobgs.refine.consistency import edge_band, object_render_check
+    from cobgs.refine.scores import pixel_labels_from_mask
+    from cobgs.configs import RefineConfig, key_without_later
+
+    lab = torch.full((6, 8), 0, dtype=torch.int32)
+    lab[:, :4] = 1
+    lab[0, :] = -1
+    band = edge_band(lab, 1)
+    assert band[1:, 3:5].all() and not band[1:, :3].any() and not band[1:, 5:].any() and not band[0].any()
+    assert not edge_band(lab, 0).any() and edge_band(lab, 2)[1:, 2:6].all()
+
+    model, view = _check_scene()
+    model = model.select(torch.arange(len(model) - 1))  # (no wall)
+    px = [pixel_labels_from_mask(view.masks["obj"], 32, 32)]
+    n = len(model)
+    fg = torch.ones(n, dtype=torch.bool)
+    plain = object_render_check(model, fg, [view], px)
+    wide = object_render_check(model, fg, [view], px, edge_px=12)  # the patch (columns ~20-28) in the band
+    narrow = object_render_check(model, fg, [view], px, edge_px=2)
+    assert plain[0] and not plain[1:].any()
+    assert wide[0] and wide[1:].sum() > 0 and not (wide & ~fg).any()
+    assert torch.equal(narrow, plain)  # the patch lies well outside a 2-pixel band: judged as before
+    assert "object_check_edge_px" not in key_without_later(RefineConfig, RefineConfig().as_dict())
+
+
 def test_refine_applies_the_object_check_only_when_asked():
     """The default object_check ("per_use") may only shrink the released foreground for the
     object alone and keeps the released one for the scene; "off" is the authors'
