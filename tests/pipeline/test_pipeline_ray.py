@@ -235,17 +235,29 @@ def test_a_killed_ray_driver_leaves_no_ray_process_behind(toy, executions, sig):
         for line in p.stdout:  # the instance is up once a task is queued
             if " queued" in line:
                 break
+        def names() -> list[str]:
+            out = []
+            for pid in seen:
+                try:
+                    out.append(open(f"/proc/{pid}/cmdline", "rb").read().split(b"\0")[0].decode(errors="replace"))
+                except OSError:
+                    pass
+            return out
+
+        def up() -> bool:
+            n = names()
+            return any("raylet" in x for x in n) and any("gcs_server" in x for x in n)
+
+        # Ray's agents and workers start meanwhile: 4 s on a quiet machine, more on a loaded one
         t0 = time.monotonic()
-        while time.monotonic() - t0 < 4:  # Ray's agents and workers start meanwhile
+        while time.monotonic() - t0 < 60 and not up():
             seen.update(_descendants(p.pid))
             time.sleep(0.2)
-        names = []
-        for pid in seen:
-            try:
-                names.append(open(f"/proc/{pid}/cmdline", "rb").read().split(b"\0")[0].decode(errors="replace"))
-            except OSError:
-                pass
-        assert any("raylet" in n for n in names) and any("gcs_server" in n for n in names), names
+        t1 = time.monotonic()
+        while time.monotonic() - t1 < 4:
+            seen.update(_descendants(p.pid))
+            time.sleep(0.2)
+        assert up(), names()
         p.send_signal(getattr(signal, sig))
         t0 = time.monotonic()
         while _alive(seen) and time.monotonic() - t0 < 20:
