@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import ClassVar
 
-from cobgs.configs import Files, FlashSplatConfig, NGSConfig, RefineConfig, SA3DConfig, check_params
+from cobgs.configs import Files, FlashSplatConfig, LUDVIGConfig, NGSConfig, RefineConfig, SA3DConfig, check_params
 from cobgs.refine.methods import METHODS, method_for
 from pipeline import Resources, Stage
 
@@ -46,6 +46,7 @@ class RefineParams:
         sa3d: SA3D-GS parameters.
         flashsplat: FlashSplat parameters.
         ngs: NG-GS's boundary stage (method "ngs": COB-GS's stages from ``cobgs`` plus this).
+        ludvig: LUDVIG parameters (method "ludvig").
     """
 
     method: str = "cobgs"
@@ -54,6 +55,7 @@ class RefineParams:
     sa3d: SA3DConfig = field(default_factory=SA3DConfig)
     flashsplat: FlashSplatConfig = field(default_factory=FlashSplatConfig)
     ngs: NGSConfig = field(default_factory=NGSConfig)
+    ludvig: LUDVIGConfig = field(default_factory=LUDVIGConfig)
 
     CHOICES: ClassVar[dict] = {"method": METHODS, "scene_type": ("auto", "forward", "360")}
 

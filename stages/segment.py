@@ -73,7 +73,7 @@ def _run(ctx, inputs):
     result = RefineResult(method=info["method"], object_name=info["object"], model=model, foreground=fg,
                           background=torch.from_numpy(seg["background"]).to(dev),
                           mask_values=torch.from_numpy(seg["mask_values"]).to(dev),
-                          mask_threshold=info.get("mask_threshold"))
+                          mask_threshold=info.get("mask_threshold"), mask_render=info.get("mask_render", "object"))
     # the object as rendered within the scene (pred_visible): its own set where the refinement
     # gave one (object_check = "per_use"), else the same foreground
     in_scene = result if "foreground_in_scene" not in seg.files else dataclasses.replace(

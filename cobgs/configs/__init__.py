@@ -20,11 +20,11 @@ from .data import MATCHERS, DatasetConfig, MaskNoiseParams, SfmOptions
 from .files import Files
 from .masks import ScribbleConfig, TwoStageConfig
 from .refine import (FOREGROUND_LABEL, LABEL, NOSPLIT_SWITCHES, RAEM_VARIANTS, SCENE_DEFAULTS, TEXTURE_ADAM,
-                     FlashSplatConfig, NGSConfig, RefineConfig, SA3DConfig)
+                     FlashSplatConfig, LUDVIGConfig, NGSConfig, RefineConfig, SA3DConfig)
 from .train import FAST_RECIPE, RECIPES, RECIPES_NAMES, Schedule, TrainConfig
 
 __all__ = ["Files", "DatasetConfig", "NGSConfig", "NOSPLIT_SWITCHES", "key_without_later", "with_later_values",
            "check_params", "parse_interval", "in_interval", "TrainConfig", "Schedule", "RefineConfig", "SA3DConfig",
-           "FlashSplatConfig", "TwoStageConfig", "ScribbleConfig", "MaskNoiseParams", "SfmOptions", "LABEL",
+           "FlashSplatConfig", "LUDVIGConfig", "TwoStageConfig", "ScribbleConfig", "MaskNoiseParams", "SfmOptions", "LABEL",
            "RAEM_VARIANTS", "TEXTURE_ADAM", "SCENE_DEFAULTS", "MATCHERS", "RECIPES", "RECIPES_NAMES", "FAST_RECIPE",
            "FOREGROUND_LABEL"]

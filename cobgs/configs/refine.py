@@ -263,6 +263,38 @@ class FlashSplatConfig:
 
 
 @dataclass(frozen=True)
+class LUDVIGConfig:
+    """LUDVIG (Marrie et al., ICCV 2025; released code naver/ludvig; docs/method.md §3): 2D masks
+    uplifted to the Gaussians by weighted back-projection, no optimisation. Defaults: the
+    release's ``configs/sam_NVOS.yaml`` and ``utils/solver.py``.
+
+    Attributes:
+        threshold_k: the evaluation keeps the pixels of the min-max normalised feature render
+            above ``1 - k / 100`` (``thresholding: 75``; the release's SAM setting).
+        thresholding: "fixed" (``threshold_k``) or "li" (Li's threshold of each normalised
+            render, the release's setting for SAM2 masks).
+        prune_quantile: the Gaussians whose summed rendering weight is at or below this quantile
+            leave the scene (``prune_gaussians: .50``) ...
+        prune_min_gaussians: ... only when the scene holds more than this many
+            (``uplifting(min_gaussians=400000)``).
+        backend: rasterizer backend.
+    """
+
+    threshold_k: float = 75.0
+    thresholding: str = "fixed"
+    prune_quantile: float = 0.5
+    prune_min_gaussians: int = 400_000
+    backend: str = "native"
+
+    RANGES: ClassVar[dict] = {"threshold_k": "(0, 100)", "prune_quantile": "[0, 1)",
+                              "prune_min_gaussians": "[0, 1e9]"}
+    CHOICES: ClassVar[dict] = {"backend": ("native", "reference"), "thresholding": ("fixed", "li")}
+
+    def __post_init__(self):
+        check_params(self)
+
+
+@dataclass(frozen=True)
 class NGSConfig:
     """NG-GS's boundary stage (cobgs.refine.ngs; docs/method.md §3 "NG-GS"). Defaults: the
     released ``arguments/__init__.py`` and ``scene/ngs_model.py``.

@@ -18,7 +18,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Mapping, Optional, Sequence
 
-from cobgs.configs import FlashSplatConfig, NGSConfig, RefineConfig, SA3DConfig, key_without_later
+from cobgs.configs import FlashSplatConfig, LUDVIGConfig, NGSConfig, RefineConfig, SA3DConfig, key_without_later
 from cobgs.errors import InputError
 
 
@@ -173,6 +173,19 @@ class FlashSplat(RefineMethod):
                               progress=inputs.progress)
 
 
+class LUDVIG(RefineMethod):
+    """LUDVIG: the masks uplifted by weighted back-projection, evaluated as its release
+    evaluates (:mod:`cobgs.refine.ludvig`)."""
+
+    name, label, config_class, sections = "ludvig", "LUDVIG", LUDVIGConfig, ("ludvig",)
+
+    def _run(self, inputs, config):
+        from cobgs.refine.ludvig import run_ludvig
+
+        return run_ludvig(inputs.model, inputs.views, inputs.masks, config, object_name=inputs.object_name,
+                          progress=inputs.progress)
+
+
 @dataclasses.dataclass(frozen=True)
 class NGSRun:
     """NG-GS's config: COB-GS's (the ``cobgs`` section) and its boundary stage's."""
@@ -205,7 +218,7 @@ class NGS(CobGS):
 
 
 #: Every method, by name (``refine.method``).
-REGISTRY: dict[str, RefineMethod] = {m.name: m for m in (CobGS(), NoSplit(), SA3D(), FlashSplat(), NGS())}
+REGISTRY: dict[str, RefineMethod] = {m.name: m for m in (CobGS(), NoSplit(), SA3D(), FlashSplat(), NGS(), LUDVIG())}
 METHODS = tuple(REGISTRY)
 #: Every params section some method reads (the refine stage's params are exactly these plus
 #: :attr:`RefineMethod.COMMON`).

@@ -99,6 +99,11 @@ class RefineResult:
             scene (occluders in front), when that differs from ``foreground``: the labels'
             verdict of ``RefineConfig.object_check = "per_use"``. None: ``foreground`` serves
             both uses.
+        mask_render: how the method's own evaluation renders the object's mask: "object" (the
+            foreground alone, ``mask_values`` blended, above the bar), or LUDVIG's
+            "scene_minmax" / "scene_minmax_li" (every Gaussian with its ``mask_values`` on a
+            black background, the render min-max normalised, above the bar / Li's threshold;
+            :mod:`cobgs.refine.ludvig`).
     """
 
     method: str
@@ -120,6 +125,7 @@ class RefineResult:
     raem_keep: Optional[Tensor] = None
     raem_removed: Optional[GaussianModel] = None
     foreground_in_scene: Optional[Tensor] = None
+    mask_render: str = "object"
 
     def model_before_raem(self) -> GaussianModel:
         """The scene before RAEM's pruning (``model`` itself when nothing was pruned)."""
@@ -147,6 +153,8 @@ class RefineResult:
             "mask_threshold": self.mask_threshold,
             "stages": [s.as_dict() for s in self.stages],
             "config": dict(self.config),
+            # (only where it is not the object render: earlier refine.json files stay the same bytes)
+            **({"mask_render": self.mask_render} if self.mask_render != "object" else {}),
         }
 
 

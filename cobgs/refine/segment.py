@@ -179,6 +179,8 @@ def render_object_mask(
     """
     from cobgs.render.rasterize import rasterize
 
+    if result.mask_render != "object":
+        return _scene_minmax_mask(result, camera, threshold, backend, soft)
     fg = torch.nonzero(result.foreground, as_tuple=False)[:, 0]
     cam = camera.to(result.model.device)
     if fg.numel() == 0:
@@ -191,6 +193,29 @@ def render_object_mask(
                         cam.viewmat, cam.K, int(cam.width), int(cam.height), backend=backend)
     mask = out.image[..., 0]
     return mask if soft else mask > method_threshold(result, threshold)
+
+
+def _scene_minmax_mask(result: RefineResult, camera: Camera, threshold: Optional[float], backend: str,
+                       soft: bool) -> Tensor:
+    """LUDVIG's evaluation render (:mod:`cobgs.refine.ludvig`): every Gaussian with its value on
+    a black background, min-max normalised over the image, above the bar (``threshold``, else
+    the method's: ``1 - k / 100``, or Li's threshold of this render for "scene_minmax_li")."""
+    from cobgs.refine.ludvig import SCENE_MINMAX, SCENE_MINMAX_LI, li_threshold, minmax
+    from cobgs.render.image import render
+
+    if result.mask_render not in (SCENE_MINMAX, SCENE_MINMAX_LI):
+        raise InputError(f"unknown mask render {result.mask_render!r} of method {result.method!r} "
+                         f"(expected 'object', {SCENE_MINMAX!r} or {SCENE_MINMAX_LI!r})")
+    m = result.model
+    with torch.no_grad():
+        out = render(m, camera, None, features=result.mask_values.to(m.means.dtype)[:, None].contiguous(),
+                     backend=backend)
+    norm = minmax(out.image[..., 0])
+    if soft:
+        return norm
+    if threshold is None and result.mask_render == SCENE_MINMAX_LI:
+        return norm > li_threshold(norm)
+    return norm > method_threshold(result, threshold)
 
 
 def method_threshold(result: RefineResult, threshold: Optional[float] = None) -> float:
@@ -291,6 +316,8 @@ def visible_object_mask(result, camera, threshold=None, backend: str = "native",
 
     from cobgs.render.image import render
 
+    if result.mask_render != "object":  # LUDVIG's evaluation is an in-scene render already
+        return _scene_minmax_mask(result, camera, threshold, backend, soft)
     m = result.model
     vals = torch.where(result.foreground, result.mask_values.to(m.means.dtype), torch.zeros((), dtype=m.means.dtype,
                                                                                           device=m.device))

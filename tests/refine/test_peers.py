@@ -312,3 +312,77 @@ def test_make_config():
         make_config("sa3d", {"learning_rate": 1.0})
     with pytest.raises(InputError, match="unknown method"):
         make_config("saga")
+
+
+def _weights_by_autograd(model, views, masks):
+    """Each Gaussian's Σ α·T over a mask's pixels and over all pixels, by differentiating the
+    rendered value channel with respect to per-Gaussian values (independent of label_votes)."""
+    from cobgs.render.image import render
+
+    obj = torch.zeros(len(model), dtype=torch.float64)
+    tot = torch.zeros(len(model), dtype=torch.float64)
+    for v, m in zip(views, masks):
+        vals = torch.zeros(len(model), 1, requires_grad=True)
+        img = render(model, v.camera, None, features=vals).image[..., 0]
+        g_obj, = torch.autograd.grad(img[m].sum(), vals, retain_graph=True)
+        g_all, = torch.autograd.grad(img.sum(), vals)
+        obj += g_obj[:, 0].double()
+        tot += g_all[:, 0].double()
+    return obj, tot
+
+
+def test_ludvig_uplifts_masks_as_weighted_means_and_prunes_as_released():
+    """LUDVIG (naver/ludvig utils/solver.py uplifting): a Gaussian's feature is its α·T-weighted mean
+    of the mask over every pixel of every view (checked against the renderer's own gradients); a
+    scene above prune_min_gaussians loses the Gaussians at or below the weight quantile."""
+    from cobgs.configs import LUDVIGConfig
+    from cobgs.refine.ludvig import run_ludvig, uplift_masks
+
+    model, view = three_gaussians()
+    mask = view.masks["obj"].clone()
+    mask[:, 14:] = False  # B mostly background now
+    feat, weight = uplift_masks(model, [view, view], [mask, None])
+    obj, tot = _weights_by_autograd(model, [view], [mask])
+    assert torch.allclose(weight.double(), tot, rtol=1e-5, atol=1e-9)
+    assert torch.allclose(feat.double(), obj / (tot + 1e-8), rtol=1e-5, atol=1e-7)
+    assert feat[0] == pytest.approx(1.0, abs=1e-5) and 0.0 < float(feat[1]) < 0.5 and feat[2] == 0
+    r = run_ludvig(model, [view], [mask], object_name="obj")
+    assert r.method == "ludvig" and len(r.model) == 3 and torch.equal(r.mask_values, feat)
+    assert r.mask_render == "scene_minmax" and r.mask_threshold == pytest.approx(0.25)
+    assert r.foreground.tolist() == [True, float(feat[1]) / float(feat.max()) > 0.25, False]
+    assert torch.equal(r.model.data["ludvig_feature"], feat)
+    pruned = run_ludvig(model, [view], [mask], LUDVIGConfig(prune_min_gaussians=2))
+    keep = weight > weight.median()  # (upstream: weights > quantile(0.5); of 3, only the heaviest stays)
+    assert int(keep.sum()) == 1 and not keep[2]
+    assert len(pruned.model) == 1 and pruned.stages[0].pruned == 2 and torch.equal(pruned.mask_values, feat[keep])
+    assert len(run_ludvig(model, [view], [mask], LUDVIGConfig(prune_min_gaussians=3)).model) == 3  # (3 is not more)
+    assert run_method("ludvig", model, [view], [mask], 1.0).method == "ludvig"
+    with pytest.raises(InputError, match="at least one view with a mask"):
+        run_ludvig(model, [view], [None])
+
+
+def test_ludvig_is_evaluated_as_its_release_evaluates():
+    """evaluation/spin_nvos: the feature rendered as the whole scene's colour on black, min-max
+    normalised over the image, kept above 1 - k/100 (or Li's threshold); the segment stage's two
+    masks are that render, and refine.json names the rule (only for such methods)."""
+    from cobgs.configs import LUDVIGConfig
+    from cobgs.refine.ludvig import li_threshold, minmax, run_ludvig
+    from cobgs.refine.segment import render_object_mask, visible_object_mask
+    from cobgs.render.image import render
+
+    model, view = three_gaussians()
+    r = run_ludvig(model, [view], [view.masks["obj"]])
+    img = render(r.model, view.camera, None, features=r.mask_values[:, None]).image[..., 0]
+    norm = minmax(img)
+    assert norm.min() == 0 and norm.max() == 1
+    want = norm > 0.25
+    assert want.any() and not want.all()
+    assert torch.equal(render_object_mask(r, view.camera), want)
+    assert torch.equal(visible_object_mask(r, view.camera), want)
+    assert torch.equal(render_object_mask(r, view.camera, threshold=0.6), norm > 0.6)
+    li = run_ludvig(model, [view], [view.masks["obj"]], LUDVIGConfig(thresholding="li"))
+    assert li.mask_render == "scene_minmax_li" and li.mask_threshold is None
+    assert torch.equal(render_object_mask(li, view.camera), norm > li_threshold(norm))
+    assert r.summary()["mask_render"] == "scene_minmax"
+    flash = run_flashsplat(model, [view], [view.masks["obj"]])
+    assert "mask_render" not in flash.summary()

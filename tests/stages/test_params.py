@@ -64,7 +64,7 @@ def test_refine_params_are_exactly_the_methods_sections():
             cls = m.config_class if len(m.sections) == 1 else typing.get_type_hints(m.config_class)[sec]
             assert hints[sec] is cls, (m.name, sec)
     changed = {"cobgs": {"delta": 0.61}, "sa3d": {"lr": 0.5}, "flashsplat": {"background_bias": 0.3},
-               "ngs": {"max_points": 99}}
+               "ngs": {"max_points": 99}, "ludvig": {"threshold_k": 60.0}}
     assert set(changed) == set(SECTIONS)
     for m in REGISTRY.values():
         base = RefineParams(method=m.name)

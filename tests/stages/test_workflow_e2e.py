@@ -739,6 +739,29 @@ def test_noisy_masks_source(tiny, tmp_path):
     assert sorted(info["empty"]) == sorted(k for k, r in recs.items() if r["dropped"])
 
 
+def test_ludvig_runs_in_the_pipeline_and_is_scored_by_its_own_render(tiny, tmp_path):
+    """Issue 59 item 3: LUDVIG as a row of a workflow (preset "ludvig"): the scene, masks and the
+    other methods' entries are reused; refine.json names its evaluation render, which the
+    segment stage uses for both masks; its scores land in the summary beside COB-GS's."""
+    import csv
+
+    path, cache, wf, _ = tiny
+    extra = tmp_path / "ludvig.toml"
+    extra.write_text(path.read_text() + '[axes.method.ludvig]\npreset = "ludvig"\n')
+    wf2, summary, log = _run(extra, cache)
+    assert summary.exit_code == 0, log
+    states = _states(summary)
+    assert states[("refine", "tiny/ludvig/ball")] == "done" and states[("refine", "tiny/cobgs/ball")] == "cached"
+    assert states[("train", "tiny")] == "cached"
+    info = json.loads((_entry(wf2, cache, "refine", "tiny/ludvig/ball").output("refined") / Files.REFINE).read_text())
+    assert info["method"] == "ludvig" and info["mask_render"] == "scene_minmax" and info["mask_threshold"] == 0.25
+    assert "mask_render" not in json.loads((_entry(wf2, cache, "refine", "tiny/cobgs/ball").output("refined")
+                                            / Files.REFINE).read_text())
+    rows = list(csv.DictReader(open(_entry(wf2, cache, "summary", "").output("summary") / "summary.csv")))
+    lud = [r for r in rows if r["method"] == "ludvig"]
+    assert len(lud) == 1 and float(lud[0]["iou"]) > 0.5, lud  # (a real segmentation of the ball)
+
+
 def test_masks_from_a_folder_of_released_masks(tiny, tmp_path):
     """An object's ``mask_dir`` (COB-GS's released NVOS masks: ``<IMG>.JPG`` per view, any
     resolution, binarised > 0): read per training view, resized NEAREST to the training
