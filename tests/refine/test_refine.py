@@ -561,7 +561,7 @@ def test_per_use_gives_the_checked_set_alone_and_the_labels_verdict_in_the_scene
     model, views, extent = tiny_scene(n_views=3)
     masks = masks_for(views, "ball")
     cfg = RefineConfig(stage_length_views=8.0, mask_stages=1)  # 24 iterations: labels pass 0.9
-    monkeypatch.setattr(A, "object_render_check", lambda m, fg, *a: torch.zeros_like(fg))
+    monkeypatch.setattr(A, "object_render_check", lambda m, fg, *a, **k: torch.zeros_like(fg))
     off = refine(model, views, masks, extent, dataclasses.replace(cfg, object_check="off"), progress=False)
     vis = refine(model, views, masks, extent, dataclasses.replace(cfg, object_check="visible"), progress=False)
     use = refine(model, views, masks, extent, dataclasses.replace(cfg, object_check="per_use"), progress=False)
