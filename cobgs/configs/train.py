@@ -17,8 +17,8 @@ class TrainConfig:
     """Every knob of the baseline optimisation (defaults: the 3DGS paper's)."""
 
     iterations: Optional[int] = field(default=None, metadata={"help": (
-        "unset: the recipe's (3dgs: the paper's 30 000; fast: 12 000); the shipped workflows "
-        "and `cobgs new` set 7000, the 3DGS short schedule (compressed by scale_schedule)")})
+        "unset: the recipe's (3dgs: the paper's 30 000; fast: 12 000), as `cobgs new` leaves it; "
+        "workflows/shared_data.toml sets 7000, the 3DGS short schedule (compressed by scale_schedule)")})
     seed: int = 0
     # Schedule scaling (see the module docstring).
     scale_schedule: bool = True

@@ -273,3 +273,22 @@ def test_the_dataset_and_mask_folders_refuse_rotated_images(tmp_path):
     _jpeg(tmp_path / "m" / "v.jpg", orientation=3)
     with pytest.raises(DataError, match=r"v.jpg \(3: rotated 180 degrees\)"):
         _folder_masks([SimpleNamespace(name="v", width=32, height=24)], tmp_path / "m", 0)
+
+
+def test_new_writes_the_recipe_that_keeps_the_boundaries(tmp_path):
+    """Issue 57 item 6: no fast recipe met every target (docs/benchmarks/cost_cpu.md), so the
+    workflow `cobgs new` writes trains with the paper's schedule and names the fast one in a
+    comment a user can switch to."""
+    from pipeline import Plan, load_workflow
+    from stages.registry import load_registry
+
+    root = tmp_path / "cap"
+    for i in range(12):
+        _png(root / "images" / f"{i:03d}.png")
+    _png(root / "masks" / "mug" / "000.png")
+    out = tmp_path / "w.toml"
+    assert main(["new", str(root), "--out", str(out)]) == 0
+    text = out.read_text()
+    assert 'recipe = "3dgs"\n' in text and '# Faster: recipe = "fast"' in text
+    train = next(t for t in Plan(load_workflow(out, load_registry())).tasks if t.stage.name == "train")
+    assert train.params.value.recipe == "3dgs" and train.params.value.iterations == 30_000
