@@ -160,11 +160,28 @@ def load_scene(dataset_dir: Path, poses_dir: Optional[Path]):
                 scene.points = torch.from_numpy(z["xyz"].astype(np.float32))
                 scene.points_rgb = torch.from_numpy(z["rgb"].astype(np.float32) / 255.0)
     keep = set(spec.views)
+    if spec.protocol == "spin":
+        _attach_spin_masks(scene, spec.spin)
     scene.train = [v for v in scene.train if v.name in keep]
     scene.test = [v for v in scene.test if v.name in keep]
     if not scene.train:
         raise StageInputError(f"no training view left for dataset {dataset_dir} (views kept: {len(keep)})")
     return scene
+
+
+def _attach_spin_masks(scene, spin: dict) -> None:
+    """SPIn-NeRF's GT masks as the views' masks of ``object`` (the ``files`` route's upper bound
+    reads them), each resized NEAREST to its view's size (:func:`cobgs.evaluate.protocols.spin_binary`)."""
+    import numpy as np
+    import torch
+
+    from cobgs.evaluate.protocols import read_mask_u8, resize_nearest, spin_binary
+
+    for v in scene.views:
+        f = spin["masks"].get(v.name)
+        if f is not None:
+            m = resize_nearest(spin_binary(read_mask_u8(f)).astype(np.uint8) * 255, v.height, v.width)
+            v.masks["object"] = torch.from_numpy(np.ascontiguousarray(m > 127))
 
 
 def object_name(ctx) -> str:

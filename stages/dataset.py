@@ -16,6 +16,7 @@ Kinds:
   images     a folder of images without poses (SfM required)
   nvos       an LLFF scene + the NVOS labels folder (NVOS protocol; target view held out)
   lerf_mask  a LERF-mask scene (LERF-mask protocol; split from images_train/)
+  spin       a scene + SPIn-NeRF's annotation release (SPIn-NeRF protocol; every view trains)
 """
 
 from __future__ import annotations
@@ -44,8 +45,11 @@ class SceneAttrs:
             ``<path>_undistort`` (NeX's copies, as fvdb's ``scenes/fern_undistort``).
         labels: the NVOS labels folder (``kind = "nvos"``): the folder holding ``masks/``,
             ``reference_image/`` and ``scribbles/``, or the ``labels/`` the download
-            unpacks (its ``llff/`` sub-folder is read).
-        task: the NVOS task (default: the scene value's name), or a list of tasks on this
+            unpacks (its ``llff/`` sub-folder is read). ``kind = "spin"``: the unpacked
+            SPIn-NeRF annotation release (the folder holding ``fern (llff)/`` ...), or the
+            scene's own folder of it.
+        task: the NVOS task or the SPIn-NeRF scene (fern, room, truck, ...; default: the scene
+            value's name), or a list of NVOS tasks on this
             scene (the two horns tasks share the scene, its target and its reference view):
             the scene is trained once and each task is an object of it (the object's name
             or ``mask`` is the task); every target is held out.
@@ -124,6 +128,10 @@ class SceneAttrs:
                 labels_root(self.labels)  # labels/ or labels/llff: either is read
             except Exception as exc:
                 raise ValueError(str(exc)) from exc
+        if self.kind == "spin":
+            if self.labels is None:
+                raise ValueError("kind 'spin' needs labels = the SPIn-NeRF annotation folder (the unpacked "
+                                 "Multiview-Segmentation-Data, holding 'fern (llff)/' ...)")
 
 
 def _run(ctx, inputs):

@@ -21,6 +21,9 @@ The dataset spec names the protocol:
              prediction, NaN against an empty one: counted as empty_gt_zero / _nan); IoU
              and boundary IoU averaged over
              views (the summary then averages over prompts); missing / empty GT listed;
+  spin       SPIn-NeRF: every annotated view but the prompt view (training views: the peers
+             train on the whole capture) against its GT at the GT's size; mean IoU and
+             accuracy over them (``iou_pooled``: SA3D's one IoU over the stacked masks);
   none       no mask GT: only the texture numbers.
 Texture (paper Table 4): PSNR of the refined scene's held-out renders next to the vanilla
 scene's, both 8-bit against the held-out images: ``psnr_before_raem`` on the scene before
@@ -124,7 +127,12 @@ def _run(ctx, inputs):
     if missing:
         raise StageInputError(f"segment did not render held-out view(s) {missing[:5]}")
     protocol = spec.protocol
-    preds = _read_preds(seg_dir / Files.PRED_MASKS, list(test))
+    spin = spec.spin if protocol == "spin" else None
+    scored = list(spin["scored"]) if spin else []
+    if scored and set(scored) - set(seg["views"]):
+        raise StageInputError(f"segment did not render the SPIn-NeRF scored view(s) "
+                              f"{sorted(set(scored) - set(seg['views']))[:5]}")
+    preds = _read_preds(seg_dir / Files.PRED_MASKS, list(test) + scored)
     row: dict = {"protocol": protocol, "scene": ctx.item["scene"], "method": ctx.item["method"],
                  "object": ctx.item["object"], "dataset_object": obj, "method_kind": ref["method"]}
     details: dict = {}
@@ -164,6 +172,13 @@ def _run(ctx, inputs):
                    empty_gt_zero=r["empty_gt_zero"],
                    empty_gt_nan=r["empty_gt_nan"])
         details.update(per_view=r["per_view"], skipped=r["skipped"], empty_gt=r["empty_gt"])
+    elif protocol == "spin":
+        gts = {v: E.read_mask_u8(f) for v, f in spin["masks"].items()}
+        r = E.spin_scores({v: preds[v] for v in scored}, gts, spin["prompt"], p.boundary_ratio)
+        row.update(iou=r["iou"], acc=r["acc"], biou=r["biou"], iou_pooled=r["iou_pooled"], views=r["views"],
+                   prompt_view=spin["prompt"], mask_render="object_only", gt="visible",
+                   headline="SPIn-NeRF: object-only render vs each annotated view's GT but the prompt's")
+        details.update(per_view=r["per_view"], skipped={spin["prompt"]: "the prompt view"})
     else:
         row.update(iou=float("nan"), acc=float("nan"), biou=float("nan"), views=0)
         details.update(per_view={}, skipped={})
@@ -203,7 +218,7 @@ def _run(ctx, inputs):
         w = csv.writer(f)
         w.writerow(["view", "iou", "acc", "biou", "biou_released", "biou_occlusion", "psnr", "psnr_before_raem",
                     "psnr_vanilla", "skipped"])
-        for n in sorted(test):
+        for n in sorted(set(test) | set(details["per_view"])):
             s = details["per_view"].get(n, {})
             w.writerow([n, s.get("iou", ""), s.get("acc", ""), s.get("biou", ""),
                         details.get("per_view_released", {}).get(n, {}).get("biou", ""),
@@ -220,5 +235,5 @@ STAGE = Stage(
     name="evaluate", version=6, run=_run, inputs=("dataset", "poses", "scene", "refined", "segmentation"),
     outputs=("metrics",), params=EvaluateParams, level=("scene", "method", "object"),
     resources=Resources(cpus=1),
-    description="protocol metrics (exact GT, NVOS, LERF-mask) and PSNR vs the vanilla scene",
+    description="protocol metrics (exact GT, NVOS, LERF-mask, SPIn-NeRF) and PSNR vs the vanilla scene",
 )

@@ -95,6 +95,10 @@ def _run(ctx, inputs):
 
     scene = to_device(load_scene(inputs["dataset"], inputs["poses"]), ctx.device)
     views = scene.test if p.views == "test" else scene.views
+    spin = read_spec(inputs["dataset"]).spin
+    if spin:  # SPIn-NeRF scores annotated training views: render them too
+        have = {v.name for v in views}
+        views = list(views) + [v for v in scene.views if v.name in set(spin["scored"]) and v.name not in have]
     t0 = time.perf_counter()
     for v in ctx.progress(views, desc=f"segment[{ctx.item.label}]", unit="view"):
         mask = render_object_mask(result, v.camera, threshold=p.mask_threshold, backend=p.backend)

@@ -10,6 +10,7 @@ model; masks/<object>/ where the data has them), and the kinds built here:
   images     a folder of images without poses (SfM required)
   nvos       an LLFF scene + the NVOS labels folder (NVOS protocol; target view held out)
   lerf_mask  a LERF-mask scene (LERF-mask protocol; split from images_train/)
+  spin       a scene + SPIn-NeRF's multiview annotations (SPIn-NeRF protocol; every view trains)
 
 External data is only read: the spec points at it by absolute path.
 """
@@ -32,11 +33,11 @@ log = logging.getLogger(__name__)
 
 #: The reader format of the kinds built otherwise than from a posed layout: None where the scene
 #: has no poses of its own (SfM finds them) or its builder sets it (NVOS: the LLFF copy's).
-_BUILT_FORMATS = {"synthetic": None, "images": None, "nvos": None, "lerf_mask": "colmap"}
+_BUILT_FORMATS = {"synthetic": None, "images": None, "nvos": None, "lerf_mask": "colmap", "spin": None}
 def kinds() -> tuple[str, ...]:
     """Every dataset kind: the builders' and each posed layout of :data:`cobgs.data.formats.FORMATS`
     (a new layout is a new kind, with no line here)."""
-    return ("synthetic", *FORMATS, "images", "nvos", "lerf_mask")
+    return ("synthetic", *FORMATS, "images", "nvos", "lerf_mask", "spin")
 
 
 KINDS = kinds()  # (the shipped ones; a layout registered later: kinds())
@@ -91,7 +92,7 @@ def build_spec(inp: BuildInput, p: DatasetConfig) -> dict:
         d = Path(spec["images"]["dir"])
         folder = d if d.is_absolute() else inp.out_dir / d
         check_upright([folder / n for n in spec["images"]["names"]], "photo")
-    if inp.kind not in ("synthetic", "nvos", "lerf_mask") and spec.get("source"):
+    if inp.kind not in ("synthetic", "nvos", "lerf_mask", "spin") and spec.get("source"):
         check_mask_folders(Path(spec["source"]) / "masks", spec.get("views") or [],
                            [o.mask or o.name for o in inp.objects if not o.own_masks])
     spec["reader"] = reader
@@ -303,6 +304,50 @@ def _build_lerf_mask(inp: "BuildInput", p: DatasetConfig, spec: dict, reader: di
                  gt.views_without_gt[:10])
 
 
+def _build_spin(inp: "BuildInput", p: DatasetConfig, spec: dict, reader: dict) -> None:
+    """A scene and its SPIn-NeRF annotations (:mod:`cobgs.data.spin`): every view trains (the
+    peers train on the whole capture and score the annotated views but the prompt's).
+
+    The RGB is the scene's published copy: an LLFF or COLMAP layout (nerf_llff_data, NeX's,
+    nerf_real_360, Tanks and Temples' tandt_db) read as NVOS reads it (the captured frame), or
+    a folder of images without poses (``rgb/`` or ``images/``: SfM finds the cameras)."""
+    from cobgs.data.readers import detect_format, read_scene
+    from cobgs.data.spin import image_size, read_spin_scene
+
+    root = Path(spec["source"])
+    scene_key = (inp.task if isinstance(inp.task, str) and inp.task else inp.scene).lower()
+    try:
+        fmt = detect_format(root)
+    except Exception:  # (no poses of its own)
+        fmt = None
+    if fmt in ("colmap", "llff"):
+        reader.update(format=fmt, distortion="ignore")
+        scene = read_scene(root, format=fmt, downscale=p.downscale, test_every=0, distortion="ignore")
+        paths = {v.name: Path(v.path) for v in scene.views}
+        sfm_dir, post = _sfm_images(root, p)
+        sfm_dir = _sfm_images_as_views(inp.out_dir, scene, sfm_dir)
+        spec["notes"] = list(scene.notes)
+        spec["has_poses"] = True
+    else:
+        folder = root / (p.images_dir or ("rgb" if (root / "rgb").is_dir() else "images"))
+        if not folder.is_dir():
+            raise InputError(f"{root}: SPIn-NeRF scene {scene_key!r} has no LLFF / COLMAP layout and no "
+                             "rgb/ or images/ folder of photos")
+        paths = {Path(n).stem: folder / n for n in _names(folder)}
+        sfm_dir, post = folder, p.downscale
+        spec["has_poses"] = False
+    ann = read_spin_scene(inp.labels, scene_key, list(paths), view_size=lambda v: image_size(paths[v]))
+    stems = sorted(paths)
+    spec.update(protocol="spin", spin=ann.to_json(), objects=["object"], views=stems, test_views=[],
+                images={"dir": os.fspath(sfm_dir),
+                        "names": _names(sfm_dir if sfm_dir.is_absolute() else inp.out_dir / sfm_dir)},
+                sfm_downscale=post, scene_type=inp.scene_type or ("forward" if fmt == "llff" or
+                                                                  "(llff)" in ann.folder.name else "360"))
+    spec.setdefault("notes", []).append(
+        f"SPIn-NeRF {scene_key}: {len(ann.masks)} annotated views ({ann.rule} names), prompt view "
+        f"{ann.prompt!r} ({ann.mask_names[ann.prompt]}), {len(ann.scored)} scored; every view trains")
+
+
 def _build_posed(inp: "BuildInput", p: DatasetConfig, spec: dict, reader: dict) -> None:
     """A posed layout (transforms, Blender, COLMAP, LLFF) with its masks."""
     from cobgs.data.readers import read_scene
@@ -336,7 +381,7 @@ def _build_posed(inp: "BuildInput", p: DatasetConfig, spec: dict, reader: dict) 
 
 
 _BUILDERS = {"synthetic": _build_synthetic, "images": _build_images, "nvos": _build_nvos,
-             "lerf_mask": _build_lerf_mask}
+             "lerf_mask": _build_lerf_mask, "spin": _build_spin}
 
 
 def _detect(root: Path) -> str:

@@ -29,7 +29,7 @@ class DatasetSpec(dict):
 
     @property
     def protocol(self) -> str:
-        """exact (GT masks of held-out views), nvos, lerf_mask, or none."""
+        """exact (GT masks of held-out views), nvos, lerf_mask, spin, or none."""
         return self.get("protocol", "none")
 
     @property
@@ -96,6 +96,11 @@ class DatasetSpec(dict):
     @property
     def lerf_mask(self) -> Optional[dict]:
         return self.get("lerf_mask")
+
+    @property
+    def spin(self) -> Optional[dict]:
+        """SPIn-NeRF's annotations (:meth:`cobgs.data.spin.SpinScene.to_json`): masks, prompt, scored."""
+        return self.get("spin")
 
     def nvos_task(self, *names: str) -> Optional[dict]:
         """The NVOS task an object stands for: with several tasks, the entry of the first of

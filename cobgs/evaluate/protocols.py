@@ -12,6 +12,11 @@ stage renders the predictions, the evaluate stage hands them over with the proto
   per prompt and test view, averaged per prompt, then over prompts; every GT file counts
   (an empty GT scores 0 against a non-empty prediction, NaN against an empty one), views
   without a GT file are skipped and listed.
+* **SPIn-NeRF** (:func:`spin_scores`): every annotated view but the prompt view, scored at the
+  GT's size; IoU and accuracy per view, their means per scene (LUDVIG's
+  ``evaluation/spin_nvos/segmentation.py``: the reference view is left out), then the mean
+  over scenes; SA3D's pooled IoU (``lib/evaluate.py``: one IoU over the scene's stacked masks)
+  beside it.
 * **Exact GT** (:func:`exact_scores`): synthetic scenes and NeRF-synthetic alpha masks,
   every held-out view with a non-empty GT.
 * **Texture** (:func:`psnr_scores`): PSNR of 8-bit renders against the held-out images, the
@@ -53,6 +58,8 @@ __all__ = [
     "nvos_summary",
     "lerf_prompt_scores",
     "lerf_summary",
+    "spin_binary",
+    "spin_scores",
     "psnr_scores",
     "aggregate",
     "oracle_choice",
@@ -267,6 +274,51 @@ def lerf_prompt_scores(preds: Mapping[str, object], gt_paths: Mapping[str, Optio
         "empty_gt_zero": n_zero,
         "empty_gt_nan": len(empty) - n_zero,
     }
+
+
+def spin_binary(mask_u8: np.ndarray) -> np.ndarray:
+    """A SPIn-NeRF GT mask as bool: 0 / 255 files above the protocol's threshold, 0 / 1 files
+    (the release's are 0 / 255; LUDVIG divides by the maximum, so both read the same) above 0."""
+    m = np.asarray(mask_u8)
+    return m > (THRESHOLD_U8 if m.max(initial=0) > 1 else 0)
+
+
+def spin_scores(preds: Mapping[str, object], gts: Mapping[str, object], prompt: str,
+                boundary_ratio: float = BOUNDARY_RATIO) -> dict:
+    """One SPIn-NeRF scene: every GT view but ``prompt``, the prediction resized NEAREST to the
+    GT's size.
+
+    Args:
+        preds: view -> predicted mask (any size; bool / uint8 0-255 / float).
+        gts: view -> GT mask as read (uint8; 0 / 255 or 0 / 1: :func:`spin_binary`).
+        prompt: the prompt view (not scored).
+
+    Returns:
+        ``iou`` / ``acc`` / ``biou``: means over the scored views (an empty union scores IoU 1);
+        ``iou_pooled``: |P and G| / |P or G| over all scored views stacked; ``views``,
+        ``per_view``, ``prompt``.
+
+    Raises:
+        InputError: a scored view without a prediction, or nothing to score.
+    """
+    scored = sorted(v for v in gts if v != prompt)
+    if not scored:
+        raise InputError(f"SPIn-NeRF: no view to score besides the prompt view {prompt!r}")
+    missing = [v for v in scored if v not in preds]
+    if missing:
+        raise InputError(f"SPIn-NeRF: no prediction for scored view(s) {missing[:5]}")
+    per_view, inter, union = {}, 0, 0
+    for v in scored:
+        g = spin_binary(np.asarray(gts[v]))
+        s = compare_masks(preds[v], g, boundary_ratio)
+        per_view[v] = s.to_json()
+        inter += s.tp
+        union += s.tp + s.fp + s.fn
+    return {"iou": float(np.mean([r["iou"] for r in per_view.values()])),
+            "acc": float(np.mean([r["acc"] for r in per_view.values()])),
+            "biou": float(np.mean([r["biou"] for r in per_view.values()])),
+            "iou_pooled": 1.0 if union == 0 else inter / union,
+            "views": len(scored), "prompt": prompt, "per_view": per_view}
 
 
 def lerf_summary(per_prompt: Mapping[str, Mapping]) -> dict:

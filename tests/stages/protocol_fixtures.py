@@ -368,3 +368,89 @@ def run_stages(folder: Path, text: str, stages=("dataset", "sfm", "masks"), name
     assert summary.exit_code == 0, out.getvalue()
     return {(r.stage, r.item.id): r for r in entries(wf, folder / "cache")}
 
+
+
+# -- SPIn-NeRF ---------------------------------------------------------------------------------
+#: The view names the fixture gives the scenes it writes RGB for (nerf_llff_data's capture
+#: names; fern's and orchids' first views are the published IMG_4026 / IMG_4467).
+SPIN_FIRST_NAME = {"fern": "IMG_4026", "orchids": "IMG_4467", "leaves": "IMG_2988", "fortress": "IMG_1783",
+                   "room": "DJI_20200226_143850_006", "horns": "DJI_20200223_163016_842"}
+
+
+def spin_mask_names(scene: str, views: list[str]) -> list[tuple[str, str]]:
+    """(annotation name, view) pairs of a scene as the release names them, for the sorted
+    ``views``: imageNNN for the indexed LLFF exports (orchids without image014), the view's own
+    name for the others, with alternating ``0_`` / ``1_`` split prefixes for the real lego and
+    on every third Truck mask."""
+    from cobgs.data.spin import SPIN_SCENES
+
+    _, count, rule = SPIN_SCENES[scene]
+    if rule == "index":
+        idx = [i for i in range(len(views)) if not (scene == "orchids" and i == 14)][:count]
+        return [(f"image{i:03d}", views[i]) for i in idx]
+    step = max(1, len(views) // count)
+    chosen = views[::step][:count]
+    if rule == "prefix":
+        return [((f"{i % 2}_{v}" if scene == "lego" or i % 3 == 0 else v), v) for i, v in enumerate(chosen)]
+    return [(v, v) for v in chosen]
+
+
+def spin_published(out: Path, rgb: dict, workers: int = 1) -> tuple[Path, dict]:
+    """SPIn-NeRF's annotation release in its published layout, ``out/Multiview-Segmentation-Data/``:
+    the ten scene folders with the published names and mask counts, each mask with its
+    ``_pseudo`` and ``_cutout`` companions, ``annotations.json`` per scene, a README beside
+    them and macOS's ``__MACOSX/`` AppleDouble tree.
+
+    ``rgb`` maps the scenes to write RGB for to a synthetic preset's view count; each becomes
+    ``out/rgb/<scene>/`` in nerf_llff_data's layout (:func:`write_llff`, factor 4: the masks
+    are at images_4's size, as SA3D reads them) and its masks are the synthetic ball's. The
+    other scenes' masks are discs over stand-in view names. Returns (release, {scene: RGB folder}).
+    """
+    from cobgs.data.spin import SPIN_SCENES
+    from cobgs.data.synth.scene import generate_scene
+
+    release, folders = out / "Multiview-Segmentation-Data", {}
+    release.mkdir(parents=True)
+    (release / "README_MVSeg.txt").write_text("Multiview segmentation annotations (fixture).\n")
+    for seed, (scene, (folder_name, count, rule)) in enumerate(SPIN_SCENES.items()):
+        folder = release / folder_name
+        folder.mkdir()
+        if scene in rgb:
+            synth = generate_scene(out / "synthetic" / scene, "demo", seed=seed, num_views=rgb[scene],
+                                   workers=workers, progress=False)
+            stems = sorted(p.stem for p in (synth / "images").iterdir())
+            head = SPIN_FIRST_NAME[scene]
+            pub = published_names(head, head, len(stems))
+            names = dict(zip(stems, pub))
+            folders[scene] = write_llff(synth, out / "rgb" / scene, "nerf_llff_data", {}, names=names, factor=4)
+            back = {v: k for k, v in names.items()}
+            masks = {v: cv2.imread(str(synth / "masks" / "ball" / f"{back[v]}.png"), cv2.IMREAD_GRAYSCALE)
+                     for v in pub}
+            views = pub
+        else:
+            if scene in SPIN_FIRST_NAME:
+                views = published_names(SPIN_FIRST_NAME[scene], SPIN_FIRST_NAME[scene], count + 2)
+            else:  # (stand-ins: tandt_db's 000001.jpg ..., the lego's numbered frames)
+                views = {"truck": [f"{i:06d}" for i in range(1, 2 * count + 2)],
+                         "lego": [f"{i:05d}" for i in range(count + 3)]}.get(
+                    scene, [f"{scene.upper()}_{i:04d}" for i in range(count + 2)])
+            disc = np.zeros((30, 40), np.uint8)
+            cv2.circle(disc, (20, 15), 8, 255, -1)
+            masks = {v: disc for v in views}
+            if scene != "fork":  # (fork's RGB is not public)
+                folders[scene] = out / "rgb" / scene
+                (folders[scene] / "images").mkdir(parents=True)
+                for v in views:  # stand-in photos (kind spin reads a folder of photos without poses too)
+                    cv2.imwrite(str(folders[scene] / "images" / f"{v}.png"), cv2.merge([disc, disc // 2, disc]))
+        entries = []
+        for ann, v in spin_mask_names(scene, sorted(views)):
+            m = masks[v]
+            cv2.imwrite(str(folder / f"{ann}.png"), m)
+            cv2.imwrite(str(folder / f"{ann}_pseudo.png"), cv2.merge([m // 2, m, m // 2]))
+            cv2.imwrite(str(folder / f"{ann}_cutout.png"), cv2.merge([m, m, m, m]))
+            entries.append({"file": f"{ann}.png"})
+        (folder / "annotations.json").write_text(json.dumps(entries))
+        mac = out / "__MACOSX" / "Multiview-Segmentation-Data" / folder_name  # beside it, as macOS zips
+        mac.mkdir(parents=True)
+        (mac / f"._{entries[0]['file']}").write_bytes(b"\x00\x05\x16\x07")
+    return release, folders

@@ -1,0 +1,92 @@
+"""workflows/spin.toml, unchanged, on a fixture in SPIn-NeRF's published layout (issue 61): the
+dataset task of every runnable scene reads and checks its annotations; fern (indexed names)
+and orchids (indexed, sparse: no image014) run the whole chain with the `files` route and are
+scored as the peers score them (every annotated view but the prompt's)."""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+
+import pytest
+
+from pipeline import RunOptions, entries, load_workflow, run_workflow
+from protocol_fixtures import spin_published
+from stages.registry import load_registry
+
+ROOT = Path(__file__).resolve().parents[2]
+SHORT = ["train.iterations=300", "train.scale_schedule=false", "train.densify_from_its=50",
+         "train.densify_until_its=200", "train.densify_interval_its=50", "train.opacity_reset_interval_its=1000",
+         "train.position_lr_decay_its=300", "train.sh_degree_interval_its=100", "train.max_gaussians=6000",
+         "refine.cobgs.stage_length_views=1.0", "refine.cobgs.mask_stages=2", "dataset.downscale=4.0"]
+
+
+@pytest.fixture(scope="module")
+def spin(tmp_path_factory):
+    root = tmp_path_factory.mktemp("spin")
+    release, rgb = spin_published(root, {"fern": 20, "orchids": 25})
+    env = {"SPIN_LABELS_DIR": str(release), "SPIN_LLFF_DIR": str(root / "rgb"),
+           "SPIN_REAL360_DIR": str(root / "rgb"), "SPIN_TANDT_DIR": str(root / "rgb"),
+           "SPIN_LEGO_DIR": str(root / "rgb" / "lego")}
+    return root, release, env
+
+
+def _run(root, env, monkeypatch, sets=(), **opts):
+    for k, v in env.items():
+        monkeypatch.setenv(k, v)
+    wf = load_workflow(ROOT / "workflows" / "spin.toml", load_registry(), list(sets))
+    out = io.StringIO()
+    summary = run_workflow(wf, RunOptions(cache_dir=root / "cache", package_version="test", **opts), stream=out)
+    return wf, summary, out.getvalue()
+
+
+def test_every_scene_is_read_and_checked_as_published(spin, monkeypatch):
+    root, release, env = spin
+    wf, summary, log = _run(root, env, monkeypatch, SHORT, only=("dataset",))
+    assert summary.exit_code == 0, log
+    specs = {r.item.id: json.loads((r.output("dataset") / "dataset.json").read_text())
+             for r in entries(wf, root / "cache") if r.stage == "dataset"}
+    assert sorted(specs) == sorted(["orchids", "leaves", "fern", "room", "horns", "fortress", "pinecone", "truck",
+                                    "lego"])
+    counts = {"orchids": 24, "leaves": 26, "fern": 20, "room": 41, "horns": 62, "fortress": 42, "pinecone": 99,
+              "truck": 65, "lego": 44}
+    for scene, spec in specs.items():
+        assert spec["protocol"] == "spin" and spec["test_views"] == [] and spec["objects"] == ["object"]
+        assert len(spec["spin"]["masks"]) == counts[scene] and len(spec["spin"]["scored"]) == counts[scene] - 1
+    assert specs["fern"]["spin"]["prompt"] == "IMG_4026" and specs["fern"]["has_poses"]
+    assert specs["orchids"]["spin"]["mask_names"]["IMG_4482"] == "image015.png"  # 14 is not annotated
+    assert "IMG_4481" not in specs["orchids"]["spin"]["masks"]
+
+
+def test_a_wrong_download_stops_the_dataset_task_naming_the_file(spin, monkeypatch, tmp_path):
+    import shutil
+
+    root, release, env = spin
+    bad = tmp_path / "release"
+    shutil.copytree(release, bad)
+    (bad / "fern (llff)" / "image004.png").rename(bad / "fern (llff)" / "image4.png")
+    env = {**env, "SPIN_LABELS_DIR": str(bad)}
+    wf, summary, log = _run(tmp_path, env, monkeypatch, SHORT, only=("dataset",), items="fern")
+    assert summary.exit_code != 0
+    assert "image4.png: mask name 'image4' is not imageNNN" in log or "image004_cutout.png has no GT mask" in log
+
+
+def test_fern_and_orchids_run_and_score_every_annotated_view_but_the_prompt(spin, monkeypatch):
+    from cobgs.evaluate.protocols import read_mask_u8, spin_scores
+
+    root, release, env = spin
+    wf, summary, log = _run(root, env, monkeypatch, SHORT, items="fern/cobgs/object,orchids/cobgs/object")
+    assert summary.exit_code == 0, log
+    recs = {(r.stage, r.item.id): r for r in entries(wf, root / "cache")}
+    for scene, views in (("fern", 20), ("orchids", 24)):
+        m = json.loads((recs[("evaluate", f"{scene}/cobgs/object")].output("metrics") / "metrics.json").read_text())
+        row = m["row"]
+        assert row["protocol"] == "spin" and row["views"] == views - 1 and row["prompt_view"] not in m["details"]["per_view"]
+        assert 0.5 < row["iou"] <= 1.0 and 0.9 < row["acc"] <= 1.0 and 0 < row["iou_pooled"] <= 1.0
+        # the row is the protocol applied to the segment stage's masks
+        spec = json.loads((recs[("dataset", scene)].output("dataset") / "dataset.json").read_text())["spin"]
+        seg = recs[("segment", f"{scene}/cobgs/object")].output("segmentation") / "pred_masks"
+        preds = {v: read_mask_u8(seg / f"{v}.png") for v in spec["scored"]}
+        again = spin_scores(preds, {v: read_mask_u8(f) for v, f in spec["masks"].items()}, spec["prompt"])
+        assert again["iou"] == pytest.approx(row["iou"]) and again["acc"] == pytest.approx(row["acc"])
