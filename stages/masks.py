@@ -56,7 +56,8 @@ class ObjectAttrs:
 @dataclass(frozen=True)
 class MasksParams:
     """Attributes:
-        source: a route of :data:`cobgs.masks.sources.SOURCES` (files, noisy, onnx, nvos, points).
+        source: a route of :data:`cobgs.masks.sources.SOURCES` (files, noisy, onnx, nvos, points,
+            prompt_clicks).
         models_dir: ONNX model folder (``onnx`` / ``nvos``).
         noise: mask-noise parameters (``noisy``).
         two_stage: Alg. 1 thresholds (``onnx``).
@@ -72,6 +73,8 @@ class MasksParams:
             object folders sit one level down, in ``<anything>/masks/``, is found.
         points_file: ``points``: the click file (:mod:`cobgs.masks.clicks`): SAGA-v2's
             NVOS input points or the per-object layout. Checked when the workflow loads.
+        prompt_clicks: ``prompt_clicks`` (SPIn-NeRF): positive clicks placed inside the prompt
+            view's GT mask (the first at the point farthest from its edge, then spread).
     """
 
     source: str = "files"
@@ -83,8 +86,10 @@ class MasksParams:
     files_threshold: int = 0
     files_root: Optional[Path] = None
     points_file: Optional[Path] = None
+    prompt_clicks: int = 3
 
-    RANGES: ClassVar[dict] = {"intra_op_threads": "[0, 1024]", "files_threshold": "[0, 254]"}
+    RANGES: ClassVar[dict] = {"intra_op_threads": "[0, 1024]", "files_threshold": "[0, 254]",
+                              "prompt_clicks": "[1, 64]"}
     CHOICES: ClassVar[dict] = {"source": ROUTES}  # (the registry itself: a route added there is a choice)
 
     def __post_init__(self) -> None:

@@ -372,3 +372,33 @@ def match_frames(file: ClickFile, entry: ObjectClicks, views: Sequence[tuple[str
 
 __all__ = ["ClickFile", "FrameClicks", "MAX_FILE_BYTES", "MAX_SIDE", "ObjectClicks", "OWN", "SAGA",
            "check_frame_size", "match_frames", "locate", "read_clicks", "same_aspect", "to_image_pixels"]
+
+
+def interior_clicks(mask: np.ndarray, count: int) -> np.ndarray:
+    """``count`` positive clicks inside a binary mask, [count, 2] float (x, y) pixel centres,
+    deterministic: the first at the pixel farthest from the mask's edge (of equals, the one
+    nearest the mask's centroid), each next one at the pixel whose smaller distance, to the
+    edge or to the clicks so far, is largest (of equals, the farthest from the clicks): spread
+    over the object, never on its boundary. Fewer when the mask has fewer pixels.
+
+    Raises:
+        InputError: an empty mask.
+    """
+    import cv2
+
+    m = np.ascontiguousarray(np.asarray(mask, bool))
+    if not m.any():
+        raise InputError("cannot place clicks in an empty mask")
+    edge = cv2.distanceTransform(np.pad(m, 1).astype(np.uint8), cv2.DIST_L2, 5)[1:-1, 1:-1].astype(np.float64)
+    ys, xs = np.mgrid[0:m.shape[0], 0:m.shape[1]]
+    cy, cx = np.argwhere(m).mean(0)
+    score = edge - 1e-3 * np.hypot(xs - cx, ys - cy)  # (ties on a plateau: the one nearest the centroid)
+    near = np.full(m.shape, np.inf)
+    out = []
+    for _ in range(min(int(count), int(m.sum()))):
+        score[~m] = -np.inf
+        y, x = np.unravel_index(int(np.argmax(score)), score.shape)
+        out.append((float(x), float(y)))
+        near = np.minimum(near, np.hypot(xs - x, ys - y))
+        score = np.minimum(edge, near) + 1e-3 * near  # (ties: the one farthest from the clicks so far)
+    return np.asarray(out, np.float32).reshape(-1, 2)

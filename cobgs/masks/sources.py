@@ -13,7 +13,9 @@ report uses for it (:meth:`~MaskSource.route`), its load-time check and
   noisy   the same, corrupted by :mod:`cobgs.data.mask_noise` (robustness runs);
   onnx    two-stage text prompting, Grounding DINO + SAM2 (:func:`cobgs.masks.api.generate_masks`);
   nvos    NVOS scribbles on the reference view -> SAM2 -> propagation;
-  points  clicks (:mod:`cobgs.masks.clicks`) -> SAM2 on each prompted frame -> propagation.
+  points  clicks (:mod:`cobgs.masks.clicks`) -> SAM2 on each prompted frame -> propagation;
+  prompt_clicks  SPIn-NeRF: clicks placed inside the prompt view's GT mask -> SAM2 -> propagation
+          (the route a user has: a few clicks on one view).
 
 A new route is one class here (its algorithm in a module of its own) and one line of
 :data:`SOURCES` (docs/pipeline.md, "Adding a mask source"). This module imports nothing
@@ -272,9 +274,56 @@ class ClickMasks(_Generated):
                 "are they on the object, in the frame image_size names?")
 
 
+class PromptMaskClicks(_Generated):
+    """SPIn-NeRF's prompt: the peers hand the prompt view's GT mask to their 3D method (SA3D
+    ``load_spin_data``'s ``ref_id``, LUDVIG's reference "scribble"); a user has clicks. This
+    route places ``masks.prompt_clicks`` positive clicks inside that mask
+    (:func:`cobgs.masks.clicks.interior_clicks`: deterministic, no seed) and lets SAM2 segment
+    the prompt view and propagate, as the ``points`` route does with a click file."""
+
+    name, reads = "prompt_clicks", ("models_dir", "prompt_clicks", "intra_op_threads")
+
+    def route(self, from_folder):
+        return "clicks in the prompt view's mask -> SAM2"
+
+    def _generate(self, req, options, info):
+        import numpy as np
+
+        from cobgs.data.nvos import read_gt_mask
+        from cobgs.masks.api import FramePrompt, generate_masks_from_clicks
+        from cobgs.masks.clicks import interior_clicks
+        from cobgs.masks.images import image_size
+
+        spin = req.spec.get("spin")
+        if not spin:
+            raise InputError(f"masks.source 'prompt_clicks' places clicks in a SPIn-NeRF scene's prompt-view mask; "
+                             f"scene {req.spec['scene']!r} is of kind {req.spec['kind']!r} (use 'points' with a "
+                             "click file)")
+        names = [v.name for v in req.views]
+        if spin["prompt"] not in names:
+            raise InputError(f"SPIn-NeRF prompt view {spin['prompt']!r} is not a training view")
+        i = names.index(spin["prompt"])
+        ih, iw = image_size(req.views[i].path)
+        gt = read_gt_mask(spin["masks"][spin["prompt"]])
+        gt = (gt > (127 if gt.max(initial=0) > 1 else 0)).astype(np.uint8) * 255
+        if gt.shape != (ih, iw):  # (the clicks are in the pixels of the image SAM2 reads)
+            import cv2
+
+            gt = cv2.resize(gt, (iw, ih), interpolation=cv2.INTER_NEAREST)
+        pts = interior_clicks(gt > 127, req.params.prompt_clicks)
+        info["clicks"] = {"frames": [{"frame": spin["prompt"], "image": Path(req.views[i].path).name,
+                                      "positive": int(len(pts)), "negative": 0, "image_size": [iw, ih],
+                                      "points_px": pts.round(2).tolist(), "from": spin["masks"][spin["prompt"]]}]}
+        prompts = [FramePrompt(i, pts.astype(np.float32), np.ones(len(pts), np.float32))]
+        return generate_masks_from_clicks([v.path for v in req.views], prompts, req.params.models_dir,
+                                          req.scratch / "generated", names=names,
+                                          log_path=req.scratch / "generated.json", options=options,
+                                          extra_log={"clicks": info["clicks"]})
+
+
 #: Every route, by name (``masks.source``).
 SOURCES: dict[str, MaskSource] = {s.name: s for s in (FileMasks(), NoisyMasks(), TextMasks(), ScribbleMasks(),
-                                                        ClickMasks())}
+                                                        ClickMasks(), PromptMaskClicks())}
 
 
 def source_for(name: str) -> MaskSource:

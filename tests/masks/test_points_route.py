@@ -275,3 +275,71 @@ def test_saga_clicks_on_a_scene_that_is_not_nvos_stop_before_sfm(models_dir, tmp
     assert summary.exit_code == 1 and states == {"dataset": "done"}, (states, out.getvalue())
     assert "SAGA-v2 clicks belong on an NVOS task's reference view" in summary.stopped
     assert "is not an NVOS scene" in summary.stopped
+
+
+def test_interior_clicks_sit_inside_and_spread():
+    from cobgs.masks.clicks import interior_clicks
+
+    m = np.zeros((40, 60), bool)
+    m[10:30, 5:55] = True  # a 50x20 bar
+    pts = interior_clicks(m, 3)
+    assert pts.shape == (3, 2) and all(m[int(y), int(x)] for x, y in pts)
+    assert 9 <= pts[0, 1] <= 20 and abs(pts[0, 0] - 29.5) <= 20  # on the bar's middle row band
+    assert np.ptp(pts[:, 0]) > 20  # spread along the bar, not piled on the centre
+    np.testing.assert_array_equal(pts, interior_clicks(m, 3))  # deterministic
+    one = np.zeros((5, 5), bool)
+    one[2, 3] = True
+    assert interior_clicks(one, 4).tolist() == [[3.0, 2.0]]
+    with pytest.raises(Exception, match="empty mask"):
+        interior_clicks(np.zeros((4, 4), bool), 1)
+
+
+def test_prompt_clicks_route_on_a_spin_scene(models_dir, tmp_path):
+    """SPIn-NeRF's click route: clicks inside the prompt view's GT mask (the first annotated
+    view), SAM2 on that view, propagated; a scene of another kind is refused in one line."""
+    from protocol_fixtures import spin_published
+
+    release, rgb = spin_published(tmp_path / "spin", {"fern": 20})
+    toml = f"""
+[workflow]
+name = "spin_clicks"
+nested = {{ object = "scene" }}
+[params.sfm]
+mode = "never"
+[params.dataset]
+downscale = 4.0
+[params.masks]
+source = "prompt_clicks"
+models_dir = "{models_dir}"
+prompt_clicks = 2
+[axes.scene.fern]
+kind = "spin"
+path = "{rgb['fern']}"
+labels = "{release}"
+[axes.method.cobgs]
+[axes.object.fern.object]
+"""
+    recs = run_stages(tmp_path, toml, name="spin_clicks.toml")
+    out = recs[("masks", "fern/object")].output("masks")
+    info = json.loads((out / "masks.json").read_text())
+    assert info["source"] == "prompt_clicks" and info["route"] == "clicks in the prompt view's mask -> SAM2"
+    frame = info["clicks"]["frames"][0]
+    assert frame["frame"] == "IMG_4026" and frame["positive"] == 2 and frame["from"].endswith("image000.png")
+    gt = cv2.imread(frame["from"], cv2.IMREAD_GRAYSCALE) > 127
+    w, h = frame["image_size"]
+    gt = cv2.resize(gt.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
+    assert all(gt[int(y), int(x)] for x, y in frame["points_px"])
+    assert [p["stem"] for p in info["generator"]["prompts"]] == ["IMG_4026"]
+    assert len(list(out.glob("*.png"))) >= 1
+    # the route on a scene that is not SPIn-NeRF: one line naming the kind
+    scene, _ = _square_scene(tmp_path / "sq")
+    bad = OWN.format(models=models_dir, clicks="", scene=scene).replace('source = "points"', 'source = "prompt_clicks"')
+    bad = bad.replace('points_file = ""\n', "")
+    from pipeline import entries  # noqa: F401
+
+    path = tmp_path / "bad.toml"
+    path.write_text(bad)
+    wf = load_workflow(path, load_registry())
+    log = io.StringIO()
+    summary = run_workflow(wf, RunOptions(cache_dir=tmp_path / "cache2", only=("dataset", "sfm", "masks")), stream=log)
+    assert summary.exit_code != 0 and "is of kind 'transforms' (use 'points' with a click file)" in log.getvalue()

@@ -90,3 +90,22 @@ def test_fern_and_orchids_run_and_score_every_annotated_view_but_the_prompt(spin
         preds = {v: read_mask_u8(seg / f"{v}.png") for v in spec["scored"]}
         again = spin_scores(preds, {v: read_mask_u8(f) for v, f in spec["masks"].items()}, spec["prompt"])
         assert again["iou"] == pytest.approx(row["iou"]) and again["acc"] == pytest.approx(row["acc"])
+
+
+def test_the_click_route_runs_the_whole_chain(spin, monkeypatch, tmp_path_factory):
+    """The second route (`prompt_clicks`: clicks inside the prompt view's mask -> SAM2 ->
+    propagation), with the stand-in SAM2 export of tests/masks/fakes.py: the chain runs to a
+    scored row named by its route."""
+    from masks.fakes import build_sam2
+
+    models = tmp_path_factory.mktemp("sam2")
+    build_sam2(models)
+    root, release, env = spin
+    sets = [*SHORT, "masks.source=prompt_clicks", f"masks.models_dir={models}"]
+    wf, summary, log = _run(root, env, monkeypatch, sets, items="fern/cobgs/object")
+    assert summary.exit_code == 0, log
+    recs = {(r.stage, r.item.id): r for r in entries(wf, root / "cache")}
+    row = json.loads((recs[("evaluate", "fern/cobgs/object")].output("metrics") / "metrics.json").read_text())["row"]
+    assert row["protocol"] == "spin" and row["views"] == 19
+    assert row["mask_route"] == "clicks in the prompt view's mask -> SAM2"
+    assert 0.0 <= row["iou"] <= 1.0 and row["iou"] == row["iou"]

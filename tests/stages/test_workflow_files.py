@@ -106,7 +106,7 @@ def test_shipped_workflows_refer_to_presets_rather_than_copy_them():
     assert copies == []
 
 
-@pytest.mark.parametrize("name", ["synthetic_bench.toml", "nvos.toml", "lerf_mask.toml", "demo.toml"])
+@pytest.mark.parametrize("name", ["synthetic_bench.toml", "nvos.toml", "lerf_mask.toml", "spin.toml", "demo.toml"])
 def test_benchmark_workflows_run_a_repeatable_sfm(name, monkeypatch):
     """Issue 59 item 1: every SfM of the benchmark workflows (and the demo) runs COLMAP on one
     thread, the setting under which a rerun gives the same SfM (test_workflow_e2e's two clean runs
@@ -125,7 +125,7 @@ def test_benchmark_workflows_run_a_repeatable_sfm(name, monkeypatch):
     import os
 
     shared = Path(os.environ.get("COBGS_SHARED_DATA", DEMO.parents[2] / "shared" / "data"))  # (as tests/conftest.py)
-    if name in ("nvos.toml", "lerf_mask.toml") or (name == "synthetic_bench.toml" and not shared.is_dir()):
+    if name in ("nvos.toml", "lerf_mask.toml", "spin.toml") or (name == "synthetic_bench.toml" and not shared.is_dir()):
         return  # (the file's tables above are what the plan reads)
     monkeypatch.setenv("COBGS_SHARED_DATA", str(shared))
     sfm = [t for t in Plan(load_workflow(path, load_registry())).tasks if t.stage.name == "sfm"]
