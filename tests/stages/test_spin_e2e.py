@@ -90,6 +90,17 @@ def test_fern_and_orchids_run_and_score_every_annotated_view_but_the_prompt(spin
         preds = {v: read_mask_u8(seg / f"{v}.png") for v in spec["scored"]}
         again = spin_scores(preds, {v: read_mask_u8(f) for v, f in spec["masks"].items()}, spec["prompt"])
         assert again["iou"] == pytest.approx(row["iou"]) and again["acc"] == pytest.approx(row["acc"])
+    # `cobgs report` shows the rows (the scenes not run: marked missing, not dropped)
+    from stages.commands.cli import main
+
+    sets = [a for s in SHORT for a in ("--set", s)]
+    assert main(["report", str(ROOT / "workflows" / "spin.toml"), "--cache-dir", str(root / "cache"),
+                 "--out", str(root / "report"), *sets]) == 0
+    tables = (root / "report" / "tables.md").read_text()
+    fern = json.loads((recs[("evaluate", "fern/cobgs/object")].output("metrics") / "metrics.json").read_text())["row"]
+    line = next(ln for ln in tables.splitlines() if ln.startswith("| fern | cobgs "))
+    assert f"| {100 * fern['iou']:.2f} | {100 * fern['acc']:.2f} |" in line and "complete" in line
+    assert any(ln.startswith("| room | cobgs ") and "missing" in ln for ln in tables.splitlines())
 
 
 def test_the_click_route_runs_the_whole_chain(spin, monkeypatch, tmp_path_factory):
