@@ -377,6 +377,20 @@ SPIN_FIRST_NAME = {"fern": "IMG_4026", "orchids": "IMG_4467", "leaves": "IMG_298
                    "room": "DJI_20200226_143850_006", "horns": "DJI_20200223_163016_842"}
 
 
+def spin_view_names(scene: str, n: int) -> list[str]:
+    """``n`` view names of a scene in its published copy's style, sorted: nerf_llff_data's capture
+    names (fern from IMG_4026, orchids from IMG_4467, room and horns DJI_...), tandt_db's
+    000001 ... for truck; stand-ins for the others (pinecone's and the lego's frame names were
+    not checked against a download)."""
+    if scene in SPIN_FIRST_NAME:
+        return published_names(SPIN_FIRST_NAME[scene], SPIN_FIRST_NAME[scene], n)
+    if scene == "truck":
+        return [f"{i:06d}" for i in range(1, n + 1)]
+    if scene == "lego":
+        return [f"{i:05d}" for i in range(n)]
+    return [f"{scene.upper()}_{i:04d}" for i in range(n)]
+
+
 def spin_mask_names(scene: str, views: list[str]) -> list[tuple[str, str]]:
     """(annotation name, view) pairs of a scene as the release names them, for the sorted
     ``views``: imageNNN for the indexed LLFF exports (orchids without image014), the view's own
@@ -419,8 +433,7 @@ def spin_published(out: Path, rgb: dict, workers: int = 1) -> tuple[Path, dict]:
             synth = generate_scene(out / "synthetic" / scene, "demo", seed=seed, num_views=rgb[scene],
                                    workers=workers, progress=False)
             stems = sorted(p.stem for p in (synth / "images").iterdir())
-            head = SPIN_FIRST_NAME[scene]
-            pub = published_names(head, head, len(stems))
+            pub = spin_view_names(scene, len(stems))
             names = dict(zip(stems, pub))
             folders[scene] = write_llff(synth, out / "rgb" / scene, "nerf_llff_data", {}, names=names, factor=4)
             back = {v: k for k, v in names.items()}
@@ -428,12 +441,7 @@ def spin_published(out: Path, rgb: dict, workers: int = 1) -> tuple[Path, dict]:
                      for v in pub}
             views = pub
         else:
-            if scene in SPIN_FIRST_NAME:
-                views = published_names(SPIN_FIRST_NAME[scene], SPIN_FIRST_NAME[scene], count + 2)
-            else:  # (stand-ins: tandt_db's 000001.jpg ..., the lego's numbered frames)
-                views = {"truck": [f"{i:06d}" for i in range(1, 2 * count + 2)],
-                         "lego": [f"{i:05d}" for i in range(count + 3)]}.get(
-                    scene, [f"{scene.upper()}_{i:04d}" for i in range(count + 2)])
+            views = spin_view_names(scene, 2 * count + 1 if scene == "truck" else count + 2)
             disc = np.zeros((30, 40), np.uint8)
             cv2.circle(disc, (20, 15), 8, 255, -1)
             masks = {v: disc for v in views}
