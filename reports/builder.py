@@ -264,7 +264,7 @@ def _write(data: RunData, root: Path, sets: list[str], turntables: int = 0, view
     md = [f"# {data.workflow.name}: result tables", "",
           f"From `cobgs report {wf_path}` ({fmt.timestamp(env_info['generated'])}); the same numbers as index.html, "
           "means as the summary stage (over objects within a scene, then over scenes). Bold: best in its group.", ""]
-    for key in ("method", "scene", "diff", "ablation", "psnr", "scenes"):
+    for key in ("method", "scene", "spin", "diff", "ablation", "psnr", "scenes"):
         if tables.get(key) is not None:
             md += [to_markdown(tables[key]), ""]
     (root / "tables.md").write_text("\n".join(md), encoding="utf-8")

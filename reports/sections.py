@@ -202,11 +202,57 @@ def result_tables(data: RunData, infos: dict, logs: records.LogHref) -> dict:
          Column("target", "≥ vanilla − 0.1", numeric=False, title="Table 4's bar on the scene before RAEM")],
         precs, notes=["The paper's Table 4 (NVOS means): vanilla 23.06, M.O 22.61, T.O 23.07, M.O+T.O 23.13 dB. "
                       "Its T.O column (texture stages without splitting) has no row here."]) if precs else None
+    t_spin = _spin_table(data, by_scene)
     return {"method": t_method, "scene": t_scene, "object": t_object, "scenes": t_scenes, "diff": t_diff,
-            "ablation": t_ablation, "psnr": t_psnr,
+            "ablation": t_ablation, "psnr": t_psnr, "spin": t_spin,
             "raw": {"by_method": by_method, "by_scene_method": by_scene, "by_object": recs,
                     **({"differences": drecs} if compared else {}),
                     **({"ablation": arecs} if arecs else {}), **({"texture_psnr": precs} if precs else {})}}
+
+
+def _spin_table(data: RunData, by_scene: list) -> Optional[Table]:
+    """SPIn-NeRF: per scene, SPIn-NeRF's published row (README_MVSeg.txt, marked as published)
+    above the methods measured here, and the means over the scenes this run has."""
+    from . import paper
+
+    scenes = [n for n, sc in data.scenes.items() if sc.protocol == "spin"]
+    if not scenes:
+        return None
+    key = {n: str(((data.scenes[n].dataset or {}).get("spin") or {}).get("scene") or n) for n in scenes}
+    rows = []
+    for n in scenes:
+        q = paper.spin_published(key[n])
+        if q is not None:
+            rows.append({"scene": n, "method": f"{q.label} (published)", "pub_iou": q.values["iou"] / 100.0,
+                         "pub_acc": q.values["acc"] / 100.0, "_group": n, "_class": {"method": ["quoted"]},
+                         "_title": {"pub_iou": q.source, "pub_acc": q.source}})
+        for r in by_scene:
+            if r.get("scene") == n:
+                pooled = [x.row.get("iou_pooled") for x in data.results
+                          if x.ok and x.scene == n and x.method == r["method"] and x.row.get("iou_pooled") is not None]
+                rows.append({"scene": n, "method": r["method"], "iou": r.get("iou"), "acc": r.get("acc"),
+                             "iou_pooled": sum(pooled) / len(pooled) if pooled else None, "status": r.get("status"),
+                             "_group": n})
+    q = paper.spin_published_mean([key[n] for n in scenes])
+    if q is not None:
+        rows.append({"scene": f"mean of {len(scenes)}", "method": f"{q.label} (published)",
+                     "pub_iou": q.values["iou"] / 100.0, "pub_acc": q.values["acc"] / 100.0, "_group": "mean",
+                     "_class": {"method": ["quoted"]}, "_title": {"pub_iou": q.source, "pub_acc": q.source}})
+    return build_table(
+        "t-spin", "SPIn-NeRF multiview segmentation: each scene's published SPIn-NeRF row (†) above the methods "
+                  "run here (every annotated view but the prompt view; mean IoU / accuracy over the views)",
+        [Column("scene", "Scene", numeric=False), Column("method", "Method", numeric=False),
+         Column("iou", "mIoU", fmt.pct, better="max"), Column("acc", "mAcc", fmt.pct, better="max"),
+         Column("iou_pooled", "pooled IoU", fmt.pct, title="SA3D's lib/evaluate.py: one IoU over the scene's "
+                "stacked masks"),
+         Column("pub_iou", "published IoU †", lambda v: fmt.pct(v, 2), quoted=True,
+                title="published, not measured here"),
+         Column("pub_acc", "published Acc †", lambda v: fmt.pct(v, 2), quoted=True,
+                title="published, not measured here"),
+         Column("status", "Status", numeric=False)], rows, group_by="_group",
+        notes=["† SPIn-NeRF's own numbers as its annotation release prints them (README_MVSeg.txt, 'Our "
+               "results'), with its own 3D method and prompts: quoted, never ranked. fork is published but its "
+               "RGB is not public, so no run here covers it."])
 
 
 def detail_tables(data: RunData, ref: Optional[str], logs: records.LogHref) -> tuple[Table, Table]:
