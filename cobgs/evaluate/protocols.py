@@ -64,6 +64,7 @@ __all__ = [
     "aggregate",
     "oracle_choice",
     "bootstrap_mean_diff",
+    "bootstrap_across_baselines",
     "ORACLE_METHOD",
     "nanmean",
 ]
@@ -493,4 +494,43 @@ def bootstrap_mean_diff(pairs: Mapping[str, Sequence[tuple]], reps: int = 2000, 
     lo, hi = boots[int(0.025 * reps)], boots[min(reps - 1, int(math.ceil(0.975 * reps)) - 1)]
     return {"diff": stat(by_obj), "lo": lo, "hi": hi, "objects": len(by_obj),
             "views": sum(len(v) for v in by_obj.values())}
+
+
+def bootstrap_across_baselines(pairs: Mapping[str, Mapping[str, Sequence[tuple]]], reps: int = 2000,
+                               seed: int = 0) -> Optional[dict]:
+    """:func:`bootstrap_mean_diff` over several trained baselines of one scene (SfM and training
+    seeds): the statistic is the mean over baselines of the benchmark mean, and the 95 % interval
+    resamples the baselines, then each chosen baseline's objects' views (a two-level bootstrap),
+    so it holds the baselines' own spread beside the views'.
+
+    Args:
+        pairs: baseline -> object -> [(A's value, B's value) per view both scored].
+
+    Returns:
+        {"diff", "lo", "hi", "baselines", "per_baseline": {baseline: its own diff}} or None.
+    """
+    import random
+    import statistics
+
+    data = {b: {o: [100.0 * (float(x) - float(y)) for x, y in v] for o, v in objs.items() if v}
+            for b, objs in pairs.items()}
+    data = {b: objs for b, objs in data.items() if objs}
+    if not data:
+        return None
+
+    def one(objs: Mapping[str, list]) -> float:
+        return statistics.fmean(statistics.fmean(v) for v in objs.values())
+
+    names = sorted(data)
+    rng = random.Random(seed)
+    boots = []
+    for _ in range(reps):
+        chosen = rng.choices(names, k=len(names))
+        boots.append(statistics.fmean(one({o: rng.choices(v, k=len(v)) for o, v in data[b].items()})
+                                      for b in chosen))
+    boots.sort()
+    lo, hi = boots[int(0.025 * reps)], boots[min(reps - 1, int(math.ceil(0.975 * reps)) - 1)]
+    per = {b: one(data[b]) for b in names}
+    return {"diff": statistics.fmean(per.values()), "lo": lo, "hi": hi, "baselines": len(names),
+            "per_baseline": per}
 
