@@ -409,7 +409,7 @@ def spin_mask_names(scene: str, views: list[str]) -> list[tuple[str, str]]:
     return [(v, v) for v in chosen]
 
 
-def spin_published(out: Path, rgb: dict, workers: int = 1) -> tuple[Path, dict]:
+def spin_published(out: Path, rgb: dict, workers: int = 1, seed: int | None = None) -> tuple[Path, dict]:
     """SPIn-NeRF's annotation release in its published layout, ``out/Multiview-Segmentation-Data/``:
     the ten scene folders with the published names and mask counts, each mask with its
     ``_pseudo`` and ``_cutout`` companions, ``annotations.json`` per scene, a README beside
@@ -418,7 +418,8 @@ def spin_published(out: Path, rgb: dict, workers: int = 1) -> tuple[Path, dict]:
     ``rgb`` maps the scenes to write RGB for to a synthetic preset's view count; each becomes
     ``out/rgb/<scene>/`` in nerf_llff_data's layout (:func:`write_llff`, factor 4: the masks
     are at images_4's size, as SA3D reads them) and its masks are the synthetic ball's. The
-    other scenes' masks are discs over stand-in view names. Returns (release, {scene: RGB folder}).
+    other scenes' masks are discs over stand-in view names. ``seed``: one generator seed for every
+    scene (default: a seed per scene). Returns (release, {scene: RGB folder}).
     """
     from cobgs.data.spin import SPIN_SCENES
     from cobgs.data.synth.scene import generate_scene
@@ -426,11 +427,12 @@ def spin_published(out: Path, rgb: dict, workers: int = 1) -> tuple[Path, dict]:
     release, folders = out / "Multiview-Segmentation-Data", {}
     release.mkdir(parents=True)
     (release / "README_MVSeg.txt").write_text("Multiview segmentation annotations (fixture).\n")
-    for seed, (scene, (folder_name, count, rule)) in enumerate(SPIN_SCENES.items()):
+    for k, (scene, (folder_name, count, rule)) in enumerate(SPIN_SCENES.items()):
         folder = release / folder_name
         folder.mkdir()
         if scene in rgb:
-            synth = generate_scene(out / "synthetic" / scene, "demo", seed=seed, num_views=rgb[scene],
+            synth = generate_scene(out / "synthetic" / scene, "demo", seed=k if seed is None else seed,
+                                   num_views=rgb[scene],
                                    workers=workers, progress=False)
             stems = sorted(p.stem for p in (synth / "images").iterdir())
             pub = spin_view_names(scene, len(stems))
