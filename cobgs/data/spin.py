@@ -165,14 +165,11 @@ def _match(rule: str, stem: str, views: list, path: Path) -> str:
 
 
 def image_size(path: Path) -> tuple:
-    """(height, width) of an image file, without decoding its pixels."""
-    from PIL import Image
+    """(height, width) of an image file from its header (:func:`cobgs.data.images.probe`)."""
+    from cobgs.data.images import probe
 
-    try:
-        with Image.open(path) as im:
-            return im.size[1], im.size[0]
-    except (OSError, ValueError) as exc:
-        raise DataError(f"cannot read image: {exc}", path) from exc
+    w, h, _ = probe(path)
+    return h, w
 
 
 def check_size(path: Path, mask_hw: tuple, view_hw: tuple) -> None:

@@ -37,6 +37,7 @@ from cobgs.data.scene import View
 from cobgs.errors import InputError
 from cobgs.gaussians.model import GaussianModel
 from cobgs.refine.consistency import label_votes
+from cobgs.refine.peers import check_views_and_masks
 from cobgs.refine.result import PeakMemory, RefineResult, StageStats
 from cobgs.refine.scores import pixel_labels_from_mask
 
@@ -91,8 +92,7 @@ def run_ludvig(
     feature as the extra ``ludvig_feature``; ``mask_values`` is the feature; ``foreground`` is
     the Gaussians whose min-max normalised feature passes the evaluation's bar (the release
     has no Gaussian set of its own: its removal renders drop those below it)."""
-    if len(masks) != len(views):
-        raise InputError(f"got {len(masks)} masks for {len(views)} views (one per view, None = none)")
+    check_views_and_masks(views, masks)
     t0 = time.perf_counter()
     n = len(model)
     with PeakMemory() as mem:

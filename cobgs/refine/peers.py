@@ -71,7 +71,8 @@ def nosplit_config(base: RefineConfig = RefineConfig()) -> RefineConfig:
     return dataclasses.replace(base, mask_stages=len(base.plan()), **NOSPLIT_SWITCHES)
 
 
-def _check(views: Sequence[View], masks: Sequence) -> None:
+def check_views_and_masks(views: Sequence[View], masks: Sequence) -> None:
+    """At least one view, and one mask entry (a mask or None) per view."""
     if not views:
         raise InputError("need at least one training view")
     if len(masks) != len(views):
@@ -95,7 +96,7 @@ def run_sa3d(
     progress: "Progress" = True,
 ) -> RefineResult:
     """SA3D-GS on the scene ``model`` (not modified; see the module docstring)."""
-    _check(views, masks)
+    check_views_and_masks(views, masks)
     t0 = time.perf_counter()
     n = len(model)
     dev = model.device
@@ -223,7 +224,7 @@ def run_flashsplat(
     progress: "Progress" = False,
 ) -> RefineResult:
     """FlashSplat, one object (see the module docstring)."""
-    _check(views, masks)
+    check_views_and_masks(views, masks)
     t0 = time.perf_counter()
     n = len(model)
     with PeakMemory() as mem:
@@ -265,7 +266,7 @@ def run_flashsplat_multi(
     if not names:
         raise InputError("run_flashsplat_multi needs at least one object")
     for k in names:
-        _check(views, masks[k])
+        check_views_and_masks(views, masks[k])
     t0 = time.perf_counter()
     n, K = len(model), len(names)
     with PeakMemory() as mem:
