@@ -238,6 +238,10 @@ def _spin_table(data: RunData, by_scene: list) -> Optional[Table]:
         rows.append({"scene": f"mean of {len(scenes)}", "method": f"{q.label} (published)",
                      "pub_iou": q.values["iou"] / 100.0, "pub_acc": q.values["acc"] / 100.0, "_group": "mean",
                      "_class": {"method": ["quoted"]}, "_title": {"pub_iou": q.source, "pub_acc": q.source}})
+    for q in paper.spin_peer_means():  # each over its paper's own scenes: beside the means, not the scenes
+        rows.append({"scene": "paper's scenes", "method": f"{q.label} (published ‡)", "pub_iou": q.values["iou"] / 100.0,
+                     "pub_acc": q.values["acc"] / 100.0, "_group": "peers", "_class": {"method": ["quoted"]},
+                     "_title": {"pub_iou": q.source, "pub_acc": q.source}})
     return build_table(
         "t-spin", "SPIn-NeRF multiview segmentation: each scene's published SPIn-NeRF row (†) above the methods "
                   "run here (every annotated view but the prompt view; mean IoU / accuracy over the views)",
@@ -252,7 +256,10 @@ def _spin_table(data: RunData, by_scene: list) -> Optional[Table]:
          Column("status", "Status", numeric=False)], rows, group_by="_group",
         notes=["† SPIn-NeRF's own numbers as its annotation release prints them (README_MVSeg.txt, 'Our "
                "results'), with its own 3D method and prompts: quoted, never ranked. fork is published but its "
-               "RGB is not public, so no run here covers it."])
+               "RGB is not public, so no run here covers it.",
+               "‡ The peers' means over their papers' own scene sets, as SAGOnline's Table I prints them "
+               "(arXiv 2508.08219v2; SAGOnline's own row, and its quotes of SAGA, SA3D-GS and SA3D, whose own "
+               "papers were not read here): quoted, never ranked, and not a mean over this run's scenes."])
 
 
 def detail_tables(data: RunData, ref: Optional[str], logs: records.LogHref) -> tuple[Table, Table]:

@@ -71,10 +71,15 @@ def _blocks(text: str, prefix: str) -> dict:
 
 
 def write_workflow(src: Path, out: Path, scenes=SCENES, sfm_seeds=SFM_SEEDS, train_seeds=TRAIN_SEEDS,
-                   rows=(REF, *ROWS)) -> Path:
+                   rows=(REF, *ROWS), pairs=None) -> Path:
     """The seed-spread workflow from ``src`` (synthetic_bench.toml): its header and params as they
     are, the ``rows`` (methods) as they are, and each scene in ``scenes`` once per (SfM seed,
-    training seed) with its objects."""
+    training seed) with its objects: every pair of ``sfm_seeds`` x ``train_seeds``, or the
+    ``pairs`` given (a smaller design, e.g. each SfM seed with training seed 0 and one more
+    training seed on SfM seed 0)."""
+    pairs = [(s, t) for s in sfm_seeds for t in train_seeds] if pairs is None else list(pairs)
+    if (0, 0) not in pairs:
+        raise SystemExit("the pairs must hold (0, 0): synthetic_bench's own scene")
     text = src.read_text(encoding="utf-8")
     doc = tomllib.loads(text)
     head = text[: text.index("# --- scenes")]
@@ -88,22 +93,21 @@ def write_workflow(src: Path, out: Path, scenes=SCENES, sfm_seeds=SFM_SEEDS, tra
     for scene in scenes:
         table = dict(doc["axes"]["scene"][scene])
         objs = [(name, attrs) for name, attrs in doc["axes"]["object"][scene].items()]
-        for s in sfm_seeds:
-            for t in train_seeds:
-                name = variant_name(scene, s, t)
-                tab = {k: (dict(v) if isinstance(v, dict) else v) for k, v in table.items()}
-                if (s, t) != (0, 0):
-                    tab = {"shares": scene, **tab}
-                if s:
-                    sfm = dict(tab.get("sfm", {}))
-                    sfm["options"] = {**dict(sfm.get("options", {})), "seed": s}
-                    tab["sfm"] = sfm
-                if t:
-                    tab["train"] = {**dict(tab.get("train", {})), "seed": t}
-                parts.append(f"[axes.scene.{name}]\n" + "".join(f"{k} = {_inline(v)}\n" for k, v in tab.items()) + "\n")
-                for oname, attrs in objs:
-                    objects.append(f"[axes.object.{name}.{oname}]\n"
-                                   + "".join(f"{k} = {_inline(v)}\n" for k, v in attrs.items()))
+        for s, t in pairs:
+            name = variant_name(scene, s, t)
+            tab = {k: (dict(v) if isinstance(v, dict) else v) for k, v in table.items()}
+            if (s, t) != (0, 0):
+                tab = {"shares": scene, **tab}
+            if s:
+                sfm = dict(tab.get("sfm", {}))
+                sfm["options"] = {**dict(sfm.get("options", {})), "seed": s}
+                tab["sfm"] = sfm
+            if t:
+                tab["train"] = {**dict(tab.get("train", {})), "seed": t}
+            parts.append(f"[axes.scene.{name}]\n" + "".join(f"{k} = {_inline(v)}\n" for k, v in tab.items()) + "\n")
+            for oname, attrs in objs:
+                objects.append(f"[axes.object.{name}.{oname}]\n"
+                               + "".join(f"{k} = {_inline(v)}\n" for k, v in attrs.items()))
     parts.append("# --- methods: the default and the rows it is compared with ---\n")
     parts += [methods[r] + ("" if methods[r].endswith("\n\n") else "\n") for r in rows]
     parts.append("# --- objects: each scene's, on every seed ---\n")
@@ -121,10 +125,13 @@ def spread_table(workflow: Path, cache: Path, scenes=SCENES, rows=ROWS) -> str:
 
     out = ["| scene | masks | protocol | default − row | per baseline (s,t) | pooled [95 %] | verdict |",
            "|---|---|---|---|---|---|---|"]
+    present = set(tomllib.loads(workflow.read_text(encoding="utf-8"))["axes"]["scene"])
+    rows = [r for r in rows if r in tomllib.loads(workflow.read_text(encoding="utf-8"))["axes"]["method"]]
     for route in ROUTES:
         R, _ = load(workflow, cache, (), route)
         for scene in scenes:
-            bases = [(s, t, variant_name(scene, s, t)) for s in SFM_SEEDS for t in TRAIN_SEEDS]
+            bases = [(s, t, variant_name(scene, s, t)) for s in SFM_SEEDS for t in TRAIN_SEEDS
+                     if variant_name(scene, s, t) in present]
             for metric, label in PROTOCOLS.items():
                 for row in rows:
                     pairs, singles = {}, {}
@@ -163,12 +170,24 @@ def main(argv=None) -> int:
     w = sub.add_parser("write", help="write the seed-spread workflow")
     w.add_argument("out", type=Path)
     w.add_argument("--source", type=Path, default=ROOT / "workflows" / "synthetic_bench.toml")
+    w.add_argument("--pairs", help="SfM:training seed pairs, comma separated (default: every pair of "
+                   f"{SFM_SEEDS} x {TRAIN_SEEDS}), e.g. 0:0,1:0,2:0,0:1")
+    w.add_argument("--rows", help=f"the rows compared with {REF}, comma separated (default: {','.join(ROWS)})")
     t = sub.add_parser("table", help="the comparisons on every baseline and pooled")
     t.add_argument("workflow", type=Path)
     t.add_argument("--cache", type=Path, required=True)
     args = ap.parse_args(argv)
     if args.cmd == "write":
-        print(write_workflow(args.source, args.out))
+        pairs = None
+        if args.pairs:
+            try:
+                pairs = [tuple(int(x) for x in p.split(":")) for p in args.pairs.split(",")]
+            except ValueError:
+                raise SystemExit(f"--pairs {args.pairs!r}: expected S:T pairs of integers, comma separated")
+            if any(len(p) != 2 or p[0] not in SFM_SEEDS or p[1] not in TRAIN_SEEDS for p in pairs):
+                raise SystemExit(f"--pairs {args.pairs!r}: each S:T with S in {SFM_SEEDS} and T in {TRAIN_SEEDS}")
+        rows = (REF, *(args.rows.split(",") if args.rows else ROWS))
+        print(write_workflow(args.source, args.out, pairs=pairs, rows=rows))
     else:
         print(spread_table(args.workflow, args.cache))
     return 0

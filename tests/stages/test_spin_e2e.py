@@ -110,6 +110,11 @@ def test_fern_and_orchids_run_and_score_every_annotated_view_but_the_prompt(spin
 
     # the published mean over the scenes whose dataset task ran (2 alone, 9 after the first test)
     assert re.search(r"\| mean of [29] \| SPIn-NeRF \(published\) \|", spin)
+    # the peers' published means (SAGOnline's Table I), in their own rows, marked and sourced
+    peers = {ln.split("|")[2].strip(): ln for ln in spin.splitlines() if ln.startswith("| paper's scenes |")}
+    assert sorted(peers) == sorted(f"{m} (published ‡)" for m in ("SAGOnline", "SAGA", "SA3D-GS", "SA3D (NeRF)"))
+    assert "95.20 | 99.30 |" in peers["SAGOnline (published ‡)"] and "93.20 | 99.10 |" in peers["SA3D-GS (published ‡)"]
+    assert "SAGOnline's Table I" in spin
 
 
 def test_the_click_route_runs_the_whole_chain(spin, monkeypatch, tmp_path_factory):
