@@ -61,3 +61,21 @@ def test_the_written_workflow_loads_and_shares_what_the_seeds_leave_equal(tmp_pa
     assert train["orbit_coarse_s1t1"]["seed"] == 1 and train["orbit_coarse_s1t0"]["seed"] == 0
     objs = {t.item["object"] for t in plan.tasks if t.stage.name == "refine" and t.item["scene"] == "orbit_coarse_s2t1"}
     assert "pole_noisy" in objs and "crate" in objs and len(objs) == 10
+
+
+def test_a_smaller_design_writes_only_the_pairs_and_rows_asked(tmp_path, monkeypatch):
+    from pipeline import Plan, load_workflow
+    from stages.registry import load_registry
+
+    bm = _bm_seeds()
+    out = bm.write_workflow(ROOT / "workflows" / "synthetic_bench.toml", tmp_path / "seeds.toml",
+                            pairs=[(0, 0), (1, 0), (2, 0), (0, 1)], rows=("ours_per_use", "raem_paper", "flashsplat"))
+    monkeypatch.setenv("COBGS_SHARED_DATA", str(Path(__file__).resolve().parents[2] / "shared" / "data"))
+    plan = Plan(load_workflow(out, load_registry()))
+    scenes = {t.item["scene"] for t in plan.tasks if "scene" in t.item.axes}
+    assert scenes == {f"{s}{v}" for s in ("forward_coarse", "orbit_coarse") for v in ("", "_s1t0", "_s2t0", "_s0t1")}
+    assert {t.item["method"] for t in plan.tasks if "method" in t.item.axes} == {"ours_per_use", "raem_paper", "flashsplat"}
+    with pytest.raises(SystemExit, match="must hold"):
+        bm.write_workflow(ROOT / "workflows" / "synthetic_bench.toml", tmp_path / "x.toml", pairs=[(1, 0)])
+    with pytest.raises(SystemExit, match="S:T"):
+        bm.main(["write", str(tmp_path / "y.toml"), "--pairs", "0:0,5:0"])
