@@ -111,6 +111,13 @@ class TrainConfig:
     # budget_edge_exempt k > 0: a Gaussian whose averaged gradient is at least k x 3DGS's
     # threshold (the strongest edges) densifies even where the ceiling leaves no room.
     budget_probe_at: float = field(default=0.25, metadata={"before": 0.25})
+    # Where the growth is measured from. "start": from the initial count at the window's start
+    # (the rule measured first). "trough": from the fewest Gaussians seen in the window so far
+    # (a random-box start prunes most of its box first, so its count falls before it grows;
+    # measured from the start, that fall reads as no growth), over a span of budget_probe_at
+    # of the window after that point, extrapolated to the window's end. With no fall the two
+    # are the same rule.
+    budget_probe_from: str = field(default="start", metadata={"before": "start"})
     budget_edge_exempt: float = field(default=0.0, metadata={"before": 0.0})
     # Full-resolution random crops instead of whole frames late in the run (issue 57 item 4):
     # once densification has ended and the renders are full size, each step renders and fits a
@@ -155,7 +162,8 @@ class TrainConfig:
         "budget_probe_at": "(0, 1)", "budget_edge_exempt": "[0, 1e6]", "crop_fraction": "[0.05, 1]",
     }
     CHOICES: ClassVar[dict] = {"backend": ("native", "reference"), "recipe": tuple(RECIPES_NAMES),
-                               "budget_schedule": ("line", "resolution", "growth"), "rasterizer": ("ours", "gsplat")}
+                               "budget_schedule": ("line", "resolution", "growth"), "rasterizer": ("ours", "gsplat"),
+                               "budget_probe_from": ("start", "trough")}
 
     def __post_init__(self):
         check_params(self)

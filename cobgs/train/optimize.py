@@ -241,6 +241,8 @@ class Trainer:
         self.budget = config.budget_for(int(cam0.width), int(cam0.height), self._n_init)
         #: budget_schedule "growth": (window share, count) where the budget was measured, None before
         self.budget_probe: Optional[tuple[float, int]] = None
+        #: budget_probe_from "trough": (window share, count) of the fewest Gaussians seen before the probe
+        self.budget_trough: tuple[float, int] = (0.0, self._n_init)
         self.crop_rng = torch.Generator().manual_seed(config.seed + 4)
         self._levels: Optional[list[tuple[float, float]]] = None  # (downscale, energy kept), resolution schedule
         self._targets: dict = {}  # (view index, w, h) -> the downsampled image
@@ -332,12 +334,24 @@ class Trainer:
 
     def _probe_growth(self, n: int) -> None:
         """budget_schedule "growth": once budget_probe_at of the window has passed, the count 3DGS's
-        rule grew to, extrapolated linearly over the whole window, becomes the budget."""
-        t = self.window_share()
-        if t < self.config.budget_probe_at or t <= 0:
+        rule grew to, extrapolated linearly over the whole window, becomes the budget.
+
+        With ``budget_probe_from = "trough"`` the line starts at the fewest Gaussians seen so far
+        (``budget_trough``) and the probe waits until budget_probe_at of the window has passed
+        since then; a count that only falls is never probed (3DGS's rule to the window's end)."""
+        c, t = self.config, self.window_share()
+        t0, n_low = 0.0, self._n_init
+        if c.budget_probe_from == "trough":
+            if n < self.budget_trough[1]:
+                self.budget_trough = (t, n)
+            t0, n_low = self.budget_trough
+        if t - t0 < c.budget_probe_at or t <= 0:
             return
         self.budget_probe = (t, n)
-        self.budget = max(n, int(round(self._n_init + (n - self._n_init) / t)))
+        if c.budget_probe_from == "start":  # (written as first measured: the same integers)
+            self.budget = max(n, int(round(self._n_init + (n - self._n_init) / t)))
+        else:  # the growth since the trough, as a straight line through it and (t, n), at the window's end
+            self.budget = max(n, int(round(n + (n - n_low) * (1.0 - t) / (t - t0))))
 
     def _reset_stats(self) -> None:
         n, dev = len(self.model), self.model.device
@@ -545,6 +559,7 @@ class Trainer:
             "bg_rng": self.bg_rng.get_state(),
             "crop_rng": self.crop_rng.get_state(),
             "budget": (self.budget, self.budget_probe),
+            "budget_trough": self.budget_trough,
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -574,6 +589,8 @@ class Trainer:
             self.budget, self.budget_probe = state["budget"][0], state["budget"][1]
             if self.budget_probe is not None:
                 self.budget_probe = (float(self.budget_probe[0]), int(self.budget_probe[1]))
+        if "budget_trough" in state:  # absent before budget_probe_from
+            self.budget_trough = (float(state["budget_trough"][0]), int(state["budget_trough"][1]))
 
     def save_checkpoint(self, path: os.PathLike | str) -> Path:
         """Write the full state atomically (temporary file + rename)."""

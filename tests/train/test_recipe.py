@@ -331,6 +331,42 @@ def test_a_budget_measured_from_the_scenes_own_growth(scene):
         assert name not in key_without_later(TrainConfig, dataclasses.asdict(TrainConfig(recipe="fast")))
 
 
+def test_the_growth_is_measured_from_the_trough_of_a_pruned_start(scene):
+    """Issue 57 item 3: a random-box start prunes first, so measured from the initial count its
+    growth reads as none and the budget is the trough's count (lego: 36k against the faithful
+    run's 96k). budget_probe_from = "trough" measures it from the fewest Gaussians seen, over
+    budget_probe_at of the window after them. Out of the key unless set; checkpoints keep it."""
+    def probe(rule, counts):
+        tr = Trainer(scene, _cfg(budget_schedule="growth", budget_probe_at=0.25, budget_probe_from=rule))
+        out = []
+        for it, n in counts:  # window 5..50: share (it - 5) / 45
+            tr.iteration = it
+            tr._probe_growth(n)
+            out.append((tr.budget_probe, tr.budget))
+        return tr, out
+
+    counts = [(14, 60), (23, 90), (32, 120)]  # 200 random points fall to 60 at share 0.2, then grow
+    _, start = probe("start", counts)
+    assert start[1] == ((0.4, 90), 90)  # from 200: no growth seen, the budget is the count at the probe
+    tr, trough = probe("trough", counts)
+    assert tr.budget_trough == (0.2, 60)
+    assert trough[0][0] is None and trough[1][0] is None  # 0.2 of the window since the trough: not yet
+    assert trough[2] == ((0.6, 120), 180)  # 120 + 60 per 0.4 of the window, over the last 0.4
+    state = tr.state_dict()
+    again = Trainer(scene, _cfg(budget_schedule="growth", budget_probe_at=0.25, budget_probe_from="trough"))
+    again.load_state_dict(state)
+    assert again.budget_trough == (0.2, 60) and again.budget_probe == (0.6, 120) and again.budget == 180
+    _, rising = probe("trough", [(14, 230), (23, 260)])  # no fall: the same rule as "start"
+    _, rising_start = probe("start", [(14, 230), (23, 260)])
+    assert rising == rising_start
+    full = dataclasses.asdict(TrainConfig(budget_schedule="growth"))
+    assert "budget_probe_from" not in key_without_later(TrainConfig, full)
+    assert key_without_later(TrainConfig, dataclasses.asdict(
+        TrainConfig(budget_schedule="growth", budget_probe_from="trough")))["budget_probe_from"] == "trough"
+    with pytest.raises(Exception, match="budget_probe_from"):
+        TrainConfig(budget_probe_from="minimum")
+
+
 def test_the_strongest_edges_densify_past_the_ceiling(scene):
     """Issue 57 item 3, budget_edge_exempt k: under a budget with no room at all, only Gaussians whose
     averaged gradient is at least k x the threshold densify; 0 (off): nothing grows."""
