@@ -7,6 +7,8 @@ Two steps (not collected by pytest)::
     #    training seeds (`shares` the scene: same dataset and masks; the SfM reruns where its
     #    seed differs, the training where either does), the rows compared, every object
     .venv/bin/python tests/benchmarks/bm_seeds.py write runs/seed_spread.toml
+    #    (or a smaller design: --pairs 0:0,1:0,2:0,0:1 --rows raem_paper,flashsplat, as
+    #    docs/benchmarks/segmentation.md ran it)
     cobgs run runs/seed_spread.toml --cache-dir runs/cache -j 2
     # 2. the table: per scene, mask route and protocol, the default minus each row on every
     #    baseline, and pooled over the baselines with a two-level bootstrap
