@@ -119,7 +119,7 @@ def write_workflow(src: Path, out: Path, scenes=SCENES, sfm_seeds=SFM_SEEDS, tra
     return out
 
 
-def spread_table(workflow: Path, cache: Path, scenes=SCENES, rows=ROWS) -> str:
+def spread_table(workflow: Path, cache: Path, scenes=SCENES, rows=None) -> str:
     """The Markdown table of the module docstring."""
     from bm_rows import METRICS, load
 
@@ -128,7 +128,8 @@ def spread_table(workflow: Path, cache: Path, scenes=SCENES, rows=ROWS) -> str:
     out = ["| scene | masks | protocol | default − row | per baseline (s,t) | pooled [95 %] | verdict |",
            "|---|---|---|---|---|---|---|"]
     present = set(tomllib.loads(workflow.read_text(encoding="utf-8"))["axes"]["scene"])
-    rows = [r for r in rows if r in tomllib.loads(workflow.read_text(encoding="utf-8"))["axes"]["method"]]
+    methods = list(tomllib.loads(workflow.read_text(encoding="utf-8"))["axes"]["method"])
+    rows = [r for r in (methods if rows is None else rows) if r in methods and r != REF]  # the workflow's rows
     for route in ROUTES:
         R, _ = load(workflow, cache, (), route)
         for scene in scenes:
