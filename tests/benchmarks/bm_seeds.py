@@ -127,8 +127,8 @@ def spread_table(workflow: Path, cache: Path, scenes=SCENES, rows=None) -> str:
 
     out = ["| scene | masks | protocol | default − row | per baseline (s,t) | pooled [95 %] | verdict |",
            "|---|---|---|---|---|---|---|"]
-    present = set(tomllib.loads(workflow.read_text(encoding="utf-8"))["axes"]["scene"])
-    methods = list(tomllib.loads(workflow.read_text(encoding="utf-8"))["axes"]["method"])
+    axes = tomllib.loads(workflow.read_text(encoding="utf-8"))["axes"]
+    present, methods = set(axes["scene"]), list(axes["method"])
     rows = [r for r in (methods if rows is None else rows) if r in methods and r != REF]  # the workflow's rows
     for route in ROUTES:
         R, _ = load(workflow, cache, (), route)
