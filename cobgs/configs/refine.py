@@ -103,6 +103,12 @@ class RefineConfig:
     # keeps its label's verdict rather than being removed on the edge's say-so. 0: every pixel
     # votes (the check as measured in issue 48).
     object_check_edge_px: int = field(default=0, metadata={"before": 0})
+    # Ambiguity as the object sees it (issue 59 item 2): at the end of each mask stage a Gaussian
+    # whose minority Σ α·T (min of its object and background parts) averages at least this
+    # share of the object's Σ α·T per view is split as an ambiguous one is (when large), though
+    # Eq. 6 calls it unambiguous: a large Gaussian over a tiny or thin object and much
+    # background. Never pruned by RAEM. 0: off (COB-GS as published).
+    split_object_share: float = field(default=0.0, metadata={"before": 0.0})
 
     RANGES: ClassVar[dict] = {
         "delta": "[0, 1]", "mask_stages": "[1, 100]", "stage_length_views": "(0, 100]",
@@ -110,7 +116,7 @@ class RefineConfig:
         "raem_footprint_px": "[0, 1e4]", "mask_lambda": "[0, 1000]", "label_lr": "(0, 10]",
         "adam_eps": "(0, 0.001]", "position_lr": "[0, 1]", "sh0_lr": "[0, 1]", "shN_lr": "[0, 1]",
         "opacity_lr": "[0, 1]", "scaling_lr": "[0, 1]", "rotation_lr": "[0, 1]", "ssim_weight": "[0, 1]",
-        "seed": "[0, 2147483647]", "object_check_edge_px": "[0, 64]",
+        "seed": "[0, 2147483647]", "object_check_edge_px": "[0, 64]", "split_object_share": "[0, 1]",
     }
     CHOICES: ClassVar[dict] = {"backend": ("native", "reference"), "label_name": (LABEL,),
                                "scene_type": tuple(SCENE_DEFAULTS), "raem": RAEM_VARIANTS,

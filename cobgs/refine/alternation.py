@@ -70,6 +70,7 @@ from cobgs.refine.result import PeakMemory, RefineResult, StageStats
 from cobgs.refine.consistency import object_render_check
 from cobgs.refine.scores import (
     ScoreAccumulator,
+    object_share,
     ensure_label,
     mask_loss,
     pixel_labels_from_mask,
@@ -167,6 +168,9 @@ class Refiner:
         self.split_rng = torch.Generator().manual_seed(c.seed + 1)
         self.queue: list[int] = []
         self.scores = ScoreAccumulator(len(model), model.device)
+        # the object's view of ambiguity (``RefineConfig.split_object_share``): each Gaussian's
+        # minority Σ α·T as a share of the object's Σ α·T in the view, summed over the stage
+        self.object_share = ScoreAccumulator(len(model), model.device) if c.split_object_share > 0 else None
         # what RAEM removed at the end (None while nothing was): the scene before it
         self.raem_keep: Optional[Tensor] = None
         self.raem_removed: Optional[GaussianModel] = None
@@ -198,6 +202,8 @@ class Refiner:
         loss.backward()
         with torch.no_grad():
             self.scores.add(view_scores(out.label_counts, out.label_weights, c.score == "weight", c.mask_lambda))
+            if self.object_share is not None:
+                self.object_share.add(object_share(out.label_weights))
             self.label_opt.step()
             self.label_opt.zero_grad(set_to_none=True)
         self.iteration += 1
@@ -230,9 +236,14 @@ class Refiner:
         c, m = self.config, self.model
         mean = self.scores.mean(length)
         amb = mean < c.threshold
-        large = split_candidates(m, amb, self.extent, c.split_size_fraction)
-        info = {"ambiguous": int(amb.sum()), "ambiguous_large": int(large.sum()), "split": 0, "pruned": 0,
-                "scores": mean}
+        info = {"ambiguous": int(amb.sum()), "split": 0, "pruned": 0, "scores": mean}
+        if self.object_share is not None:  # split (never pruned): what costs the object ≥ the share
+            wide = (self.object_share.mean(length) >= c.split_object_share) & ~amb
+            info["object_share"] = int(wide.sum())
+        else:
+            wide = torch.zeros_like(amb)
+        large = split_candidates(m, amb | wide, self.extent, c.split_size_fraction)
+        info["ambiguous_large"] = int(large.sum())
         if last:
             prune = raem_prune_mask(m, amb, c.raem, [v.camera for v in self.views], c.raem_footprint_px)
             info["pruned"] = int(prune.sum())
@@ -241,11 +252,13 @@ class Refiner:
                 m.keep(~prune, self.optimizers)
         elif c.bags:
             info["split"] = boundary_split(
-                m, amb, self.extent, size_fraction=c.split_size_fraction, n_children=c.split_children,
+                m, amb | wide, self.extent, size_fraction=c.split_size_fraction, n_children=c.split_children,
                 scale_divisor=c.split_scale_divisor, reset=(c.label_name,), optimizers=self.optimizers,
                 generator=self.split_rng,
             )
         self.scores.reset(len(m))
+        if self.object_share is not None:
+            self.object_share.reset(len(m))
         self.last_mask_info = info  # (for diagnostics: Refiner.run's on_stage_end)
         return info
 

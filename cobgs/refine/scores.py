@@ -182,6 +182,31 @@ def view_scores(
     return torch.where(unseen, torch.ones_like(r), r)
 
 
+def object_share(label_weights: Tensor) -> Tensor:
+    """Per-Gaussian ambiguity as the *object* sees it, in one view (``RefineConfig.split_object_share``).
+
+    Eq. 6 judges a Gaussian against its own footprint: one that covers a small object and a
+    large stretch of background scores near 1 (unambiguous) however much of the object it
+    carries. What it costs the object's mask is its minority part, whichever label it takes:
+    ``min(Σ α·T over object pixels, Σ α·T over background pixels)``. This returns that as a
+    share of the object's whole Σ α·T in the view (all Gaussians), 0 where the view shows no
+    object.
+
+    Args:
+        label_weights: [N, 2] Σ α·T per label (0 background, 1 object) of one view.
+
+    Returns:
+        [N] float32 ≥ 0.
+    """
+    if label_weights.dim() != 2 or label_weights.shape[1] != 2:
+        raise InputError(f"label_weights must be [N, 2], got {list(label_weights.shape)}")
+    w = label_weights.to(torch.float64)
+    total = w[:, 1].sum()
+    if total <= 0:
+        return torch.zeros(len(w), dtype=torch.float32, device=w.device)
+    return (torch.minimum(w[:, 0], w[:, 1]) / total).to(torch.float32)
+
+
 class ScoreAccumulator:
     """Sum of per-view scores over one mask stage (Eq. 7).
 
