@@ -603,3 +603,49 @@ def test_short_stages_cannot_carry_a_restarted_label_past_foreground_and_say_so(
         refine(model, views, masks_for(views, "ball"), extent, RefineConfig(mask_stages=2, stage_length_views=2),
                progress=False, object_name="ball")
     assert any("stages of 6 iterations" in r.getMessage() and "ball" in r.getMessage() for r in caplog.records)
+
+
+def test_object_share_is_the_minority_part_over_the_objects_whole():
+    """Issue 59 item 2 (RefineConfig.split_object_share): per Gaussian, min(object, background)
+    Σ α·T over the object's Σ α·T of the view; 0 everywhere where the view shows no object."""
+    from cobgs.refine.scores import object_share
+
+    w = torch.tensor([[9.0, 1.0], [0.0, 4.0], [5.0, 5.0], [100.0, 2.0]])
+    s = object_share(w)
+    assert torch.allclose(s, torch.tensor([1.0, 0.0, 5.0, 2.0]) / 12.0)
+    assert not object_share(torch.tensor([[3.0, 0.0], [1.0, 0.0]])).any()
+    with pytest.raises(InputError, match=r"\[N, 2\]"):
+        object_share(torch.ones(4, 3))
+
+
+def test_split_object_share_splits_what_eq6_calls_unambiguous_and_never_prunes_it():
+    """A Gaussian whose stage-mean object share reaches the bar joins the split set although its
+    Eq. 6 score is above δ; it is split when large, left alone by RAEM; at 0 nothing changes and
+    the field stays out of the cache key."""
+    from cobgs.configs import key_without_later
+
+    model, views, extent = tiny_scene(n_views=3)
+    off = Refiner(model.clone(), views, masks_for(views, "ball"), extent, RefineConfig(stage_length_views=2))
+    assert off.object_share is None
+    assert "split_object_share" not in key_without_later(RefineConfig, RefineConfig().as_dict())
+
+    cfg = RefineConfig(stage_length_views=2, split_size_fraction=0.0, split_object_share=1e-3)
+    L = cfg.stage_length(3)
+    for last in (False, True):
+        m = model.clone()
+        r = Refiner(m, views, masks_for(views, "ball"), extent, cfg)
+        for _ in range(L):
+            r.mask_step(r.next_view())
+        amb = r.scores.ambiguous(cfg.threshold, L)
+        wide = (r.object_share.mean(L) >= cfg.split_object_share) & ~amb
+        assert wide.any()  # the bar is low: some Gaussians Eq. 6 calls clear are wide for the object
+        n0 = len(m)
+        info = r.end_mask_stage(L, last=last)
+        assert info["object_share"] == int(wide.sum())
+        if last:  # RAEM judges by Eq. 6 alone
+            assert info["split"] == 0 and info["pruned"] <= int(amb.sum())
+            if r.raem_keep is not None:
+                assert r.raem_keep[wide].all()
+        else:
+            assert info["split"] == int((amb | wide).sum()) and len(m) == n0 + info["split"]
+        assert r.object_share.iterations == 0 and r.object_share.sum.shape == (len(m),)
