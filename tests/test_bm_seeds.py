@@ -53,7 +53,7 @@ def test_the_written_workflow_loads_and_shares_what_the_seeds_leave_equal(tmp_pa
     scenes = sorted({t.item["scene"] for t in plan.tasks if "scene" in t.item.axes})
     assert len(scenes) == 12 and "forward_coarse_s2t1" in scenes and "orbit_coarse" in scenes
     methods = sorted({t.item["method"] for t in plan.tasks if "method" in t.item.axes})
-    assert methods == sorted(["ours_per_use", "raem_paper", "ngs_checked", "ngs", "flashsplat"])
+    assert methods == sorted(["ours_per_use", "ours_per_use_eq6", "raem_paper", "ngs_checked", "ngs", "flashsplat"])
     sfm = {t.item["scene"]: t.params.json for t in plan.tasks if t.stage.name == "sfm"}
     train = {t.item["scene"]: t.params.json for t in plan.tasks if t.stage.name == "train"}
     assert sfm["forward_coarse_s2t0"]["options"]["seed"] == 2 and sfm["forward_coarse_s0t1"]["options"]["seed"] == 0

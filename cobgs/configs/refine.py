@@ -15,7 +15,7 @@ from .train import TrainConfig
 LABEL = "mask_logit"  # name of the per-Gaussian label-logit extra
 #: What the no-split peer forces on COB-GS's config (paper Table 5, first row; with the
 #: stage count, cobgs.refine.peers.nosplit_config): these switches say nothing of a no-split row.
-NOSPLIT_SWITCHES = {"bags": False, "bgtr": False, "raem": "off", "object_check": "off"}
+NOSPLIT_SWITCHES = {"bags": False, "bgtr": False, "raem": "off", "object_check": "off", "split_object_share": 0.0}
 RAEM_VARIANTS = ("off", "released", "paper")
 SCENE_DEFAULTS = {"forward": (0.5, 6), "360": (0.8, 4)}  # δ, mask stages (docs/method.md §2)
 TEXTURE_ADAM = ("baseline", "fresh")
@@ -103,12 +103,13 @@ class RefineConfig:
     # keeps its label's verdict rather than being removed on the edge's say-so. 0: every pixel
     # votes (the check as measured in issue 48).
     object_check_edge_px: int = field(default=0, metadata={"before": 0})
-    # Ambiguity as the object sees it (issue 59 item 2): at the end of each mask stage a Gaussian
-    # whose minority Σ α·T (min of its object and background parts) averages at least this
-    # share of the object's Σ α·T per view is split as an ambiguous one is (when large), though
-    # Eq. 6 calls it unambiguous: a large Gaussian over a tiny or thin object and much
-    # background. Never pruned by RAEM. 0: off (COB-GS as published).
-    split_object_share: float = field(default=0.0, metadata={"before": 0.0})
+    # Ambiguity as the object sees it (issue 59 item 2; docs/method.md §7): at the end of each
+    # mask stage a Gaussian whose minority Σ α·T (min of its object and background parts)
+    # averages at least this share of the object's Σ α·T per view is split as an ambiguous one
+    # is (when large), though Eq. 6 calls it unambiguous: a large Gaussian over a tiny or thin
+    # object and much background. Never pruned by RAEM. 0: off (COB-GS as published; entries
+    # written before the field existed).
+    split_object_share: float = field(default=0.05, metadata={"before": 0.0})
 
     RANGES: ClassVar[dict] = {
         "delta": "[0, 1]", "mask_stages": "[1, 100]", "stage_length_views": "(0, 100]",

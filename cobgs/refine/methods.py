@@ -138,7 +138,8 @@ class NoSplit(CobGS):
 
     def key_section(self, section, values):
         out = _cobgs_section(values)
-        out.pop("object_check", None)  # forced off (NOSPLIT_SWITCHES): it says nothing of this row
+        for name in ("object_check", "split_object_share"):  # forced off (NOSPLIT_SWITCHES): they say nothing of this row
+            out.pop(name, None)
         return out
 
     def schedule(self, config):

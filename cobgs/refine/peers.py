@@ -64,7 +64,7 @@ __all__ = [
 
 
 def nosplit_config(base: RefineConfig = RefineConfig()) -> RefineConfig:
-    """``base`` with BAGS, BGTR, RAEM and the object check off (paper Table 5, first row), training labels as
+    """``base`` with BAGS, BGTR, RAEM, the object check and the object-share split off (paper Table 5, first row), training labels as
     long as the released labels-only run does: every stage of ``base``'s alternation becomes
     a mask stage (forward: 6 mask + 5 texture stages -> 11 mask stages = 22·V iterations;
     360°: 4 + 3 -> 7 = 14·V), not only the mask stages' share (docs/method.md §3)."""

@@ -227,7 +227,7 @@ def test_mask_stage_keeps_geometry_and_colour_bit_identical():
 
 def test_mask_stage_with_split_keeps_unsplit_gaussians_identical():
     model, views, extent = tiny_scene(n_views=3)
-    cfg = RefineConfig(stage_length_views=2, split_size_fraction=0.0)
+    cfg = RefineConfig(stage_length_views=2, split_size_fraction=0.0, split_object_share=0.0)  # (Eq. 6's set alone)
     r = Refiner(model, views, masks_for(views, "ball"), extent, cfg)
     geo = _snapshot(model, CORE_NO_LABEL)
     for _ in range(cfg.stage_length(3)):
@@ -620,14 +620,18 @@ def test_object_share_is_the_minority_part_over_the_objects_whole():
 
 def test_split_object_share_splits_what_eq6_calls_unambiguous_and_never_prunes_it():
     """A Gaussian whose stage-mean object share reaches the bar joins the split set although its
-    Eq. 6 score is above δ; it is split when large, left alone by RAEM; at 0 nothing changes and
-    the field stays out of the cache key."""
+    Eq. 6 score is above δ; it is split when large, left alone by RAEM; at 0 (COB-GS as
+    published) nothing is accumulated and the field stays out of the cache key, so entries
+    written before it existed are reused."""
     from cobgs.configs import key_without_later
 
     model, views, extent = tiny_scene(n_views=3)
-    off = Refiner(model.clone(), views, masks_for(views, "ball"), extent, RefineConfig(stage_length_views=2))
+    off = Refiner(model.clone(), views, masks_for(views, "ball"), extent,
+                  RefineConfig(stage_length_views=2, split_object_share=0.0))
     assert off.object_share is None
-    assert "split_object_share" not in key_without_later(RefineConfig, RefineConfig().as_dict())
+    assert RefineConfig().split_object_share == 0.05  # the default since issue 59
+    assert "split_object_share" not in key_without_later(RefineConfig, RefineConfig(split_object_share=0.0).as_dict())
+    assert key_without_later(RefineConfig, RefineConfig().as_dict())["split_object_share"] == 0.05
 
     cfg = RefineConfig(stage_length_views=2, split_size_fraction=0.0, split_object_share=1e-3)
     L = cfg.stage_length(3)
