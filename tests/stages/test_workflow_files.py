@@ -132,3 +132,20 @@ def test_benchmark_workflows_run_a_repeatable_sfm(name, monkeypatch):
     assert sfm, name
     for t in sfm:
         assert t.params.json["mode"] == "never" or t.params.json["options"]["num_threads"] == 1, (name, t.item.id)
+
+
+def test_the_faithful_presets_keep_the_papers_splits():
+    """Issue 59 item 2: the object-share split is the default, so every preset named after the
+    paper's method (and the earlier variants of ours) pins it at 0, the value their cached
+    entries were computed with; the presets that name the default leave it to the default."""
+    from cobgs.configs import RefineConfig
+    from stages.registry import load_registry
+
+    presets = load_registry().presets["method"]
+    pinned = ("cobgs_faithful", "cobgs_released", "raem_paper", "no_raem", "t5_bags", "ngs", "ngs_checked",
+              "ours", "ours_per_use_eq6")
+    for name in pinned:
+        assert presets[name]["refine"]["cobgs"]["split_object_share"] == 0.0, name
+    for name in ("cobgs", "ours_per_use"):
+        assert "split_object_share" not in presets[name].get("refine", {}).get("cobgs", {}), name
+    assert RefineConfig().split_object_share > 0
