@@ -101,7 +101,8 @@ class RefineConfig:
     # within this many pixels of a mask's edge are left out of the check, as hidden pixels are.
     # A Gaussian whose every pixel is near an edge (a thin or tiny object under noisy masks) then
     # keeps its label's verdict rather than being removed on the edge's say-so. 0: every pixel
-    # votes (the check as measured in issue 48).
+    # votes (the check as measured in issue 48). Measured at 2 px on orbit_coarse (2026-11-29):
+    # worse (the edge pixels remove the thin pole's spill); off.
     object_check_edge_px: int = field(default=0, metadata={"before": 0})
     # Ambiguity as the object sees it (issue 59 item 2; docs/method.md §7): at the end of each
     # mask stage a Gaussian whose minority Σ α·T (min of its object and background parts)
