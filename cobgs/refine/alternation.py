@@ -237,12 +237,12 @@ class Refiner:
         mean = self.scores.mean(length)
         amb = mean < c.threshold
         info = {"ambiguous": int(amb.sum()), "split": 0, "pruned": 0, "scores": mean}
+        to_split = amb
         if self.object_share is not None:  # split (never pruned): what costs the object ≥ the share
             wide = (self.object_share.mean(length) >= c.split_object_share) & ~amb
             info["object_share"] = int(wide.sum())
-        else:
-            wide = torch.zeros_like(amb)
-        large = split_candidates(m, amb | wide, self.extent, c.split_size_fraction)
+            to_split = amb | wide
+        large = split_candidates(m, to_split, self.extent, c.split_size_fraction)
         info["ambiguous_large"] = int(large.sum())
         if last:
             prune = raem_prune_mask(m, amb, c.raem, [v.camera for v in self.views], c.raem_footprint_px)
@@ -252,7 +252,7 @@ class Refiner:
                 m.keep(~prune, self.optimizers)
         elif c.bags:
             info["split"] = boundary_split(
-                m, amb | wide, self.extent, size_fraction=c.split_size_fraction, n_children=c.split_children,
+                m, to_split, self.extent, size_fraction=c.split_size_fraction, n_children=c.split_children,
                 scale_divisor=c.split_scale_divisor, reset=(c.label_name,), optimizers=self.optimizers,
                 generator=self.split_rng,
             )

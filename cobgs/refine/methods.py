@@ -18,7 +18,8 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, Mapping, Optional, Sequence
 
-from cobgs.configs import FlashSplatConfig, LUDVIGConfig, NGSConfig, RefineConfig, SA3DConfig, key_without_later
+from cobgs.configs import (NOSPLIT_SWITCHES, FlashSplatConfig, LUDVIGConfig, NGSConfig, RefineConfig, SA3DConfig,
+                           key_without_later)
 from cobgs.errors import InputError
 
 
@@ -138,8 +139,11 @@ class NoSplit(CobGS):
 
     def key_section(self, section, values):
         out = _cobgs_section(values)
-        for name in ("object_check", "split_object_share"):  # forced off (NOSPLIT_SWITCHES): they say nothing of this row
-            out.pop(name, None)
+        # the switches this row forces off that were added later (NOSPLIT_SWITCHES; "before" in
+        # their metadata) say nothing of it: out of its key whatever the params say
+        for f in dataclasses.fields(RefineConfig):
+            if f.name in NOSPLIT_SWITCHES and "before" in f.metadata:
+                out.pop(f.name, None)
         return out
 
     def schedule(self, config):
