@@ -149,3 +149,25 @@ def test_the_faithful_presets_keep_the_papers_splits():
     for name in ("cobgs", "ours_per_use"):
         assert "split_object_share" not in presets[name].get("refine", {}).get("cobgs", {}), name
     assert RefineConfig().split_object_share > 0
+
+
+def test_the_benchmarks_faithful_rows_keep_the_papers_splits():
+    """Every COB-GS row of synthetic_bench.toml that turns this project's object check off (the
+    faithful rows, Table 5's ablations, the δ sweep of Fig. 7) also leaves out the object-share
+    split, whether through its preset or its own table: a faithful row is COB-GS as published."""
+    import tomllib
+
+    from stages.registry import load_registry
+
+    presets = load_registry().presets["method"]
+    rows = tomllib.loads((DEMO.parent / "synthetic_bench.toml").read_text())["axes"]["method"]
+    checked = []
+    for name, table in rows.items():
+        refine = dict(presets[table["preset"]].get("refine", {})) if "preset" in table else {}
+        own = table.get("refine", {})
+        cobgs = {**refine.get("cobgs", {}), **own.get("cobgs", {})}
+        method = own.get("method", refine.get("method", "cobgs"))
+        if method in ("cobgs", "ngs") and cobgs.get("object_check") == "off":
+            assert cobgs.get("split_object_share") == 0.0, name
+            checked.append(name)
+    assert {"cobgs", "raem_paper", "no_raem", "t5_bags", "ngs", "delta_0.3", "delta_0.9"} <= set(checked)
