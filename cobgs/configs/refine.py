@@ -104,6 +104,11 @@ class RefineConfig:
     # votes (the check as measured in issue 48). Measured at 2 px on orbit_coarse (2026-11-29):
     # worse (the edge pixels remove the thin pole's spill); off.
     object_check_edge_px: int = field(default=0, metadata={"before": 0})
+    # The check's keep rule (issue 59 item 2; cobgs.refine.consistency): "votes", the mask
+    # loss's rule per Gaussian (object votes > λ × background votes; the check as measured in
+    # issue 48); "iou", a Gaussian leaves only when the object's render agrees better with the
+    # masks without it (soft IoU), so an object is never emptied of the few Gaussians that draw it.
+    object_check_rule: str = field(default="votes", metadata={"before": "votes"})
     # Ambiguity as the object sees it (issue 59 item 2; docs/method.md §7): at the end of each
     # mask stage a Gaussian whose minority Σ α·T (min of its object and background parts)
     # averages at least this share of the object's Σ α·T per view is split as an ambiguous one
@@ -123,7 +128,8 @@ class RefineConfig:
     CHOICES: ClassVar[dict] = {"backend": ("native", "reference"), "label_name": (LABEL,),
                                "scene_type": tuple(SCENE_DEFAULTS), "raem": RAEM_VARIANTS,
                                "score": ("count", "weight"), "texture_adam": TEXTURE_ADAM,
-                               "object_check": ("off", "visible", "per_use")}
+                               "object_check": ("off", "visible", "per_use"),
+                               "object_check_rule": ("votes", "iou")}
 
     def __post_init__(self):
         check_params(self)  # (every field's range and choices: RANGES / CHOICES above)

@@ -432,7 +432,7 @@ def refine(
         in_scene = None
         if config.object_check in ("visible", "per_use"):
             kept = object_render_check(m, fg, r.views, r.pixel_labels, config.mask_lambda, config.backend,
-                                       edge_px=config.object_check_edge_px)
+                                       edge_px=config.object_check_edge_px, rule=config.object_check_rule)
             checked = int((fg & ~kept).sum())
             if config.object_check == "per_use":  # the object within the scene: the labels' verdict
                 in_scene = fg

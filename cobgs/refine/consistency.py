@@ -18,6 +18,17 @@
   Gaussian that the check outvotes leaves the foreground; it stays in the scene (and in neither
   set, like an undecided label); one the check cannot see at all (every pixel of it left out)
   keeps its label's verdict.
+* The check's keep rule (``RefineConfig.object_check_rule``). ``"votes"``: the mask loss's rule
+  above, per Gaussian. ``"iou"`` (issue 59 item 2): a Gaussian leaves the foreground only when
+  the object's render agrees better with the masks without it, by the intersection over union
+  the object is scored with. With a Gaussian's object and background votes a and b, the
+  foreground's summed votes A and B and the masks' object pixels M (all over the checked
+  pixels), the soft IoU A / (M + B) rises when the Gaussian goes exactly when a / b < A / (M + B).
+  Removing such Gaussians raises the IoU, so the rule is applied until nothing changes (a few
+  rounds). It never removes a Gaussian the votes rule keeps (the bar is min(λ, IoU) ≤ λ). On an
+  object the foreground covers well (IoU near 1) it is the votes rule; on a thin or tiny object
+  whose only Gaussians straddle its outline (a pole drawn by one Gaussian with 40 % of its
+  weight on the pole), removing them leaves nothing, and the rule keeps them.
 """
 
 from __future__ import annotations
@@ -29,6 +40,7 @@ from torch import Tensor
 
 from cobgs.data.scene import View
 from cobgs.render.image import render
+from cobgs.errors import InputError
 from cobgs.gaussians.model import GaussianModel
 
 
@@ -71,7 +83,7 @@ def edge_band(labels: Tensor, radius: int) -> Tensor:
 
 def object_render_check(model: GaussianModel, foreground: Tensor, views: Sequence[View],
                         pixel_labels: Sequence[Tensor], mask_lambda: float = 1.0,
-                        backend: str = "native", edge_px: int = 0) -> Tensor:
+                        backend: str = "native", edge_px: int = 0, rule: str = "votes") -> Tensor:
     """The foreground after the object-render check (module docstring).
 
     Args:
@@ -82,6 +94,7 @@ def object_render_check(model: GaussianModel, foreground: Tensor, views: Sequenc
         mask_lambda: λ of the mask loss (the weight of background votes).
         edge_px: pixels within this distance of a mask edge are left out of the votes
             (``RefineConfig.object_check_edge_px``; 0: none).
+        rule: "votes" or "iou" (module docstring; ``RefineConfig.object_check_rule``).
 
     Returns:
         [N] bool: ``foreground`` without the Gaussians the check outvotes.
@@ -105,5 +118,36 @@ def object_render_check(model: GaussianModel, foreground: Tensor, views: Sequenc
     w = label_votes(obj, views, checked, 2, backend)
     out = foreground.clone()
     # a Gaussian the check cannot see (every pixel of it left out) keeps its label's verdict
-    out[idx] = (w[:, 1] > mask_lambda * w[:, 0]) | (w.sum(dim=1) == 0)
+    unseen = w.sum(dim=1) == 0
+    if rule == "votes":
+        out[idx] = (w[:, 1] > mask_lambda * w[:, 0]) | unseen
+    elif rule == "iou":
+        object_pixels = float(sum(int((q == 1).sum()) for q in checked))
+        out[idx] = iou_keep(w[:, 1], w[:, 0], object_pixels, mask_lambda) | unseen
+    else:
+        raise InputError(f"object check rule must be 'votes' or 'iou', got {rule!r}")
     return out
+
+
+def iou_keep(a: Tensor, b: Tensor, object_pixels: float, mask_lambda: float = 1.0,
+             max_rounds: int = 100) -> Tensor:
+    """[n] bool: the Gaussians the ``"iou"`` rule keeps (module docstring).
+
+    Args:
+        a, b: [n] each Gaussian's votes on the object's and the background's pixels.
+        object_pixels: the masks' object pixels M over the checked views.
+        mask_lambda: λ; the bar is min(λ, soft IoU), so nothing the votes rule keeps goes.
+
+    A Gaussian stays when ``a >= bar · b`` (strictly below the bar it goes); the soft IoU
+    Σa / (M + Σb) of the kept ones sets the next round's bar, until the set stops changing (it
+    only shrinks, and the IoU only rises, so this ends; ``max_rounds`` bounds it all the same).
+    """
+    a, b = a.to(torch.float64), b.to(torch.float64)
+    keep = torch.ones(a.shape, dtype=torch.bool, device=a.device)
+    for _ in range(max_rounds):
+        iou = float(a[keep].sum()) / max(object_pixels + float(b[keep].sum()), 1e-300)
+        new = keep & (a >= min(mask_lambda, iou) * b)
+        if torch.equal(new, keep):
+            break
+        keep = new
+    return keep

@@ -529,6 +529,64 @@ def test_the_check_leaves_the_mask_edges_out_when_asked():
     assert "object_check_edge_px" not in key_without_later(RefineConfig, RefineConfig().as_dict())
 
 
+def test_the_iou_rule_of_the_check_keeps_what_draws_a_thin_object():
+    """Issue 59 item 2 (RefineConfig.object_check_rule = "iou"): a Gaussian leaves the checked
+    foreground only when the object's render agrees better with the masks without it (soft IoU
+    Σa / (M + Σb)). A pole drawn by one Gaussian with most of its weight beside the pole is
+    removed by the votes rule (a < b) and kept by the IoU rule; a Gaussian wholly on background
+    pixels leaves under both; the rule never removes what the votes rule keeps."""
+    import torch
+
+    from cobgs.configs import RefineConfig, key_without_later
+    from cobgs.data.scene import View
+    from cobgs.errors import InputError
+    from cobgs.gaussians.model import GaussianModel
+    from cobgs.refine.consistency import iou_keep, object_render_check
+    from cobgs.refine.scores import pixel_labels_from_mask
+    from cobgs.render.camera import Camera
+
+    # the arithmetic: a well-drawn object (IoU 91 / 105) loses its stray Gaussian (1/3 < 0.87)
+    assert iou_keep(torch.tensor([90.0, 1.0]), torch.tensor([2.0, 3.0]), 100.0).tolist() == [True, False]
+    # a lone straddler (4 on the object, 6 beside it; IoU 4 / 16) stays: without it nothing is drawn
+    assert iou_keep(torch.tensor([4.0]), torch.tensor([6.0]), 10.0).tolist() == [True]
+    # rounds: removing c (1/30 < IoU 0.71) lifts the IoU to 0.895, past b's 0.85, which then goes
+    keep = iou_keep(torch.tensor([90.0, 8.5, 1.0]), torch.tensor([0.0, 10.0, 30.0]), 100.0)
+    assert keep.tolist() == [True, False, False]
+    # the bar is min(λ, IoU): at λ = 0.5 the votes rule keeps b (6 > 0.5 · 10), and so does this one
+    assert iou_keep(torch.tensor([90.0, 6.0]), torch.tensor([0.0, 10.0]), 90.0, mask_lambda=0.5).tolist() == [True, True]
+    assert iou_keep(torch.tensor([90.0, 6.0]), torch.tensor([0.0, 10.0]), 90.0).tolist() == [True, False]
+
+    cam = Camera(K=torch.tensor([[50.0, 0, 16.0], [0, 50.0, 16.0], [0, 0, 1]]), viewmat=torch.eye(4),
+                 width=32, height=32, name="cam")
+    # 0: a wide Gaussian over the pole (columns 14-17, σ ≈ 3.75 px); 1: one wholly beside it
+    means = torch.tensor([[0.0, 0.0, 2.0], [0.36, 0.0, 2.0]])
+    scales = torch.tensor([[0.15, 0.15, 0.15], [0.04, 0.04, 0.04]])
+    model = GaussianModel(means, scales.log(), torch.tensor([[1.0, 0, 0, 0]]).repeat(2, 1), torch.full((2,), 4.0),
+                          torch.zeros(2, 1, 3), torch.zeros(2, 0, 3))
+    mask = torch.zeros(32, 32, dtype=torch.bool)
+    mask[:, 14:18] = True
+    view = View(camera=cam, image=torch.zeros(32, 32, 3), name="cam", masks={"pole": mask})
+    px = [pixel_labels_from_mask(mask, 32, 32)]
+    fg = torch.ones(2, dtype=torch.bool)
+    votes = object_render_check(model, fg, [view], px)
+    iou = object_render_check(model, fg, [view], px, rule="iou")
+    assert votes.tolist() == [False, False] and iou.tolist() == [True, False]
+    with pytest.raises(InputError, match="object check rule must be 'votes' or 'iou', got 'vote'"):
+        object_render_check(model, fg, [view], px, rule="vote")
+    # on the check scene (a small Gaussian in the object, a patch beside it) both rules agree
+    scene_model, scene_view = _check_scene()
+    scene_model = scene_model.select(torch.arange(len(scene_model) - 1))
+    spx = [pixel_labels_from_mask(scene_view.masks["obj"], 32, 32)]
+    all_fg = torch.ones(len(scene_model), dtype=torch.bool)
+    assert torch.equal(object_render_check(scene_model, all_fg, [scene_view], spx, rule="iou"),
+                       object_render_check(scene_model, all_fg, [scene_view], spx))
+    # the rule is a cache-key field only when it is not the check as measured before it
+    assert "object_check_rule" not in key_without_later(RefineConfig, RefineConfig().as_dict())
+    assert key_without_later(RefineConfig, RefineConfig(object_check_rule="iou").as_dict())["object_check_rule"] == "iou"
+    with pytest.raises(Exception, match="object_check_rule"):
+        RefineConfig(object_check_rule="majority")
+
+
 def test_refine_applies_the_object_check_only_when_asked():
     """The default object_check ("per_use") may only shrink the released foreground for the
     object alone and keeps the released one for the scene; "off" is the authors'
