@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import re
+from typing import Any, Mapping, Optional
 
 from cobgs.errors import InputError
 
@@ -92,13 +93,25 @@ def with_later_values(cls, params: dict) -> dict:
     return out
 
 
-def key_without_later(cls, full: dict) -> dict:
+def key_without_later(cls, full: dict, forced: Optional[Mapping[str, Any]] = None) -> dict:
     """``full`` (a params object as JSON) without the fields of ``cls`` that were added
     later and hold the value every run had before they existed (field metadata "before"):
-    a cache key made this way is the key the same run had before the field was added."""
+    a cache key made this way is the key the same run had before the field was added.
+
+    A field whose metadata has ``"only_with": (name, values)`` only acts while field ``name``
+    holds one of ``values``; otherwise it says nothing of the run and leaves the key whatever
+    it holds (a sub-option of a switch that is off). ``forced``: values a method imposes over
+    ``full``'s (a row that runs with a switch off whatever its params say)."""
     out = dict(full)
+    effective = {**full, **(forced or {})}
     for f in dataclasses.fields(cls):
-        if "before" in f.metadata and f.name in out:
+        if f.name not in out:
+            continue
+        only = f.metadata.get("only_with")
+        if only is not None and effective.get(only[0]) not in only[1]:
+            del out[f.name]
+            continue
+        if "before" in f.metadata:
             before = f.metadata["before"]
             if out[f.name] == (list(before) if isinstance(before, tuple) else before):
                 del out[f.name]

@@ -16,6 +16,7 @@ LABEL = "mask_logit"  # name of the per-Gaussian label-logit extra
 #: What the no-split peer forces on COB-GS's config (paper Table 5, first row; with the
 #: stage count, cobgs.refine.peers.nosplit_config): these switches say nothing of a no-split row.
 NOSPLIT_SWITCHES = {"bags": False, "bgtr": False, "raem": "off", "object_check": "off", "split_object_share": 0.0}
+CHECKED = ("visible", "per_use")  # the object_check values that run the object-render check
 RAEM_VARIANTS = ("off", "released", "paper")
 SCENE_DEFAULTS = {"forward": (0.5, 6), "360": (0.8, 4)}  # δ, mask stages (docs/method.md §2)
 TEXTURE_ADAM = ("baseline", "fresh")
@@ -103,12 +104,13 @@ class RefineConfig:
     # keeps its label's verdict rather than being removed on the edge's say-so. 0: every pixel
     # votes (the check as measured in issue 48). Measured at 2 px on orbit_coarse (2026-11-29):
     # worse (the edge pixels remove the thin pole's spill); off.
-    object_check_edge_px: int = field(default=0, metadata={"before": 0})
-    # The check's keep rule (issue 59 item 2; cobgs.refine.consistency): "votes", the mask
-    # loss's rule per Gaussian (object votes > λ × background votes; the check as measured in
-    # issue 48); "iou", a Gaussian leaves only when the object's render agrees better with the
-    # masks without it (soft IoU), so an object is never emptied of the few Gaussians that draw it.
-    object_check_rule: str = field(default="votes", metadata={"before": "votes"})
+    object_check_edge_px: int = field(default=0, metadata={"before": 0, "only_with": ("object_check", CHECKED)})
+    # The check's keep rule (issue 59 item 2; cobgs.refine.consistency): "iou" (the default
+    # since 2026-11-29), a Gaussian leaves only when the object's render agrees better with the
+    # masks without it (soft IoU), so an object is never emptied of the few Gaussians that draw
+    # it; "votes", the mask loss's rule per Gaussian (object votes > λ × background votes; the
+    # check before, entries written then). Out of the key while the check is off.
+    object_check_rule: str = field(default="iou", metadata={"before": "votes", "only_with": ("object_check", CHECKED)})
     # Ambiguity as the object sees it (issue 59 item 2; docs/method.md §7): at the end of each
     # mask stage a Gaussian whose minority Σ α·T (min of its object and background parts)
     # averages at least this share of the object's Σ α·T per view is split as an ambiguous one

@@ -105,11 +105,12 @@ def _scene_typed(cfg: RefineConfig, params: Any, scene_type: str) -> RefineConfi
     return dataclasses.replace(cfg, scene_type=st or "forward")
 
 
-def _cobgs_section(values: dict) -> dict:
+def _cobgs_section(values: dict, forced: Optional[dict] = None) -> dict:
     """COB-GS's section in a key: fields added later left out while they hold their earlier
     value (:func:`cobgs.configs.key_without_later`: ``object_check`` "off", what every entry
-    before the switch did), so that adding a switch keeps every earlier entry valid."""
-    return key_without_later(RefineConfig, values)
+    before the switch did), so that adding a switch keeps every earlier entry valid; and the
+    check's own options left out while the check is off (``forced``: what the row imposes)."""
+    return key_without_later(RefineConfig, values, forced)
 
 
 class CobGS(RefineMethod):
@@ -138,7 +139,7 @@ class NoSplit(CobGS):
     name, label, alternates = "nosplit", "labels only, no split", False  # (mask stages only)
 
     def key_section(self, section, values):
-        out = _cobgs_section(values)
+        out = _cobgs_section(values, NOSPLIT_SWITCHES)
         # the switches this row forces off that were added later (NOSPLIT_SWITCHES; "before" in
         # their metadata) say nothing of it: out of its key whatever the params say
         for f in dataclasses.fields(RefineConfig):

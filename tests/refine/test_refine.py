@@ -580,9 +580,14 @@ def test_the_iou_rule_of_the_check_keeps_what_draws_a_thin_object():
     all_fg = torch.ones(len(scene_model), dtype=torch.bool)
     assert torch.equal(object_render_check(scene_model, all_fg, [scene_view], spx, rule="iou"),
                        object_render_check(scene_model, all_fg, [scene_view], spx))
-    # the rule is a cache-key field only when it is not the check as measured before it
-    assert "object_check_rule" not in key_without_later(RefineConfig, RefineConfig().as_dict())
-    assert key_without_later(RefineConfig, RefineConfig(object_check_rule="iou").as_dict())["object_check_rule"] == "iou"
+    # the default since 2026-11-29; in the key unless it is the check as measured before it, or
+    # the check is off (then the rule says nothing of the run, whatever it holds)
+    assert RefineConfig().object_check_rule == "iou"
+    assert key_without_later(RefineConfig, RefineConfig().as_dict())["object_check_rule"] == "iou"
+    assert "object_check_rule" not in key_without_later(RefineConfig, RefineConfig(object_check_rule="votes").as_dict())
+    off = RefineConfig(object_check="off").as_dict()
+    assert "object_check_rule" not in key_without_later(RefineConfig, off)
+    assert "object_check_rule" not in key_without_later(RefineConfig, RefineConfig().as_dict(), {"object_check": "off"})
     with pytest.raises(Exception, match="object_check_rule"):
         RefineConfig(object_check_rule="majority")
 

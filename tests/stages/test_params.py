@@ -76,6 +76,30 @@ def test_refine_params_are_exactly_the_methods_sections():
             assert (other == key) == (sec not in m.sections), (m.name, sec)
 
 
+def test_the_checks_options_leave_the_key_while_the_check_is_off():
+    """The object check's own options (its keep rule, its edge band) say nothing of a run
+    without the check: a faithful row (object_check off) and the no-split row (which forces it
+    off) keep their keys whatever the options hold, so changing the default rule recomputes only
+    the rows that run the check."""
+    import dataclasses
+
+    from stages.refine import STAGE, RefineParams
+
+    def key(method, **cobgs):
+        base = RefineParams(method=method)
+        p = dataclasses.replace(base, cobgs=dataclasses.replace(base.cobgs, **cobgs))
+        return STAGE.key_params(p, _params_json(p))
+
+    for rule in ("votes", "iou"):
+        assert key("cobgs", object_check="off", object_check_rule=rule, object_check_edge_px=3) == \
+            key("cobgs", object_check="off")
+        assert key("nosplit", object_check_rule=rule) == key("nosplit", object_check="off", object_check_rule="votes")
+        assert key("ngs", object_check="off", object_check_rule=rule) == key("ngs", object_check="off")
+    assert key("cobgs", object_check_rule="votes") != key("cobgs", object_check_rule="iou")
+    assert key("cobgs", object_check="visible", object_check_rule="votes") != key("cobgs", object_check="visible")
+    assert key("ngs", object_check="visible", object_check_rule="votes") != key("ngs", object_check="visible")
+
+
 def _params_json(p) -> dict:
     from pipeline.params import to_json
 

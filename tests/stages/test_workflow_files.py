@@ -148,7 +148,13 @@ def test_the_faithful_presets_keep_the_papers_splits():
         assert presets[name]["refine"]["cobgs"]["split_object_share"] == 0.0, name
     for name in ("cobgs", "ours_per_use"):
         assert "split_object_share" not in presets[name].get("refine", {}).get("cobgs", {}), name
+        assert "object_check_rule" not in presets[name].get("refine", {}).get("cobgs", {}), name
     assert RefineConfig().split_object_share > 0
+    # the check's IoU rule (the default since 2026-11-29): the earlier variants that run the
+    # check name the rule they were measured with
+    for name in ("ours", "ours_per_use_eq6", "ngs_checked"):
+        assert presets[name]["refine"]["cobgs"]["object_check_rule"] == "votes", name
+    assert RefineConfig().object_check_rule == "iou"
 
 
 def test_the_benchmarks_faithful_rows_keep_the_papers_splits():
