@@ -18,12 +18,14 @@ the check, ``object_check = "per_use"`` or ``"visible"``) this script
 It prints, per scene and mask route, each rule's mean headline mBIoU and the paired difference
 (``bootstrap_mean_diff``: objects weighted equally, views resampled), then per ``--group`` (several
 baselines of one scene) the difference pooled over baselines (``bootstrap_across_baselines``).
+``--versus ROWS`` pairs the last rule with other rows' own evaluate entries (their headline
+per view), on each scene and pooled the same way.
 
 Run (not collected by pytest)::
 
     .venv/bin/python tests/benchmarks/bm_check_rule.py WORKFLOW --cache CACHE --row ours_per_use \\
         [--scenes forward_coarse,orbit_coarse] [--rules votes,iou] [--json out.json] \\
-        [--group forward_coarse=forward_coarse,forward_coarse_s1t0,...]
+        [--group forward_coarse=forward_coarse,forward_coarse_s1t0,...] [--versus raem_paper,flashsplat]
 """
 
 from __future__ import annotations
@@ -37,14 +39,15 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 
-def _entries(workflow: Path, cache: Path, row: str, scenes: set, sets=()):
-    """{(scene, object): {"refined", "masks", "route"}} and {scene: (dataset, poses)}."""
+def _entries(workflow: Path, cache: Path, row: str, scenes: set, sets=(), versus=()):
+    """{(scene, object): {"refined", "masks", "route", "versus": {row: per-view headline}}} and
+    {scene: (dataset, poses)}."""
     from pipeline import entries, load_workflow
     from reports.collect import DESCRIPTORS, read_artifact_json
     from stages.registry import load_registry
 
     wf = load_workflow(workflow, load_registry(), list(sets))
-    objs, data, masks, route = {}, {}, {}, {}
+    objs, data, masks, route, other = {}, {}, {}, {}, {}
     for rec in entries(wf, cache):
         if rec.state != "done":
             continue
@@ -56,14 +59,19 @@ def _entries(workflow: Path, cache: Path, row: str, scenes: set, sets=()):
             objs[(s, v["object"])] = Path(rec.output("refined"))
         elif rec.stage == "masks":
             masks[(s, v["object"])] = Path(rec.output("masks"))
-        elif rec.stage == "evaluate" and v.get("method") == row:
+        elif rec.stage == "evaluate" and v.get("method") in (row, *versus):
             m = read_artifact_json(rec.output("metrics"), DESCRIPTORS["metrics"], rec.task.id)
-            route[(s, v["object"])] = m["row"].get("mask_route", "")
+            if v["method"] == row:
+                route[(s, v["object"])] = m["row"].get("mask_route", "")
+            else:
+                other.setdefault((s, v["object"]), {})[v["method"]] = {
+                    n: x["biou"] for n, x in m["details"]["per_view"].items()}
         elif rec.stage == "dataset":
             data.setdefault(s, {})["dataset"] = Path(rec.output("dataset"))
         elif rec.stage == "sfm":
             data.setdefault(s, {})["poses"] = Path(rec.output("poses"))
-    out = {k: {"refined": p, "masks": masks.get(k), "route": route.get(k, "")} for k, p in objs.items()}
+    out = {k: {"refined": p, "masks": masks.get(k), "route": route.get(k, ""), "versus": other.get(k, {})}
+           for k, p in objs.items()}
     return out, data
 
 
@@ -127,12 +135,21 @@ def measure(key, entry, data, rules) -> dict:
                      "biou": s["biou"], "per_view": {n: p["biou"] for n, p in s["per_view"].items()}}
     out["before"] = int(before.sum())
     out["route"] = entry["route"]
+    out["versus"] = entry["versus"]
     return out
 
 
 def pairs_of(results: dict, keys, a: str, b: str) -> dict:
-    return {k[1]: [(results[k][a]["per_view"][n], results[k][b]["per_view"][n]) for n in results[k][a]["per_view"]]
-            for k in keys}
+    """object -> [(a, b) per held-out view]; ``b`` a rule, or ``"row:NAME"`` (another row's entry)."""
+    def values(k, x):
+        return results[k]["versus"].get(x[4:], {}) if x.startswith("row:") else results[k][x]["per_view"]
+
+    out = {}
+    for k in keys:
+        va, vb = values(k, a), values(k, b)
+        if va and vb:
+            out[k[1]] = [(va[n], vb[n]) for n in va if n in vb]
+    return out
 
 
 def main(argv=None) -> int:
@@ -145,13 +162,15 @@ def main(argv=None) -> int:
     ap.add_argument("--set", dest="sets", action="append", default=[], help="workflow overrides (as cobgs run)")
     ap.add_argument("--group", action="append", default=[],
                     help="NAME=scene,scene,...: baselines of one scene, pooled (repeatable)")
+    ap.add_argument("--versus", default="", help="comma list of rows to pair the last rule with")
     ap.add_argument("--json", type=Path, help="write every object's result here")
     a = ap.parse_args(argv)
     from cobgs.evaluate.protocols import bootstrap_across_baselines, bootstrap_mean_diff
 
     rules = [r for r in a.rules.split(",") if r]
     scenes = {s for s in a.scenes.split(",") if s}
-    todo, data = _entries(a.workflow, a.cache, a.row, scenes, a.sets)
+    versus = [r for r in a.versus.split(",") if r]
+    todo, data = _entries(a.workflow, a.cache, a.row, scenes, a.sets, versus)
     results = {}
     for k in sorted(todo):
         results[k] = measure(k, todo[k], data, rules)
@@ -179,18 +198,29 @@ def main(argv=None) -> int:
                 diffs.append(f"{d['diff']:+.2f} [{d['lo']:+.2f}, {d['hi']:+.2f}]")
             print(f"| {s} | {route} | {len(keys)} | " + " | ".join(f"{m:.2f}" for m in means) + " | "
                   + " | ".join(diffs) + " |")
+    last = rules[-1]
+    comparisons = [(x, base) for x in other] + [(last, f"row:{r}") for r in versus]
+    if versus:
+        print(f"\n| scene | masks | " + " | ".join(f"{last} − {r} [95 %]" for r in versus) + " |")
+        print("|---|---|" + "---|" * len(versus))
+        for (s, route), keys in by.items():
+            cells = []
+            for r in versus:
+                d = bootstrap_mean_diff(pairs_of(results, keys, last, f"row:{r}"))
+                cells.append("-" if d is None else f"{d['diff']:+.2f} [{d['lo']:+.2f}, {d['hi']:+.2f}] ({d['objects']})")
+            print(f"| {s} | {route} | " + " | ".join(cells) + " |")
     for g in a.group:
         name, members = g.split("=", 1)
         members = [m for m in members.split(",") if m]
         for route in routes:
-            for x in other:
-                pooled = {m: pairs_of(results, by[(m, route)], x, base) for m in members if (m, route) in by}
+            for x, y in comparisons:
+                pooled = {m: pairs_of(results, by[(m, route)], x, y) for m in members if (m, route) in by}
                 d = bootstrap_across_baselines(pooled)
                 if d is None:
                     continue
                 per = ", ".join(f"{b}: {v:+.2f}" for b, v in d["per_baseline"].items())
-                print(f"pooled {name} | {route} | {x} − {base}: {d['diff']:+.2f} [{d['lo']:+.2f}, {d['hi']:+.2f}] "
-                      f"({d['baselines']} baselines; {per})")
+                print(f"pooled {name} | {route} | {x} − {y.replace('row:', '')}: {d['diff']:+.2f} "
+                      f"[{d['lo']:+.2f}, {d['hi']:+.2f}] ({d['baselines']} baselines; {per})")
     return 0
 
 
