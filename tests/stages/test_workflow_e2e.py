@@ -1275,3 +1275,29 @@ def test_an_edit_that_keeps_size_and_time_is_found_by_force_and_verify_data(tmp_
     assert set(_states(summary).values()) == {"cached"}, log
     assert main(["status", str(wf_path), *common, "--verify-data"]) == 0
     assert "0 task(s) read data whose content changed" in capsys.readouterr().out
+
+
+def test_bm_check_rule_scores_the_stored_rule_as_the_evaluate_stage_did(tiny, tmp_path):
+    """tests/benchmarks/bm_check_rule.py re-runs the object check with each keep rule on a cached
+    refinement (issue 59 item 2): the stored rule gives back the stored foreground, and its score
+    is the evaluate entry's headline to the last digit; the IoU rule removes no more than the
+    votes rule."""
+    import importlib.util
+    import json
+
+    from reports.collect import DESCRIPTORS, read_artifact_json
+
+    path, cache, wf, _ = tiny
+    spec = importlib.util.spec_from_file_location(
+        "bm_check_rule", Path(__file__).resolve().parents[1] / "benchmarks" / "bm_check_rule.py")
+    bm = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bm)
+    out = tmp_path / "rules.json"
+    assert bm.main([str(path), "--cache", str(cache), "--row", "cobgs", "--json", str(out)]) == 0
+    res = json.loads(out.read_text())["tiny/ball"]
+    ev = _entry(wf, cache, "evaluate", "tiny/cobgs/ball")
+    metrics = read_artifact_json(ev.output("metrics"), DESCRIPTORS["metrics"], ev.task.id)
+    assert res["iou"]["biou"] == metrics["row"]["biou"]  # the default's rule, as evaluated
+    assert res["iou"]["per_view"] == {n: v["biou"] for n, v in metrics["details"]["per_view"].items()}
+    assert res["iou"]["removed"] <= res["votes"]["removed"]
+    assert res["iou"]["foreground"] + res["iou"]["removed"] == res["before"]
