@@ -180,7 +180,7 @@ def main(argv=None) -> int:
     if a.json:
         a.json.write_text(json.dumps({f"{s}/{o}": v for (s, o), v in results.items()}, indent=1))
     base, other = rules[0], rules[1:]
-    print(f"\n| scene | masks | objects | " + " | ".join(f"{x} headline mBIoU" for x in rules)
+    print("\n| scene | masks | objects | " + " | ".join(f"{x} headline mBIoU" for x in rules)
           + " | " + " | ".join(f"{x} − {base} [95 %]" for x in other) + " |")
     print("|---|---|---|" + "---|" * (len(rules) + len(other)))
     routes = sorted({r["route"] for r in results.values()})
@@ -201,7 +201,7 @@ def main(argv=None) -> int:
     last = rules[-1]
     comparisons = [(x, base) for x in other] + [(last, f"row:{r}") for r in versus]
     if versus:
-        print(f"\n| scene | masks | " + " | ".join(f"{last} − {r} [95 %]" for r in versus) + " |")
+        print("\n| scene | masks | " + " | ".join(f"{last} − {r} [95 %]" for r in versus) + " |")
         print("|---|---|" + "---|" * len(versus))
         for (s, route), keys in by.items():
             cells = []
