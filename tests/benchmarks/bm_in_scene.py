@@ -1,0 +1,110 @@
+"""Which Gaussians make the object within its scene (the occlusion-aware protocol's output),
+measured on refinements a workflow's cache already holds (issue 59 item 2, a candidate).
+
+The default renders the object within its scene from the labels' verdict (label > 0.9,
+``foreground_in_scene``). A Gaussian split late, or judged on little evidence, can end the
+refinement undecided (0.1 < label < 0.9): in neither set, although the mask loss's own closed
+form, the Σ α·T votes of the training masks in the scene render (object where object votes >
+λ × background votes; :func:`cobgs.refine.consistency.label_votes`), has already decided it.
+This script scores, for each done refine entry of ``--row`` (a ``per_use`` row):
+
+* ``labels``: the labels' verdict, as stored (the default's output);
+* ``labels+undecided``: the same plus every undecided Gaussian whose votes say object;
+* ``votes``: the closed form alone, for every Gaussian (FlashSplat's rule on this refined scene).
+
+Each set is rendered within the scene as the segment stage renders ``pred_visible`` (the set's
+label values, 1 for Gaussians added without a decided label, 0 elsewhere; above 0.5) and scored
+against the held-out views' visible masks as the evaluate stage does. Prints per object, then
+per scene and mask route the paired differences to ``labels`` (objects weighted equally).
+
+Run (not collected by pytest)::
+
+    .venv/bin/python tests/benchmarks/bm_in_scene.py workflows/synthetic_bench.toml --cache CACHE \\
+        --row ours_per_use [--scenes forward_coarse,orbit_coarse]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("workflow", type=Path)
+    ap.add_argument("--cache", type=Path, required=True)
+    ap.add_argument("--row", required=True)
+    ap.add_argument("--scenes", default="")
+    a = ap.parse_args(argv)
+
+    import numpy as np
+    import torch
+
+    from bm_check_rule import _entries
+    from cobgs.evaluate import protocols as E
+    from cobgs.gaussians.ply import load_ply
+    from cobgs.refine.consistency import label_votes
+    from cobgs.refine.scores import pixel_labels_from_mask
+    from cobgs.render.image import render
+    from stages._common import Files, load_scene, masks_for_views, read_json
+
+    todo, data = _entries(a.workflow, a.cache, a.row, {s for s in a.scenes.split(",") if s})
+    results = {}
+    for (scene_name, obj), e in sorted(todo.items()):
+        d = e["refined"]
+        ref = read_json(d / Files.REFINE)
+        lam = float((ref.get("config") or {}).get("mask_lambda", 1.0))
+        seg = np.load(d / "segmentation.npz")
+        if "foreground_in_scene" not in seg.files:
+            raise SystemExit(f"{scene_name}/{obj}: row {a.row!r} keeps no in-scene set (object_check = 'per_use')")
+        model = load_ply(d / Files.REFINED_PLY)
+        values = torch.from_numpy(seg["mask_values"]).float()
+        labels = torch.from_numpy(seg["foreground_in_scene"])
+        scene = load_scene(data[scene_name]["dataset"], data[scene_name]["poses"])
+        masks = masks_for_views(e["masks"], scene.train)
+        views = [v for v, m in zip(scene.train, masks) if m is not None]
+        pixel = [pixel_labels_from_mask(m, v.height, v.width) for v, m in zip(scene.train, masks) if m is not None]
+        w = label_votes(model, views, pixel, 2)
+        votes = w[:, 1] > lam * w[:, 0]
+        undecided = (values > 0.1) & (values < 0.9)
+        sets = {"labels": labels, "labels+undecided": labels | (undecided & votes), "votes": votes}
+        gt_name = ref.get("dataset_object") or ref.get("object") or obj
+        test = {v.name: v for v in scene.test}
+        gts = {n: (v.masks[gt_name].cpu().numpy() if gt_name in v.masks else None) for n, v in test.items()}
+        out = {}
+        for k, s in sets.items():
+            vals = torch.where(s, torch.where(labels, values, torch.ones_like(values)), torch.zeros_like(values))
+            preds = {}
+            for n, v in test.items():
+                with torch.no_grad():
+                    img = render(model, v.camera, None, features=vals[:, None].to(model.means.dtype).contiguous()).image
+                preds[n] = (img[..., 0] > 0.5).numpy()
+            out[k] = {"added": int((s & ~labels).sum()), "removed": int((labels & ~s).sum()),
+                      "per_view": {n: p["biou"] for n, p in E.exact_scores(preds, gts)["per_view"].items()}}
+        results[(scene_name, obj)] = out
+        print(f"{scene_name:16s} {obj:14s} " + "  ".join(
+            f"{k}: {100 * statistics.fmean(v['per_view'].values()):6.2f} (+{v['added']}/-{v['removed']})"
+            for k, v in out.items()), flush=True)
+    print("\n| scene | masks | labels+undecided − labels [95 %] | votes − labels [95 %] |\n|---|---|---|---|")
+    for s in sorted({k[0] for k in results}):
+        for route in sorted({todo[k]["route"] for k in results}):
+            keys = [k for k in results if k[0] == s and todo[k]["route"] == route]
+            if not keys:
+                continue
+            cells = []
+            for alt in ("labels+undecided", "votes"):
+                pairs = {k[1]: [(results[k][alt]["per_view"][n], results[k]["labels"]["per_view"][n])
+                                for n in results[k]["labels"]["per_view"]] for k in keys}
+                d = E.bootstrap_mean_diff(pairs)
+                cells.append(f"{d['diff']:+.2f} [{d['lo']:+.2f}, {d['hi']:+.2f}]")
+            print(f"| {s} | {route} | " + " | ".join(cells) + " |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
