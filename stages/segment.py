@@ -51,12 +51,35 @@ class SegmentParams:
         check_params(self)
 
 
-def _run(ctx, inputs):
+def read_refined(rdir: Path, device) -> tuple:
+    """A refine entry's output folder as this stage reads it: ``(result, in_scene, seg)``, the
+    :class:`cobgs.refine.result.RefineResult` of the object alone, the same with the object's
+    in-scene set as its foreground (the refinement's own where it kept one, ``object_check =
+    "per_use"``; else the same result), and the segmentation arrays (``segmentation.npz``)."""
     import numpy as np
     import torch
 
-    from cobgs.gaussians.ply import load_ply, save_ply
+    from cobgs.gaussians.ply import load_ply
     from cobgs.refine.result import RefineResult
+
+    rdir = Path(rdir)
+    info = read_json(rdir / Files.REFINE)
+    model = load_ply(rdir / Files.REFINED_PLY, device=device)
+    seg = np.load(rdir / Files.SEGMENTATION)
+    result = RefineResult(method=info["method"], object_name=info["object"], model=model,
+                          foreground=torch.from_numpy(seg["foreground"]).to(device),
+                          background=torch.from_numpy(seg["background"]).to(device),
+                          mask_values=torch.from_numpy(seg["mask_values"]).to(device),
+                          mask_threshold=info.get("mask_threshold"), mask_render=info.get("mask_render", "object"))
+    in_scene = result if "foreground_in_scene" not in seg.files else dataclasses.replace(
+        result, foreground=torch.from_numpy(seg["foreground_in_scene"]).to(device))
+    return result, in_scene, seg
+
+
+def _run(ctx, inputs):
+    import torch
+
+    from cobgs.gaussians.ply import load_ply, save_ply
     from cobgs.refine.segment import (extract, method_threshold, render_object_mask, render_object_rgb, render_removed_rgb,
                                visible_object_mask)
     from cobgs.render.image import render_image
@@ -65,19 +88,10 @@ def _run(ctx, inputs):
     dev = torch_device(ctx.device)
     spec = read_spec(inputs["dataset"])
     rdir = Path(inputs["refined"])
-    info = read_json(rdir / Files.REFINE)
     bg = read_json(Path(inputs["scene"]) / Files.TRAIN)["background"]
-    model = load_ply(rdir / Files.REFINED_PLY, device=dev)
-    seg = np.load(rdir / Files.SEGMENTATION)
-    fg = torch.from_numpy(seg["foreground"]).to(dev)
-    result = RefineResult(method=info["method"], object_name=info["object"], model=model, foreground=fg,
-                          background=torch.from_numpy(seg["background"]).to(dev),
-                          mask_values=torch.from_numpy(seg["mask_values"]).to(dev),
-                          mask_threshold=info.get("mask_threshold"), mask_render=info.get("mask_render", "object"))
-    # the object as rendered within the scene (pred_visible): its own set where the refinement
-    # gave one (object_check = "per_use"), else the same foreground
-    in_scene = result if "foreground_in_scene" not in seg.files else dataclasses.replace(
-        result, foreground=torch.from_numpy(seg["foreground_in_scene"]).to(dev))
+    # in_scene: the object as rendered within the scene (pred_visible)
+    result, in_scene, seg = read_refined(rdir, dev)
+    model = result.model
     before_raem = None
     if "raem_keep" in seg.files:
         from cobgs.refine.result import restore_pruned
@@ -115,7 +129,7 @@ def _run(ctx, inputs):
         write_png(ctx.out_dir / Files.REMOVED_RENDERS / f"{v.name}.png",
                   render_removed_rgb(result, v.camera, bg, backend=p.backend).clamp(0, 1).cpu().numpy())
     render_s = time.perf_counter() - t0
-    out = {"method": info["method"], "object": info["object"], "scene": ctx.item["scene"],
+    out = {"method": result.method, "object": result.object_name, "scene": ctx.item["scene"],
            "num_gaussians": len(model), "object_gaussians": len(obj_model),
            "num_gaussians_before_raem": len(before_raem) if before_raem is not None else len(model),
            "mask_threshold": method_threshold(result, p.mask_threshold),

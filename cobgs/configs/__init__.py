@@ -19,7 +19,7 @@ from .checks import check_params, in_interval, key_without_later, parse_interval
 from .data import MATCHERS, DatasetConfig, MaskNoiseParams, SfmOptions
 from .files import Files
 from .masks import ScribbleConfig, TwoStageConfig
-from .refine import (FOREGROUND_LABEL, LABEL, NOSPLIT_SWITCHES, RAEM_VARIANTS, SCENE_DEFAULTS, TEXTURE_ADAM,
+from .refine import (CHECKED, FOREGROUND_LABEL, LABEL, NOSPLIT_SWITCHES, RAEM_VARIANTS, SCENE_DEFAULTS, TEXTURE_ADAM,
                      FlashSplatConfig, LUDVIGConfig, NGSConfig, RefineConfig, SA3DConfig)
 from .train import FAST_RECIPE, RECIPES, RECIPES_NAMES, Schedule, TrainConfig
 
@@ -27,4 +27,4 @@ __all__ = ["Files", "DatasetConfig", "NGSConfig", "NOSPLIT_SWITCHES", "key_witho
            "check_params", "parse_interval", "in_interval", "TrainConfig", "Schedule", "RefineConfig", "SA3DConfig",
            "FlashSplatConfig", "LUDVIGConfig", "TwoStageConfig", "ScribbleConfig", "MaskNoiseParams", "SfmOptions", "LABEL",
            "RAEM_VARIANTS", "TEXTURE_ADAM", "SCENE_DEFAULTS", "MATCHERS", "RECIPES", "RECIPES_NAMES", "FAST_RECIPE",
-           "FOREGROUND_LABEL"]
+           "FOREGROUND_LABEL", "CHECKED"]

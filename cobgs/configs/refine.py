@@ -130,7 +130,7 @@ class RefineConfig:
     CHOICES: ClassVar[dict] = {"backend": ("native", "reference"), "label_name": (LABEL,),
                                "scene_type": tuple(SCENE_DEFAULTS), "raem": RAEM_VARIANTS,
                                "score": ("count", "weight"), "texture_adam": TEXTURE_ADAM,
-                               "object_check": ("off", "visible", "per_use"),
+                               "object_check": ("off", *CHECKED),
                                "object_check_rule": ("votes", "iou")}
 
     def __post_init__(self):

@@ -80,7 +80,7 @@ from cobgs.refine.scores import (
 from cobgs.refine.split import boundary_split, raem_prune_mask, split_candidates
 from cobgs.render.image import render
 from cobgs.memory import retain_freed_memory
-from cobgs.configs import FOREGROUND_LABEL, NGSConfig, RefineConfig
+from cobgs.configs import CHECKED, FOREGROUND_LABEL, NGSConfig, RefineConfig
 
 __all__ = [
     "Refiner",
@@ -430,7 +430,7 @@ def refine(
         fg, bg = _label_sets(logits)
         checked = 0
         in_scene = None
-        if config.object_check in ("visible", "per_use"):
+        if config.object_check in CHECKED:
             kept = object_render_check(m, fg, r.views, r.pixel_labels, config.mask_lambda, config.backend,
                                        edge_px=config.object_check_edge_px, rule=config.object_check_rule)
             checked = int((fg & ~kept).sum())

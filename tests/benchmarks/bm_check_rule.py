@@ -77,30 +77,29 @@ def _entries(workflow: Path, cache: Path, row: str, scenes: set, sets=(), versus
 
 def measure(key, entry, data, rules) -> dict:
     """Per rule: removed count and the held-out views' headline BIoU (one object)."""
-    import numpy as np
+    import dataclasses
+
     import torch
 
+    from cobgs.configs import CHECKED
     from cobgs.evaluate import protocols as E
-    from cobgs.gaussians.ply import load_ply
     from cobgs.refine.consistency import object_render_check
     from cobgs.refine.scores import pixel_labels_from_mask
-    from cobgs.render.rasterize import rasterize
+    from cobgs.refine.segment import render_object_mask
     from stages._common import Files, load_scene, masks_for_views, read_json, read_spec
     from stages.evaluate import _amodal_gts
+    from stages.segment import read_refined
 
     scene_name, obj = key
     d = entry["refined"]
     ref = read_json(d / Files.REFINE)
     config = ref.get("config") or {}
     stored_rule = config.get("object_check_rule", "votes")
-    if config.get("object_check", "off") not in ("visible", "per_use"):
+    if config.get("object_check", "off") not in CHECKED:
         raise SystemExit(f"{scene_name}/{obj}: the row's refinement ran no object check")
-    model = load_ply(d / Files.REFINED_PLY)
-    seg = np.load(d / "segmentation.npz")
-    stored = torch.from_numpy(seg["foreground"])
-    values = torch.from_numpy(seg["mask_values"]).float()
-    before = (torch.from_numpy(seg["foreground_in_scene"]) if "foreground_in_scene" in seg.files
-              else values > 0.9)
+    result, in_scene, seg = read_refined(d, "cpu")
+    model, stored = result.model, result.foreground
+    before = in_scene.foreground if "foreground_in_scene" in seg.files else result.mask_values > 0.9
     dataset, poses = data[scene_name]["dataset"], data[scene_name]["poses"]
     scene = load_scene(dataset, poses)
     masks = masks_for_views(entry["masks"], scene.train)
@@ -119,17 +118,8 @@ def measure(key, entry, data, rules) -> dict:
         if rule == stored_rule and not torch.equal(kept, stored):
             raise SystemExit(f"{scene_name}/{obj}: rule {rule!r} does not give back the stored foreground "
                              f"({int(stored.sum())} against {int(kept.sum())} Gaussians)")
-        idx = torch.nonzero(kept)[:, 0]
-        preds = {}
-        for n, v in test.items():
-            cam = v.camera
-            if len(idx) == 0:
-                preds[n] = np.zeros((cam.height, cam.width), dtype=bool)
-                continue
-            with torch.no_grad():
-                img = rasterize(model.means[idx], model.quats[idx], model.scales[idx], model.opacities[idx],
-                                values[idx][:, None], cam.viewmat, cam.K, int(cam.width), int(cam.height)).image
-            preds[n] = (img[..., 0] > 0.5).numpy()
+        alone = dataclasses.replace(result, foreground=kept)  # rendered as the segment stage renders it
+        preds = {n: render_object_mask(alone, v.camera).numpy() for n, v in test.items()}
         s = E.exact_scores(preds, gts)
         out[rule] = {"removed": int((before & ~kept).sum()), "foreground": int(kept.sum()),
                      "biou": s["biou"], "per_view": {n: p["biou"] for n, p in s["per_view"].items()}}

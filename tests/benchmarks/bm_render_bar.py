@@ -4,9 +4,9 @@ of its labels at two bars (issue 59: LUDVIG's occlusion-aware lead on forward_co
 For each done refine entry of ``--row`` on ``--scene``, the labels (``mask_values``) of every
 Gaussian are rendered in the scene at each held-out view and scored against the view's visible
 mask (the occlusion-aware protocol's GT) three ways: the row's own render
-(:func:`cobgs.refine.segment.render_object_mask`'s rule for its ``mask_render``; for LUDVIG the
-min-max normalised render above its bar), the raw render above the row's bar, and the raw render
-above 0.5. Prints pooled precision and recall and the mean BIoU over the views.
+(:func:`cobgs.refine.segment.visible_object_mask` of its in-scene set, the segment stage's
+``pred_visible``; for LUDVIG the min-max normalised render above its bar), the raw render above
+the row's bar, and the raw render above 0.5. Prints pooled precision and recall and the mean BIoU over the views.
 
 Run (not collected by pytest)::
 
@@ -36,12 +36,12 @@ def main(argv=None) -> int:
     import torch
 
     from cobgs.evaluate.protocols import compare_masks
-    from cobgs.gaussians.ply import load_ply
-    from cobgs.refine.ludvig import SCENE_MINMAX, SCENE_MINMAX_LI, li_threshold, minmax
+    from cobgs.refine.segment import method_threshold, visible_object_mask
     from cobgs.render.image import render
     from pipeline import entries, load_workflow
     from stages._common import Files, load_scene, read_json
     from stages.registry import load_registry
+    from stages.segment import read_refined
 
     wanted = {o for o in a.objects.split(",") if o}
     wf = load_workflow(a.workflow, load_registry(), [])
@@ -63,10 +63,9 @@ def main(argv=None) -> int:
     print("|---|---|---|---|")
     for obj, d in sorted(refined.items()):
         ref = read_json(d / Files.REFINE)
-        model = load_ply(d / Files.REFINED_PLY)
-        values = torch.from_numpy(np.load(d / "segmentation.npz")["mask_values"]).float()
-        bar = ref.get("mask_threshold")
-        bar = 0.5 if bar is None else float(bar)
+        _, in_scene, _ = read_refined(d, "cpu")
+        model, values = in_scene.model, in_scene.mask_values.float()
+        bar = method_threshold(in_scene)
         gt_name = ref.get("dataset_object") or ref.get("object") or obj
         counts = {k: [0, 0, 0, []] for k in ("own", "bar", "half")}
         for v in scene.test:
@@ -76,13 +75,7 @@ def main(argv=None) -> int:
             gt = gt.cpu().numpy()
             with torch.no_grad():
                 img = render(model, v.camera, None, features=values[:, None].to(model.means.dtype).contiguous()).image[..., 0]
-            mode = ref.get("mask_render", "object")
-            if mode == SCENE_MINMAX_LI:
-                own = minmax(img) > li_threshold(minmax(img))
-            elif mode == SCENE_MINMAX:
-                own = minmax(img) > bar
-            else:
-                own = img > bar
+            own = visible_object_mask(in_scene, v.camera)  # pred_visible, as the segment stage renders it
             for k, p in (("own", own), ("bar", img > bar), ("half", img > 0.5)):
                 s = compare_masks(p.numpy(), gt)
                 c = counts[k]
