@@ -12,8 +12,9 @@ This script scores, for each done refine entry of ``--row`` (a ``per_use`` row):
 * ``labels+undecided``: the same plus every undecided Gaussian whose votes say object;
 * ``votes``: the closed form alone, for every Gaussian (FlashSplat's rule on this refined scene).
 
-Each set is rendered within the scene as the segment stage renders ``pred_visible`` (the set's
-label values, 1 for Gaussians added without a decided label, 0 elsewhere; above 0.5) and scored
+Each set is rendered within the scene as the segment stage renders ``pred_visible``
+(:func:`cobgs.refine.segment.visible_object_mask`: the set's label values, 1 for the votes'
+Gaussians that have no decided label, 0 elsewhere; above the bar) and scored
 against the held-out views' visible masks as the evaluate stage does. Prints per object, then
 per scene and mask route the paired differences to ``labels`` (objects weighted equally).
 
@@ -42,16 +43,17 @@ def main(argv=None) -> int:
     ap.add_argument("--scenes", default="")
     a = ap.parse_args(argv)
 
-    import numpy as np
+    import dataclasses
+
     import torch
 
     from bm_check_rule import _entries
     from cobgs.evaluate import protocols as E
-    from cobgs.gaussians.ply import load_ply
     from cobgs.refine.consistency import label_votes
     from cobgs.refine.scores import pixel_labels_from_mask
-    from cobgs.render.image import render
+    from cobgs.refine.segment import visible_object_mask
     from stages._common import Files, load_scene, masks_for_views, read_json
+    from stages.segment import read_refined
 
     todo, data = _entries(a.workflow, a.cache, a.row, {s for s in a.scenes.split(",") if s})
     results = {}
@@ -59,12 +61,10 @@ def main(argv=None) -> int:
         d = e["refined"]
         ref = read_json(d / Files.REFINE)
         lam = float((ref.get("config") or {}).get("mask_lambda", 1.0))
-        seg = np.load(d / "segmentation.npz")
+        _, in_scene, seg = read_refined(d, "cpu")
         if "foreground_in_scene" not in seg.files:
             raise SystemExit(f"{scene_name}/{obj}: row {a.row!r} keeps no in-scene set (object_check = 'per_use')")
-        model = load_ply(d / Files.REFINED_PLY)
-        values = torch.from_numpy(seg["mask_values"]).float()
-        labels = torch.from_numpy(seg["foreground_in_scene"])
+        model, values, labels = in_scene.model, in_scene.mask_values, in_scene.foreground
         scene = load_scene(data[scene_name]["dataset"], data[scene_name]["poses"])
         masks = masks_for_views(e["masks"], scene.train)
         views = [v for v, m in zip(scene.train, masks) if m is not None]
@@ -72,18 +72,17 @@ def main(argv=None) -> int:
         w = label_votes(model, views, pixel, 2)
         votes = w[:, 1] > lam * w[:, 0]
         undecided = (values > 0.1) & (values < 0.9)
-        sets = {"labels": labels, "labels+undecided": labels | (undecided & votes), "votes": votes}
+        ones = torch.where(labels, values, torch.ones_like(values))  # votes carry no label: value 1
+        sets = {"labels": (labels, values), "labels+undecided": (labels | (undecided & votes), values),
+                "votes": (votes, ones)}
         gt_name = ref.get("dataset_object") or ref.get("object") or obj
         test = {v.name: v for v in scene.test}
         gts = {n: (v.masks[gt_name].cpu().numpy() if gt_name in v.masks else None) for n, v in test.items()}
         out = {}
-        for k, s in sets.items():
-            vals = torch.where(s, torch.where(labels, values, torch.ones_like(values)), torch.zeros_like(values))
-            preds = {}
-            for n, v in test.items():
-                with torch.no_grad():
-                    img = render(model, v.camera, None, features=vals[:, None].to(model.means.dtype).contiguous()).image
-                preds[n] = (img[..., 0] > 0.5).numpy()
+        for k, (s, vals) in sets.items():
+            # rendered as the segment stage renders pred_visible
+            shown = dataclasses.replace(in_scene, foreground=s, mask_values=vals)
+            preds = {n: visible_object_mask(shown, v.camera).numpy() for n, v in test.items()}
             out[k] = {"added": int((s & ~labels).sum()), "removed": int((labels & ~s).sum()),
                       "per_view": {n: p["biou"] for n, p in E.exact_scores(preds, gts)["per_view"].items()}}
         results[(scene_name, obj)] = out
