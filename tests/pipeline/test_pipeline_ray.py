@@ -155,8 +155,6 @@ def test_an_unreachable_address_is_refused_quickly_and_a_cached_run_never_connec
     10 minutes, even with every task cached. Now: nothing to run -> no connection at all;
     something to run -> refused in seconds, naming the address, exit 2."""
     import socket
-    import subprocess
-    import sys
 
     from pipeline_testutil import cli_env
 
