@@ -67,7 +67,7 @@ from cobgs.errors import InputError
 from cobgs.gaussians.model import GaussianModel, gaussian_lrs
 from cobgs.train.losses import photometric_loss
 from cobgs.refine.result import PeakMemory, RefineResult, StageStats
-from cobgs.refine.consistency import object_render_check
+from cobgs.refine.consistency import object_render_check, undecided_by_votes
 from cobgs.refine.scores import (
     ScoreAccumulator,
     object_share,
@@ -360,7 +360,7 @@ def short_stage_warning(config: RefineConfig, num_views: int) -> Optional[str]:
             f"refine.cobgs.stage_length_views >= {config.min_stage_length_views(num_views):g} (or raise label_lr)")
 
 
-def _label_sets(logits: Tensor) -> tuple[Tensor, Tensor]:
+def label_sets(logits: Tensor) -> tuple[Tensor, Tensor]:
     """(foreground, background) [N] bool of label logits: sigmoid > 0.9 / < 0.1.
 
     Compared in logit space (logit(0.9) = ln 9), which is exact and avoids a sigmoid.
@@ -427,7 +427,7 @@ def refine(
             log.warning("%s %s: %s", method, object_name, short)
         stats, scores, amb = r.run(progress=progress, desc=f"{method} {object_name}".strip())
         logits = m.data[config.label_name]
-        fg, bg = _label_sets(logits)
+        fg, bg = label_sets(logits)
         checked = 0
         in_scene = None
         if config.object_check in CHECKED:
@@ -436,6 +436,10 @@ def refine(
             checked = int((fg & ~kept).sum())
             if config.object_check == "per_use":  # the object within the scene: the labels' verdict
                 in_scene = fg
+                if config.in_scene_undecided == "votes":  # ... and the undecided ones the votes call object
+                    in_scene = fg | undecided_by_votes(m, torch.sigmoid(logits.detach()), r.views, r.pixel_labels,
+                                                       config.mask_lambda, config.backend, BG_THRESHOLD,
+                                                       FG_THRESHOLD)
             fg = kept
     wall = time.perf_counter() - t0
     return RefineResult(
@@ -506,7 +510,7 @@ def apply_raem(
     removed = m.select(prune) if bool(prune.any()) else None
     m.keep(~prune)
     logits = m.data[cfg["label_name"]]
-    fg, bg = _label_sets(logits)
+    fg, bg = label_sets(logits)
     stages = [dataclasses.replace(s) for s in result.stages]
     stages[-1].pruned = int(prune.sum())
     stages[-1].gaussians_end = len(m)
@@ -553,7 +557,7 @@ class MultiObjectResult:
         """The single-object view of object ``name`` on the final scene (shares ``model``)."""
         k = self.index(name)
         logits = self.model.data[OBJECT_LOGITS][:, k].detach()
-        fg, bg = _label_sets(logits)
+        fg, bg = label_sets(logits)
         s = self.refinements[k]
         return RefineResult(method=method, object_name=name, model=self.model, foreground=fg, background=bg,
                             mask_values=torch.sigmoid(logits), ambiguous_final=s["ambiguous_final"],

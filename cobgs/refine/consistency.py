@@ -129,6 +129,23 @@ def object_render_check(model: GaussianModel, foreground: Tensor, views: Sequenc
     return out
 
 
+def undecided_by_votes(model: GaussianModel, values: Tensor, views: Sequence[View],
+                       pixel_labels: Sequence[Tensor], mask_lambda: float = 1.0, backend: str = "native",
+                       low: float = 0.1, high: float = 0.9) -> Tensor:
+    """[N] bool: the Gaussians the refinement left undecided (``low < value < high``) whose
+    votes of the training masks in the scene render say object (object Σ α·T > λ × background
+    Σ α·T over the views: the mask loss's closed form, as FlashSplat's assignment reads it).
+
+    ``RefineConfig.in_scene_undecided = "votes"`` adds them to the object within the scene.
+    Every Gaussian of ``model`` occludes as in the scene; only the undecided ones can join.
+    """
+    undecided = (values > low) & (values < high)
+    if not bool(undecided.any()):
+        return undecided
+    w = label_votes(model, views, pixel_labels, 2, backend)
+    return undecided & (w[:, 1] > mask_lambda * w[:, 0])
+
+
 def iou_keep(a: Tensor, b: Tensor, object_pixels: float, mask_lambda: float = 1.0,
              max_rounds: int = 100) -> Tensor:
     """[n] bool: the Gaussians the ``"iou"`` rule keeps (module docstring).

@@ -5,7 +5,7 @@ The check runs after the refinement and reads nothing the refinement's own steps
 one refined scene serves every rule: for each done refine entry of ``--row`` (a row that runs
 the check, ``object_check = "per_use"`` or ``"visible"``) this script
 
-1. takes the foreground before the check (``foreground_in_scene``, else label > 0.9) and the
+1. takes the foreground before the check (the labels' verdict, label > 0.9, from the stored logits) and the
    row's own masks (the masks entry the refinement read);
 2. runs :func:`cobgs.refine.consistency.object_render_check` with each rule, with the λ and
    edge band the refinement ran with, and checks that the row's own rule gives back the stored
@@ -81,8 +81,9 @@ def measure(key, entry, data, rules) -> dict:
 
     import torch
 
-    from cobgs.configs import CHECKED
+    from cobgs.configs import CHECKED, LABEL
     from cobgs.evaluate import protocols as E
+    from cobgs.refine.alternation import label_sets
     from cobgs.refine.consistency import object_render_check
     from cobgs.refine.scores import pixel_labels_from_mask
     from cobgs.refine.segment import render_object_mask
@@ -99,7 +100,9 @@ def measure(key, entry, data, rules) -> dict:
         raise SystemExit(f"{scene_name}/{obj}: the row's refinement ran no object check")
     result, in_scene, seg = read_refined(d, "cpu")
     model, stored = result.model, result.foreground
-    before = in_scene.foreground if "foreground_in_scene" in seg.files else result.mask_values > 0.9
+    # the labels' verdict (label > 0.9), as refine() computes it before the check; the in-scene
+    # set may hold more since in_scene_undecided = "votes"
+    before = label_sets(model.data[LABEL])[0]
     dataset, poses = data[scene_name]["dataset"], data[scene_name]["poses"]
     scene = load_scene(dataset, poses)
     masks = masks_for_views(entry["masks"], scene.train)

@@ -1,15 +1,17 @@
 """Which Gaussians make the object within its scene (the occlusion-aware protocol's output),
-measured on refinements a workflow's cache already holds (issue 59 item 2, a candidate).
+measured on refinements a workflow's cache already holds (issue 59 item 2;
+``RefineConfig.in_scene_undecided``).
 
-The default renders the object within its scene from the labels' verdict (label > 0.9,
-``foreground_in_scene``). A Gaussian split late, or judged on little evidence, can end the
-refinement undecided (0.1 < label < 0.9): in neither set, although the mask loss's own closed
-form, the Σ α·T votes of the training masks in the scene render (object where object votes >
+Until 2026-11-29 the default rendered the object within its scene from the labels' verdict
+(label > 0.9). A Gaussian split late, or judged on little evidence, can end the refinement
+undecided (0.1 < label < 0.9): in neither set, although the mask loss's own closed form, the Σ α·T votes of the training masks in the scene render (object where object votes >
 λ × background votes; :func:`cobgs.refine.consistency.label_votes`), has already decided it.
 This script scores, for each done refine entry of ``--row`` (a ``per_use`` row):
 
-* ``labels``: the labels' verdict, as stored (the default's output);
-* ``labels+undecided``: the same plus every undecided Gaussian whose votes say object;
+* ``labels``: the labels' verdict (``in_scene_undecided = "labels"``, the default's output until
+  2026-11-29);
+* ``labels+undecided``: the same plus every undecided Gaussian whose votes say object (``"votes"``,
+  the default since; the script checks that it gives back the stored set of such an entry);
 * ``votes``: the closed form alone, for every Gaussian (FlashSplat's rule on this refined scene).
 
 Each set is rendered within the scene as the segment stage renders ``pred_visible``
@@ -21,7 +23,7 @@ per scene and mask route the paired differences to ``labels`` (objects weighted 
 Run (not collected by pytest)::
 
     .venv/bin/python tests/benchmarks/bm_in_scene.py workflows/synthetic_bench.toml --cache CACHE \\
-        --row ours_per_use [--scenes forward_coarse,orbit_coarse]
+        --row ours_per_use [--scenes forward_coarse,orbit_coarse] [--group NAME=SCENE,SCENE,...]
 """
 
 from __future__ import annotations
@@ -41,6 +43,8 @@ def main(argv=None) -> int:
     ap.add_argument("--cache", type=Path, required=True)
     ap.add_argument("--row", required=True)
     ap.add_argument("--scenes", default="")
+    ap.add_argument("--group", action="append", default=[],
+                    help="NAME=SCENE,SCENE,...: also the difference pooled over these baselines of one scene")
     a = ap.parse_args(argv)
 
     import dataclasses
@@ -49,6 +53,9 @@ def main(argv=None) -> int:
 
     from bm_check_rule import _entries
     from cobgs.evaluate import protocols as E
+    from cobgs.configs import LABEL
+    from cobgs.evaluate.protocols import bootstrap_across_baselines
+    from cobgs.refine.alternation import label_sets
     from cobgs.refine.consistency import label_votes
     from cobgs.refine.scores import pixel_labels_from_mask
     from cobgs.refine.segment import visible_object_mask
@@ -64,7 +71,10 @@ def main(argv=None) -> int:
         _, in_scene, seg = read_refined(d, "cpu")
         if "foreground_in_scene" not in seg.files:
             raise SystemExit(f"{scene_name}/{obj}: row {a.row!r} keeps no in-scene set (object_check = 'per_use')")
-        model, values, labels = in_scene.model, in_scene.mask_values, in_scene.foreground
+        # the labels' verdict (label > 0.9) from the stored logits: the stored in-scene set holds
+        # more where the entry was computed with in_scene_undecided = "votes"
+        model, values = in_scene.model, in_scene.mask_values
+        labels = label_sets(model.data[LABEL])[0]
         scene = load_scene(data[scene_name]["dataset"], data[scene_name]["poses"])
         masks = masks_for_views(e["masks"], scene.train)
         views = [v for v, m in zip(scene.train, masks) if m is not None]
@@ -72,6 +82,11 @@ def main(argv=None) -> int:
         w = label_votes(model, views, pixel, 2)
         votes = w[:, 1] > lam * w[:, 0]
         undecided = (values > 0.1) & (values < 0.9)
+        stored_rule = (ref.get("config") or {}).get("in_scene_undecided", "labels")
+        expect = labels | (undecided & votes) if stored_rule == "votes" else labels
+        if not torch.equal(expect, in_scene.foreground):  # the entry is not what this script computes
+            raise SystemExit(f"{scene_name}/{obj}: in_scene_undecided = {stored_rule!r} does not give back the "
+                             f"stored in-scene set ({int(in_scene.foreground.sum())} against {int(expect.sum())})")
         ones = torch.where(labels, values, torch.ones_like(values))  # votes carry no label: value 1
         sets = {"labels": (labels, values), "labels+undecided": (labels | (undecided & votes), values),
                 "votes": (votes, ones)}
@@ -102,6 +117,22 @@ def main(argv=None) -> int:
                 d = E.bootstrap_mean_diff(pairs)
                 cells.append(f"{d['diff']:+.2f} [{d['lo']:+.2f}, {d['hi']:+.2f}]")
             print(f"| {s} | {route} | " + " | ".join(cells) + " |")
+    for g in a.group:
+        name, members = g.split("=", 1)
+        for route in sorted({todo[k]["route"] for k in results}):
+            for alt in ("labels+undecided", "votes"):
+                pooled = {}
+                for m in (x for x in members.split(",") if x):
+                    keys = [k for k in results if k[0] == m and todo[k]["route"] == route]
+                    if keys:
+                        pooled[m] = {k[1]: [(results[k][alt]["per_view"][n], results[k]["labels"]["per_view"][n])
+                                            for n in results[k]["labels"]["per_view"]] for k in keys}
+                d = bootstrap_across_baselines(pooled)
+                if d is None:
+                    continue
+                per = ", ".join(f"{b}: {v:+.2f}" for b, v in d["per_baseline"].items())
+                print(f"pooled {name} | {route} | {alt} − labels: {d['diff']:+.2f} [{d['lo']:+.2f}, {d['hi']:+.2f}] "
+                      f"({d['baselines']} baselines; {per})")
     return 0
 
 

@@ -602,7 +602,8 @@ def test_refine_applies_the_object_check_only_when_asked():
 
     model, views, extent = tiny_scene(n_views=3)
     masks = masks_for(views, "ball")
-    cfg = RefineConfig(stage_length_views=1.0, mask_stages=2)
+    # the labels' verdict alone in the scene (the undecided ones the votes add: the next test)
+    cfg = RefineConfig(stage_length_views=1.0, mask_stages=2, in_scene_undecided="labels")
     on = refine(model, views, masks, extent, cfg, progress=False)
     off = refine(model, views, masks, extent, dataclasses.replace(cfg, object_check="off"), progress=False)
     assert torch.equal(on.model.data["mask_logit"], off.model.data["mask_logit"])  # same refinement
@@ -623,7 +624,8 @@ def test_per_use_gives_the_checked_set_alone_and_the_labels_verdict_in_the_scene
 
     model, views, extent = tiny_scene(n_views=3)
     masks = masks_for(views, "ball")
-    cfg = RefineConfig(stage_length_views=8.0, mask_stages=1)  # 24 iterations: labels pass 0.9
+    cfg = RefineConfig(stage_length_views=8.0, mask_stages=1,  # 24 iterations: labels pass 0.9
+                       in_scene_undecided="labels")
     monkeypatch.setattr(A, "object_render_check", lambda m, fg, *a, **k: torch.zeros_like(fg))
     off = refine(model, views, masks, extent, dataclasses.replace(cfg, object_check="off"), progress=False)
     vis = refine(model, views, masks, extent, dataclasses.replace(cfg, object_check="visible"), progress=False)
@@ -634,6 +636,49 @@ def test_per_use_gives_the_checked_set_alone_and_the_labels_verdict_in_the_scene
     assert torch.equal(use.foreground_in_scene, off.foreground)
     assert vis.foreground_in_scene is None
     assert use.config["object_check_dropped"] == vis.config["object_check_dropped"] > 0
+
+
+def test_the_undecided_gaussians_the_votes_call_object_join_the_object_in_the_scene():
+    """RefineConfig.in_scene_undecided = "votes" (issue 59 item 2): the object within the scene
+    is the labels' verdict plus every undecided Gaussian (0.1 < label < 0.9) whose Σ α·T votes
+    of the training masks say object; the refinement itself and the object-alone output do not
+    change. On the check scene: an undecided Gaussian in the object joins, undecided ones on
+    background pixels and decided ones do not."""
+    from cobgs.configs import key_without_later
+    from cobgs.refine.consistency import label_votes, undecided_by_votes
+
+    scene_model, scene_view = _check_scene()
+    spx = [pixel_labels_from_mask(scene_view.masks["obj"], 32, 32)]
+    values = torch.full((len(scene_model),), 0.5)
+    values[1:41] = 0.95  # decided (label > 0.9): never added, whatever its votes
+    joined = undecided_by_votes(scene_model, values, [scene_view], spx)
+    assert joined[0] and not joined[1:].any()  # A, in the object; the patch and the wall lie on background
+    assert not undecided_by_votes(scene_model, torch.full_like(values, 0.95), [scene_view], spx).any()
+
+    model, views, extent = tiny_scene(n_views=3)
+    masks = masks_for(views, "ball")
+    # stages of 3 iterations: split children cannot pass 0.9, so many Gaussians end undecided
+    cfg = RefineConfig(stage_length_views=1.0, mask_stages=2)
+    labels = refine(model, views, masks, extent, dataclasses.replace(cfg, in_scene_undecided="labels"), progress=False)
+    votes = refine(model, views, masks, extent, cfg, progress=False)  # the default since 2026-11-29
+    assert torch.equal(labels.model.data["mask_logit"], votes.model.data["mask_logit"])  # the same refinement
+    assert torch.equal(labels.foreground, votes.foreground)  # the same object alone
+    added = votes.foreground_in_scene & ~labels.foreground_in_scene
+    assert not (labels.foreground_in_scene & ~votes.foreground_in_scene).any() and added.any()
+    v = votes.mask_values
+    assert ((v[added] > 0.1) & (v[added] < 0.9)).all()
+    px = [pixel_labels_from_mask(masks[i], w.camera.height, w.camera.width) for i, w in enumerate(views)]
+    w = label_votes(votes.model, views, px, 2)
+    assert (w[added, 1] > w[added, 0]).all()
+    # in the key only where it changes something: the check per use, the new value
+    assert RefineConfig().in_scene_undecided == "votes"
+    assert "in_scene_undecided" not in key_without_later(RefineConfig, RefineConfig(in_scene_undecided="labels").as_dict())
+    assert key_without_later(RefineConfig, RefineConfig().as_dict())["in_scene_undecided"] == "votes"
+    for check in ("off", "visible"):
+        d = RefineConfig(object_check=check, in_scene_undecided="votes").as_dict()
+        assert "in_scene_undecided" not in key_without_later(RefineConfig, d)
+    with pytest.raises(Exception, match="in_scene_undecided"):
+        RefineConfig(in_scene_undecided="all")
 
 
 def test_short_stages_cannot_carry_a_restarted_label_past_foreground_and_say_so(caplog):

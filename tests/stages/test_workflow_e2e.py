@@ -210,7 +210,8 @@ only = "scene=tiny_b/method=cobgs"
 
 def test_per_use_keeps_the_object_in_the_scene_as_the_labels_say(tiny):
     """refine.cobgs.object_check = "per_use" (docs/method.md §7; the default): the refine entry
-    keeps the object-within-the-scene set (the labels' verdict, a superset of the checked
+    keeps the object-within-the-scene set (the labels' verdict and the undecided Gaussians the
+    votes call object, a superset of the checked
     foreground) and the segment stage renders pred_visible from it; "visible" (the check for both
     uses) is another entry, and the nosplit row's keys are untouched by either."""
     import numpy as np
@@ -229,8 +230,8 @@ def test_per_use_keeps_the_object_in_the_scene_as_the_labels_say(tiny):
     seg = np.load(ref / "segmentation.npz")
     fg, in_scene = seg["foreground"], seg["foreground_in_scene"]
     assert not (fg & ~in_scene).any()
-    mv = seg["mask_values"]  # the released verdict: label > 0.9
-    assert not (in_scene & (mv < 0.9 - 1e-6)).any() and not ((mv > 0.9 + 1e-6) & ~in_scene).any()
+    mv = seg["mask_values"]  # the released verdict (label > 0.9), and undecided ones (0.1 … 0.9) the votes add
+    assert not ((mv > 0.9 + 1e-6) & ~in_scene).any() and not (in_scene & (mv < 0.1 - 1e-6)).any()
     visible = _entry(wf, cache, "segment", "tiny/cobgs/ball").output("segmentation") / "pred_visible"
     assert sorted(visible.glob("*.png"))
     default = _entry(load_workflow(path, load_registry(), ["refine.cobgs.object_check=visible"]), cache,

@@ -155,6 +155,11 @@ def test_the_faithful_presets_keep_the_papers_splits():
     for name in ("ours", "ours_per_use_eq6", "ngs_checked"):
         assert presets[name]["refine"]["cobgs"]["object_check_rule"] == "votes", name
     assert RefineConfig().object_check_rule == "iou"
+    # the undecided Gaussians the votes call object join the object in the scene (the default
+    # since 2026-11-29): the earlier per-use variant keeps the labels' verdict alone
+    assert presets["ours_per_use_eq6"]["refine"]["cobgs"]["in_scene_undecided"] == "labels"
+    assert "in_scene_undecided" not in presets["ours_per_use"].get("refine", {}).get("cobgs", {})
+    assert RefineConfig().in_scene_undecided == "votes"
 
 
 def test_the_benchmarks_faithful_rows_keep_the_papers_splits():
