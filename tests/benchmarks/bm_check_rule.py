@@ -158,7 +158,7 @@ def main(argv=None) -> int:
     ap.add_argument("--versus", default="", help="comma list of rows to pair the last rule with")
     ap.add_argument("--json", type=Path, help="write every object's result here")
     a = ap.parse_args(argv)
-    from cobgs.evaluate.protocols import bootstrap_across_baselines, bootstrap_mean_diff
+    from cobgs.evaluate.protocols import bootstrap_mean_diff
 
     rules = [r for r in a.rules.split(",") if r]
     scenes = {s for s in a.scenes.split(",") if s}
@@ -208,13 +208,20 @@ def main(argv=None) -> int:
         for route in routes:
             for x, y in comparisons:
                 pooled = {m: pairs_of(results, by[(m, route)], x, y) for m in members if (m, route) in by}
-                d = bootstrap_across_baselines(pooled)
-                if d is None:
-                    continue
-                per = ", ".join(f"{b}: {v:+.2f}" for b, v in d["per_baseline"].items())
-                print(f"pooled {name} | {route} | {x} − {y.replace('row:', '')}: {d['diff']:+.2f} "
-                      f"[{d['lo']:+.2f}, {d['hi']:+.2f}] ({d['baselines']} baselines; {per})")
+                print_pooled(f"{name} | {route} | {x} − {y.replace('row:', '')}", pooled)
     return 0
+
+
+def print_pooled(what: str, pooled: dict) -> None:
+    """One line: the difference pooled over baselines (``bootstrap_across_baselines`` of
+    {baseline: {object: [(x, y) per view]}}) with each baseline's own; nothing when empty."""
+    from cobgs.evaluate.protocols import bootstrap_across_baselines
+
+    d = bootstrap_across_baselines(pooled)
+    if d is None:
+        return
+    per = ", ".join(f"{b}: {v:+.2f}" for b, v in d["per_baseline"].items())
+    print(f"pooled {what}: {d['diff']:+.2f} [{d['lo']:+.2f}, {d['hi']:+.2f}] ({d['baselines']} baselines; {per})")
 
 
 if __name__ == "__main__":

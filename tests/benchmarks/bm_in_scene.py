@@ -23,7 +23,8 @@ per scene and mask route the paired differences to ``labels`` (objects weighted 
 Run (not collected by pytest)::
 
     .venv/bin/python tests/benchmarks/bm_in_scene.py workflows/synthetic_bench.toml --cache CACHE \\
-        --row ours_per_use [--scenes forward_coarse,orbit_coarse] [--group NAME=SCENE,SCENE,...]
+        --row ours_per_use [--scenes forward_coarse,orbit_coarse] [--group NAME=SCENE,SCENE,...] \\
+        [--set refine.cobgs.in_scene_undecided=labels]
 """
 
 from __future__ import annotations
@@ -43,6 +44,9 @@ def main(argv=None) -> int:
     ap.add_argument("--cache", type=Path, required=True)
     ap.add_argument("--row", required=True)
     ap.add_argument("--scenes", default="")
+    ap.add_argument("--set", action="append", default=[], metavar="K=V",
+                    help="as cobgs run --set (entries computed before a default changed: "
+                         "--set refine.cobgs.in_scene_undecided=labels)")
     ap.add_argument("--group", action="append", default=[],
                     help="NAME=SCENE,SCENE,...: also the difference pooled over these baselines of one scene")
     a = ap.parse_args(argv)
@@ -51,10 +55,9 @@ def main(argv=None) -> int:
 
     import torch
 
-    from bm_check_rule import _entries
+    from bm_check_rule import _entries, print_pooled
     from cobgs.evaluate import protocols as E
     from cobgs.configs import LABEL
-    from cobgs.evaluate.protocols import bootstrap_across_baselines
     from cobgs.refine.alternation import label_sets
     from cobgs.refine.consistency import label_votes
     from cobgs.refine.scores import pixel_labels_from_mask
@@ -62,7 +65,7 @@ def main(argv=None) -> int:
     from stages._common import Files, load_scene, masks_for_views, read_json
     from stages.segment import read_refined
 
-    todo, data = _entries(a.workflow, a.cache, a.row, {s for s in a.scenes.split(",") if s})
+    todo, data = _entries(a.workflow, a.cache, a.row, {s for s in a.scenes.split(",") if s}, a.set)
     results = {}
     for (scene_name, obj), e in sorted(todo.items()):
         d = e["refined"]
@@ -127,12 +130,7 @@ def main(argv=None) -> int:
                     if keys:
                         pooled[m] = {k[1]: [(results[k][alt]["per_view"][n], results[k]["labels"]["per_view"][n])
                                             for n in results[k]["labels"]["per_view"]] for k in keys}
-                d = bootstrap_across_baselines(pooled)
-                if d is None:
-                    continue
-                per = ", ".join(f"{b}: {v:+.2f}" for b, v in d["per_baseline"].items())
-                print(f"pooled {name} | {route} | {alt} − labels: {d['diff']:+.2f} [{d['lo']:+.2f}, {d['hi']:+.2f}] "
-                      f"({d['baselines']} baselines; {per})")
+                print_pooled(f"{name} | {route} | {alt} − labels", pooled)
     return 0
 
 
