@@ -480,11 +480,13 @@ def apply_raem(
     views: Sequence[View] = (),
     footprint_px: Optional[float] = None,
     method: Optional[str] = None,
+    spare: Optional[Tensor] = None,
 ) -> RefineResult:
     """RAEM applied after a run made with ``raem="off"``: the same result as running with
     ``raem=variant`` (pruning is the last edit and changes no label), without rerunning.
 
-    Lets one refinement give the RAEM ablation rows (off / released / paper).
+    Lets one refinement give the RAEM ablation rows (off / released / paper), and measure a
+    pruning rule on cached refinements (``spare``).
 
     Args:
         result: a COB-GS result with ``config["raem"] == "off"`` and recorded scores.
@@ -492,6 +494,7 @@ def apply_raem(
         views: training views (cameras for "paper").
         footprint_px: the "paper" threshold (default: the run's ``raem_footprint_px``).
         method: label of the new result (default: the input's).
+        spare: [N] bool, Gaussians never pruned whatever the variant says (None: none).
 
     Returns:
         a new :class:`RefineResult` (the input is not modified).
@@ -506,14 +509,17 @@ def apply_raem(
     fp = cfg["raem_footprint_px"] if footprint_px is None else footprint_px
     t0 = time.perf_counter()
     prune = raem_prune_mask(result.model, amb, variant, [v.camera for v in views], fp)
+    if spare is not None:
+        prune &= ~spare.to(prune.device)
     m = result.model.clone()
     removed = m.select(prune) if bool(prune.any()) else None
     m.keep(~prune)
     logits = m.data[cfg["label_name"]]
     fg, bg = label_sets(logits)
     stages = [dataclasses.replace(s) for s in result.stages]
-    stages[-1].pruned = int(prune.sum())
-    stages[-1].gaussians_end = len(m)
+    if stages:  # (a result read back from a refine entry has no stage records)
+        stages[-1].pruned = int(prune.sum())
+        stages[-1].gaussians_end = len(m)
     return dataclasses.replace(
         result, method=method or result.method, model=m, foreground=fg, background=bg,
         mask_values=torch.sigmoid(logits.detach()), stages=stages, num_gaussians_end=len(m),

@@ -382,6 +382,13 @@ def test_apply_raem_matches_running_with_raem(variant):
     assert off.stages[-1].pruned == 0 and len(off.model) > len(post.model)  # input untouched
     with pytest.raises(InputError):
         apply_raem(direct, "paper", views)
+    # spare: those Gaussians stay whatever RAEM says; the others go as before
+    pruned = ~post.raem_keep
+    spare = torch.zeros(len(off.model), dtype=torch.bool)
+    spare[torch.nonzero(pruned)[0]] = True
+    kept = apply_raem(off, variant, views, spare=spare)
+    assert kept.stages[-1].pruned == post.stages[-1].pruned - 1 and len(kept.model) == len(post.model) + 1
+    assert torch.equal(~kept.raem_keep, pruned & ~spare)
 
 
 def test_peak_memory_sees_an_allocation_after_a_free():
