@@ -127,6 +127,14 @@ class RefineConfig:
     # 0.9, as released; entries written before). Measured on eight baselines of the two coarse
     # scenes: +0.07 … +0.99 occlusion-aware mBIoU pooled, never significantly below (docs/
     # benchmarks/segmentation.md). Out of the key unless the check is per_use.
+    # RAEM never removes a Gaussian the labels call object (label > 0.9; issue 59 item 2): the
+    # paper's RAEM takes tiny ambiguous Gaussians for residue of erroneous masks, but a thin
+    # object is drawn by exactly such Gaussians (orbit_dense's pole: 308 of its 989, 4 points of
+    # mBIoU); with this on, the object-render check, which weighs the masks' evidence, judges
+    # them instead. Off: RAEM as published (entries written before). Measured with
+    # tests/benchmarks/bm_raem.py (docs/benchmarks/segmentation.md).
+    raem_spare_object: bool = field(default=False, metadata={"before": False,
+                                                              "only_with": ("raem", ("released", "paper"))})
     in_scene_undecided: str = field(default="votes", metadata={"before": "labels",
                                                                  "only_with": ("object_check", ("per_use",))})
 

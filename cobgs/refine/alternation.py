@@ -246,6 +246,8 @@ class Refiner:
         info["ambiguous_large"] = int(large.sum())
         if last:
             prune = raem_prune_mask(m, amb, c.raem, [v.camera for v in self.views], c.raem_footprint_px)
+            if c.raem_spare_object:  # never a Gaussian the labels call object (the check judges those)
+                prune &= ~label_sets(m.data[c.label_name])[0]
             info["pruned"] = int(prune.sum())
             if info["pruned"]:
                 self.raem_keep, self.raem_removed = ~prune, m.select(prune)

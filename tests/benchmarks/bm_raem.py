@@ -18,7 +18,8 @@ Rules:
 * ``off``: nothing removed;
 * ``paper``: RAEM as the paper describes it (tiny ambiguous Gaussians; the default's);
 * ``spare``: ``paper``, except that a Gaussian the labels call object (label > 0.9) is never
-  pruned; the check (IoU rule) judges those with the masks' evidence instead.
+  pruned; the check (IoU rule) judges those with the masks' evidence instead
+  (``RefineConfig.raem_spare_object``, off by default).
 
 With ``--check-row ROW`` (a row that runs ``paper`` with the default's check, e.g.
 ``ours_per_use``) it first checks that ``paper`` gives back ROW's stored object and in-scene sets

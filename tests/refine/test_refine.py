@@ -389,6 +389,23 @@ def test_apply_raem_matches_running_with_raem(variant):
     kept = apply_raem(off, variant, views, spare=spare)
     assert kept.stages[-1].pruned == post.stages[-1].pruned - 1 and len(kept.model) == len(post.model) + 1
     assert torch.equal(~kept.raem_keep, pruned & ~spare)
+    # RefineConfig.raem_spare_object: the run spares what the labels call object, as apply_raem does
+    # with spare = the labels' foreground
+    from cobgs.configs import LABEL, key_without_later
+    from cobgs.refine.alternation import label_sets
+
+    long = dataclasses.replace(base, stage_length_views=8)  # 24-iteration stages: labels pass 0.9
+    off = refine(model, views, masks_for(views, "ball"), extent, dataclasses.replace(long, raem="off"), progress=False)
+    spared = refine(model, views, masks_for(views, "ball"), extent,
+                    dataclasses.replace(long, raem=variant, raem_spare_object=True), progress=False)
+    fg = label_sets(off.model.data[LABEL])[0]
+    assert (fg & ~apply_raem(off, variant, views).raem_keep).any()  # RAEM as published prunes some of them
+    again = apply_raem(off, variant, views, spare=fg)
+    assert len(spared.model) == len(again.model) and torch.equal(spared.raem_keep, again.raem_keep)
+    assert not (fg & ~spared.raem_keep).any() and not spared.raem_keep.all()
+    assert "raem_spare_object" not in key_without_later(RefineConfig, RefineConfig().as_dict())
+    assert "raem_spare_object" not in key_without_later(RefineConfig, RefineConfig(raem="off", raem_spare_object=True).as_dict())
+    assert key_without_later(RefineConfig, RefineConfig(raem_spare_object=True).as_dict())["raem_spare_object"] is True
 
 
 def test_peak_memory_sees_an_allocation_after_a_free():
