@@ -131,8 +131,10 @@ class RefineConfig:
     # paper's RAEM takes tiny ambiguous Gaussians for residue of erroneous masks, but a thin
     # object is drawn by exactly such Gaussians (orbit_dense's pole: 308 of its 989, 4 points of
     # mBIoU); with this on, the object-render check, which weighs the masks' evidence, judges
-    # them instead. Off: RAEM as published (entries written before). Measured with
-    # tests/benchmarks/bm_raem.py (docs/benchmarks/segmentation.md).
+    # them instead. Off: RAEM as published (entries written before). Measured on the nine rows
+    # with tests/benchmarks/bm_raem.py (docs/benchmarks/segmentation.md): it gives the pole back
+    # (+4.3) but RAEM's pruning also cleans larger objects' silhouettes, and without it the
+    # headline falls significantly on three rows (−0.02 … −0.23); rejected as a default.
     raem_spare_object: bool = field(default=False, metadata={"before": False,
                                                               "only_with": ("raem", ("released", "paper"))})
     in_scene_undecided: str = field(default="votes", metadata={"before": "labels",

@@ -38,6 +38,7 @@ Run (not collected by pytest)::
 from __future__ import annotations
 
 import argparse
+import json
 import statistics
 import sys
 from pathlib import Path
@@ -57,6 +58,7 @@ def main(argv=None) -> int:
     ap.add_argument("--objects", default="")
     ap.add_argument("--check-row", default="")
     ap.add_argument("--set", action="append", default=[], metavar="K=V", help="as cobgs run --set")
+    ap.add_argument("--json", type=Path, help="also write every object's per-view scores here")
     a = ap.parse_args(argv)
 
     import dataclasses
@@ -137,15 +139,18 @@ def main(argv=None) -> int:
             out[rule] = {"pruned": 0 if r.raem_keep is None else int((~r.raem_keep).sum()), "object": int(kept.sum()),
                          "headline": {n: p["biou"] for n, p in head["per_view"].items()},
                          "occlusion": {n: p["biou"] for n, p in occl["per_view"].items()}}
+        out["route"] = todo[(scene_name, obj)]["route"] or ref.get("mask_route", "")
         results[(scene_name, obj)] = out
         print(f"{scene_name:16s} {obj:14s} " + "  ".join(
             f"{k}: {100 * statistics.fmean(v['headline'].values()):6.2f} / "
             f"{100 * statistics.fmean(v['occlusion'].values()):6.2f} (pruned {v['pruned']}, object {v['object']})"
-            for k, v in out.items()), flush=True)
+            for k, v in out.items() if k in RULES), flush=True)
+    if a.json:
+        a.json.write_text(json.dumps({f"{k[0]}/{k[1]}": v for k, v in results.items()}, indent=1))
     print("\n| scene | masks | protocol | off − paper [95 %] | spare − paper [95 %] |\n|---|---|---|---|---|")
     for s in sorted({k[0] for k in results}):
-        for route in sorted({todo[k]["route"] for k in results}):
-            keys = [k for k in results if k[0] == s and todo[k]["route"] == route]
+        for route in sorted({results[k]["route"] for k in results}):
+            keys = [k for k in results if k[0] == s and results[k]["route"] == route]
             if not keys:
                 continue
             for proto in ("headline", "occlusion"):
