@@ -118,15 +118,6 @@ class RefineConfig:
     # object and much background. Never pruned by RAEM. 0: off (COB-GS as published; entries
     # written before the field existed).
     split_object_share: float = field(default=0.05, metadata={"before": 0.0})
-    # The object within the scene (the ``per_use`` check's second output, the occlusion-aware
-    # protocol; issue 59 item 2): "votes" (the default since 2026-11-29), the labels' verdict
-    # plus every Gaussian the refinement left undecided (0.1 < label < 0.9: split late, or
-    # judged on little evidence) whose Σ α·T votes of the training masks in the scene render say
-    # object (object votes > λ × background votes: the mask loss's own closed form;
-    # cobgs.refine.consistency.undecided_by_votes); "labels", the labels' verdict alone (label >
-    # 0.9, as released; entries written before). Measured on eight baselines of the two coarse
-    # scenes: +0.07 … +0.99 occlusion-aware mBIoU pooled, never significantly below (docs/
-    # benchmarks/segmentation.md). Out of the key unless the check is per_use.
     # RAEM never removes a Gaussian the labels call object (label > 0.9; issue 59 item 2): the
     # paper's RAEM takes tiny ambiguous Gaussians for residue of erroneous masks, but a thin
     # object is drawn by exactly such Gaussians (orbit_dense's pole: 308 of its 989, 4 points of
@@ -137,6 +128,15 @@ class RefineConfig:
     # headline falls significantly on three rows (−0.02 … −0.23); rejected as a default.
     raem_spare_object: bool = field(default=False, metadata={"before": False,
                                                               "only_with": ("raem", ("released", "paper"))})
+    # The object within the scene (the ``per_use`` check's second output, the occlusion-aware
+    # protocol; issue 59 item 2): "votes" (the default since 2026-11-29), the labels' verdict
+    # plus every Gaussian the refinement left undecided (0.1 < label < 0.9: split late, or
+    # judged on little evidence) whose Σ α·T votes of the training masks in the scene render say
+    # object (object votes > λ × background votes: the mask loss's own closed form;
+    # cobgs.refine.consistency.undecided_by_votes); "labels", the labels' verdict alone (label >
+    # 0.9, as released; entries written before). Measured on eight baselines of the two coarse
+    # scenes: +0.07 … +0.99 occlusion-aware mBIoU pooled, never significantly below (docs/
+    # benchmarks/segmentation.md). Out of the key unless the check is per_use.
     in_scene_undecided: str = field(default="votes", metadata={"before": "labels",
                                                                  "only_with": ("object_check", ("per_use",))})
 

@@ -67,7 +67,7 @@ from cobgs.errors import InputError
 from cobgs.gaussians.model import GaussianModel, gaussian_lrs
 from cobgs.train.losses import photometric_loss
 from cobgs.refine.result import PeakMemory, RefineResult, StageStats
-from cobgs.refine.consistency import object_render_check, undecided_by_votes
+from cobgs.refine.consistency import label_votes, object_render_check, undecided_by_votes
 from cobgs.refine.scores import (
     ScoreAccumulator,
     object_share,
@@ -88,6 +88,7 @@ __all__ = [
     "refine_scene",
     "refine_objects",
     "apply_raem",
+    "final_sets",
     "MultiObjectResult",
     "masks_for",
     "FG_THRESHOLD",
@@ -245,9 +246,9 @@ class Refiner:
         large = split_candidates(m, to_split, self.extent, c.split_size_fraction)
         info["ambiguous_large"] = int(large.sum())
         if last:
-            prune = raem_prune_mask(m, amb, c.raem, [v.camera for v in self.views], c.raem_footprint_px)
-            if c.raem_spare_object:  # never a Gaussian the labels call object (the check judges those)
-                prune &= ~label_sets(m.data[c.label_name])[0]
+            # raem_spare_object: never a Gaussian the labels call object (the check judges those)
+            spare = label_sets(m.data[c.label_name])[0] if c.raem_spare_object else None
+            prune = raem_prune_mask(m, amb, c.raem, [v.camera for v in self.views], c.raem_footprint_px, spare)
             info["pruned"] = int(prune.sum())
             if info["pruned"]:
                 self.raem_keep, self.raem_removed = ~prune, m.select(prune)
@@ -429,20 +430,7 @@ def refine(
             log.warning("%s %s: %s", method, object_name, short)
         stats, scores, amb = r.run(progress=progress, desc=f"{method} {object_name}".strip())
         logits = m.data[config.label_name]
-        fg, bg = label_sets(logits)
-        checked = 0
-        in_scene = None
-        if config.object_check in CHECKED:
-            kept = object_render_check(m, fg, r.views, r.pixel_labels, config.mask_lambda, config.backend,
-                                       edge_px=config.object_check_edge_px, rule=config.object_check_rule)
-            checked = int((fg & ~kept).sum())
-            if config.object_check == "per_use":  # the object within the scene: the labels' verdict
-                in_scene = fg
-                if config.in_scene_undecided == "votes":  # ... and the undecided ones the votes call object
-                    in_scene = fg | undecided_by_votes(m, torch.sigmoid(logits.detach()), r.views, r.pixel_labels,
-                                                       config.mask_lambda, config.backend, BG_THRESHOLD,
-                                                       FG_THRESHOLD)
-            fg = kept
+        fg, bg, in_scene, checked = final_sets(m, r.views, r.pixel_labels, config)
     wall = time.perf_counter() - t0
     return RefineResult(
         method=method,
@@ -474,6 +462,33 @@ def refine_scene(model: GaussianModel, scene: Scene, object_name: str, config: R
         raise InputError(f"object {object_name!r} has no masks in this scene (objects: {scene.object_names})")
     return refine(model, scene.train, masks_for(scene.train, object_name), scene.extent, config,
                   background=scene.background, object_name=object_name, **kw)
+
+
+def final_sets(model: GaussianModel, views: Sequence[View], pixel_labels: Sequence[Tensor],
+               config: RefineConfig) -> tuple[Tensor, Tensor, Optional[Tensor], int]:
+    """What a refined scene's labels give, as :func:`refine` returns it: ``(foreground,
+    background, foreground_in_scene, dropped)``.
+
+    The labels' verdict (label > 0.9 / < 0.1), then, as ``config`` asks, the object-render
+    check (``object_check``: the foreground for the object alone, ``dropped`` Gaussians fewer)
+    and, per use, the object within the scene: the labels' verdict, plus the undecided
+    Gaussians the training masks' votes call object (``in_scene_undecided = "votes"``).
+    ``pixel_labels``: one per view, as :func:`cobgs.refine.scores.pixel_labels_from_mask`.
+    """
+    logits = model.data[config.label_name]
+    fg, bg = label_sets(logits)
+    if config.object_check not in CHECKED:
+        return fg, bg, None, 0
+    kept = object_render_check(model, fg, views, pixel_labels, config.mask_lambda, config.backend,
+                               edge_px=config.object_check_edge_px, rule=config.object_check_rule)
+    in_scene = None
+    if config.object_check == "per_use":  # the object within the scene: the labels' verdict ...
+        in_scene = fg
+        if config.in_scene_undecided == "votes":  # ... and the undecided ones the votes call object
+            votes = label_votes(model, views, pixel_labels, 2, config.backend)
+            in_scene = fg | undecided_by_votes(torch.sigmoid(logits.detach()), votes, config.mask_lambda,
+                                               BG_THRESHOLD, FG_THRESHOLD)
+    return kept, bg, in_scene, int((fg & ~kept).sum())
 
 
 def apply_raem(
@@ -510,9 +525,7 @@ def apply_raem(
     amb = scores < cfg["threshold"]
     fp = cfg["raem_footprint_px"] if footprint_px is None else footprint_px
     t0 = time.perf_counter()
-    prune = raem_prune_mask(result.model, amb, variant, [v.camera for v in views], fp)
-    if spare is not None:
-        prune &= ~spare.to(prune.device)
+    prune = raem_prune_mask(result.model, amb, variant, [v.camera for v in views], fp, spare)
     m = result.model.clone()
     removed = m.select(prune) if bool(prune.any()) else None
     m.keep(~prune)

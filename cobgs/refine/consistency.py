@@ -120,7 +120,7 @@ def object_render_check(model: GaussianModel, foreground: Tensor, views: Sequenc
     # a Gaussian the check cannot see (every pixel of it left out) keeps its label's verdict
     unseen = w.sum(dim=1) == 0
     if rule == "votes":
-        out[idx] = (w[:, 1] > mask_lambda * w[:, 0]) | unseen
+        out[idx] = object_by_votes(w, mask_lambda) | unseen
     elif rule == "iou":
         object_pixels = float(sum(int((q == 1).sum()) for q in checked))
         out[idx] = iou_keep(w[:, 1], w[:, 0], object_pixels, mask_lambda) | unseen
@@ -129,21 +129,22 @@ def object_render_check(model: GaussianModel, foreground: Tensor, views: Sequenc
     return out
 
 
-def undecided_by_votes(model: GaussianModel, values: Tensor, views: Sequence[View],
-                       pixel_labels: Sequence[Tensor], mask_lambda: float = 1.0, backend: str = "native",
-                       low: float = 0.1, high: float = 0.9) -> Tensor:
+def object_by_votes(votes: Tensor, mask_lambda: float = 1.0) -> Tensor:
+    """[N] bool: the Gaussians whose votes say object, object Σ α·T > λ × background Σ α·T
+    (``votes``: :func:`label_votes` with labels 0 = background, 1 = object). This is the mask
+    loss's closed form, as FlashSplat's assignment reads it."""
+    return votes[:, 1] > mask_lambda * votes[:, 0]
+
+
+def undecided_by_votes(values: Tensor, votes: Tensor, mask_lambda: float = 1.0, low: float = 0.1,
+                       high: float = 0.9) -> Tensor:
     """[N] bool: the Gaussians the refinement left undecided (``low < value < high``) whose
-    votes of the training masks in the scene render say object (object Σ α·T > λ × background
-    Σ α·T over the views: the mask loss's closed form, as FlashSplat's assignment reads it).
+    votes (:func:`label_votes` of the training masks in the scene render, every Gaussian
+    occluding as in the scene) say object (:func:`object_by_votes`).
 
     ``RefineConfig.in_scene_undecided = "votes"`` adds them to the object within the scene.
-    Every Gaussian of ``model`` occludes as in the scene; only the undecided ones can join.
     """
-    undecided = (values > low) & (values < high)
-    if not bool(undecided.any()):
-        return undecided
-    w = label_votes(model, views, pixel_labels, 2, backend)
-    return undecided & (w[:, 1] > mask_lambda * w[:, 0])
+    return (values > low) & (values < high) & object_by_votes(votes, mask_lambda)
 
 
 def iou_keep(a: Tensor, b: Tensor, object_pixels: float, mask_lambda: float = 1.0,

@@ -121,6 +121,7 @@ def raem_prune_mask(
     variant: str,
     cameras: Sequence[Camera] = (),
     footprint_px: float = 1.0,
+    spare: Optional[Tensor] = None,
 ) -> Tensor:
     """[N] bool: the Gaussians RAEM removes (see the module docstring).
 
@@ -131,6 +132,8 @@ def raem_prune_mask(
             footprint < ``footprint_px`` in every training view that sees it).
         cameras: training views (for "paper").
         footprint_px: the pixel-footprint threshold of "paper".
+        spare: [N] bool, Gaussians never removed whatever the variant says (None: none;
+            ``RefineConfig.raem_spare_object`` passes the labels' foreground).
     """
     if variant not in RAEM_VARIANTS:
         raise InputError(f"raem must be one of {RAEM_VARIANTS}, got {variant!r}")
@@ -138,6 +141,8 @@ def raem_prune_mask(
         raise InputError(f"ambiguous must be a bool [{len(model)}] tensor")
     if variant == "off":
         return torch.zeros_like(ambiguous)
+    if spare is not None:
+        ambiguous = ambiguous & ~spare.to(ambiguous.device)
     if variant == "released":
         return ambiguous.clone()
     if not cameras:

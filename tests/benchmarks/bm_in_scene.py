@@ -58,8 +58,8 @@ def main(argv=None) -> int:
     from bm_check_rule import _entries, print_pooled
     from cobgs.evaluate import protocols as E
     from cobgs.configs import LABEL
-    from cobgs.refine.alternation import label_sets
-    from cobgs.refine.consistency import label_votes
+    from cobgs.refine.alternation import BG_THRESHOLD, FG_THRESHOLD, label_sets
+    from cobgs.refine.consistency import label_votes, object_by_votes, undecided_by_votes
     from cobgs.refine.scores import pixel_labels_from_mask
     from cobgs.refine.segment import visible_object_mask
     from stages._common import Files, load_scene, masks_for_views, read_json
@@ -83,15 +83,15 @@ def main(argv=None) -> int:
         views = [v for v, m in zip(scene.train, masks) if m is not None]
         pixel = [pixel_labels_from_mask(m, v.height, v.width) for v, m in zip(scene.train, masks) if m is not None]
         w = label_votes(model, views, pixel, 2)
-        votes = w[:, 1] > lam * w[:, 0]
-        undecided = (values > 0.1) & (values < 0.9)
+        votes = object_by_votes(w, lam)
+        plus = labels | undecided_by_votes(values, w, lam, BG_THRESHOLD, FG_THRESHOLD)
         stored_rule = (ref.get("config") or {}).get("in_scene_undecided", "labels")
-        expect = labels | (undecided & votes) if stored_rule == "votes" else labels
+        expect = plus if stored_rule == "votes" else labels
         if not torch.equal(expect, in_scene.foreground):  # the entry is not what this script computes
             raise SystemExit(f"{scene_name}/{obj}: in_scene_undecided = {stored_rule!r} does not give back the "
                              f"stored in-scene set ({int(in_scene.foreground.sum())} against {int(expect.sum())})")
         ones = torch.where(labels, values, torch.ones_like(values))  # votes carry no label: value 1
-        sets = {"labels": (labels, values), "labels+undecided": (labels | (undecided & votes), values),
+        sets = {"labels": (labels, values), "labels+undecided": (plus, values),
                 "votes": (votes, ones)}
         gt_name = ref.get("dataset_object") or ref.get("object") or obj
         test = {v.name: v for v in scene.test}

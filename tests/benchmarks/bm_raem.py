@@ -6,9 +6,10 @@ RAEM is the refinement's last edit: it removes Gaussians and changes no label
 ``--row`` this script
 
 1. reads the refined scene, its last mask stage's scores and the masks it was refined with;
-2. applies each rule, then the default's two outputs as the refine stage makes them: the
-   object-render check with its IoU rule for the object alone, and the labels' verdict plus the
-   undecided Gaussians the votes call object for the object within the scene;
+2. applies each rule, then the default's two outputs as the refine stage makes them
+   (:func:`cobgs.refine.alternation.final_sets` with the default's check and in-scene options:
+   the object-render check for the object alone; the labels' verdict plus the undecided
+   Gaussians the votes call object for the object within the scene);
 3. renders both as the segment stage does and scores them as the evaluate stage does: the
    headline protocol (object alone against its whole silhouette where the dataset has one) and
    the occlusion-aware one (the object within the scene against its visible mask).
@@ -47,6 +48,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 RULES = ("off", "paper", "spare")
+#: The refine options that decide the outputs after RAEM (cobgs.refine.alternation.final_sets):
+#: the default's are applied to every rule
+OUTPUT_OPTIONS = ("object_check", "object_check_rule", "object_check_edge_px", "in_scene_undecided")
 
 
 def main(argv=None) -> int:
@@ -67,10 +71,9 @@ def main(argv=None) -> int:
     import torch
 
     from bm_check_rule import _entries
-    from cobgs.configs import FOREGROUND_LABEL, LABEL
+    from cobgs.configs import LABEL, RefineConfig
     from cobgs.evaluate import protocols as E
-    from cobgs.refine.alternation import apply_raem, label_sets
-    from cobgs.refine.consistency import object_render_check, undecided_by_votes
+    from cobgs.refine.alternation import apply_raem, final_sets, label_sets
     from cobgs.refine.scores import pixel_labels_from_mask
     from cobgs.refine.segment import render_object_mask, visible_object_mask
     from pipeline import entries, load_workflow
@@ -89,6 +92,7 @@ def main(argv=None) -> int:
             v = rec.item.values
             if rec.stage == "refine" and rec.state == "done" and v.get("method") == a.check_row:
                 stored[(v["scene"], v["object"])] = Path(rec.output("refined"))
+    default, fields = RefineConfig(), {f.name for f in dataclasses.fields(RefineConfig)}
     results = {}
     for (scene_name, obj), e in sorted(todo.items()):
         if objects and obj not in objects:
@@ -106,7 +110,9 @@ def main(argv=None) -> int:
         masks = masks_for_views(e["masks"], scene.train)
         views = [v for v, m in zip(scene.train, masks) if m is not None]
         px = [pixel_labels_from_mask(m, v.height, v.width) for v, m in zip(scene.train, masks) if m is not None]
-        lam = float(cfg.get("mask_lambda", 1.0))
+        # the refinement's own options (λ, labels, backend), with the default's check and in-scene set
+        own = RefineConfig(**{k: v for k, v in cfg.items() if k in fields})
+        outputs = dataclasses.replace(own, **{k: getattr(default, k) for k in OUTPUT_OPTIONS})
         gt_name = ref.get("dataset_object") or ref.get("object") or obj
         test = {v.name: v for v in scene.test}
         visible = {n: (v.masks[gt_name].cpu().numpy() if gt_name in v.masks else None) for n, v in test.items()}
@@ -117,9 +123,7 @@ def main(argv=None) -> int:
         for rule in RULES:
             variant = "off" if rule == "off" else "paper"
             r = apply_raem(result, variant, scene.train, spare=labels_fg if rule == "spare" else None)
-            fg = label_sets(r.model.data[LABEL])[0]
-            kept = object_render_check(r.model, fg, views, px, lam, rule="iou")
-            in_scene = fg | undecided_by_votes(r.model, r.mask_values, views, px, lam, 0.1, FOREGROUND_LABEL)
+            kept, _, in_scene, _ = final_sets(r.model, views, px, outputs)
             if rule == "paper" and (scene_name, obj) in stored:
                 sdir = stored[(scene_name, obj)]
                 _, s_in, s_seg = read_refined(sdir, "cpu")

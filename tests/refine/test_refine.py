@@ -675,9 +675,10 @@ def test_the_undecided_gaussians_the_votes_call_object_join_the_object_in_the_sc
     spx = [pixel_labels_from_mask(scene_view.masks["obj"], 32, 32)]
     values = torch.full((len(scene_model),), 0.5)
     values[1:41] = 0.95  # decided (label > 0.9): never added, whatever its votes
-    joined = undecided_by_votes(scene_model, values, [scene_view], spx)
+    votes = label_votes(scene_model, [scene_view], spx, 2)
+    joined = undecided_by_votes(values, votes)
     assert joined[0] and not joined[1:].any()  # A, in the object; the patch and the wall lie on background
-    assert not undecided_by_votes(scene_model, torch.full_like(values, 0.95), [scene_view], spx).any()
+    assert not undecided_by_votes(torch.full_like(values, 0.95), votes).any()
 
     model, views, extent = tiny_scene(n_views=3)
     masks = masks_for(views, "ball")
