@@ -103,6 +103,13 @@ class TrainConfig:
     # share of full-resolution pixels rendered (1/d^2; all of it once the renders are full
     # size), DashGaussian's primitive schedule, instead of the line over the iterations.
     densify_grad_rescale: bool = field(default=False, metadata={"before": False})
+    # densify_stats_every k > 0 (issue 57 item 2, the other half): the statistics are gathered at
+    # full resolution only. While the resolution schedule renders below full size inside the
+    # densification window, every k-th step renders its view at full size, and only those steps
+    # feed the densification statistics (gradient, visibility count, screen radius); the others
+    # train at their small size and add nothing. Once the renders are full size every step feeds
+    # them, as 3DGS. k at most densify_interval_its, so each densification step has samples.
+    densify_stats_every: int = field(default=0, metadata={"before": 0})
     budget_schedule: str = field(default="line", metadata={"before": "line"})
     # A budget that follows the scene (issue 57 item 3). budget_schedule "growth": until
     # budget_probe_at of the densification window, 3DGS's own rule densifies (no ceiling); the
@@ -160,6 +167,7 @@ class TrainConfig:
         "gaussian_budget_per_pixel": "[0, 100]", "gaussian_budget_multiplier": "[0, 10000]",
         "budget_full_at": "(0, 1]", "stop_at_plateau": "[0, 1]", "plateau_window_its": "[10, 1e6]",
         "budget_probe_at": "(0, 1)", "budget_edge_exempt": "[0, 1e6]", "crop_fraction": "[0.05, 1]",
+        "densify_stats_every": "[0, 1e7]",
     }
     CHOICES: ClassVar[dict] = {"backend": ("native", "reference"), "recipe": tuple(RECIPES_NAMES),
                                "budget_schedule": ("line", "resolution", "growth"), "rasterizer": ("ours", "gsplat"),
@@ -176,6 +184,12 @@ class TrainConfig:
         for name, value in RECIPES[self.recipe].items():  # what the caller left unset: the recipe's
             if getattr(self, name) is None:
                 object.__setattr__(self, name, value)
+        interval = self.schedule().densify_interval
+        if self.densify_stats_every > interval:
+            raise InputError(
+                f"TrainConfig.densify_stats_every = {self.densify_stats_every} is more than the "
+                f"densification interval ({interval} iterations): some densification steps would "
+                f"have no full-size samples; expected 0 (off) or 1 .. {interval}")
 
     def budget_for(self, width: int, height: int, initial: int = 0) -> int:
         """The Gaussian budget for training images of ``width`` x ``height`` and a model that

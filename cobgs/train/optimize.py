@@ -409,6 +409,12 @@ class Trainer:
         index, view = self._next_view()
         camera, target = view.camera, view.image
         d = self.downscale(it)
+        stats = it < s.densify_until  # the step feeds the densification statistics
+        if stats and d != 1.0 and c.densify_stats_every > 0:  # TrainConfig.densify_stats_every
+            if it % c.densify_stats_every == 0:
+                d = 1.0
+            else:
+                stats = False
         if d != 1.0:
             camera = camera.scaled(d)
             target = self._target(index, view, int(camera.width), int(camera.height))
@@ -417,7 +423,7 @@ class Trainer:
         bg = torch.rand(3, generator=self.bg_rng) if c.random_background else self.background
         with self._phase("render"):
             out = self._render(camera, bg)
-            if it < s.densify_until:  # the densification statistics read its gradient
+            if stats:  # the densification statistics read its gradient
                 out.means2d.retain_grad()
             img = out.image
         with self._phase("loss"):
@@ -426,7 +432,7 @@ class Trainer:
             loss.backward()
 
         with torch.no_grad():
-            if it < s.densify_until:
+            if stats:
                 with self._phase("stats"):
                     self._accumulate(out.radii, out.means2d.grad, camera.width, camera.height,
                                      d if c.densify_grad_rescale else 1.0)

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from cobgs.configs import FAST_RECIPE, TrainConfig, key_without_later
+from cobgs.errors import InputError
 from cobgs.data.scene import View, make_scene
 from cobgs.render.image import render
 from cobgs.gaussians.model import GaussianModel
@@ -244,6 +245,39 @@ def test_densification_that_does_not_depend_on_the_render_size(scene):
         assert "budget_schedule" not in key_without_later(TrainConfig, full)
     on = dataclasses.asdict(TrainConfig(recipe="fast", densify_grad_rescale=True, budget_schedule="resolution"))
     assert {"densify_grad_rescale", "budget_schedule"} <= set(key_without_later(TrainConfig, on))
+
+
+def test_densification_statistics_gathered_at_full_size_only(scene):
+    """Issue 57 item 2: densify_stats_every k renders every k-th step of the densification window
+    at full size while the schedule is below it, and only those steps feed the statistics; the
+    other steps train small and add nothing. Full-size steps feed them as before. Off: as 3DGS,
+    and out of the key; more than the densification interval is refused at load time."""
+    base = _cfg(resolution_schedule=True, resolution_max_downscale=2.0, resolution_full_at=0.5)
+    full_w = scene.train[0].camera.width
+    torch.manual_seed(0)
+    on = Trainer(scene, dataclasses.replace(base, densify_stats_every=2))
+    assert on.downscale(1) > 1.0 and on.downscale(2) > 1.0
+    small = on.step()
+    assert small["resolution"][0] < full_w
+    assert on.grad_count.sum() == 0 and on.grad_accum.sum() == 0 and on.max_radii.sum() == 0
+    big = on.step()
+    assert big["resolution"][0] == full_w  # the 2nd step: full size, and it feeds the statistics
+    assert on.grad_count.sum() > 0 and on.grad_accum.sum() > 0 and on.max_radii.max() > 0
+    count = on.grad_count.clone()
+    torch.manual_seed(0)
+    off = Trainer(scene, base)
+    off.step()
+    assert off.grad_count.sum() > 0  # off: a small step feeds them too
+    assert off.step()["resolution"][0] < full_w
+    on.iteration = 30  # full size from resolution_full_at x iterations on: every step feeds them
+    assert on.downscale(31) == 1.0
+    on.step()
+    assert (on.grad_count >= count).all() and on.grad_count.sum() > count.sum()
+    assert "densify_stats_every" not in key_without_later(TrainConfig, dataclasses.asdict(TrainConfig(recipe="fast")))
+    assert "densify_stats_every" in key_without_later(
+        TrainConfig, dataclasses.asdict(TrainConfig(recipe="fast", densify_stats_every=4)))
+    with pytest.raises(InputError, match="densify_stats_every = 11 is more than the densification interval"):
+        dataclasses.replace(base, densify_stats_every=11)
 
 
 def test_a_flat_loss_stops_the_run_and_says_where(scene):
