@@ -152,7 +152,7 @@ class RefineConfig:
                                "scene_type": tuple(SCENE_DEFAULTS), "raem": RAEM_VARIANTS,
                                "score": ("count", "weight"), "texture_adam": TEXTURE_ADAM,
                                "object_check": ("off", *CHECKED),
-                               "object_check_rule": ("votes", "iou"),
+                               "object_check_rule": ("votes", "iou", "removal"),
                                "in_scene_undecided": ("labels", "votes")}
 
     def __post_init__(self):

@@ -595,7 +595,7 @@ def test_the_iou_rule_of_the_check_keeps_what_draws_a_thin_object():
     votes = object_render_check(model, fg, [view], px)
     iou = object_render_check(model, fg, [view], px, rule="iou")
     assert votes.tolist() == [False, False] and iou.tolist() == [True, False]
-    with pytest.raises(InputError, match="object check rule must be 'votes' or 'iou', got 'vote'"):
+    with pytest.raises(InputError, match="object check rule must be 'votes', 'iou' or 'removal', got 'vote'"):
         object_render_check(model, fg, [view], px, rule="vote")
     # on the check scene (a small Gaussian in the object, a patch beside it) both rules agree
     scene_model, scene_view = _check_scene()
@@ -614,6 +614,73 @@ def test_the_iou_rule_of_the_check_keeps_what_draws_a_thin_object():
     assert "object_check_rule" not in key_without_later(RefineConfig, RefineConfig().as_dict(), {"object_check": "off"})
     with pytest.raises(Exception, match="object_check_rule"):
         RefineConfig(object_check_rule="majority")
+
+
+def test_the_removal_rule_counts_what_a_gaussian_alone_draws():
+    """RefineConfig.object_check_rule = "removal": each Gaussian's gains are what removing it alone
+    takes from the object's rendered coverage on object / background pixels (exactly, from the
+    opacity gradient), so a Gaussian in front of one that already draws the object gains little
+    there. Such a Gaussian, spilling past the object's edge, is kept by the IoU rule (its Σ α·T
+    votes count the object pixels it merely covers first) and removed by this one; the votes
+    rule's verdict is always kept; a lone straddler stays, as under the IoU rule."""
+    import torch
+
+    from cobgs.data.scene import View
+    from cobgs.gaussians.model import GaussianModel
+    from cobgs.refine.consistency import label_votes, object_render_check, removal_gains
+    from cobgs.refine.scores import pixel_labels_from_mask
+    from cobgs.render.camera import Camera
+    from cobgs.render.image import render
+
+    def gaussians(means, scales, logits):
+        n = len(means)
+        return GaussianModel(torch.tensor(means), torch.tensor(scales).log(),
+                             torch.tensor([[1.0, 0, 0, 0]]).repeat(n, 1), torch.tensor(logits),
+                             torch.zeros(n, 1, 3), torch.zeros(n, 0, 3))
+
+    def coverage(m, cam):
+        with torch.no_grad():
+            return render(m, cam, features=torch.ones(len(m), 1)).image[..., 0]
+
+    # exact: on a random scene, each gain is the coverage lost by rendering without that Gaussian
+    model, views, _ = tiny_scene(n_views=1, n=200)
+    lab = (torch.rand(views[0].camera.height, views[0].camera.width, generator=torch.Generator().manual_seed(1)) * 3
+           ).long() - 1  # −1 (ignored), 0, 1
+    gains, inter, bg = removal_gains(model, views, [lab])
+    full = coverage(model, views[0].camera)
+    assert abs(inter - float(full[lab == 1].sum())) < 1e-3 and abs(bg - float(full[lab == 0].sum())) < 1e-3
+    for i in (0, 17, 101, 199):
+        keep = torch.ones(len(model), dtype=torch.bool)
+        keep[i] = False
+        drop = full - coverage(model.select(keep), views[0].camera)
+        for k in (0, 1):
+            assert abs(float(gains[i, k]) - float(drop[lab == k].sum())) < 1e-3 * max(1.0, float(drop.abs().sum()))
+
+    cam = Camera(K=torch.tensor([[50.0, 0, 16.0], [0, 50.0, 16.0], [0, 0, 1]]), viewmat=torch.eye(4),
+                 width=32, height=32, name="cam")
+    # 0: an opaque Gaussian drawing the object (the mask: where it alone renders above 0.5);
+    # 1: a smaller one in front of it, on the object's right edge
+    model = gaussians([[0.0, 0.0, 3.0], [0.30, 0.0, 2.0]], [[0.35] * 3, [0.10] * 3], [6.0, 6.0])
+    mask = coverage(model.select(torch.tensor([0])), cam) > 0.5
+    view = View(camera=cam, image=torch.zeros(32, 32, 3), name="cam", masks={"obj": mask})
+    px = [pixel_labels_from_mask(mask, 32, 32)]
+    votes = label_votes(model, [view], px, 2)
+    gains, _, _ = removal_gains(model, [view], px)
+    assert votes[1, 1] > 2.5 * gains[1, 1]  # in front of the object's own Gaussian: it adds little there
+    fg = torch.ones(2, dtype=torch.bool)
+    assert object_render_check(model, fg, [view], px).tolist() == [True, False]
+    assert object_render_check(model, fg, [view], px, rule="iou").tolist() == [True, True]
+    assert object_render_check(model, fg, [view], px, rule="removal").tolist() == [True, False]
+    # what the votes rule keeps stays: at λ = 0.5 it keeps the front one (14.2 > 0.5 · 27.2)
+    assert object_render_check(model, fg, [view], px, mask_lambda=0.5, rule="removal").tolist() == [True, True]
+    # a pole drawn by one wide Gaussian with most of its weight beside it, and one wholly beside it
+    pole = gaussians([[0.0, 0.0, 2.0], [0.36, 0.0, 2.0]], [[0.15] * 3, [0.04] * 3], [4.0, 4.0])
+    pm = torch.zeros(32, 32, dtype=torch.bool)
+    pm[:, 14:18] = True
+    pv = View(camera=cam, image=torch.zeros(32, 32, 3), name="cam", masks={"pole": pm})
+    ppx = [pixel_labels_from_mask(pm, 32, 32)]
+    assert object_render_check(pole, fg, [pv], ppx, rule="removal").tolist() == [True, False]
+    assert RefineConfig(object_check_rule="removal").object_check_rule == "removal"
 
 
 def test_refine_applies_the_object_check_only_when_asked():
