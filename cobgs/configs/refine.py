@@ -128,6 +128,14 @@ class RefineConfig:
     # headline falls significantly on three rows (−0.02 … −0.23); rejected as a default.
     raem_spare_object: bool = field(default=False, metadata={"before": False,
                                                               "only_with": ("raem", ("released", "paper"))})
+    # RAEM's object Gaussians judged per object by the training masks (issue 59 item 2): where RAEM
+    # would prune Gaussians the labels call object, both outcomes (pruned as published, or spared
+    # as raem_spare_object spares them) go through the final sets (the check), and the one whose
+    # object alone, drawn above 0.5, agrees better with the training masks wins (IoU over the
+    # judged pixels, the pixels where something else hides the object left out; a tie: as
+    # published). Measured on the nine rows as bm_raem's "object_set" (segmentation.md); off.
+    raem_object_by_masks: bool = field(default=False, metadata={"before": False,
+                                                                 "only_with": ("raem", ("released", "paper"))})
     # The object within the scene (the ``per_use`` check's second output, the occlusion-aware
     # protocol; issue 59 item 2): "votes" (the default since 2026-11-29), the labels' verdict
     # plus every Gaussian the refinement left undecided (0.1 < label < 0.9: split late, or
@@ -157,6 +165,9 @@ class RefineConfig:
 
     def __post_init__(self):
         check_params(self)  # (every field's range and choices: RANGES / CHOICES above)
+        if self.raem_object_by_masks and self.raem_spare_object:
+            raise InputError("RefineConfig: raem_object_by_masks and raem_spare_object are both on; "
+                             "expected at most one (raem_object_by_masks already weighs the spared set)")
 
     @property
     def threshold(self) -> float:

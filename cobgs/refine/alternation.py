@@ -67,7 +67,7 @@ from cobgs.errors import InputError
 from cobgs.gaussians.model import GaussianModel, gaussian_lrs
 from cobgs.train.losses import photometric_loss
 from cobgs.refine.result import PeakMemory, RefineResult, StageStats
-from cobgs.refine.consistency import label_votes, object_render_check, undecided_by_votes
+from cobgs.refine.consistency import drawn_agreement, label_votes, object_render_check, undecided_by_votes
 from cobgs.refine.scores import (
     ScoreAccumulator,
     object_share,
@@ -175,6 +175,9 @@ class Refiner:
         # what RAEM removed at the end (None while nothing was): the scene before it
         self.raem_keep: Optional[Tensor] = None
         self.raem_removed: Optional[GaussianModel] = None
+        # RefineConfig.raem_object_by_masks: (as published, with the object spared), RAEM's two
+        # prune masks where they differ; refine() applies one after the run
+        self.raem_choice: Optional[tuple[Tensor, Tensor]] = None
         self.iteration = 0
         self.last_mask_info: dict = {}
         self.ngs = None
@@ -248,9 +251,15 @@ class Refiner:
         if last:
             # raem_spare_object: never a Gaussian the labels call object (the check judges those)
             spare = label_sets(m.data[c.label_name])[0] if c.raem_spare_object else None
-            prune = raem_prune_mask(m, amb, c.raem, [v.camera for v in self.views], c.raem_footprint_px, spare)
+            cams = [v.camera for v in self.views]
+            prune = raem_prune_mask(m, amb, c.raem, cams, c.raem_footprint_px, spare)
             info["pruned"] = int(prune.sum())
-            if info["pruned"]:
+            if c.raem_object_by_masks:  # refine() chooses, once the check can judge both outcomes
+                spared = raem_prune_mask(m, amb, c.raem, cams, c.raem_footprint_px, label_sets(m.data[c.label_name])[0])
+                if not torch.equal(spared, prune):
+                    self.raem_choice = (prune, spared)
+                    prune = torch.zeros_like(prune)
+            if bool(prune.any()):
                 self.raem_keep, self.raem_removed = ~prune, m.select(prune)
                 m.keep(~prune, self.optimizers)
         elif c.bags:
@@ -429,6 +438,9 @@ def refine(
         if short:
             log.warning("%s %s: %s", method, object_name, short)
         stats, scores, amb = r.run(progress=progress, desc=f"{method} {object_name}".strip())
+        raem_choice = None
+        if r.raem_choice is not None:  # RefineConfig.raem_object_by_masks
+            raem_choice = _prune_by_masks(m, r, config, stats[-1])
         logits = m.data[config.label_name]
         fg, bg, in_scene, checked = final_sets(m, r.views, r.pixel_labels, config)
     wall = time.perf_counter() - t0
@@ -448,11 +460,33 @@ def refine(
         wall_s=wall,
         peak_mem_bytes=mem.peak_bytes,
         config=dict(config.as_dict(), texture_adam=r.texture_adam, object_check_dropped=checked,
+                    **({"raem_object_chose": raem_choice} if raem_choice is not None else {}),
                     **({"ngs": dataclasses.asdict(ngs)} if ngs is not None else {})),
         texture_moments=export_moments(r.texture_opt) if return_moments else None,
         raem_keep=r.raem_keep,
         raem_removed=r.raem_removed,
     )
+
+
+def _prune_by_masks(model: GaussianModel, r: "Refiner", config: RefineConfig, last_stage) -> str:
+    """RefineConfig.raem_object_by_masks: of RAEM's two prune masks (``r.raem_choice``: as
+    published, and sparing what the labels call object), apply the one whose object alone, after
+    the final sets (the check), agrees better with the training masks
+    (:func:`cobgs.refine.consistency.drawn_agreement`; a tie keeps RAEM as published). Records it
+    on the Refiner and the last stage as a prune in that stage would. Returns "paper" or "spare"."""
+    published, spared = r.raem_choice
+    agreement = []
+    for prune in (published, spared):
+        rest = model.select(~prune)
+        kept = final_sets(rest, r.views, r.pixel_labels, config)[0]
+        agreement.append(drawn_agreement(rest, kept, r.views, r.pixel_labels, config.backend))
+    chose = "spare" if agreement[1] > agreement[0] else "paper"
+    prune = spared if chose == "spare" else published
+    if bool(prune.any()):
+        r.raem_keep, r.raem_removed = ~prune, model.select(prune)
+        model.keep(~prune, r.optimizers)
+    last_stage.pruned, last_stage.gaussians_end = int(prune.sum()), len(model)
+    return chose
 
 
 def refine_scene(model: GaussianModel, scene: Scene, object_name: str, config: RefineConfig = RefineConfig(),

@@ -229,3 +229,25 @@ def iou_keep(a: Tensor, b: Tensor, object_pixels: float, mask_lambda: float = 1.
             break
         keep = new
     return keep
+
+
+def drawn_agreement(model: GaussianModel, foreground: Tensor, views: Sequence[View],
+                    pixel_labels: Sequence[Tensor], backend: str = "native") -> float:
+    """IoU of the ``foreground`` rendered alone and drawn above 0.5 (as the segment stage draws the
+    object) with the masks, over every view's judged pixels (labels 0 / 1), leaving out the
+    background pixels where the object is hidden in the scene render (the pixels the
+    object-render check leaves out)."""
+    idx = torch.nonzero(foreground).squeeze(1)
+    obj = model.select(idx)
+    ones = torch.ones(len(obj), 1, device=model.device)
+    values = foreground.to(model.means.dtype)
+    inter = union = 0
+    for v, lab in zip(views, pixel_labels):
+        lab = lab.to(model.device)
+        alone = (_mask_render(obj, ones[:, 0], v, backend) > 0.5) if len(obj) else torch.zeros_like(lab, dtype=torch.bool)
+        shown = _mask_render(model, values, v, backend) > 0.5
+        q = lab.clone()
+        q[(q == 0) & alone & ~shown] = -1
+        inter += int((alone & (q == 1)).sum())
+        union += int(((alone | (q == 1)) & (q >= 0)).sum())
+    return inter / max(union, 1)

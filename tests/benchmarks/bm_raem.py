@@ -21,7 +21,7 @@ Rules:
 * ``spare``: ``paper``, except that a Gaussian the labels call object (label > 0.9) is never
   pruned; the check (IoU rule) judges those with the masks' evidence instead
   (``RefineConfig.raem_spare_object``, off by default).
-* ``object_set`` (a candidate, not an option of the refinement): per object, ``spare`` where the
+* ``object_set`` (``RefineConfig.raem_object_by_masks``, off by default): per object, ``spare`` where the
   object alone, drawn above 0.5, agrees better with the training masks than under ``paper`` (the
   intersection over union over every training view's judged pixels, the pixels where something
   else hides the object in the scene left out, as the check leaves them out), else ``paper``:
@@ -58,28 +58,6 @@ RULES = ("off", "paper", "spare", "object_set")
 OUTPUT_OPTIONS = ("object_check", "object_check_rule", "object_check_edge_px", "in_scene_undecided")
 
 
-def _training_iou(model, kept, views, pixel_labels) -> float:
-    """IoU of the object ``kept`` rendered alone and drawn above 0.5 with the training masks, over
-    their judged pixels, leaving out the background pixels where the object is hidden in the
-    scene (the object-render check's pixels, cobgs.refine.consistency.object_render_check)."""
-    import torch
-
-    from cobgs.render.image import render
-
-    inter = union = 0
-    obj = model.select(torch.nonzero(kept).squeeze(1))
-    values = kept.to(model.means.dtype)[:, None].contiguous()
-    with torch.no_grad():
-        for v, lab in zip(views, pixel_labels):
-            alone = render(obj, v.camera, features=torch.ones(len(obj), 1)).image[..., 0] > 0.5
-            shown = render(model, v.camera, features=values).image[..., 0] > 0.5
-            q = lab.clone()
-            q[(q == 0) & alone & ~shown] = -1
-            inter += int((alone & (q == 1)).sum())
-            union += int(((alone | (q == 1)) & (q >= 0)).sum())
-    return inter / max(union, 1)
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("workflow", type=Path)
@@ -101,6 +79,7 @@ def main(argv=None) -> int:
     from cobgs.configs import LABEL, RefineConfig
     from cobgs.evaluate import protocols as E
     from cobgs.refine.alternation import apply_raem, final_sets, label_sets
+    from cobgs.refine.consistency import drawn_agreement
     from cobgs.refine.scores import pixel_labels_from_mask
     from cobgs.refine.segment import render_object_mask, visible_object_mask
     from pipeline import entries, load_workflow
@@ -155,7 +134,7 @@ def main(argv=None) -> int:
             variant = "off" if rule == "off" else "paper"
             r = apply_raem(result, variant, scene.train, spare=labels_fg if rule == "spare" else None)
             kept, _, in_scene, _ = final_sets(r.model, views, px, outputs)
-            agreement[rule] = _training_iou(r.model, kept, views, px)
+            agreement[rule] = drawn_agreement(r.model, kept, views, px)
             if rule == "paper" and (scene_name, obj) in stored:
                 sdir = stored[(scene_name, obj)]
                 _, s_in, s_seg = read_refined(sdir, "cpu")

@@ -10,7 +10,7 @@ import torch
 
 from cobgs.errors import InputError
 from cobgs.gaussians.model import GaussianModel, quat_to_rotmat
-from cobgs.refine.alternation import Refiner, masks_for, refine
+from cobgs.refine.alternation import Refiner, final_sets, masks_for, refine
 from cobgs.configs import RefineConfig
 from cobgs.refine.scores import (
     LABEL,
@@ -406,6 +406,33 @@ def test_apply_raem_matches_running_with_raem(variant):
     assert "raem_spare_object" not in key_without_later(RefineConfig, RefineConfig().as_dict())
     assert "raem_spare_object" not in key_without_later(RefineConfig, RefineConfig(raem="off", raem_spare_object=True).as_dict())
     assert key_without_later(RefineConfig, RefineConfig(raem_spare_object=True).as_dict())["raem_spare_object"] is True
+    # RefineConfig.raem_object_by_masks: of the two (as published, spared), the one whose object
+    # alone agrees better with the training masks after the check; what bm_raem's object_set picks
+    from cobgs.refine.consistency import drawn_agreement
+    from cobgs.refine.scores import pixel_labels_from_mask
+
+    chosen = refine(model, views, masks_for(views, "ball"), extent,
+                    dataclasses.replace(long, raem=variant, raem_object_by_masks=True), progress=False)
+    masks = masks_for(views, "ball")
+    px = [pixel_labels_from_mask(mk, v.height, v.width) for v, mk in zip(views, masks) if mk is not None]
+    seen = [v for v, mk in zip(views, masks) if mk is not None]
+    cfg = dataclasses.replace(long, raem=variant)
+    agree = {}
+    for name, res in (("paper", apply_raem(off, variant, views)), ("spare", again)):
+        kept = final_sets(res.model, seen, px, cfg)[0]
+        agree[name] = drawn_agreement(res.model, kept, seen, px)
+    want = "spare" if agree["spare"] > agree["paper"] else "paper"
+    assert chosen.config["raem_object_chose"] == want
+    ref = again if want == "spare" else apply_raem(off, variant, views)
+    assert len(chosen.model) == len(ref.model) and torch.equal(chosen.raem_keep, ref.raem_keep)
+    assert chosen.stages[-1].pruned == int((~ref.raem_keep).sum()) and chosen.stages[-1].gaussians_end == len(ref.model)
+    for k in ref.model.data:
+        assert torch.equal(chosen.model.data[k].detach(), ref.model.data[k].detach()), k
+    assert "raem_object_by_masks" not in key_without_later(RefineConfig, RefineConfig().as_dict())
+    assert "raem_object_by_masks" not in key_without_later(
+        RefineConfig, RefineConfig(raem="off", raem_object_by_masks=True).as_dict())
+    with pytest.raises(InputError, match="raem_object_by_masks and raem_spare_object are both on"):
+        RefineConfig(raem_object_by_masks=True, raem_spare_object=True)
 
 
 def test_peak_memory_sees_an_allocation_after_a_free():
