@@ -249,13 +249,14 @@ class Refiner:
         large = split_candidates(m, to_split, self.extent, c.split_size_fraction)
         info["ambiguous_large"] = int(large.sum())
         if last:
-            # raem_spare_object: never a Gaussian the labels call object (the check judges those)
-            spare = label_sets(m.data[c.label_name])[0] if c.raem_spare_object else None
+            # the labels' object, which raem_spare_object never prunes (the check judges those)
+            # and raem_object_by_masks weighs against pruning
+            labelled = label_sets(m.data[c.label_name])[0] if c.raem_spare_object or c.raem_object_by_masks else None
             cams = [v.camera for v in self.views]
-            prune = raem_prune_mask(m, amb, c.raem, cams, c.raem_footprint_px, spare)
+            prune = raem_prune_mask(m, amb, c.raem, cams, c.raem_footprint_px, labelled if c.raem_spare_object else None)
             info["pruned"] = int(prune.sum())
             if c.raem_object_by_masks:  # refine() chooses, once the check can judge both outcomes
-                spared = raem_prune_mask(m, amb, c.raem, cams, c.raem_footprint_px, label_sets(m.data[c.label_name])[0])
+                spared = raem_prune_mask(m, amb, c.raem, cams, c.raem_footprint_px, labelled)
                 if not torch.equal(spared, prune):
                     self.raem_choice = (prune, spared)
                     prune = torch.zeros_like(prune)
@@ -439,10 +440,11 @@ def refine(
             log.warning("%s %s: %s", method, object_name, short)
         stats, scores, amb = r.run(progress=progress, desc=f"{method} {object_name}".strip())
         raem_choice = None
-        if r.raem_choice is not None:  # RefineConfig.raem_object_by_masks
-            raem_choice = _prune_by_masks(m, r, config, stats[-1])
+        if r.raem_choice is not None:  # RefineConfig.raem_object_by_masks (it has the final sets)
+            raem_choice, (fg, bg, in_scene, checked) = _prune_by_masks(m, r, config, stats[-1])
+        else:
+            fg, bg, in_scene, checked = final_sets(m, r.views, r.pixel_labels, config)
         logits = m.data[config.label_name]
-        fg, bg, in_scene, checked = final_sets(m, r.views, r.pixel_labels, config)
     wall = time.perf_counter() - t0
     return RefineResult(
         method=method,
@@ -468,25 +470,26 @@ def refine(
     )
 
 
-def _prune_by_masks(model: GaussianModel, r: "Refiner", config: RefineConfig, last_stage) -> str:
+def _prune_by_masks(model: GaussianModel, r: "Refiner", config: RefineConfig, last_stage) -> tuple[str, tuple]:
     """RefineConfig.raem_object_by_masks: of RAEM's two prune masks (``r.raem_choice``: as
     published, and sparing what the labels call object), apply the one whose object alone, after
     the final sets (the check), agrees better with the training masks
     (:func:`cobgs.refine.consistency.drawn_agreement`; a tie keeps RAEM as published). Records it
-    on the Refiner and the last stage as a prune in that stage would. Returns "paper" or "spare"."""
+    on the Refiner and the last stage as a prune in that stage would. Returns "paper" or "spare",
+    and the chosen outcome's :func:`final_sets` (those of ``model`` as it is left)."""
     published, spared = r.raem_choice
-    agreement = []
+    outcomes = []
     for prune in (published, spared):
-        rest = model.select(~prune)
-        kept = final_sets(rest, r.views, r.pixel_labels, config)[0]
-        agreement.append(drawn_agreement(rest, kept, r.views, r.pixel_labels, config.backend))
-    chose = "spare" if agreement[1] > agreement[0] else "paper"
-    prune = spared if chose == "spare" else published
+        rest = model.select(~prune)  # (the order keep() leaves: the final sets hold for the model)
+        sets = final_sets(rest, r.views, r.pixel_labels, config)
+        outcomes.append((drawn_agreement(rest, sets[0], r.views, r.pixel_labels, config.backend), sets))
+    chose = "spare" if outcomes[1][0] > outcomes[0][0] else "paper"
+    prune, sets = (spared, outcomes[1][1]) if chose == "spare" else (published, outcomes[0][1])
     if bool(prune.any()):
         r.raem_keep, r.raem_removed = ~prune, model.select(prune)
         model.keep(~prune, r.optimizers)
     last_stage.pruned, last_stage.gaussians_end = int(prune.sum()), len(model)
-    return chose
+    return chose, sets
 
 
 def refine_scene(model: GaussianModel, scene: Scene, object_name: str, config: RefineConfig = RefineConfig(),

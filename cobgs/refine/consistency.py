@@ -66,6 +66,22 @@ def _mask_render(model: GaussianModel, values: Tensor, view: View, backend: str)
     return out.image[..., 0]
 
 
+def _judged_pixels(model: GaussianModel, obj: GaussianModel, values: Tensor, view: View, labels: Tensor,
+                   backend: str) -> tuple[Tensor, Tensor]:
+    """``(alone, judged)``: the object ``obj`` rendered alone and drawn above 0.5, and ``labels``
+    with the background pixels where the object is hidden in the scene (``model`` rendered with
+    the object's ``values``: the object as the scene shows it) set to −1: there something else
+    hides it, and a modal mask says nothing about what lies behind."""
+    if len(obj):
+        alone = _mask_render(obj, torch.ones(len(obj), device=model.device), view, backend) > 0.5
+    else:
+        alone = torch.zeros(labels.shape, dtype=torch.bool, device=labels.device)
+    visible = _mask_render(model, values, view, backend) > 0.5
+    judged = labels.clone()
+    judged[(judged == 0) & alone & ~visible] = -1
+    return alone, judged
+
+
 def edge_band(labels: Tensor, radius: int) -> Tensor:
     """[H, W] bool: the pixels within ``radius`` pixels (a square neighbourhood) of an edge
     between object (1) and background (0) pixels of ``labels`` (ignored pixels, −1, are neither)."""
@@ -94,7 +110,7 @@ def object_render_check(model: GaussianModel, foreground: Tensor, views: Sequenc
         mask_lambda: λ of the mask loss (the weight of background votes).
         edge_px: pixels within this distance of a mask edge are left out of the votes
             (``RefineConfig.object_check_edge_px``; 0: none).
-        rule: "votes" or "iou" (module docstring; ``RefineConfig.object_check_rule``).
+        rule: "votes", "iou" or "removal" (module docstring; ``RefineConfig.object_check_rule``).
 
     Returns:
         [N] bool: ``foreground`` without the Gaussians the check outvotes.
@@ -103,15 +119,11 @@ def object_render_check(model: GaussianModel, foreground: Tensor, views: Sequenc
     if len(idx) == 0:
         return foreground.clone()
     obj = model.select(idx)
-    ones_obj = torch.ones(len(obj), device=model.device)
     fg_values = foreground.to(model.means.dtype)
     checked = []
     for v, lab in zip(views, pixel_labels):
         lab = lab.to(model.device)
-        alone = _mask_render(obj, ones_obj, v, backend) > 0.5        # the object rendered alone
-        visible = _mask_render(model, fg_values, v, backend) > 0.5  # the object as the scene shows it
-        q = lab.clone()
-        q[(q == 0) & alone & ~visible] = -1  # hidden behind something else: the mask says nothing here
+        _, q = _judged_pixels(model, obj, fg_values, v, lab, backend)
         if edge_px > 0:  # near the mask's edge: the mask is least reliable there
             q[edge_band(lab, edge_px)] = -1
         checked.append(q)
@@ -237,17 +249,11 @@ def drawn_agreement(model: GaussianModel, foreground: Tensor, views: Sequence[Vi
     object) with the masks, over every view's judged pixels (labels 0 / 1), leaving out the
     background pixels where the object is hidden in the scene render (the pixels the
     object-render check leaves out)."""
-    idx = torch.nonzero(foreground).squeeze(1)
-    obj = model.select(idx)
-    ones = torch.ones(len(obj), 1, device=model.device)
+    obj = model.select(torch.nonzero(foreground).squeeze(1))
     values = foreground.to(model.means.dtype)
     inter = union = 0
     for v, lab in zip(views, pixel_labels):
-        lab = lab.to(model.device)
-        alone = (_mask_render(obj, ones[:, 0], v, backend) > 0.5) if len(obj) else torch.zeros_like(lab, dtype=torch.bool)
-        shown = _mask_render(model, values, v, backend) > 0.5
-        q = lab.clone()
-        q[(q == 0) & alone & ~shown] = -1
+        alone, q = _judged_pixels(model, obj, values, v, lab.to(model.device), backend)
         inter += int((alone & (q == 1)).sum())
         union += int(((alone | (q == 1)) & (q >= 0)).sum())
     return inter / max(union, 1)
